@@ -1,0 +1,45 @@
+# dran-edge — a newcomer needs two targets:  make demo   and   make test
+# Both create/refresh .venv and install everything themselves (system packages via
+# apt-get, the draft-enabled ZeroMQ build, the Python dependencies).
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.dran-edge-installed
+EXTRAS := perception,realsense,comms,systemd,eval,test
+DEMO_DIR ?= demo-run
+
+.PHONY: help setup test test-all demo bench clean
+
+help:
+	@echo "make demo      simulate a 6-robot mission, replay it through the robot code, score it"
+	@echo "make test      run the test suite (hardware tests skip without a device)"
+	@echo "make test-all  also run tests marked slow"
+	@echo "make bench     run the benchmarks in tools/bench (see docs/benchmarks.md)"
+	@echo "make setup     only install (.venv, system packages, draft ZeroMQ)"
+	@echo "make clean     remove .venv and build outputs"
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh
+	bash tools/setup_system.sh
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -U pip setuptools wheel
+	bash tools/build_zmq_draft.sh $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[$(EXTRAS)]'
+	touch $@
+
+test: setup
+	$(PY) -m pytest -q -m "not slow and not hardware"
+
+test-all: setup
+	$(PY) -m pytest -q -m "not hardware"
+
+demo: setup
+	$(VENV)/bin/dran-edge demo --out $(DEMO_DIR)
+
+bench: setup
+	$(PY) tools/bench/run_all.py
+
+clean:
+	rm -rf $(VENV) build dist *.egg-info .pytest_cache .hypothesis $(DEMO_DIR)

@@ -1,0 +1,1 @@
+"""Neighbour communication (``dran_edge.comms``): wire codec, transports, local ingest socket."""

@@ -1,0 +1,82 @@
+"""Typed neighbour messages: what one robot's agent tells its neighbours (DESIGN §5).
+
+The agent emits and consumes these; ``dran_edge.comms.codec`` turns them into
+self-contained, authenticated datagrams and back. Poses are ``(4, 4)`` SE(3) or ``(3, 3)``
+SE(2) float64 arrays in the fleet's common world frame. Nothing here does I/O.
+
+Entry kinds
+-----------
+- ``SeparatorEntry``: a pose of the sender's trajectory that a neighbour's inter-robot
+  measurement touches (paper Sec. 3.1, edge-based decoupling). Neighbours hold it fixed
+  as an anchor in their ``f_inter`` for the next round.
+- ``ObjectEntry``: the sender's current estimate of a public object (vertex-based
+  decoupling) — its own local copy ``y_i`` or one it relays (``hop_count`` > 0,
+  paper Sec. 4.2.2 dynamic map consensus).
+- ``InitEntry``: a value of the two-stage distributed chordal initialisation
+  (Sec. 4.2.1): stage ``ROTATION`` carries an unconstrained ``d x d`` relaxed rotation,
+  stage ``TRANSLATION`` a pose whose rotation is already fixed.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class InitStage(enum.IntEnum):
+    ROTATION = 1
+    TRANSLATION = 2
+
+
+@dataclass(frozen=True, eq=False)
+class SeparatorEntry:
+    owner_robot: int
+    keyframe_id: int
+    stamp_ns: int
+    T_world_body: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectEntry:
+    object_id: int
+    T_world_object: np.ndarray
+    origin_robot: int
+    hop_count: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class InitEntry:
+    stage: InitStage
+    owner_robot: int
+    keyframe_id: int
+    #: ROTATION: (d, d) relaxed rotation (not necessarily orthonormal);
+    #: TRANSLATION: (d+1, d+1) pose with the stage-1 rotation and the current translation.
+    value: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class NeighbourMessage:
+    """One robot's message to its neighbours for one round (may span several datagrams)."""
+
+    sender_id: int
+    round: int
+    stamp_ns: int
+    separators: tuple[SeparatorEntry, ...] = ()
+    objects: tuple[ObjectEntry, ...] = ()
+    init: tuple[InitEntry, ...] = ()
+    #: Filled by the codec on decode (None on messages the agent builds).
+    fleet_id: int | None = None
+    boot_epoch: int | None = None
+    sequence: int | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int | None:
+        """2 or 3 from the first pose carried, None for an empty message."""
+        for group in (self.separators, self.objects):
+            if group:
+                pose = group[0].T_world_body if group is self.separators else group[0].T_world_object
+                return pose.shape[-1] - 1
+        return None
