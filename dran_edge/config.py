@@ -1,0 +1,569 @@
+"""One robot's configuration: frozen dataclasses and a strict YAML loader (DESIGN §6).
+
+A robot reads one YAML file (schema and examples: ``docs/config.md``, ``calib/fleet/``)::
+
+    robot:      {id: 1, name: dingo1, fleet: dingo6}
+    neighbours: [{id: 2, name: dingo2, address: "10.42.0.12:5600"}]
+    comms:      {port: 5600, key_file: /etc/dran-edge/fleet.key}
+    ingest:     {socket_path: ""}          # "" -> $RUNTIME_DIRECTORY/ingest.sock
+    camera:     {source: realsense, calib_dir: calib/cameras}
+    daemon:     {state_dir: ""}            # "" -> $STATE_DIRECTORY
+    agent:      {beta: 1.0, graph: {max_nodes: 400}}
+
+Loading is strict: an unknown key, a wrong type or an out-of-range value raises
+:class:`~dran_edge.errors.ConfigError` naming the file, the line, the key path (``agent.beta``)
+and the reason. Every field has a default except ``robot.id``/``robot.name``/``robot.fleet``.
+
+The dataclasses are pure (stdlib only) so the core (``AgentConfig``, ``GraphBounds``) can use
+them; each field carries its unit in its name or docstring and its valid range in
+``metadata`` (checked by the loader and again on direct construction).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import math
+import re
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dran_edge.errors import ConfigError
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")
+
+
+def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
+       choices: tuple | None = None, lo_open: bool = False) -> Any:
+    """A dataclass field with its valid range (``lo <= v <= hi``; ``lo < v`` if ``lo_open``)."""
+    meta = {"lo": lo, "hi": hi, "choices": choices, "lo_open": lo_open}
+    if isinstance(default, (list, dict, tuple)) and not isinstance(default, tuple):
+        return field(default_factory=lambda: default, metadata=meta)
+    if dataclasses.is_dataclass(default):
+        return field(default_factory=lambda d=default: d, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _check_value(value: Any, meta: dict, key: str) -> None:
+    """Range / choice check of one scalar field; raises ConfigError naming ``key``."""
+    if not meta:
+        return
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise ConfigError(f"{key}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        lo, hi = meta.get("lo"), meta.get("hi")
+        if lo is not None:
+            if meta.get("lo_open") and not value > lo:
+                raise ConfigError(f"{key}: expected a value > {lo}, got {value!r}")
+            if not meta.get("lo_open") and not value >= lo:
+                raise ConfigError(f"{key}: expected a value >= {lo}, got {value!r}")
+        if hi is not None and not value <= hi:
+            raise ConfigError(f"{key}: expected a value <= {hi}, got {value!r}")
+
+
+def _validate_fields(obj: Any) -> None:
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, tuple):
+            for i, item in enumerate(value):
+                if not dataclasses.is_dataclass(item):
+                    _check_value(item, dict(f.metadata), f"{f.name}[{i}]")
+        else:
+            _check_value(value, dict(f.metadata), f.name)
+
+
+class _Checked:
+    """Mixin: validate field ranges on construction (also for configs built in code)."""
+
+    def __post_init__(self) -> None:
+        _validate_fields(self)
+        self._check()
+
+    def _check(self) -> None:
+        """Cross-field checks; raise ConfigError naming the field."""
+
+
+# --------------------------------------------------------------------------- core sections
+@dataclass(frozen=True)
+class NoiseModel(_Checked):
+    """Isotropic-per-block noise of one measurement kind (VINS-Mono gives no covariances)."""
+
+    sigma_translation_m: float = _f(0.05, lo=0.0, lo_open=True)
+    """Standard deviation of each translation component, metres."""
+    sigma_rotation_rad: float = _f(0.02, lo=0.0, lo_open=True)
+    """Standard deviation of each rotation component (tangent), radians."""
+
+
+@dataclass(frozen=True)
+class OdometryNoise(_Checked):
+    """Noise of an odometry edge between two kept keyframes, growing with the motion between them.
+
+    sigma_t = sigma_translation_m + per_metre * |dt|; sigma_r = sigma_rotation_rad + per_radian * |dr|.
+    """
+
+    sigma_translation_m: float = _f(0.01, lo=0.0, lo_open=True)
+    """Translation standard deviation of any odometry edge, metres."""
+    sigma_rotation_rad: float = _f(0.005, lo=0.0, lo_open=True)
+    """Rotation standard deviation of any odometry edge, radians."""
+    per_metre: float = _f(0.02, lo=0.0)
+    """Added translation standard deviation per metre travelled (VIO drift), m/m."""
+    per_radian: float = _f(0.01, lo=0.0)
+    """Added rotation standard deviation per radian turned, rad/rad."""
+
+
+@dataclass(frozen=True)
+class GraphBounds(_Checked):
+    """Keyframe selection, segmenting and the hard size cap of the bounded local graph."""
+
+    keyframe_min_distance_m: float = _f(0.3, lo=0.0)
+    """A VIO keyframe becomes a graph node once it is this far from the last node, metres."""
+    keyframe_min_angle_rad: float = _f(0.26, lo=0.0)
+    """... or has turned this much since the last node, radians."""
+    keyframe_max_interval_s: float = _f(5.0, lo=0.0, lo_open=True)
+    """... or this much time has passed since the last node, seconds."""
+    max_nodes: int = _f(400, lo=8, hi=1_000_000)
+    """Hard cap on trajectory nodes; over it the oldest removable nodes are marginalised."""
+    max_edges: int = _f(1600, lo=8, hi=10_000_000)
+    """Hard cap on factors (odometry, loop, object, prior) in the local graph."""
+    segment_gap_s: float = _f(1.0, lo=0.0, lo_open=True)
+    """An odometry stamp gap longer than this starts a new segment, seconds (VINS restarts on 1 s)."""
+    segment_jump_m: float = _f(1.0, lo=0.0, lo_open=True)
+    """A position jump between consecutive odometry samples above this starts a new segment, metres."""
+    segment_jump_rad: float = _f(0.8, lo=0.0, lo_open=True)
+    """A rotation jump between consecutive odometry samples above this starts a new segment, rad."""
+    observation_max_dt_s: float = _f(0.5, lo=0.0, lo_open=True)
+    """An observation is attached to a keyframe only if odometry brackets it within this, seconds."""
+
+    def _check(self) -> None:
+        if self.max_edges < self.max_nodes:
+            raise ConfigError(
+                f"max_edges: expected >= max_nodes ({self.max_nodes}), got {self.max_edges}"
+            )
+
+
+@dataclass(frozen=True)
+class AgentConfig(_Checked):
+    """Parameters of one robot's DRAN agent (paper Sec. 4, Alg. 1; defaults from Sec. 5)."""
+
+    robot_id: int = _f(0, lo=0, hi=65535)
+    """This robot's id (copied from ``robot.id`` by the loader)."""
+    neighbours: tuple[int, ...] = _f((), lo=0, hi=65535)
+    """Ids of the communication neighbours (copied from ``neighbours`` by the loader)."""
+    dim: int = _f(3, choices=(2, 3))
+    """2 for SE(2), 3 for SE(3)."""
+    residual: str = _f("geodesic", choices=("geodesic", "chordal"))
+    """Residual of eq. 2: geodesic Log(T~^-1 Tp^-1 Tq) or chordal."""
+    beta: float = _f(1.0, lo=0.0, lo_open=True)
+    """Penalty parameter beta of the augmented Lagrangian (eq. 4)."""
+    eta: float = _f(0.1, lo=0.0, lo_open=True)
+    """Dual step eta of eq. 5b."""
+    alpha: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0)
+    """Step size on the private variables u (retraction)."""
+    gamma: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0)
+    """Step size on the public variables v (retraction)."""
+    eps_u: float = _f(1e-2, lo=0.0)
+    """Terminate when the private step norm |u| < eps_u."""
+    eps_v: float = _f(1e-1, lo=0.0)
+    """... and the public step norm |v| < eps_v."""
+    eps_phi: float = _f(1e-1, lo=0.0)
+    """... and the consensus error |phi| < eps_phi."""
+    k_max: int = _f(500, lo=1, hi=1_000_000)
+    """Maximum number of DRAN rounds of one optimisation."""
+    mu_init: float = _f(1e-4, lo=0.0, lo_open=True)
+    """Initial Levenberg-Marquardt damping mu of M = J^T J + mu I (eq. 7)."""
+    robust_kernel: str = _f("huber", choices=("none", "huber", "cauchy"))
+    """Robust kernel on loop and object residuals (whitened)."""
+    robust_threshold: float = _f(1.345, lo=0.0, lo_open=True)
+    """Kernel width on the whitened residual norm (1.345: 95 % efficiency for Huber)."""
+    relay_max_hops: int = _f(3, lo=0, hi=32)
+    """Object estimates learned from others are relayed at most this many hops (Sec. 4.2.2)."""
+    init_max_iterations: int = _f(50, lo=1, hi=10_000)
+    """Iterations of each stage of the distributed chordal initialisation (Sec. 4.2.1)."""
+    seed: int = _f(0, lo=0)
+    """Seed of any randomness inside the agent (determinism)."""
+    odometry_noise: OdometryNoise = _f(OdometryNoise())
+    """Noise model of odometry edges."""
+    loop_noise: NoiseModel = _f(NoiseModel(0.1, 0.05))
+    """Noise model of DBoW2 loop closures (relative pose T_old_cur)."""
+    object_noise: NoiseModel = _f(NoiseModel(0.05, 0.05))
+    """Noise of tag observations when perception gives no covariance."""
+    inter_robot_noise: NoiseModel = _f(NoiseModel(0.1, 0.05))
+    """Noise of inter-robot relative-pose measurements (object-free mode)."""
+    graph: GraphBounds = _f(GraphBounds())
+    """The bounded local graph."""
+
+    def _check(self) -> None:
+        if self.robot_id in self.neighbours:
+            raise ConfigError(f"neighbours: a robot cannot neighbour itself (id {self.robot_id})")
+        if len(set(self.neighbours)) != len(self.neighbours):
+            raise ConfigError(f"neighbours: expected distinct ids, got {list(self.neighbours)}")
+
+
+# --------------------------------------------------------------------------- shell sections
+@dataclass(frozen=True)
+class RobotSection(_Checked):
+    """Who this robot is."""
+
+    id: int = _f(None, lo=0, hi=65535)
+    """Robot id, unique within the fleet (0..65535)."""
+    name: str = _f(None)
+    """Robot name (letters, digits, ``_.-``; <= 15 characters)."""
+    fleet: str = _f(None)
+    """Fleet name; also the RADIO/DISH group, so <= 15 characters."""
+
+    def _check(self) -> None:
+        for key in ("name", "fleet"):
+            value = getattr(self, key)
+            if value is not None and not _NAME_RE.match(value):
+                raise ConfigError(
+                    f"{key}: expected 1-15 characters of [A-Za-z0-9_.-], got {value!r}"
+                )
+
+
+@dataclass(frozen=True)
+class Neighbour(_Checked):
+    """One communication neighbour."""
+
+    id: int = _f(None, lo=0, hi=65535)
+    """The neighbour's robot id."""
+    name: str = _f("")
+    """Its name (for logs and status)."""
+    address: str = _f(None)
+    """Its DISH endpoint ``ip:port`` (IPv6 as ``[addr]:port``)."""
+
+    def _check(self) -> None:
+        if self.address is not None:
+            parse_address(self.address, "address")
+
+
+def parse_address(text: str, key: str) -> tuple[str, int]:
+    """``"10.0.0.2:5600"`` / ``"[::1]:5600"`` -> (ip, port); ConfigError otherwise."""
+    m = re.match(r"^\[([0-9A-Fa-f:.]+)\]:(\d{1,5})$", text) or re.match(
+        r"^([0-9.]+):(\d{1,5})$", text
+    )
+    if not m:
+        raise ConfigError(f"{key}: expected 'ip:port' (IPv6 as '[ip]:port'), got {text!r}")
+    host, port = m.group(1), int(m.group(2))
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        raise ConfigError(f"{key}: expected an IP address, got {host!r}") from None
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"{key}: expected a port in 1..65535, got {port}")
+    return host, port
+
+
+@dataclass(frozen=True)
+class CommsSection(_Checked):
+    """Neighbour link (ZeroMQ UDP RADIO/DISH, DESIGN §5)."""
+
+    transport: str = _f("udp", choices=("udp", "none"))
+    """``udp``: RADIO/DISH to the neighbours; ``none``: no radio (a lone robot or a laptop)."""
+    bind_address: str = _f("0.0.0.0")
+    """Address the DISH binds to."""
+    port: int = _f(5600, lo=1, hi=65535)
+    """UDP port the DISH binds to."""
+    key_file: str = _f("")
+    """Per-fleet HMAC key file (must not be world-readable); relative to the config file."""
+    datagram_max_bytes: int = _f(1200, lo=256, hi=7000)
+    """Largest datagram we send, bytes (libzmq UDP breaks above ~8 KB)."""
+    period_s: float = _f(0.5, lo=0.01, hi=60.0)
+    """Round period: one DRAN round and one exchange per period, seconds (2 Hz default)."""
+    allow_relay_from: tuple[int, ...] = _f((), lo=0, hi=65535)
+    """Robots not configured as neighbours whose relayed datagrams are still accepted."""
+
+    def _check(self) -> None:
+        try:
+            ipaddress.ip_address(self.bind_address)
+        except ValueError:
+            raise ConfigError(
+                f"bind_address: expected an IP address, got {self.bind_address!r}"
+            ) from None
+
+
+@dataclass(frozen=True)
+class IngestSection(_Checked):
+    """The local ingest socket the VINS bridge writes to (docs/ingest.md)."""
+
+    enabled: bool = _f(True)
+    """Open the ingest socket (false on a robot without VINS)."""
+    socket_path: str = _f("")
+    """Socket path; "" means ``$RUNTIME_DIRECTORY/ingest.sock`` (or ``<state_dir>/run/``)."""
+    socket_mode: int = _f(0o660, lo=0, hi=0o777)
+    """Permission bits of the socket (group-writable, never world-writable)."""
+    max_pending_records: int = _f(20000, lo=16, hi=10_000_000)
+    """Records held between ticks before the oldest odometry is dropped (counted)."""
+
+    def _check(self) -> None:
+        if self.socket_mode & 0o007:
+            raise ConfigError(
+                f"socket_mode: expected no permissions for others, got {oct(self.socket_mode)}"
+            )
+
+
+@dataclass(frozen=True)
+class CameraSection(_Checked):
+    """Where frames come from and how tags become object observations."""
+
+    source: str = _f("none", choices=("none", "realsense", "oak", "forwarded", "recorded"))
+    """Frame source: none, pyrealsense2 direct, depthai, frames over the ingest socket, a recording."""
+    calib_dir: str = _f("")
+    """Directory with the camera calibration (intrinsics, T_body_camera); relative to the file."""
+    tags_file: str = _f("")
+    """Tag -> object map (calib/tags.yaml format); relative to the config file."""
+    serial: str = _f("")
+    """Device serial number ("" = the first device found)."""
+    recording: str = _f("")
+    """For ``recorded``: the frames directory or a .bag; relative to the config file."""
+    width: int = _f(640, lo=16, hi=8192)
+    """Colour width, pixels."""
+    height: int = _f(480, lo=16, hi=8192)
+    """Colour height, pixels."""
+    fps: int = _f(15, lo=1, hi=120)
+    """Frame rate asked of the device, Hz."""
+    queue_size: int = _f(8, lo=1, hi=1024)
+    """Observation batches queued from the perception worker to the agent (drop-oldest)."""
+
+
+@dataclass(frozen=True)
+class DaemonSection(_Checked):
+    """Where the daemon keeps its state and how often it checkpoints."""
+
+    state_dir: str = _f("")
+    """Checkpoint directory; "" means ``$STATE_DIRECTORY`` (systemd) or ``./dran-edge-state``."""
+    runtime_dir: str = _f("")
+    """Socket directory; "" means ``$RUNTIME_DIRECTORY`` (systemd) or ``<state_dir>/run``."""
+    checkpoint_period_s: float = _f(5.0, lo=0.0, lo_open=True)
+    """Checkpoint at most this often, seconds (and always on stop)."""
+    status_period_s: float = _f(5.0, lo=0.1)
+    """Send STATUS= to systemd and log a status line this often, seconds."""
+
+
+@dataclass(frozen=True)
+class RobotConfig(_Checked):
+    """A robot's whole configuration file."""
+
+    robot: RobotSection
+    neighbours: tuple[Neighbour, ...] = _f(())
+    comms: CommsSection = _f(CommsSection())
+    ingest: IngestSection = _f(IngestSection())
+    camera: CameraSection = _f(CameraSection())
+    daemon: DaemonSection = _f(DaemonSection())
+    agent: AgentConfig = _f(AgentConfig())
+    source_path: str = _f("")
+    """The file this was loaded from ("" when built in code); relative paths resolve against it."""
+
+    def _check(self) -> None:
+        ids = [n.id for n in self.neighbours]
+        if len(set(ids)) != len(ids):
+            raise ConfigError(f"neighbours: expected distinct ids, got {ids}")
+        if self.robot.id in ids:
+            raise ConfigError(f"neighbours: robot {self.robot.id} lists itself as a neighbour")
+
+    def resolve(self, path_text: str) -> Path | None:
+        """A path from this config, relative ones against the config file's directory."""
+        if not path_text:
+            return None
+        p = Path(path_text).expanduser()
+        if not p.is_absolute() and self.source_path:
+            p = Path(self.source_path).resolve().parent / p
+        return p
+
+
+# --------------------------------------------------------------------------- loading
+_SKIP_ON_LOAD = {("RobotConfig", "source_path")}
+# Filled from other sections by the loader; a file may not set them.
+_DERIVED = {("AgentConfig", "robot_id"), ("AgentConfig", "neighbours")}
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(value: Any, tp: Any, key: str, lines: dict[str, int]) -> Any:
+    """Convert one YAML value to the annotated type ``tp`` strictly (no silent coercion)."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _convert(value, args[0], key, lines)
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, key, lines)
+    if origin is tuple:
+        if not isinstance(value, list):
+            raise _err(f"{key}: expected a list, got {_describe(value)}", key, lines)
+        (item_tp, _ellipsis) = typing.get_args(tp)
+        return tuple(
+            _convert(v, item_tp, f"{key}[{i}]", lines) for i, v in enumerate(value)
+        )
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise _err(f"{key}: expected true or false, got {_describe(value)}", key, lines)
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _err(f"{key}: expected an integer, got {_describe(value)}", key, lines)
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _err(f"{key}: expected a number, got {_describe(value)}", key, lines)
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise _err(f"{key}: expected a string, got {_describe(value)}", key, lines)
+        return value
+    raise AssertionError(f"unsupported config type {tp!r} at {key}")
+
+
+def _describe(value: Any) -> str:
+    if value is None:
+        return "nothing (null)"
+    return f"{type(value).__name__} {value!r}"
+
+
+class _LoadError(Exception):
+    def __init__(self, message: str, line: int | None):
+        super().__init__(message)
+        self.line = line
+
+
+def _err(message: str, key: str, lines: dict[str, int]) -> _LoadError:
+    while key and key not in lines:
+        parent = re.sub(r"(\.[^.\[]*|\[\d+\])$", "", key)
+        key = "" if parent == key else parent
+    return _LoadError(message, lines.get(key))
+
+
+def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
+    where = prefix or "top level"
+    if not isinstance(data, dict):
+        raise _err(f"{where}: expected a mapping of keys, got {_describe(data)}", prefix, lines)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if (cls.__name__, f.name) not in _SKIP_ON_LOAD}
+    settable = {n for n in fields if (cls.__name__, n) not in _DERIVED}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        path = f"{prefix}.{key}" if prefix else str(key)
+        if key not in settable:
+            known = ", ".join(sorted(settable))
+            reason = "is set from robot/neighbours, not here" if key in fields else "unknown key"
+            raise _err(f"{path}: {reason} (allowed here: {known})", path, lines)
+        f = fields[key]
+        converted = _convert(value, hints[key], path, lines)
+        if not dataclasses.is_dataclass(converted):
+            items = converted if isinstance(converted, tuple) else (converted,)
+            for i, item in enumerate(items):
+                if dataclasses.is_dataclass(item):
+                    continue
+                try:
+                    _check_value(item, dict(f.metadata), path if items is not converted else f"{path}[{i}]")
+                except ConfigError as exc:
+                    raise _err(str(exc), path, lines) from None
+        kwargs[key] = converted
+    for name, f in fields.items():
+        if name in kwargs:
+            continue
+        has_default = f.default is not dataclasses.MISSING and f.default is not None
+        if not has_default and f.default_factory is dataclasses.MISSING:  # type: ignore[misc]
+            if (cls.__name__, name) in _DERIVED:
+                continue
+            path = f"{prefix}.{name}" if prefix else name
+            raise _err(f"{path}: required key is missing", prefix, lines)
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        # Cross-field check: the message starts with the field name; prefix the section.
+        msg = str(exc)
+        path = f"{prefix}.{msg}" if prefix else msg
+        raise _err(path, f"{prefix}.{msg.split(':', 1)[0]}" if prefix else msg.split(":", 1)[0],
+                   lines) from None
+
+
+def _line_map(text: str) -> dict[str, int]:
+    """Key path -> 1-based line, from the YAML node tree; also rejects duplicate keys."""
+    import yaml
+
+    lines: dict[str, int] = {}
+    root = yaml.compose(text, Loader=yaml.SafeLoader)
+
+    def walk(node: Any, path: str) -> None:
+        if isinstance(node, yaml.MappingNode):
+            seen: set[str] = set()
+            for k_node, v_node in node.value:
+                key = str(k_node.value)
+                child = f"{path}.{key}" if path else key
+                if key in seen:
+                    raise _LoadError(f"{child}: duplicate key", k_node.start_mark.line + 1)
+                seen.add(key)
+                lines[child] = k_node.start_mark.line + 1
+                walk(v_node, child)
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                child = f"{path}[{i}]"
+                lines[child] = item.start_mark.line + 1
+                walk(item, child)
+
+    if root is not None:
+        walk(root, "")
+    return lines
+
+
+def config_from_dict(data: Any, *, source_path: str = "", lines: dict[str, int] | None = None
+                     ) -> RobotConfig:
+    """Build a :class:`RobotConfig` from parsed YAML; ConfigError (with key path) on any problem."""
+    lines = lines or {}
+    try:
+        cfg = _build(RobotConfig, data, "", lines)
+    except _LoadError as exc:
+        raise ConfigError(str(exc), path=source_path or None, line=exc.line) from None
+    except ConfigError as exc:
+        raise ConfigError(str(exc), path=source_path or None) from None
+    agent = dataclasses.replace(
+        cfg.agent, robot_id=cfg.robot.id, neighbours=tuple(n.id for n in cfg.neighbours)
+    )
+    return dataclasses.replace(cfg, agent=agent, source_path=source_path)
+
+
+def load_config(path: str | Path) -> RobotConfig:
+    """Read and strictly validate one robot's YAML file."""
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read the config file: {exc.strerror}", path=str(path)) from None
+    try:
+        lines = _line_map(text)
+        data = yaml.safe_load(text)
+    except _LoadError as exc:
+        raise ConfigError(str(exc), path=str(path), line=exc.line) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"not valid YAML: {problem}", path=str(path), line=line) from None
+    if data is None:
+        raise ConfigError("the file is empty; expected at least a 'robot' section", path=str(path))
+    return config_from_dict(data, source_path=str(path), lines=lines)
+
+
+def config_to_dict(cfg: Any) -> Any:
+    """The inverse of loading: plain dicts/lists (for ``robot.yaml`` in a recorded run)."""
+    if dataclasses.is_dataclass(cfg):
+        out = {}
+        for f in dataclasses.fields(cfg):
+            if (type(cfg).__name__, f.name) in _SKIP_ON_LOAD | _DERIVED:
+                continue
+            out[f.name] = config_to_dict(getattr(cfg, f.name))
+        return out
+    if isinstance(cfg, tuple):
+        return [config_to_dict(v) for v in cfg]
+    return cfg
