@@ -1,5 +1,178 @@
 #!/usr/bin/env bash
-# Placeholder until the comms work lands: installs plain pyzmq (no drafts).
+# Build libzmq with the DRAFT API (UDP RADIO/DISH) plus our UDP-engine hardening patch,
+# install it into VENV/opt/libzmq, and install pyzmq from source against it.
+#
+#   tools/build_zmq_draft.sh [VENV]          (default VENV: .venv)
+#
+# Why: no Debian/Ubuntu libzmq package and no pyzmq wheel has the draft API, and every
+# libzmq release up to 4.3.5 can be aborted by one malformed UDP datagram
+# (tools/patches/libzmq-udp-engine-hardening.patch explains the bugs and the fix).
+#
+# Source: the distribution's own `zeromq3` source package, fetched with `apt-get source`
+# through a private apt configuration under the cache folder whose deb-src entries are
+# derived from the machine's configured Debian/Ubuntu mirrors. Nothing in /etc is changed
+# and no root is needed. Only the package registries (apt mirror, PyPI) must be reachable.
+#
+# Idempotent: a stamp (libzmq source version + patch hash + pyzmq version) in
+# VENV/opt/libzmq/.dran-stamp; when it matches and the venv's pyzmq has drafts, the script
+# exits at once without touching the network.
+#
+# Environment (all optional):
+#   DRAN_ZMQ_SOURCE_DIR  an unpacked libzmq 4.3.x source tree to use instead of apt-get source
+#                        (offline robots: copy the tree fetched on another machine)
+#   DRAN_PYZMQ_SPEC      pip requirement for pyzmq (default: pyzmq>=25)
+#   DRAN_ZMQ_JOBS        parallel compile jobs (default: nproc)
+# docs/zeromq.md describes the robot-side (Ubuntu 20.04/22.04, aarch64) procedure.
 set -euo pipefail
-VENV=${1:-.venv}
-"$VENV/bin/python" -m pip install -q pyzmq
+
+VENV=$(cd "${1:-.venv}" && pwd)
+PY="$VENV/bin/python"
+HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+PATCH="$HERE/patches/libzmq-udp-engine-hardening.patch"
+PREFIX="$VENV/opt/libzmq"
+CACHE="$VENV/opt/zmq-build"
+STAMP="$PREFIX/.dran-stamp"
+PYZMQ_SPEC=${DRAN_PYZMQ_SPEC:-pyzmq>=25}
+JOBS=${DRAN_ZMQ_JOBS:-$(nproc 2>/dev/null || echo 2)}
+
+log() { echo "build_zmq_draft: $*" >&2; }
+die() { log "ERROR: $*"; exit 1; }
+
+[ -x "$PY" ] || die "no python in $VENV (expected $PY); create the venv first"
+[ -f "$PATCH" ] || die "patch not found: $PATCH"
+PATCH_HASH=$(sha256sum "$PATCH" | cut -c1-16)
+
+# The venv's pyzmq must have drafts and load the libzmq under PREFIX.
+verify() {
+    "$PY" - "$PREFIX" <<'EOF'
+import sys, zmq
+prefix = sys.argv[1]
+assert zmq.has("draft"), "pyzmq has no draft support"
+assert zmq.DRAFT_API, "zmq.DRAFT_API is False"
+assert zmq.RADIO == 14 and zmq.DISH == 15, "RADIO/DISH constants missing"
+ctx = zmq.Context()
+try:
+    dish = ctx.socket(zmq.DISH)
+    dish.join("dran.check")
+    dish.close(0)
+finally:
+    ctx.term()
+with open("/proc/self/maps") as f:
+    maps = f.read()
+assert prefix in maps, f"pyzmq did not load the libzmq under {prefix}"
+print(zmq.zmq_version(), zmq.__version__)
+EOF
+}
+
+# ------------------------------------------------------------ fast path: already built
+if [ -f "$STAMP" ] && grep -q "patch=$PATCH_HASH" "$STAMP" && verify >/dev/null 2>&1; then
+    log "up to date ($(cat "$STAMP"))"
+    exit 0
+fi
+
+mkdir -p "$CACHE"
+
+# ------------------------------------------------------------ libzmq source
+fetch_with_apt() {
+    local apt="$CACHE/apt"
+    mkdir -p "$apt/lists/partial" "$apt/archives/partial" "$apt/cache" "$CACHE/src"
+    # deb-src twins of the machine's Debian/Ubuntu entries (one-line and deb822 formats).
+    "$PY" - "$apt/sources.list.d" <<'EOF'
+import glob, os, re, sys
+out_dir = sys.argv[1]
+os.makedirs(out_dir, exist_ok=True)
+entries = []
+def official(uri):
+    return re.search(r"debian|ubuntu", uri) is not None
+for path in ["/etc/apt/sources.list"] + sorted(glob.glob("/etc/apt/sources.list.d/*.list")):
+    if not os.path.exists(path):
+        continue
+    for line in open(path, encoding="utf-8", errors="replace"):
+        line = line.split("#", 1)[0].strip()
+        m = re.match(r"^deb\s+(\[[^\]]*\]\s+)?(\S+)\s+(\S+)\s*(.*)$", line)
+        if m and official(m.group(2)):
+            entries.append(f"deb-src {m.group(1) or ''}{m.group(2)} {m.group(3)} {m.group(4)}".strip())
+for path in sorted(glob.glob("/etc/apt/sources.list.d/*.sources")):
+    text = open(path, encoding="utf-8", errors="replace").read()
+    for para in re.split(r"\n\s*\n", text):
+        fields, key = {}, None
+        for raw in para.splitlines():
+            if raw.lstrip().startswith("#"):
+                continue
+            if raw[:1] in (" ", "\t") and key:
+                fields[key] += "\n" + raw
+                continue
+            if ":" in raw:
+                key, _, val = raw.partition(":")
+                key = key.strip().lower()
+                fields[key] = val.strip()
+        if "deb" not in fields.get("types", "").split() or fields.get("enabled", "yes") == "no":
+            continue
+        uris = [u for u in fields.get("uris", "").split() if official(u)]
+        if not uris:
+            continue
+        opts = ""
+        if "signed-by" in fields and not fields["signed-by"].startswith("\n"):
+            opts = f"[signed-by={fields['signed-by'].split()[0]}] "
+        for uri in uris:
+            for suite in fields.get("suites", "").split():
+                entries.append(f"deb-src {opts}{uri} {suite} {fields.get('components', '')}".strip())
+if not entries:
+    sys.exit("no Debian/Ubuntu apt source configured on this machine")
+with open(os.path.join(out_dir, "dran-deb-src.list"), "w") as f:
+    f.write("\n".join(dict.fromkeys(entries)) + "\n")
+EOF
+    local opts=(-o "Dir::Etc::SourceList=/dev/null" -o "Dir::Etc::SourceParts=$apt/sources.list.d"
+                -o "Dir::State::Lists=$apt/lists" -o "Dir::Cache=$apt/cache"
+                -o "Dir::Cache::Archives=$apt/archives" -o "Debug::NoLocking=1")
+    log "fetching the zeromq3 source package (deb-src: $(tr '\n' ';' < "$apt/sources.list.d/dran-deb-src.list"))"
+    apt-get "${opts[@]}" -qq update >&2 || die "apt-get update (deb-src) failed"
+    rm -rf "$CACHE/src" && mkdir -p "$CACHE/src"
+    (cd "$CACHE/src" && apt-get "${opts[@]}" -qq source zeromq3 >&2) \
+        || die "apt-get source zeromq3 failed (is dpkg-dev installed?)"
+    SRC=$(find "$CACHE/src" -mindepth 1 -maxdepth 1 -type d -name 'zeromq3-*' | head -n1)
+    [ -n "$SRC" ] || die "apt-get source produced no zeromq3-* directory"
+    SRC_VERSION=$(basename "$(ls "$CACHE"/src/zeromq3_*.dsc)" .dsc | sed 's/^zeromq3_//')
+}
+
+if [ -n "${DRAN_ZMQ_SOURCE_DIR:-}" ]; then
+    [ -f "$DRAN_ZMQ_SOURCE_DIR/src/udp_engine.cpp" ] \
+        || die "DRAN_ZMQ_SOURCE_DIR=$DRAN_ZMQ_SOURCE_DIR is not a libzmq source tree"
+    rm -rf "$CACHE/src" && mkdir -p "$CACHE/src"
+    cp -r "$DRAN_ZMQ_SOURCE_DIR" "$CACHE/src/libzmq"
+    SRC="$CACHE/src/libzmq"
+    SRC_VERSION="dir-$(sed -n 's/^#define ZMQ_VERSION_\(MAJOR\|MINOR\|PATCH\) \([0-9]*\)/\2/p' \
+        "$SRC/include/zmq.h" | paste -sd.)"
+else
+    fetch_with_apt
+fi
+log "libzmq source $SRC_VERSION in $SRC"
+
+# ------------------------------------------------------------ patch, configure, build
+(cd "$SRC" && patch -p1 --forward --quiet < "$PATCH") \
+    || die "our patch does not apply to libzmq $SRC_VERSION ($PATCH)"
+
+BUILD="$CACHE/build"
+rm -rf "$BUILD" "$PREFIX"
+log "building libzmq with drafts ($JOBS jobs)"
+cmake -S "$SRC" -B "$BUILD" -DCMAKE_BUILD_TYPE=Release -DCMAKE_INSTALL_PREFIX="$PREFIX" \
+    -DCMAKE_INSTALL_LIBDIR=lib -DENABLE_DRAFTS=ON -DBUILD_TESTS=OFF -DBUILD_STATIC=OFF \
+    -DWITH_DOCS=OFF -DWITH_LIBSODIUM=OFF -DENABLE_CURVE=OFF -DWITH_PERF_TOOL=OFF \
+    -DENABLE_CPACK=OFF >"$CACHE/cmake-configure.log" 2>&1 \
+    || die "cmake configure failed, see $CACHE/cmake-configure.log"
+cmake --build "$BUILD" -j "$JOBS" >"$CACHE/cmake-build.log" 2>&1 \
+    || die "libzmq build failed, see $CACHE/cmake-build.log"
+cmake --install "$BUILD" >"$CACHE/cmake-install.log" 2>&1 \
+    || die "libzmq install failed, see $CACHE/cmake-install.log"
+
+# ------------------------------------------------------------ pyzmq from source
+log "building $PYZMQ_SPEC from source against $PREFIX"
+ZMQ_PREFIX="$PREFIX" ZMQ_DRAFT_API=1 LDFLAGS="-Wl,-rpath,$PREFIX/lib ${LDFLAGS:-}" \
+    PKG_CONFIG_PATH="$PREFIX/lib/pkgconfig" \
+    "$PY" -m pip install -q --disable-pip-version-check --no-cache-dir --force-reinstall \
+    --no-deps --no-binary pyzmq "$PYZMQ_SPEC" >"$CACHE/pyzmq-build.log" 2>&1 \
+    || die "pyzmq build failed, see $CACHE/pyzmq-build.log"
+
+VERSIONS=$(verify) || die "the built pyzmq does not work with drafts (see above)"
+echo "libzmq=$SRC_VERSION patch=$PATCH_HASH libzmq_runtime+pyzmq=${VERSIONS// /+}" > "$STAMP"
+log "done: $(cat "$STAMP")"
