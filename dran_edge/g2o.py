@@ -1,0 +1,298 @@
+"""Read and write the g2o pose-graph subset dran-edge uses (format described in docs/g2o.md).
+
+Records: ``VERTEX_SE2 id x y θ``, ``EDGE_SE2 i j dx dy dθ`` + 6 numbers (upper triangle of the 3×3
+information in the order [x y | θ]), ``VERTEX_SE3:QUAT id x y z qx qy qz qw``,
+``EDGE_SE3:QUAT i j dx dy dz dqx dqy dqz dqw`` + 21 numbers (upper triangle of the 6×6 information in
+the order [x y z | qx qy qz]), ``FIX id``. Lines starting with ``#`` and blank lines are ignored.
+The measurement of edge (i, j) is the pose of j in the frame of i: ``T_w_j = T_w_i T̃_ij``.
+
+Every malformed line raises :class:`InputError` naming the file, the line number and the problem;
+nothing is skipped silently. Files without VERTEX lines (CSAIL) are accepted: the poses of the
+vertices named only by edges are unknown (``has_pose`` false) and need an initial guess.
+
+The information's rotation block is kept as is, in our tangent order [ρ, φ] (translation first),
+i.e. it is treated as the information of the rotation tangent φ — the reading of SE-Sync's and
+GTSAM's g2o loaders.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.errors import InputError
+
+_VERTEX = {"VERTEX_SE2": 2, "VERTEX_SE3:QUAT": 3}
+_EDGE = {"EDGE_SE2": 2, "EDGE_SE3:QUAT": 3}
+_VERTEX_NUMBERS = {2: 3, 3: 7}
+_EDGE_NUMBERS = {2: 3 + 6, 3: 7 + 21}
+_QUAT_NORM_TOL = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class G2oGraph:
+    """A pose graph as read from a g2o file; arrays index vertices by position, not by id."""
+
+    dim: int
+    """2 (SE(2)) or 3 (SE(3))."""
+    vertex_ids: np.ndarray
+    """(n,) int64, the g2o vertex ids, sorted ascending."""
+    poses: np.ndarray
+    """(n, d+1, d+1) float64 ``T_world_vertex``; identity where ``has_pose`` is false."""
+    has_pose: np.ndarray
+    """(n,) bool, whether the file had a VERTEX line for the vertex."""
+    edges: np.ndarray
+    """(m, 2) int64 positions (into ``vertex_ids``) of each edge's (i, j)."""
+    measurements: np.ndarray
+    """(m, d+1, d+1) float64 ``T_i_j`` measured."""
+    information: np.ndarray
+    """(m, r, r) float64 information in [translation, rotation] order (r = 3 or 6)."""
+    fixed: np.ndarray
+    """(n,) bool, vertices named by FIX lines."""
+    edge_lines: np.ndarray
+    """(m,) int64 1-based line number of each edge in its file (for messages)."""
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertex_ids.shape[0])
+
+    @property
+    def num_edges(self) -> int:
+        return int(self.edges.shape[0])
+
+
+def _parse_floats(tokens: list[str], path: str, lineno: int, what: str) -> list[float]:
+    out = []
+    for k, tok in enumerate(tokens):
+        try:
+            value = float(tok)
+        except ValueError:
+            raise InputError(
+                f"{what}: field {k + 1} is {tok!r}, expected a number", path=path, line=lineno
+            ) from None
+        if not math.isfinite(value):
+            raise InputError(
+                f"{what}: field {k + 1} is {tok!r}, expected a finite number", path=path, line=lineno
+            )
+        out.append(value)
+    return out
+
+
+def _parse_id(tok: str, path: str, lineno: int, what: str) -> int:
+    try:
+        value = int(tok)
+    except ValueError:
+        raise InputError(f"{what}: id {tok!r} is not an integer", path=path, line=lineno) from None
+    if value < 0:
+        raise InputError(f"{what}: id {value} is negative", path=path, line=lineno)
+    return value
+
+
+def _upper_to_full(upper: np.ndarray, r: int) -> np.ndarray:
+    """(m, r(r+1)/2) row-major upper triangles -> (m, r, r) symmetric matrices."""
+    iu = np.triu_indices(r)
+    full = np.zeros((upper.shape[0], r, r))
+    full[:, iu[0], iu[1]] = upper
+    full[:, iu[1], iu[0]] = upper
+    return full
+
+
+def _rotation_from_quat_xyzw(q: np.ndarray, lines: np.ndarray, path: str, what: str) -> np.ndarray:
+    norms = np.linalg.norm(q, axis=-1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > _QUAT_NORM_TOL)
+    if bad.size:
+        k = bad[0]
+        raise InputError(
+            f"{what}: quaternion norm is {norms[k]:.6g}, expected 1 (±{_QUAT_NORM_TOL:g})",
+            path=path,
+            line=int(lines[k]),
+        )
+    return geo.rotmat_from_quat_xyzw(q / norms[:, None])
+
+
+def read_g2o(path: str | Path) -> G2oGraph:
+    """Parse a g2o file (see module docstring); raises InputError on any malformed line."""
+    path = str(path)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise InputError(f"cannot read the file: {exc.strerror}", path=path) from None
+    except UnicodeDecodeError:
+        raise InputError("the file is not UTF-8 text, expected a g2o text file", path=path) from None
+
+    dim: int | None = None
+    vertex_rows: dict[int, tuple[list[float], int]] = {}
+    edge_ids: list[tuple[int, int]] = []
+    edge_nums: list[list[float]] = []
+    edge_lines: list[int] = []
+    fix_ids: list[tuple[int, int]] = []
+
+    def set_dim(d: int, tag: str, lineno: int) -> None:
+        nonlocal dim
+        if dim is None:
+            dim = d
+        elif dim != d:
+            raise InputError(
+                f"{tag} mixes {d}D records into a {dim}D graph", path=path, line=lineno
+            )
+
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        tokens = line.split()
+        tag = tokens[0]
+        if tag in _VERTEX:
+            d = _VERTEX[tag]
+            set_dim(d, tag, lineno)
+            expected = 1 + _VERTEX_NUMBERS[d]
+            if len(tokens) - 1 != expected:
+                raise InputError(
+                    f"{tag} has {len(tokens) - 1} fields, expected {expected} (id and pose)",
+                    path=path,
+                    line=lineno,
+                )
+            vid = _parse_id(tokens[1], path, lineno, tag)
+            if vid in vertex_rows:
+                raise InputError(
+                    f"{tag}: vertex {vid} is defined twice (first on line {vertex_rows[vid][1]})",
+                    path=path,
+                    line=lineno,
+                )
+            vertex_rows[vid] = (_parse_floats(tokens[2:], path, lineno, tag), lineno)
+        elif tag in _EDGE:
+            d = _EDGE[tag]
+            set_dim(d, tag, lineno)
+            expected = 2 + _EDGE_NUMBERS[d]
+            if len(tokens) - 1 != expected:
+                raise InputError(
+                    f"{tag} has {len(tokens) - 1} fields, expected {expected} "
+                    "(two ids, measurement, upper-triangular information)",
+                    path=path,
+                    line=lineno,
+                )
+            i = _parse_id(tokens[1], path, lineno, tag)
+            j = _parse_id(tokens[2], path, lineno, tag)
+            if i == j:
+                raise InputError(f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno)
+            edge_ids.append((i, j))
+            edge_nums.append(_parse_floats(tokens[3:], path, lineno, tag))
+            edge_lines.append(lineno)
+        elif tag == "FIX":
+            if len(tokens) < 2:
+                raise InputError("FIX names no vertex id", path=path, line=lineno)
+            for tok in tokens[1:]:
+                fix_ids.append((_parse_id(tok, path, lineno, "FIX"), lineno))
+        else:
+            raise InputError(
+                f"unsupported record {tag!r}; expected one of "
+                "VERTEX_SE2, EDGE_SE2, VERTEX_SE3:QUAT, EDGE_SE3:QUAT, FIX",
+                path=path,
+                line=lineno,
+            )
+
+    if dim is None or not edge_ids:
+        raise InputError("no edges found, expected at least one EDGE_SE2 or EDGE_SE3:QUAT line", path=path)
+
+    ij = np.asarray(edge_ids, dtype=np.int64)
+    vertex_ids = np.union1d(np.fromiter(vertex_rows.keys(), np.int64, len(vertex_rows)), ij.ravel())
+    n, D = vertex_ids.shape[0], dim + 1
+    poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
+    has_pose = np.zeros(n, dtype=bool)
+    if vertex_rows:
+        vids = np.fromiter(vertex_rows.keys(), np.int64, len(vertex_rows))
+        rows = np.asarray([v[0] for v in vertex_rows.values()])
+        vlines = np.asarray([v[1] for v in vertex_rows.values()])
+        pos = np.searchsorted(vertex_ids, vids)
+        if dim == 2:
+            poses[pos] = geo.se2_from_xy_theta(rows)
+        else:
+            R = _rotation_from_quat_xyzw(rows[:, 3:7], vlines, path, "VERTEX_SE3:QUAT")
+            poses[pos] = geo.se3_from_rt(R, rows[:, :3])
+        has_pose[pos] = True
+
+    nums = np.asarray(edge_nums)
+    lines = np.asarray(edge_lines, dtype=np.int64)
+    if dim == 2:
+        measurements = geo.se2_from_xy_theta(nums[:, :3])
+        information = _upper_to_full(nums[:, 3:], 3)
+        tag = "EDGE_SE2"
+    else:
+        R = _rotation_from_quat_xyzw(nums[:, 3:7], lines, path, "EDGE_SE3:QUAT")
+        measurements = geo.se3_from_rt(R, nums[:, :3])
+        information = _upper_to_full(nums[:, 7:], 6)
+        tag = "EDGE_SE3:QUAT"
+    eig = np.linalg.eigvalsh(information)
+    bad = np.flatnonzero(~(eig[:, 0] > 0.0))
+    if bad.size:
+        k = bad[0]
+        raise InputError(
+            f"{tag}: information matrix is not positive definite "
+            f"(smallest eigenvalue {eig[k, 0]:.6g})",
+            path=path,
+            line=int(lines[k]),
+        )
+
+    fixed = np.zeros(n, dtype=bool)
+    for vid, lineno in fix_ids:
+        k = int(np.searchsorted(vertex_ids, vid))
+        if k >= n or vertex_ids[k] != vid:
+            raise InputError(f"FIX names vertex {vid}, which no VERTEX or EDGE line defines",
+                             path=path, line=lineno)
+        fixed[k] = True
+
+    return G2oGraph(
+        dim=dim,
+        vertex_ids=vertex_ids,
+        poses=poses,
+        has_pose=has_pose,
+        edges=np.searchsorted(vertex_ids, ij),
+        measurements=measurements,
+        information=information,
+        fixed=fixed,
+        edge_lines=lines,
+    )
+
+
+def _fmt(rows: np.ndarray) -> list[str]:
+    """Shortest round-trip text of each row of floats."""
+    return [" ".join(repr(float(x)) for x in row) for row in rows]
+
+
+def write_g2o(path: str | Path, graph: G2oGraph, poses: np.ndarray | None = None) -> None:
+    """Write ``graph`` (with ``poses`` in place of ``graph.poses`` when given) as a g2o file.
+
+    Every vertex gets a VERTEX line, then every edge, then one FIX line per fixed vertex; numbers
+    are written with full precision so that ``read_g2o(write_g2o(g))`` reproduces ``g``.
+    """
+    poses = graph.poses if poses is None else np.asarray(poses, dtype=np.float64)
+    if poses.shape != graph.poses.shape:
+        raise ValueError(f"poses have shape {poses.shape}, expected {graph.poses.shape}")
+    r = graph.information.shape[-1]
+    iu = np.triu_indices(r)
+    upper = graph.information[:, iu[0], iu[1]]
+    ids = graph.vertex_ids
+    if graph.dim == 2:
+        vtag, etag = "VERTEX_SE2", "EDGE_SE2"
+        vrows = geo.se2_to_xy_theta(poses)
+        erows = geo.se2_to_xy_theta(graph.measurements)
+    else:
+        vtag, etag = "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"
+        vrows = geo.se3_to_xyz_quat_xyzw(poses)
+        erows = geo.se3_to_xyz_quat_xyzw(graph.measurements)
+    out = [f"{vtag} {vid} {txt}" for vid, txt in zip(ids.tolist(), _fmt(vrows))]
+    ei, ej = ids[graph.edges[:, 0]].tolist(), ids[graph.edges[:, 1]].tolist()
+    out += [
+        f"{etag} {i} {j} {m} {inf}"
+        for i, j, m, inf in zip(ei, ej, _fmt(erows), _fmt(upper))
+    ]
+    out += [f"FIX {vid}" for vid in ids[graph.fixed].tolist()]
+    try:
+        Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot write the file: {exc.strerror}", path=str(path)) from None
