@@ -1,0 +1,514 @@
+"""OptiTrack Motive CSV: read rigid-body tracks, and write ground truth in the same format.
+
+Layout of a Motive CSV export with header (format versions 1.2x; docs/motive.md has the details)::
+
+    Format Version,1.23,Take Name,run01,...,Rotation Type,Quaternion,Length Units,Meters,Coordinate Space,Global
+    <blank>
+    ,Type,Rigid Body,Rigid Body,...,Rigid Body Marker,...,Marker,...
+    ,Name,dingo1,dingo1,...,dingo1:Marker1,...
+    ,ID,1,1,...
+    ,,Rotation,Rotation,Rotation,Rotation,Position,Position,Position,Mean Marker Error,...
+    Frame,Time (Seconds),X,Y,Z,W,X,Y,Z,,...
+    0,0.000000,...
+
+The columns are found by these header rows, never by position: only ``Rigid Body`` columns are
+read (rigid-body markers, markers, skeleton bones are skipped). Rotations are quaternions
+(X, Y, Z, W) or Euler angles in degrees whose order the ``Rotation Type`` key names; Motive's
+Euler angles are relative (intrinsic): ``XYZ`` means about X, then the new Y, then the new Z,
+so ``R = Rx(a) Ry(b) Rz(c)`` (NaturalPoint knowledge base, "Changes in Motive's reported Euler
+angles"). Lengths are converted to metres. An occluded body has blank cells in its frame.
+
+Motive's global frame is right-handed and Y-up; ours is Z-up. The reader maps Motive's world
+into ours with the fixed rotation ``R_zup_yup`` (x' = x, y' = −z, z' = y, a +90° turn about X),
+applied on the left of every pose: ``T_world_marker = R_zup_yup · T_motive_marker``. The rigid
+body's own axes are left as Motive defined them; the offset from the mocap rigid body to the
+robot or object body frame, ``T_body_marker``, belongs to the mission (docs/eval.md).
+
+This is a pure core module (numpy, scipy, stdlib).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dran_edge import geometry as geo
+from dran_edge.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Rotation taking Motive's Y-up world coordinates into our Z-up world (x'=x, y'=−z, z'=y).
+R_ZUP_YUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+#: Metres per unit for the ``Length Units`` values Motive writes.
+LENGTH_UNITS_M = {"Meters": 1.0, "Centimeters": 0.01, "Millimeters": 0.001}
+
+#: The ``Rotation Type`` values: a quaternion or one of the six intrinsic Euler orders.
+EULER_ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
+ROTATION_TYPES = ("Quaternion",) + EULER_ORDERS
+
+_AXES = "XYZ"
+
+
+@dataclass(frozen=True)
+class MotiveBody:
+    """One rigid body's track, in our Z-up world frame and metres."""
+
+    name: str
+    """The rigid body's name in Motive (``Name`` header row)."""
+    body_id: str
+    """Motive's ID of the body (``ID`` header row): an integer or a GUID, kept as text."""
+    T_world_marker: np.ndarray = field(repr=False)
+    """Poses ``(n, 4, 4)`` of the mocap rigid body in the Z-up world; NaN where occluded."""
+    valid: np.ndarray = field(repr=False)
+    """``(n,)`` bool: True where the body was tracked in that frame."""
+    mean_marker_error_m: np.ndarray = field(repr=False)
+    """``(n,)`` Motive's mean marker error in metres; NaN where absent or occluded."""
+
+
+@dataclass(frozen=True)
+class MotiveTake:
+    """A Motive take: frame numbers, times and the rigid bodies, plus the header's metadata."""
+
+    frame: np.ndarray = field(repr=False)
+    """``(n,)`` int64 frame numbers as exported."""
+    time_s: np.ndarray = field(repr=False)
+    """``(n,)`` seconds since the start of the take (Motive's ``Time (Seconds)`` column)."""
+    bodies: dict[str, MotiveBody]
+    """Rigid bodies by name."""
+    take_name: str = ""
+    """``Take Name`` from the header."""
+    format_version: str = "1.23"
+    """``Format Version`` from the header."""
+    capture_frame_rate_hz: float = float("nan")
+    """``Capture Frame Rate`` (Hz)."""
+    export_frame_rate_hz: float = float("nan")
+    """``Export Frame Rate`` (Hz): the rate of the rows in this file."""
+    capture_start_time: str = ""
+    """``Capture Start Time`` as written by Motive (local time of the Motive PC, no zone)."""
+    rotation_type: str = "Quaternion"
+    """``Rotation Type`` the file was written with."""
+    length_units: str = "Meters"
+    """``Length Units`` the file was written with (poses here are always in metres)."""
+    path: str | None = None
+    """File the take was read from, for messages."""
+
+    def body(self, name: str) -> MotiveBody:
+        """The rigid body called ``name``; InputError listing the available names otherwise."""
+        try:
+            return self.bodies[name]
+        except KeyError:
+            raise InputError(
+                f"no rigid body named {name!r} in the Motive take; it has: "
+                + (", ".join(sorted(self.bodies)) or "(none)"),
+                path=self.path,
+            ) from None
+
+
+def make_take(
+    time_s: np.ndarray,
+    T_world_marker: Mapping[str, np.ndarray],
+    *,
+    take_name: str = "dran-edge",
+    frame_rate_hz: float | None = None,
+    body_ids: Mapping[str, str] | None = None,
+    capture_start_time: str = "2026-01-01 12.00.00.000 PM",
+) -> MotiveTake:
+    """A take from poses in our Z-up world (what the mission simulator has), ready to write.
+
+    ``T_world_marker[name]`` is ``(n, 4, 4)``; a pose holding NaN marks an occluded frame.
+    """
+    time_s = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    n = len(time_s)
+    if frame_rate_hz is None:
+        frame_rate_hz = 1.0 / float(np.median(np.diff(time_s))) if n > 1 else 120.0
+    bodies = {}
+    for k, (name, T) in enumerate(T_world_marker.items()):
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (n, 4, 4):
+            raise ValueError(f"body {name!r}: expected poses ({n}, 4, 4), got {T.shape}")
+        valid = np.all(np.isfinite(T), axis=(-1, -2))
+        bid = str(body_ids[name]) if body_ids and name in body_ids else str(k + 1)
+        bodies[name] = MotiveBody(name, bid, T, valid, np.full(n, np.nan))
+    return MotiveTake(
+        frame=np.arange(n, dtype=np.int64),
+        time_s=time_s,
+        bodies=bodies,
+        take_name=take_name,
+        capture_frame_rate_hz=float(frame_rate_hz),
+        export_frame_rate_hz=float(frame_rate_hz),
+        capture_start_time=capture_start_time,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# reading
+
+
+def _up_rotation(up_axis: str) -> np.ndarray:
+    if up_axis == "y":
+        return R_ZUP_YUP
+    if up_axis == "z":
+        return np.eye(3)
+    raise ValueError(f"up_axis must be 'y' (Motive's default) or 'z', got {up_axis!r}")
+
+
+def _metadata(cells: list[str]) -> dict[str, str]:
+    """The first row's key,value pairs."""
+    meta = {}
+    for i in range(0, len(cells) - 1, 2):
+        key = cells[i].strip()
+        if key:
+            meta[key] = cells[i + 1].strip()
+    return meta
+
+
+def _float_or_nan(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return float("nan")
+
+
+def _euler_to_rotmat(angles_deg_xyz: np.ndarray, order: str) -> np.ndarray:
+    """Rotation matrices from angles about X, Y, Z (degrees, columns by axis) in Motive's
+    relative (intrinsic) ``order``."""
+    by_order = np.stack([angles_deg_xyz[:, _AXES.index(a)] for a in order], axis=-1)
+    return Rotation.from_euler(order, by_order, degrees=True).as_matrix()
+
+
+def _rotmat_to_euler(R: np.ndarray, order: str) -> np.ndarray:
+    """Angles about X, Y, Z (degrees, columns by axis) of ``R`` in the intrinsic ``order``."""
+    by_order = Rotation.from_matrix(R).as_euler(order, degrees=True)
+    out = np.empty_like(by_order)
+    for k, a in enumerate(order):
+        out[:, _AXES.index(a)] = by_order[:, k]
+    return out
+
+
+def _parse_block(
+    data: np.ndarray, cols: list[int], first_line: int, path: str, what: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Parse text columns ``data[:, cols]`` to float; blank cells become NaN.
+
+    Returns (values ``(n, len(cols))``, blank mask). A cell that is neither blank nor a number
+    raises InputError naming its line.
+    """
+    block = data[:, cols]
+    blank = np.char.str_len(np.char.strip(block)) == 0
+    try:
+        values = np.where(blank, "nan", block).astype(np.float64)
+    except ValueError:
+        for r in range(block.shape[0]):
+            for c in range(block.shape[1]):
+                if not blank[r, c] and math.isnan(_float_or_nan(block[r, c])) and (
+                    block[r, c].strip().lower() != "nan"
+                ):
+                    raise InputError(
+                        f"{what}: expected a number or a blank cell in column {cols[c] + 1}, "
+                        f"got {block[r, c]!r}",
+                        path=path,
+                        line=first_line + r,
+                    ) from None
+        raise
+    bad = ~blank & ~np.isfinite(values)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise InputError(
+            f"{what}: expected a finite number in column {cols[c] + 1}, got {block[r, c]!r}",
+            path=path,
+            line=first_line + int(r),
+        )
+    return values, blank
+
+
+def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
+    """Read a Motive CSV export (with header rows) into a :class:`MotiveTake`.
+
+    ``up_axis`` is the export's vertical axis: ``"y"`` (Motive's default; converted to our
+    Z-up) or ``"z"`` (the export already used a Z-up axis convention; kept as is).
+    Raises InputError (with the line number) for anything that is not a Motive 1.2x rigid-body
+    export: missing header rows, unknown rotation type or units, malformed or partial cells.
+    """
+    path = str(path)
+    R_up = _up_rotation(up_axis)
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError("Motive CSV file not found", path=path) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"expected a text (UTF-8) Motive CSV, got undecodable bytes: {exc}",
+                         path=path) from None
+    rows = list(csv.reader(io.StringIO(text, newline="")))
+    if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
+        got = ",".join(rows[0])[:60] if rows else "an empty file"
+        raise InputError(
+            f"expected a Motive CSV whose first row starts with 'Format Version' (export with "
+            f"the header enabled), got {got!r}",
+            path=path,
+            line=1,
+        )
+    meta = _metadata(rows[0])
+    version = meta.get("Format Version", "")
+    if not version.startswith("1.2"):
+        try:
+            newer = float(version) > 1.2
+        except ValueError:
+            newer = False
+        if not newer:
+            raise InputError(f"expected Motive CSV format version 1.2x, got {version!r}",
+                             path=path, line=1)
+        log.warning("%s: Motive CSV format version %s is newer than 1.2x; reading it as 1.2x",
+                    path, version)
+    rotation_type = meta.get("Rotation Type", "Quaternion")
+    if rotation_type not in ROTATION_TYPES:
+        raise InputError(
+            f"expected Rotation Type one of {', '.join(ROTATION_TYPES)}, got {rotation_type!r}",
+            path=path, line=1,
+        )
+    units = meta.get("Length Units", "Meters")
+    if units not in LENGTH_UNITS_M:
+        raise InputError(
+            f"expected Length Units one of {', '.join(LENGTH_UNITS_M)}, got {units!r}",
+            path=path, line=1,
+        )
+    space = meta.get("Coordinate Space", "Global")
+    if space != "Global":
+        raise InputError(f"expected Coordinate Space 'Global' (world poses), got {space!r}",
+                         path=path, line=1)
+    scale_m = LENGTH_UNITS_M[units]
+
+    # Header rows by content: Type / Name / ID (second cell), then the component row, then
+    # the axis row that starts with "Frame". Line numbers are 1-based.
+    find = {}
+    i_axis = None
+    for i, row in enumerate(rows[1:40], start=1):
+        if row and row[0].strip() == "Frame":
+            i_axis = i
+            break
+        if len(row) > 1 and row[0].strip() == "" and row[1].strip() in ("Type", "Name", "ID"):
+            find[row[1].strip()] = i
+    if i_axis is None or "Type" not in find or "Name" not in find:
+        raise InputError(
+            "expected the header rows ',Type,...', ',Name,...' and 'Frame,Time (Seconds),...' "
+            "within the first 40 lines; got none (was the CSV exported with headers?)",
+            path=path,
+        )
+    i_comp = i_axis - 1
+    width = len(rows[i_axis])
+    header_rows = {"Type": find["Type"], "Name": find["Name"], "component": i_comp}
+    if "ID" in find:
+        header_rows["ID"] = find["ID"]
+    hdr = {}
+    for key, i in header_rows.items():
+        row = rows[i]
+        if len(row) != width:
+            raise InputError(
+                f"header row {key!r} has {len(row)} cells, expected {width} like the "
+                f"'Frame,Time (Seconds),...' row",
+                path=path, line=i + 1,
+            )
+        hdr[key] = [c.strip() for c in row]
+    axis = [c.strip() for c in rows[i_axis]]
+    if width < 2 or not axis[1].startswith("Time"):
+        raise InputError(f"expected 'Frame,Time (Seconds)' to start the axis row, got "
+                         f"{','.join(axis[:2])!r}", path=path, line=i_axis + 1)
+
+    # Rigid-body columns grouped by name.
+    layout: dict[str, dict[tuple[str, str], int]] = {}
+    ids: dict[str, str] = {}
+    for c in range(2, width):
+        if hdr["Type"][c] != "Rigid Body":
+            continue
+        name = hdr["Name"][c]
+        if not name:
+            raise InputError(f"rigid body column {c + 1} has no name", path=path,
+                             line=find["Name"] + 1)
+        bid = hdr["ID"][c] if "ID" in hdr else ""
+        if ids.setdefault(name, bid) != bid:
+            raise InputError(f"two rigid bodies are named {name!r} (IDs {ids[name]!r} and "
+                             f"{bid!r}); names must be unique", path=path, line=find["ID"] + 1)
+        key = (hdr["component"][c], axis[c])
+        if key in layout.setdefault(name, {}):
+            raise InputError(f"rigid body {name!r} has two '{key[0]} {key[1]}' columns",
+                             path=path, line=i_axis + 1)
+        layout[name][key] = c
+
+    rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
+    # Data rows: every row after the axis row that is not blank.
+    first = i_axis + 1
+    data_rows = rows[first:]
+    while data_rows and not any(c.strip() for c in data_rows[-1]):
+        data_rows.pop()
+    for r, row in enumerate(data_rows):
+        if len(row) != width:
+            raise InputError(
+                f"expected {width} cells like the header, got {len(row)} (truncated or "
+                "malformed row)",
+                path=path, line=first + r + 1,
+            )
+    n = len(data_rows)
+    data = np.array(data_rows, dtype=str).reshape(n, width)
+    fr_t, blank = _parse_block(data, [0, 1], first + 1, path, "Frame/Time")
+    if blank.any():
+        r = int(np.argwhere(blank)[0][0])
+        raise InputError("expected a frame number and a time in every data row, got a blank",
+                         path=path, line=first + r + 1)
+    frame = fr_t[:, 0].astype(np.int64)
+    time_s = fr_t[:, 1]
+    back = np.flatnonzero(np.diff(time_s) <= 0)
+    if back.size:
+        r = int(back[0]) + 1
+        raise InputError(f"expected increasing times, got {time_s[r]:.6f} s after "
+                         f"{time_s[r - 1]:.6f} s", path=path, line=first + r + 1)
+
+    bodies: dict[str, MotiveBody] = {}
+    for name, cols in layout.items():
+        need = [("Rotation", a) for a in rot_axes] + [("Position", a) for a in _AXES]
+        missing = [f"{c} {a}" for c, a in need if (c, a) not in cols]
+        if missing:
+            raise InputError(
+                f"rigid body {name!r} lacks the columns {', '.join(missing)} needed for "
+                f"Rotation Type {rotation_type}",
+                path=path, line=i_axis + 1,
+            )
+        values, blank = _parse_block(data, [cols[k] for k in need], first + 1, path,
+                                     f"rigid body {name!r}")
+        occluded = blank.all(axis=1)
+        partial = blank.any(axis=1) & ~occluded
+        if partial.any():
+            r = int(np.flatnonzero(partial)[0])
+            raise InputError(f"rigid body {name!r}: some rotation/position cells are blank "
+                             "and some are not (expected all blank when occluded)",
+                             path=path, line=first + r + 1)
+        valid = ~occluded
+        nr = len(rot_axes)
+        rot = values[:, :nr]
+        pos_m = values[:, nr:] * scale_m
+        R = np.full((n, 3, 3), np.nan)
+        if valid.any():
+            if rotation_type == "Quaternion":
+                q = rot[valid]
+                norm = np.linalg.norm(q, axis=-1)
+                off = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+                if off.size:
+                    r = int(np.flatnonzero(valid)[off[0]])
+                    raise InputError(f"rigid body {name!r}: expected a unit quaternion, got "
+                                     f"norm {norm[off[0]]:.6f}", path=path,
+                                     line=first + r + 1)
+                R[valid] = geo.rotmat_from_quat_xyzw(q)
+            else:
+                R[valid] = _euler_to_rotmat(rot[valid], rotation_type)
+        T = geo.se3_from_rt(R_up @ R, pos_m @ R_up.T)
+        T[~valid] = np.nan
+        mme = np.full(n, np.nan)
+        if ("Mean Marker Error", "") in cols:
+            v, b = _parse_block(data, [cols[("Mean Marker Error", "")]], first + 1, path,
+                                f"rigid body {name!r} mean marker error")
+            mme = np.where(b[:, 0] | ~valid, np.nan, v[:, 0] * scale_m)
+        bodies[name] = MotiveBody(name, ids.get(name, ""), T, valid, mme)
+
+    if not bodies:
+        log.warning("%s: no rigid-body columns (only markers?)", path)
+    return MotiveTake(
+        frame=frame,
+        time_s=time_s,
+        bodies=bodies,
+        take_name=meta.get("Take Name", ""),
+        format_version=version,
+        capture_frame_rate_hz=_float_or_nan(meta.get("Capture Frame Rate", "nan")),
+        export_frame_rate_hz=_float_or_nan(meta.get("Export Frame Rate", "nan")),
+        capture_start_time=meta.get("Capture Start Time", ""),
+        rotation_type=rotation_type,
+        length_units=units,
+        path=path,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# writing
+
+
+def write_motive_csv(
+    path: str | Path,
+    take: MotiveTake,
+    *,
+    rotation_type: str = "Quaternion",
+    length_units: str = "Meters",
+    up_axis: str = "y",
+    line_terminator: str = "\r\n",
+) -> None:
+    """Write ``take`` as Motive exports it (format 1.23, rigid bodies, header rows included).
+
+    Poses in ``take`` are in our Z-up world and metres; the file gets Motive's Y-up world
+    (``up_axis="y"``), the chosen units and rotation type. Occluded frames become blank cells.
+    Motive runs on Windows, so lines end in CRLF by default.
+    """
+    if rotation_type not in ROTATION_TYPES:
+        raise ValueError(f"rotation_type must be one of {ROTATION_TYPES}, got {rotation_type!r}")
+    if length_units not in LENGTH_UNITS_M:
+        raise ValueError(f"length_units must be one of {tuple(LENGTH_UNITS_M)}")
+    R_up = _up_rotation(up_axis)
+    scale = 1.0 / LENGTH_UNITS_M[length_units]
+    n = len(take.time_s)
+    rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
+    per_body = len(rot_axes) + 4
+
+    meta = [
+        ("Format Version", "1.23"),
+        ("Take Name", take.take_name),
+        ("Take Notes", ""),
+        ("Capture Frame Rate", f"{take.capture_frame_rate_hz:.6f}"),
+        ("Export Frame Rate", f"{take.export_frame_rate_hz:.6f}"),
+        ("Capture Start Time", take.capture_start_time),
+        ("Capture Start Frame", str(int(take.frame[0]) if n else 0)),
+        ("Total Frames in Take", str(n)),
+        ("Total Exported Frames", str(n)),
+        ("Rotation Type", rotation_type),
+        ("Length Units", length_units),
+        ("Coordinate Space", "Global"),
+    ]
+    names = ["", "Name"]
+    types = ["", "Type"]
+    ids_ = ["", "ID"]
+    comps = ["", ""]
+    axes = ["Frame", "Time (Seconds)"]
+    blocks = [take.frame.astype(np.int64).astype(str)[:, None],
+              np.char.mod("%.6f", take.time_s)[:, None]]
+    for body in take.bodies.values():
+        types += ["Rigid Body"] * per_body
+        names += [body.name] * per_body
+        ids_ += [body.body_id] * per_body
+        comps += ["Rotation"] * len(rot_axes) + ["Position"] * 3 + ["Mean Marker Error"]
+        axes += list(rot_axes) + list(_AXES) + [""]
+        valid = body.valid & np.all(np.isfinite(body.T_world_marker), axis=(-1, -2))
+        T = np.where(valid[:, None, None], body.T_world_marker, np.eye(4))
+        R = R_up.T @ T[:, :3, :3]
+        pos = (T[:, :3, 3] @ R_up) * scale
+        if rotation_type == "Quaternion":
+            rot = geo.quat_xyzw_from_rotmat(R)
+        else:
+            rot = _rotmat_to_euler(R, rotation_type)
+        mme = np.where(np.isfinite(body.mean_marker_error_m), body.mean_marker_error_m, 0.0)
+        num = np.concatenate([rot, pos, (mme * scale)[:, None]], axis=1)
+        txt = np.char.mod("%.6f", num)
+        txt[~valid] = ""
+        blocks.append(txt)
+    table = np.concatenate(blocks, axis=1) if n else np.empty((0, len(axes)), dtype=str)
+
+    out = io.StringIO(newline="")
+    w = csv.writer(out, lineterminator=line_terminator)
+    w.writerow([c for kv in meta for c in kv])
+    w.writerow([])
+    for row in (types, names, ids_, comps, axes):
+        w.writerow(row)
+    w.writerows(table.tolist())
+    Path(path).write_text(out.getvalue(), encoding="utf-8", newline="")
