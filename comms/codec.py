@@ -1,0 +1,551 @@
+"""Wire codec for neighbour datagrams: ``NeighbourMessage`` <-> self-contained datagrams.
+
+DESIGN §5; layout, precision and CHANGELOG in ``docs/wire-format.md`` (schema version 1).
+One round's message may span several datagrams; each carries a full header and a share of the
+entries, decodes alone, and is at most ``max_datagram_bytes`` long (default 1200, hard cap
+``HARD_CAP_BYTES`` = 4096, far below libzmq's 8192-byte UDP buffer). Bytes are the paper's
+headline metric (Table 1), so the layout is built for size:
+
+- header: 16 fixed little-endian bytes (magic ``DR``, version, flags, fleet id u16, sender id
+  u16, boot epoch u32, sequence u32) + LEB128 varints (round, stamp_ns, three entry counts);
+- an id section (varints) for all entries, then one packed value block, then the 16-byte
+  authentication-tag slot (zeros here; ``dran_edge.comms.auth`` fills and checks it);
+- SE(3) pose = float32 translation (12 bytes) + "smallest three" unit quaternion with 23-bit
+  components (9 bytes): 21 bytes. SE(2) pose = float32 x, y + 24-bit angle: 11 bytes.
+  Worst-case round-trip error: ~3.8e-6 m at 100 m, ~3e-7 rad (``tests/test_codec.py``
+  measures it; far below the solver's tolerances ε_u = 1e-2, ε_v = 1e-1).
+
+Decoding is strict: anything malformed (truncated, oversized, counts that do not match the
+length, NaN/inf, a non-unit quaternion, unknown magic/version/flags/stage, over-long varints)
+raises ``DecodeError`` and nothing else.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.errors import DecodeError, DranError
+from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, ObjectEntry, SeparatorEntry
+
+MAGIC = b"DR"
+SCHEMA_VERSION = 1
+TAG_BYTES = 16
+HARD_CAP_BYTES = 4096
+DEFAULT_MAX_DATAGRAM_BYTES = 1200
+#: Smallest allowed ``max_datagram_bytes``: header + tag + the largest single entry with room.
+MIN_DATAGRAM_BYTES = 160
+
+_FIXED = struct.Struct("<2sBBHHII")
+HEADER_FIXED_BYTES = _FIXED.size  # 16
+_FLAG_DIM3 = 0x01
+_FLAGS_KNOWN = _FLAG_DIM3
+
+#: Byte-accounting kinds (``bytes_by_kind``): header + tag, and one per entry type.
+KIND_HEADER = "header"
+KIND_SEPARATOR = "separator"
+KIND_OBJECT = "object"
+KIND_INIT = "init"
+KINDS = (KIND_HEADER, KIND_SEPARATOR, KIND_OBJECT, KIND_INIT)
+
+_U16_MAX = 0xFFFF
+_U32_MAX = 0xFFFFFFFF
+_VARINT_MAX_BYTES = 10  # a uint64 in LEB128
+
+# Smallest-three quaternion: 2-bit index of the dropped (largest) component in [x, y, z, w]
+# order, then three 23-bit components quantised over [-1/sqrt2, 1/sqrt2]; 71 of 72 bits used.
+_Q_BITS = 23
+_Q_MAX = (1 << _Q_BITS) - 1
+_Q_MASK = np.uint64(_Q_MAX)
+_INV_SQRT2 = 1.0 / math.sqrt(2.0)
+_POSE3 = np.dtype([("t", "<f4", (3,)), ("q_lo", "<u8"), ("q_hi", "u1")])  # 21 bytes
+# SE(2): theta quantised to 24 bits over [-pi, pi).
+_POSE2 = np.dtype([("t", "<f4", (2,)), ("theta", "u1", (3,))])  # 11 bytes
+_THETA_STEPS = 1 << 24
+
+assert _POSE3.itemsize == 21 and _POSE2.itemsize == 11
+
+
+class EncodeError(DranError):
+    """A message cannot be encoded (non-finite pose, non-rotation, id out of range)."""
+
+
+def pose_bytes(dim: int) -> int:
+    """Bytes of one encoded pose: 21 (SE(3)) or 11 (SE(2))."""
+    return _POSE3.itemsize if dim == 3 else _POSE2.itemsize
+
+
+def _rotation_value_bytes(dim: int) -> int:
+    return 4 * dim * dim
+
+
+# --------------------------------------------------------------------------- varints
+_SMALL_VARINTS = tuple(bytes([i]) for i in range(0x80))
+
+
+def _varint(value: int) -> bytes:
+    if 0 <= value < 0x80:
+        return _SMALL_VARINTS[value]
+    if value < 0:
+        raise EncodeError(f"expected a non-negative integer for a varint, got {value}")
+    if value >= 1 << 64:
+        raise EncodeError(f"integer {value} does not fit in 64 bits")
+    out = bytearray()
+    while value >= 0x80:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
+def _zigzag(value: int) -> int:
+    return (value << 1) if value >= 0 else ((-value << 1) - 1)
+
+
+def _unzigzag(value: int) -> int:
+    return (value >> 1) if not value & 1 else -((value + 1) >> 1)
+
+
+def _read_varint(data: bytes, pos: int, end: int) -> tuple[int, int]:
+    if pos < end and data[pos] < 0x80:
+        return data[pos], pos + 1
+    result = 0
+    shift = 0
+    for i in range(_VARINT_MAX_BYTES):
+        if pos >= end:
+            raise DecodeError(f"truncated varint at byte {pos}")
+        b = data[pos]
+        pos += 1
+        result |= (b & 0x7F) << shift
+        if not b & 0x80:
+            if i and b == 0:
+                raise DecodeError(f"non-minimal varint ending at byte {pos - 1}")
+            if result >= 1 << 64:
+                raise DecodeError(f"varint ending at byte {pos - 1} exceeds 64 bits")
+            return result, pos
+        shift += 7
+    raise DecodeError(f"varint longer than {_VARINT_MAX_BYTES} bytes at byte {pos - _VARINT_MAX_BYTES}")
+
+
+# --------------------------------------------------------------------------- pose blocks
+def _check_poses(T: np.ndarray, dim: int, what: str) -> None:
+    n = dim + 1
+    if T.shape[-2:] != (n, n):
+        raise EncodeError(f"{what}: expected ({n}, {n}) poses for SE({dim}), got shape {T.shape[-2:]}")
+    if not np.all(np.isfinite(T)):
+        raise EncodeError(f"{what}: pose contains NaN or inf")
+    R = T[..., :dim, :dim]
+    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(dim)).max(initial=0.0)
+    if err > 1e-3 or np.any(np.linalg.det(R) <= 0):
+        raise EncodeError(f"{what}: rotation block is not a rotation (|RᵀR - I| = {err:.2e})")
+    if np.abs(T[..., :dim, dim]).max(initial=0.0) > 3.0e38:
+        raise EncodeError(f"{what}: translation exceeds the float32 range")
+
+
+def _encode_poses3(T: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) -> (N,) records of ``_POSE3``."""
+    out = np.zeros(T.shape[0], dtype=_POSE3)
+    out["t"] = T[:, :3, 3].astype(np.float32)
+    q = geo.quat_wxyz_from_rotmat(T[:, :3, :3])[:, [1, 2, 3, 0]]  # -> [x, y, z, w]
+    idx = np.argmax(np.abs(q), axis=1)
+    largest = np.take_along_axis(q, idx[:, None], axis=1)
+    q = np.where(largest < 0, -q, q)  # dropped component positive
+    keep = np.ones_like(q, dtype=bool)
+    keep[np.arange(q.shape[0]), idx] = False
+    small = q[keep].reshape(-1, 3)
+    u = np.rint((np.clip(small / _INV_SQRT2, -1.0, 1.0) + 1.0) * (_Q_MAX / 2.0)).astype(np.uint64)
+    lo = (
+        idx.astype(np.uint64)
+        | (u[:, 0] << np.uint64(2))
+        | (u[:, 1] << np.uint64(2 + _Q_BITS))
+        | ((u[:, 2] & np.uint64(0xFFFF)) << np.uint64(2 + 2 * _Q_BITS))
+    )
+    out["q_lo"] = lo
+    out["q_hi"] = (u[:, 2] >> np.uint64(16)).astype(np.uint8)
+    return out
+
+
+def _decode_poses3(rec: np.ndarray) -> np.ndarray:
+    t = rec["t"].astype(np.float64)
+    if not np.all(np.isfinite(t)):
+        raise DecodeError("pose translation is NaN or inf")
+    hi = rec["q_hi"]
+    if np.any(hi & 0x80):
+        raise DecodeError("quaternion padding bit is set")
+    lo = rec["q_lo"]
+    idx = (lo & np.uint64(3)).astype(np.intp)
+    u = np.stack(
+        [
+            (lo >> np.uint64(2)) & _Q_MASK,
+            (lo >> np.uint64(2 + _Q_BITS)) & _Q_MASK,
+            (lo >> np.uint64(2 + 2 * _Q_BITS)) | (hi.astype(np.uint64) << np.uint64(16)),
+        ],
+        axis=1,
+    )
+    small = (u.astype(np.float64) * (2.0 / _Q_MAX) - 1.0) * _INV_SQRT2
+    sq = np.sum(small * small, axis=1)
+    if np.any(sq > 1.0 + 1e-6):
+        raise DecodeError("quaternion is not unit (smallest three have squared norm > 1)")
+    largest = np.sqrt(np.maximum(1.0 - sq, 0.0))
+    q = np.empty((rec.shape[0], 4))
+    cols = np.arange(4)[None, :]
+    others = cols != idx[:, None]
+    q[others] = small.reshape(-1)
+    q[~others] = largest
+    T = np.zeros((rec.shape[0], 4, 4))
+    T[:, :3, :3] = geo.rotmat_from_quat_wxyz(q[:, [3, 0, 1, 2]])
+    T[:, :3, 3] = t
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _encode_poses2(T: np.ndarray) -> np.ndarray:
+    out = np.zeros(T.shape[0], dtype=_POSE2)
+    out["t"] = T[:, :2, 2].astype(np.float32)
+    theta = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    steps = np.rint((theta + np.pi) * (_THETA_STEPS / (2 * np.pi))).astype(np.int64) % _THETA_STEPS
+    out["theta"] = np.stack([(steps >> s) & 0xFF for s in (0, 8, 16)], axis=1).astype(np.uint8)
+    return out
+
+
+def _decode_poses2(rec: np.ndarray) -> np.ndarray:
+    t = rec["t"].astype(np.float64)
+    if not np.all(np.isfinite(t)):
+        raise DecodeError("pose translation is NaN or inf")
+    b = rec["theta"].astype(np.int64)
+    steps = b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)
+    theta = steps * (2 * np.pi / _THETA_STEPS) - np.pi
+    return geo.se2_from_rt(geo.so2_exp(theta), t)
+
+
+def _encode_poses(T: np.ndarray, dim: int) -> bytes:
+    if T.shape[0] == 0:
+        return b""
+    return (_encode_poses3(T) if dim == 3 else _encode_poses2(T)).tobytes()
+
+
+def _decode_poses(buf: bytes, dim: int) -> np.ndarray:
+    rec = np.frombuffer(buf, dtype=_POSE3 if dim == 3 else _POSE2)
+    if rec.shape[0] == 0:
+        return np.zeros((0, dim + 1, dim + 1))
+    return _decode_poses3(rec) if dim == 3 else _decode_poses2(rec)
+
+
+# --------------------------------------------------------------------------- header
+@dataclass(frozen=True)
+class Header:
+    """The decoded header of one datagram (no entries decoded, tag not checked)."""
+
+    version: int
+    dim: int
+    fleet_id: int
+    sender_id: int
+    boot_epoch: int
+    sequence: int
+    round: int
+    stamp_ns: int
+    n_separators: int
+    n_objects: int
+    n_init: int
+    #: Offset of the id section (= header length in bytes).
+    body_offset: int
+
+
+def decode_header(data: bytes) -> Header:
+    """Parse and check the header of ``data``; ``DecodeError`` on anything malformed."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise DecodeError(f"expected bytes, got {type(data).__name__}")
+    data = bytes(data)
+    size = len(data)
+    if size > HARD_CAP_BYTES:
+        raise DecodeError(f"datagram of {size} bytes exceeds the {HARD_CAP_BYTES}-byte cap")
+    if size < HEADER_FIXED_BYTES + 5 + TAG_BYTES:
+        raise DecodeError(f"truncated datagram: {size} bytes, header and tag need at least "
+                          f"{HEADER_FIXED_BYTES + 5 + TAG_BYTES}")
+    magic, version, flags, fleet_id, sender_id, boot_epoch, sequence = _FIXED.unpack_from(data)
+    if magic != MAGIC:
+        raise DecodeError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != SCHEMA_VERSION:
+        raise DecodeError(f"unknown schema version {version}, this build reads {SCHEMA_VERSION}")
+    if flags & ~_FLAGS_KNOWN:
+        raise DecodeError(f"unknown flag bits 0x{flags & ~_FLAGS_KNOWN:02x}")
+    end = size - TAG_BYTES
+    pos = HEADER_FIXED_BYTES
+    round_, pos = _read_varint(data, pos, end)
+    stamp_ns, pos = _read_varint(data, pos, end)
+    n_sep, pos = _read_varint(data, pos, end)
+    n_obj, pos = _read_varint(data, pos, end)
+    n_init, pos = _read_varint(data, pos, end)
+    dim = 3 if flags & _FLAG_DIM3 else 2
+    # Every entry takes at least 2 id bytes and a pose; counts beyond that are lies.
+    if (n_sep + n_obj + n_init) * (2 + pose_bytes(dim)) > end - pos:
+        raise DecodeError(
+            f"entry counts {n_sep}/{n_obj}/{n_init} do not fit in the {end - pos} bytes left"
+        )
+    return Header(version, dim, fleet_id, sender_id, boot_epoch, sequence, round_, stamp_ns,
+                  n_sep, n_obj, n_init, pos)
+
+
+# --------------------------------------------------------------------------- decode
+def decode_datagram(data: bytes) -> NeighbourMessage:
+    """Decode one datagram alone into a ``NeighbourMessage`` carrying its entries.
+
+    ``fleet_id``, ``boot_epoch`` and ``sequence`` are filled; ``extra`` holds
+    ``datagram_bytes`` and ``bytes_by_kind``. The tag is not checked here (see auth).
+    """
+    h = decode_header(data)
+    data = bytes(data)
+    end = len(data) - TAG_BYTES
+    pos = h.body_offset
+    dim = h.dim
+    P = pose_bytes(dim)
+    sep_ids = []
+    for _ in range(h.n_separators):
+        owner, pos = _read_varint(data, pos, end)
+        kf, pos = _read_varint(data, pos, end)
+        dstamp, pos = _read_varint(data, pos, end)
+        stamp = h.stamp_ns + _unzigzag(dstamp)
+        if stamp < 0:
+            raise DecodeError(f"separator stamp {stamp} ns is negative")
+        sep_ids.append((owner, kf, stamp))
+    sep_id_end = pos
+    obj_ids = []
+    for _ in range(h.n_objects):
+        oid, pos = _read_varint(data, pos, end)
+        origin, pos = _read_varint(data, pos, end)
+        hops, pos = _read_varint(data, pos, end)
+        obj_ids.append((oid, origin, hops))
+    obj_id_end = pos
+    init_ids = []
+    init_bytes = 0
+    for _ in range(h.n_init):
+        if pos >= end:
+            raise DecodeError(f"truncated init entry at byte {pos}")
+        stage = data[pos]
+        pos += 1
+        if stage not in (InitStage.ROTATION, InitStage.TRANSLATION):
+            raise DecodeError(f"unknown init stage {stage}")
+        owner, pos = _read_varint(data, pos, end)
+        kf, pos = _read_varint(data, pos, end)
+        init_ids.append((InitStage(stage), owner, kf))
+        init_bytes += _rotation_value_bytes(dim) if stage == InitStage.ROTATION else P
+    id_end = pos
+    sep_obj_bytes = (h.n_separators + h.n_objects) * P
+    if end - id_end != sep_obj_bytes + init_bytes:
+        raise DecodeError(
+            f"value block is {end - id_end} bytes, counts "
+            f"{h.n_separators}/{h.n_objects}/{h.n_init} need {sep_obj_bytes + init_bytes}"
+        )
+    pos = id_end
+    both_T = _decode_poses(data[pos:pos + sep_obj_bytes], dim)
+    sep_T, obj_T = both_T[: h.n_separators], both_T[h.n_separators:]
+    pos += sep_obj_bytes
+    init_values: list[np.ndarray] = []
+    for stage, _, _ in init_ids:
+        if stage == InitStage.ROTATION:
+            nb = _rotation_value_bytes(dim)
+            v = np.frombuffer(data, dtype="<f4", count=dim * dim, offset=pos).astype(np.float64)
+            if not np.all(np.isfinite(v)):
+                raise DecodeError("init rotation value is NaN or inf")
+            init_values.append(v.reshape(dim, dim))
+        else:
+            nb = P
+            init_values.append(_decode_poses(data[pos:pos + P], dim)[0])
+        pos += nb
+    separators = tuple(
+        SeparatorEntry(owner, kf, stamp, sep_T[i]) for i, (owner, kf, stamp) in enumerate(sep_ids)
+    )
+    objects = tuple(
+        ObjectEntry(oid, obj_T[i], origin, hops) for i, (oid, origin, hops) in enumerate(obj_ids)
+    )
+    init = tuple(
+        InitEntry(stage, owner, kf, init_values[i]) for i, (stage, owner, kf) in enumerate(init_ids)
+    )
+    by_kind = {
+        KIND_HEADER: h.body_offset + TAG_BYTES,
+        KIND_SEPARATOR: sep_id_end - h.body_offset + h.n_separators * P,
+        KIND_OBJECT: obj_id_end - sep_id_end + h.n_objects * P,
+        KIND_INIT: id_end - obj_id_end + init_bytes,
+    }
+    return NeighbourMessage(
+        sender_id=h.sender_id, round=h.round, stamp_ns=h.stamp_ns, separators=separators,
+        objects=objects, init=init, fleet_id=h.fleet_id, boot_epoch=h.boot_epoch,
+        sequence=h.sequence,
+        extra={"datagram_bytes": len(data), "bytes_by_kind": by_kind, "dim": dim},
+    )
+
+
+def bytes_by_kind(data: bytes) -> dict[str, int]:
+    """Split a datagram's length over ``KINDS``; a malformed one counts as ``{"malformed": n}``."""
+    try:
+        return decode_datagram(data).extra["bytes_by_kind"]
+    except DecodeError:
+        return {"malformed": len(data)}
+
+
+# --------------------------------------------------------------------------- encode
+@dataclass(frozen=True)
+class EncodedDatagram:
+    """One datagram with its sequence number and byte accounting."""
+
+    data: bytes
+    sequence: int
+    bytes_by_kind: dict
+
+
+def _entry_records(message: NeighbourMessage, dim: int):
+    """Per entry: kind, id bytes, value bytes (values encoded in batches)."""
+    kinds: list[str] = []
+    ids: list[bytes] = []
+    P = pose_bytes(dim)
+    values: list[bytes] = []
+    stamp = message.stamp_ns
+    n_sep = len(message.separators)
+    poses = [e.T_world_body for e in message.separators] + [e.T_world_object for e in message.objects]
+    if poses:
+        T = np.asarray(poses, dtype=np.float64)
+        _check_poses(T, dim, "separator/object")
+        block = _encode_poses(T, dim)
+        values.extend(block[i * P:(i + 1) * P] for i in range(len(poses)))
+    for e in message.separators:
+        if e.stamp_ns < 0:
+            raise EncodeError(f"separator stamp_ns must be >= 0, got {e.stamp_ns}")
+        kinds.append(KIND_SEPARATOR)
+        ids.append(_varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
+                   + _varint(_zigzag(int(e.stamp_ns) - stamp)))
+    for e in message.objects:
+        kinds.append(KIND_OBJECT)
+        ids.append(_varint(int(e.object_id)) + _varint(int(e.origin_robot))
+                   + _varint(int(e.hop_count)))
+    assert len(ids) == len(values) and n_sep <= len(ids)
+    for e in message.init:
+        stage = InitStage(e.stage)
+        v = np.asarray(e.value, dtype=np.float64)
+        if stage == InitStage.ROTATION:
+            if v.shape != (dim, dim):
+                raise EncodeError(f"init rotation value: expected ({dim}, {dim}), got {v.shape}")
+            if not np.all(np.isfinite(v)) or np.abs(v).max(initial=0.0) > 3.0e38:
+                raise EncodeError("init rotation value is NaN, inf or beyond float32")
+            value = v.astype("<f4").tobytes()
+        else:
+            _check_poses(v[None], dim, "init translation")
+            value = _encode_poses(v[None], dim)
+        kinds.append(KIND_INIT)
+        ids.append(bytes([int(stage)]) + _varint(int(e.owner_robot)) + _varint(int(e.keyframe_id)))
+        values.append(value)
+    return kinds, ids, values
+
+
+def _message_dim(message: NeighbourMessage) -> int:
+    dim = message.dim
+    if dim is None:
+        for e in message.init:
+            v = np.asarray(e.value)
+            return v.shape[-1] if InitStage(e.stage) == InitStage.ROTATION else v.shape[-1] - 1
+        return 3
+    if dim not in (2, 3):
+        raise EncodeError(f"poses must be SE(2) or SE(3), got dimension {dim}")
+    return dim
+
+
+def encode_datagrams(
+    message: NeighbourMessage,
+    *,
+    fleet_id: int,
+    boot_epoch: int,
+    first_sequence: int,
+    max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
+) -> list[EncodedDatagram]:
+    """Encode ``message`` into datagrams of at most ``max_datagram_bytes`` each.
+
+    Entries keep their order (separators, objects, init) and fill datagrams greedily; datagram
+    k gets sequence ``first_sequence + k``. An entry-less message gives one header-only
+    datagram (a heartbeat). The tag slot is zero; sign with ``auth.Signer``.
+    """
+    if not MIN_DATAGRAM_BYTES <= max_datagram_bytes <= HARD_CAP_BYTES:
+        raise EncodeError(f"max_datagram_bytes must be in [{MIN_DATAGRAM_BYTES}, "
+                          f"{HARD_CAP_BYTES}], got {max_datagram_bytes}")
+    for name, value, top in (("fleet_id", fleet_id, _U16_MAX), ("sender_id", message.sender_id,
+                             _U16_MAX), ("boot_epoch", boot_epoch, _U32_MAX)):
+        if not 0 <= int(value) <= top:
+            raise EncodeError(f"{name} must be in [0, {top}], got {value}")
+    if message.round < 0 or message.stamp_ns < 0:
+        raise EncodeError(f"round and stamp_ns must be >= 0, got {message.round}, {message.stamp_ns}")
+    dim = _message_dim(message)
+    kinds, ids, values = _entry_records(message, dim)
+    n = len(kinds)
+    fixed_prefix_tail = _varint(int(message.round)) + _varint(int(message.stamp_ns))
+    # Counts are reserved at 2 varint bytes each (< 16384 entries per datagram, guaranteed
+    # by the size cap), so packing never overshoots; the real header may be shorter.
+    budget = max_datagram_bytes - HEADER_FIXED_BYTES - len(fixed_prefix_tail) - 6 - TAG_BYTES
+    groups: list[tuple[int, int]] = []
+    start = 0
+    used = 0
+    for i in range(n):
+        size = len(ids[i]) + len(values[i])
+        if size > budget:
+            raise EncodeError(f"one {kinds[i]} entry of {size} bytes exceeds the datagram budget")
+        if used + size > budget:
+            groups.append((start, i))
+            start, used = i, 0
+        used += size
+    groups.append((start, n))
+    last_sequence = first_sequence + len(groups) - 1
+    if first_sequence < 0 or last_sequence > _U32_MAX:
+        raise EncodeError(f"sequence numbers {first_sequence}..{last_sequence} leave [0, 2^32)")
+    flags = _FLAG_DIM3 if dim == 3 else 0
+    out = []
+    for k, (a, b) in enumerate(groups):
+        n_sep = sum(1 for x in kinds[a:b] if x == KIND_SEPARATOR)
+        n_obj = sum(1 for x in kinds[a:b] if x == KIND_OBJECT)
+        n_init = (b - a) - n_sep - n_obj
+        head = (
+            _FIXED.pack(MAGIC, SCHEMA_VERSION, flags, fleet_id, message.sender_id, boot_epoch,
+                        first_sequence + k)
+            + fixed_prefix_tail + _varint(n_sep) + _varint(n_obj) + _varint(n_init)
+        )
+        data = b"".join([head, *ids[a:b], *values[a:b], bytes(TAG_BYTES)])
+        by_kind = dict.fromkeys(KINDS, 0)
+        by_kind[KIND_HEADER] = len(head) + TAG_BYTES
+        for i in range(a, b):
+            by_kind[kinds[i]] += len(ids[i]) + len(values[i])
+        assert len(data) <= max_datagram_bytes
+        out.append(EncodedDatagram(data, first_sequence + k, by_kind))
+    return out
+
+
+def encode_message(message: NeighbourMessage, **kwargs) -> list[bytes]:
+    """``encode_datagrams`` returning only the bytes (same keyword arguments)."""
+    return [d.data for d in encode_datagrams(message, **kwargs)]
+
+
+@dataclass(frozen=True)
+class ByteCount:
+    """What a message costs on the wire."""
+
+    datagrams: int
+    total_bytes: int
+    bytes_by_kind: dict
+
+
+def encoded_size(
+    message: NeighbourMessage, *, max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES
+) -> ByteCount:
+    """Datagrams and bytes ``message`` takes (sequence/epoch values do not change the size)."""
+    grams = encode_datagrams(message, fleet_id=0, boot_epoch=0, first_sequence=0,
+                             max_datagram_bytes=max_datagram_bytes)
+    return ByteCount(len(grams), sum(len(g.data) for g in grams), sum_kinds(g.bytes_by_kind for g in grams))
+
+
+def sum_kinds(parts: Iterable[dict]) -> dict:
+    """Add up ``bytes_by_kind`` dictionaries."""
+    total: dict = {}
+    for p in parts:
+        for k, v in p.items():
+            total[k] = total.get(k, 0) + v
+    return total
