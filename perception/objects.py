@@ -1,0 +1,90 @@
+"""Tags -> objects: T_body_object with a 6x6 covariance, fusing all tags of one box.
+
+For an accepted tag k of object o (``T_object_tag`` from calib/tags.yaml):
+
+    T_camera_object = T_camera_tag @ T_tag_object,  Sigma_o = Adj(T_object_tag) Sigma_k Adj(.)^T
+
+(``covariance.transform_covariance``). When several tags of one object are accepted in the same
+frame, the object pose is re-estimated from ALL their corners at once (Gauss-Newton on the
+reprojection error of the corner points expressed in the object frame, started from the tag with
+the smallest covariance), which also removes the planar ambiguity of each single tag; the joint
+covariance is sigma^2 (J^T J)^-1 over all 8k rows. If the joint fit's RMS error exceeds
+``max_reproj_px`` (one tag is wrong), the best single tag is used.
+
+Finally ``T_body_object = T_body_camera @ T_camera_object``; a fixed left factor leaves a
+right-perturbation covariance unchanged. The extrinsic's own uncertainty is not added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.perception.covariance import gauss_newton, pose_covariance, transform_covariance
+from dran_edge.perception.tagpose import CORNER_TO_OPENCV_PX, TagPoses, tag_object_points
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectPoses:
+    """Per observed object (m): id, pose in the body frame, covariance [t, r], tags used."""
+
+    object_id: np.ndarray
+    T_body_object: np.ndarray
+    covariance: np.ndarray
+    n_tags: np.ndarray
+
+
+def fuse_objects(
+    K: np.ndarray,
+    T_body_camera: np.ndarray,
+    corners: np.ndarray,
+    tag_poses: TagPoses,
+    map_pos: np.ndarray,
+    object_id_of_pos: np.ndarray,
+    T_object_tag: np.ndarray,
+    size_m_of_pos: np.ndarray,
+    corner_sigma_px: float,
+    max_reproj_px: float,
+    iterations: int = 3,
+) -> ObjectPoses:
+    """Objects seen in one frame from its accepted tags (``map_pos`` = tag-map position or -1)."""
+    use = np.flatnonzero(tag_poses.accepted & (map_pos >= 0))
+    if use.size == 0:
+        return ObjectPoses(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)),
+                           np.zeros(0, np.int64))
+    pos = map_pos[use]
+    T_ot = T_object_tag[pos]
+    T_co = tag_poses.T_camera_tag[use] @ geo.se3_inverse(T_ot)
+    cov = transform_covariance(tag_poses.covariance[use], geo.se3_inverse(T_ot))
+    oid = object_id_of_pos[pos]
+    objects, first, counts = np.unique(oid, return_index=True, return_counts=True)
+    # the tag with the smallest covariance trace represents each object
+    trace = np.trace(cov, axis1=1, axis2=2)
+    best = np.array([np.flatnonzero(oid == o)[np.argmin(trace[oid == o])] for o in objects])
+    T_out, cov_out = T_co[best].copy(), cov[best].copy()
+    multi = np.flatnonzero(counts > 1)
+    if multi.size:
+        n_pts = 4 * counts[multi].max()
+        P = np.zeros((multi.size, n_pts, 3))
+        uv = np.zeros((multi.size, n_pts, 2))
+        mask = np.zeros((multi.size, n_pts), bool)
+        for row, j in enumerate(multi):
+            members = np.flatnonzero(oid == objects[j])
+            P_tag = tag_object_points(size_m_of_pos[pos[members]])  # (k, 4, 3)
+            P_obj = np.einsum("kij,knj->kni", T_ot[members, :3, :3], P_tag) + T_ot[members, None,
+                                                                                  :3, 3]
+            k4 = 4 * members.size
+            P[row, :k4] = P_obj.reshape(-1, 3)
+            uv[row, :k4] = (corners[use[members]] + CORNER_TO_OPENCV_PX).reshape(-1, 2)
+            mask[row, :k4] = True
+        T_j, JtJ, r = gauss_newton(K, T_co[best[multi]], P, uv, mask, iterations)
+        rms = np.sqrt(np.sum(r * r, axis=(-1, -2)) / mask.sum(-1))
+        ok = rms <= max_reproj_px
+        T_out[multi[ok]] = T_j[ok]
+        cov_out[multi[ok]] = pose_covariance(JtJ[ok], corner_sigma_px)
+        counts = counts.copy()
+        counts[multi[~ok]] = 1
+    return ObjectPoses(objects.astype(np.int64), T_body_camera @ T_out, cov_out,
+                       counts.astype(np.int64))
