@@ -1,0 +1,465 @@
+"""The recorded-run directory (docs/run-format.md): read it strictly, write its parts.
+
+A run is everything needed to replay a multi-robot mission through the robot code and to
+score it::
+
+    RUN/mission.yaml             fleet-level description (format dran-edge-run/1)
+    RUN/mocap.csv                optional OptiTrack Motive CSV export
+    RUN/calib/                   tags.yaml + cameras/<robot>.yaml (docs/calibration.md)
+    RUN/robots/<name>/robot.yaml the robot's config as used (docs/config.md)
+    RUN/robots/<name>/ingest.bin ingest records, byte for byte (docs/ingest.md)
+    RUN/robots/<name>/frames/    frames.csv + colour/*.png + depth/*.png (optional)
+    RUN/out/                     written by ``dran-edge replay``
+
+Reading never guesses: a missing file, an unknown key, a wrong type or an inconsistent id
+raises :class:`~dran_edge.errors.InputError` naming the file (and the line and key where the
+file has them). This module is pure (numpy, stdlib, pyyaml for the text files); the ingest
+bytes and frames are handed to their own decoders by the replay.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.errors import InputError
+
+RUN_FORMAT = "dran-edge-run/1"
+FRAMES_HEADER = ("stamp_ns", "colour", "depth")
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")
+
+
+@dataclass(frozen=True, eq=False)
+class RunRobot:
+    """One robot of the run."""
+
+    id: int
+    name: str
+    mocap_body: str | None = None
+    """Motive rigid-body name, or None when the robot was not tracked."""
+    T_body_marker: np.ndarray = field(default_factory=lambda: np.eye(4))
+    """Mocap rigid-body pivot in the robot's body (IMU) frame."""
+    T_world_odom: np.ndarray | None = None
+    """The robot's first VIO frame in the world, when known (the paper's protocol: from mocap
+    at the start); None otherwise."""
+
+
+@dataclass(frozen=True, eq=False)
+class RunObject:
+    """One mapped object (tagged box) of the run."""
+
+    id: int
+    name: str
+    mocap_body: str | None = None
+    T_object_marker: np.ndarray = field(default_factory=lambda: np.eye(4))
+    """Mocap rigid-body pivot in the object frame."""
+
+
+@dataclass(frozen=True, eq=False)
+class Mission:
+    """``mission.yaml``: the fleet-level description of a run."""
+
+    fleet: str
+    start_ns: int
+    """Stamp of the mission start (robot clock), nanoseconds."""
+    duration_s: float
+    robots: tuple[RunRobot, ...]
+    objects: tuple[RunObject, ...]
+    comm_graph: tuple[tuple[int, int], ...]
+    """Undirected communication links as robot-id pairs (i < j), sorted."""
+    mocap_file: str | None = None
+    """Motive CSV, relative to the run directory."""
+    mocap_start_ns: int | None = None
+    """Robot-clock stamp of Motive's time 0 (None: unknown, estimate the offset)."""
+    mocap_up_axis: str = "y"
+    simulation: dict | None = None
+    """Parameters of the simulator that made the run (informational)."""
+
+    def robot(self, name: str) -> RunRobot:
+        for r in self.robots:
+            if r.name == name:
+                return r
+        raise KeyError(name)
+
+    def neighbours(self, robot_id: int) -> tuple[int, ...]:
+        out = [b if a == robot_id else a for a, b in self.comm_graph if robot_id in (a, b)]
+        return tuple(sorted(out))
+
+
+@dataclass(frozen=True, eq=False)
+class FrameIndex:
+    """``frames/frames.csv``: stamps and the colour / depth files of recorded frames."""
+
+    stamps_ns: np.ndarray
+    colour: tuple[Path, ...]
+    depth: tuple[Path | None, ...]
+
+
+# ------------------------------------------------------------------------------ pose helpers
+def pose_to_yaml(T: np.ndarray) -> dict:
+    """``{xyz: [...], quat_xyzw: [...]}`` (the calibration files' pose layout)."""
+    a = geo.se3_to_xyz_quat_xyzw(np.asarray(T, dtype=np.float64))
+    return {"xyz": [round(float(v), 9) for v in a[:3]],
+            "quat_xyzw": [round(float(v), 12) for v in a[3:]]}
+
+
+class _Node:
+    """A YAML mapping with typed, path-naming accessors."""
+
+    def __init__(self, data: Any, where: str, path: str, lines: dict[str, int]):
+        self.where, self.path, self.lines = where, path, lines
+        if not isinstance(data, dict):
+            raise self._err(f"{where or 'top level'}: expected a mapping, got "
+                            f"{type(data).__name__}", where)
+        self.data = data
+
+    def _err(self, msg: str, key: str) -> InputError:
+        k = key
+        while k and k not in self.lines:
+            k = re.sub(r"(\.[^.\[]*|\[\d+\])$", "", k) if re.search(r"(\.|\[)", k) else ""
+        return InputError(msg, path=self.path, line=self.lines.get(k))
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def check(self, required: set[str], optional: set[str] = frozenset()) -> None:
+        for k in self.data:
+            if k not in required and k not in optional:
+                raise self._err(f"{self.key(str(k))}: unknown key (allowed: "
+                                f"{', '.join(sorted(required | set(optional)))})", self.key(str(k)))
+        for k in sorted(required):
+            if k not in self.data:
+                raise self._err(f"{self.key(k)}: required key is missing", self.where)
+
+    def get(self, name: str, kind: str, default: Any = None) -> Any:
+        if name not in self.data:
+            return default
+        v = self.data[name]
+        key = self.key(name)
+        if kind == "int":
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise self._err(f"{key}: expected an integer, got {v!r}", key)
+        elif kind == "float":
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise self._err(f"{key}: expected a finite number, got {v!r}", key)
+            v = float(v)
+        elif kind == "name":
+            if not isinstance(v, str) or not _NAME_RE.match(v):
+                raise self._err(f"{key}: expected 1-15 characters of [A-Za-z0-9_.-], got {v!r}", key)
+        elif kind == "str":
+            if not isinstance(v, str) or not v:
+                raise self._err(f"{key}: expected a non-empty string, got {v!r}", key)
+        elif kind == "pose":
+            n = _Node(v, key, self.path, self.lines)
+            n.check({"xyz", "quat_xyzw"})
+            xyz, q = n.vector("xyz", 3), n.vector("quat_xyzw", 4)
+            if abs(np.linalg.norm(q) - 1.0) > 1e-3:
+                raise self._err(f"{key}.quat_xyzw: expected a unit quaternion, got norm "
+                                f"{np.linalg.norm(q):.6g}", key)
+            v = geo.se3_from_xyz_quat_xyzw(np.r_[xyz, q / np.linalg.norm(q)])
+        elif kind == "list":
+            if not isinstance(v, list):
+                raise self._err(f"{key}: expected a list, got {type(v).__name__}", key)
+        elif kind == "dict":
+            if not isinstance(v, dict):
+                raise self._err(f"{key}: expected a mapping, got {type(v).__name__}", key)
+        return v
+
+    def vector(self, name: str, n: int) -> np.ndarray:
+        v = self.data.get(name)
+        key = self.key(name)
+        if (not isinstance(v, list) or len(v) != n
+                or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
+                or not all(math.isfinite(x) for x in v)):
+            raise self._err(f"{key}: expected a list of {n} finite numbers, got {v!r}", key)
+        return np.asarray(v, dtype=np.float64)
+
+
+def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
+    import yaml
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("file not found (a run directory needs it; docs/run-format.md)",
+                         path=str(path)) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
+    lines: dict[str, int] = {}
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        raise InputError(f"not valid YAML: {getattr(exc, 'problem', None) or exc}",
+                         path=str(path), line=mark.line + 1 if mark else None) from None
+
+    def walk(node: Any, prefix: str) -> None:
+        if isinstance(node, yaml.MappingNode):
+            for k, v in node.value:
+                key = f"{prefix}.{k.value}" if prefix else str(k.value)
+                lines[key] = k.start_mark.line + 1
+                walk(v, key)
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                lines[f"{prefix}[{i}]"] = item.start_mark.line + 1
+                walk(item, f"{prefix}[{i}]")
+
+    if root is not None:
+        walk(root, "")
+    return data, lines
+
+
+# ------------------------------------------------------------------------------ mission.yaml
+def read_mission(path: str | Path) -> Mission:
+    """Load and validate ``mission.yaml``."""
+    path = Path(path)
+    data, lines = _yaml_with_lines(path)
+    top = _Node(data if data is not None else {}, "", str(path), lines)
+    top.check({"format", "fleet", "start_ns", "duration_s", "robots", "comm_graph"},
+              {"objects", "mocap", "simulation"})
+    if data["format"] != RUN_FORMAT:
+        raise top._err(f"format: expected {RUN_FORMAT!r}, got {data['format']!r}", "format")
+    fleet = top.get("fleet", "name")
+    start_ns = top.get("start_ns", "int")
+    if start_ns <= 0:
+        raise top._err(f"start_ns: expected > 0, got {start_ns}", "start_ns")
+    duration_s = top.get("duration_s", "float")
+    if duration_s <= 0:
+        raise top._err(f"duration_s: expected > 0, got {duration_s}", "duration_s")
+    robots = []
+    for i, item in enumerate(top.get("robots", "list")):
+        n = _Node(item, f"robots[{i}]", str(path), lines)
+        n.check({"id", "name"}, {"mocap_body", "T_body_marker", "T_world_odom"})
+        rid = n.get("id", "int")
+        if not 0 <= rid <= 65535:
+            raise n._err(f"{n.key('id')}: expected 0..65535, got {rid}", n.key("id"))
+        robots.append(RunRobot(rid, n.get("name", "name"), n.get("mocap_body", "str"),
+                               n.get("T_body_marker", "pose", np.eye(4)),
+                               n.get("T_world_odom", "pose")))
+    if not robots:
+        raise top._err("robots: expected at least one robot", "robots")
+    for attr in ("id", "name"):
+        vals = [getattr(r, attr) for r in robots]
+        dup = sorted({v for v in vals if vals.count(v) > 1})
+        if dup:
+            raise top._err(f"robots: {attr} {dup[0]!r} appears more than once", "robots")
+    objects = []
+    for i, item in enumerate(top.get("objects", "list", [])):
+        n = _Node(item, f"objects[{i}]", str(path), lines)
+        n.check({"id"}, {"name", "mocap_body", "T_object_marker"})
+        oid = n.get("id", "int")
+        objects.append(RunObject(oid, n.get("name", "str", f"object{oid}"),
+                                 n.get("mocap_body", "str"),
+                                 n.get("T_object_marker", "pose", np.eye(4))))
+    ids = {r.id for r in robots}
+    edges = set()
+    for i, e in enumerate(top.get("comm_graph", "list")):
+        key = f"comm_graph[{i}]"
+        if (not isinstance(e, list) or len(e) != 2
+                or any(isinstance(x, bool) or not isinstance(x, int) for x in e)):
+            raise top._err(f"{key}: expected a pair of robot ids [a, b], got {e!r}", key)
+        a, b = e
+        if a == b or a not in ids or b not in ids:
+            raise top._err(f"{key}: expected two different robot ids of this run "
+                           f"({sorted(ids)}), got {e!r}", key)
+        edges.add((min(a, b), max(a, b)))
+    mocap_file = mocap_start = None
+    up = "y"
+    if "mocap" in data:
+        m = _Node(top.get("mocap", "dict"), "mocap", str(path), lines)
+        m.check({"file"}, {"start_ns", "up_axis"})
+        mocap_file = m.get("file", "str")
+        mocap_start = m.get("start_ns", "int")
+        up = m.get("up_axis", "str", "y")
+        if up not in ("y", "z"):
+            raise m._err(f"mocap.up_axis: expected 'y' or 'z', got {up!r}", "mocap.up_axis")
+    sim = top.get("simulation", "dict") if "simulation" in data else None
+    return Mission(fleet, start_ns, duration_s, tuple(robots), tuple(objects),
+                   tuple(sorted(edges)), mocap_file, mocap_start, up, sim)
+
+
+def mission_to_yaml_dict(m: Mission) -> dict:
+    """The plain-data form of ``m`` written as ``mission.yaml``."""
+    robots = []
+    for r in m.robots:
+        d: dict[str, Any] = {"id": r.id, "name": r.name}
+        if r.mocap_body:
+            d["mocap_body"] = r.mocap_body
+            d["T_body_marker"] = pose_to_yaml(r.T_body_marker)
+        if r.T_world_odom is not None:
+            d["T_world_odom"] = pose_to_yaml(r.T_world_odom)
+        robots.append(d)
+    objects = []
+    for o in m.objects:
+        d = {"id": o.id, "name": o.name}
+        if o.mocap_body:
+            d["mocap_body"] = o.mocap_body
+            d["T_object_marker"] = pose_to_yaml(o.T_object_marker)
+        objects.append(d)
+    out: dict[str, Any] = {
+        "format": RUN_FORMAT,
+        "fleet": m.fleet,
+        "start_ns": int(m.start_ns),
+        "duration_s": float(m.duration_s),
+        "robots": robots,
+        "objects": objects,
+        "comm_graph": [[int(a), int(b)] for a, b in m.comm_graph],
+    }
+    if m.mocap_file:
+        mocap: dict[str, Any] = {"file": m.mocap_file, "up_axis": m.mocap_up_axis}
+        if m.mocap_start_ns is not None:
+            mocap["start_ns"] = int(m.mocap_start_ns)
+        out["mocap"] = mocap
+    if m.simulation:
+        out["simulation"] = m.simulation
+    return out
+
+
+def write_yaml(path: str | Path, data: Any, header: str = "") -> None:
+    import yaml
+
+    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
+    if header:
+        text = "".join(f"# {line}\n" for line in header.splitlines()) + text
+    Path(path).write_text(text, encoding="utf-8")
+
+
+def write_mission(run_dir: str | Path, m: Mission) -> Path:
+    path = Path(run_dir) / "mission.yaml"
+    write_yaml(path, mission_to_yaml_dict(m),
+               header="dran-edge recorded run (docs/run-format.md)")
+    return path
+
+
+# ------------------------------------------------------------------------------ frames.csv
+def write_frame_index(frames_dir: str | Path, stamps_ns, colour: list[str],
+                      depth: list[str] | None) -> Path:
+    """Write ``frames.csv`` (paths relative to the frames directory; depth may be empty)."""
+    path = Path(frames_dir) / "frames.csv"
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(FRAMES_HEADER)
+        for i, stamp in enumerate(np.asarray(stamps_ns, dtype=np.int64).tolist()):
+            w.writerow([stamp, colour[i], depth[i] if depth else ""])
+    return path
+
+
+def read_frame_index(frames_dir: str | Path) -> FrameIndex:
+    """Read ``frames.csv``: header ``stamp_ns,colour,depth``, strictly increasing stamps."""
+    frames_dir = Path(frames_dir)
+    path = frames_dir / "frames.csv"
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("file not found: a frames/ folder needs frames.csv "
+                         "(docs/run-format.md)", path=str(path)) from None
+    rows = list(csv.reader(text.splitlines()))
+    if not rows or tuple(c.strip() for c in rows[0]) != FRAMES_HEADER:
+        raise InputError(f"expected the header {','.join(FRAMES_HEADER)}, got "
+                         f"{','.join(rows[0]) if rows else 'an empty file'}", path=str(path), line=1)
+    stamps, colour, depth = [], [], []
+    last = 0
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        if len(row) != 3:
+            raise InputError(f"expected 3 fields (stamp_ns,colour,depth), got {len(row)}",
+                             path=str(path), line=lineno)
+        try:
+            stamp = int(row[0])
+        except ValueError:
+            raise InputError(f"stamp_ns: expected an integer, got {row[0]!r}",
+                             path=str(path), line=lineno) from None
+        if stamp <= last:
+            raise InputError(f"stamp_ns: expected increasing stamps > {last}, got {stamp}",
+                             path=str(path), line=lineno)
+        last = stamp
+        if not row[1] or Path(row[1]).is_absolute() or ".." in Path(row[1]).parts:
+            raise InputError(f"colour: expected a relative path inside frames/, got {row[1]!r}",
+                             path=str(path), line=lineno)
+        stamps.append(stamp)
+        colour.append(frames_dir / row[1])
+        depth.append(frames_dir / row[2] if row[2] else None)
+    return FrameIndex(np.asarray(stamps, np.int64), tuple(colour), tuple(depth))
+
+
+# ------------------------------------------------------------------------------ the run
+@dataclass(frozen=True, eq=False)
+class Run:
+    """A run directory, opened: the mission and where every robot's parts are."""
+
+    root: Path
+    mission: Mission
+
+    @property
+    def calib_dir(self) -> Path:
+        return self.root / "calib"
+
+    @property
+    def out_dir(self) -> Path:
+        return self.root / "out"
+
+    def robot_dir(self, name: str) -> Path:
+        return self.root / "robots" / name
+
+    def config_path(self, name: str) -> Path:
+        return self.robot_dir(name) / "robot.yaml"
+
+    def ingest_path(self, name: str) -> Path:
+        return self.robot_dir(name) / "ingest.bin"
+
+    def frames_dir(self, name: str) -> Path | None:
+        d = self.robot_dir(name) / "frames"
+        return d if (d / "frames.csv").exists() else None
+
+    @property
+    def mocap_path(self) -> Path | None:
+        return self.root / self.mission.mocap_file if self.mission.mocap_file else None
+
+    def read_ingest(self, name: str) -> bytes:
+        path = self.ingest_path(name)
+        try:
+            return path.read_bytes()
+        except FileNotFoundError:
+            raise InputError("file not found: every robot of a run needs its ingest records "
+                             "(docs/run-format.md)", path=str(path)) from None
+
+    def load_config(self, name: str):
+        """The robot's config, strictly loaded; its id and name must match the mission."""
+        from dran_edge.config import load_config
+
+        path = self.config_path(name)
+        if not path.exists():
+            raise InputError("file not found: every robot of a run needs its config",
+                             path=str(path))
+        cfg = load_config(path)
+        r = self.mission.robot(name)
+        if cfg.robot.id != r.id or cfg.robot.name != r.name:
+            raise InputError(f"robot: expected id {r.id} name {r.name!r} (mission.yaml), got id "
+                             f"{cfg.robot.id} name {cfg.robot.name!r}", path=str(path))
+        return cfg
+
+
+def open_run(run_dir: str | Path) -> Run:
+    """Open a run directory; checks that every robot listed has its folder and ingest file."""
+    root = Path(run_dir)
+    if not root.is_dir():
+        raise InputError("expected a run directory (docs/run-format.md)", path=str(root))
+    mission = read_mission(root / "mission.yaml")
+    run = Run(root, mission)
+    for r in mission.robots:
+        if not run.ingest_path(r.name).exists():
+            raise InputError(f"robot {r.name!r} of mission.yaml has no ingest.bin",
+                             path=str(run.ingest_path(r.name)))
+    if run.mocap_path is not None and not run.mocap_path.exists():
+        raise InputError("mission.yaml names this mocap file but it does not exist",
+                         path=str(run.mocap_path))
+    return run
