@@ -164,9 +164,9 @@ class AgentConfig(_Checked):
     eta: float = _f(0.1, lo=0.0, lo_open=True)
     """Dual step eta of eq. 5b."""
     alpha: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0)
-    """Step size on the private variables u (retraction)."""
+    """Step size on the public variables v (objects): y <- Retr_y(alpha v) (Alg. 1 line 13)."""
     gamma: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0)
-    """Step size on the public variables v (retraction)."""
+    """Step size on the private variables u (trajectory): x <- Retr_x(gamma u) (Alg. 1 line 13)."""
     eps_u: float = _f(1e-2, lo=0.0)
     """Terminate when the private step norm |u| < eps_u."""
     eps_v: float = _f(1e-1, lo=0.0)
@@ -181,6 +181,11 @@ class AgentConfig(_Checked):
     """Robust kernel on loop and object residuals (whitened)."""
     robust_threshold: float = _f(1.345, lo=0.0, lo_open=True)
     """Kernel width on the whitened residual norm (1.345: 95 % efficiency for Huber)."""
+    send_threshold: float = _f(1e-4, lo=0.0)
+    """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
+    moved by more than this since it was last sent to that neighbour (metres / unitless)."""
+    resend_period_rounds: int = _f(20, lo=1, hi=1_000_000)
+    """... or when it was last sent this many rounds ago (recovers from lost datagrams)."""
     relay_max_hops: int = _f(3, lo=0, hi=32)
     """Object estimates learned from others are relayed at most this many hops (Sec. 4.2.2)."""
     init_max_iterations: int = _f(50, lo=1, hi=10_000)
