@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("dran_edge.commands.run", "run the robot daemon (what systemd starts)"),
     "status": ("dran_edge.commands.status", "show the running daemon's health"),
     "check-config": ("dran_edge.commands.check_config", "validate a robot config file"),
+    "detect": ("dran_edge.commands.detect", "detect AprilTags in images, recordings or a camera"),
 }
 
 EXIT_USAGE = 2

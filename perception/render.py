@@ -308,3 +308,71 @@ def render_view(
     return _DEFAULT.render(K, width, height, T_camera_tag, tag_ids, tag_sizes_m,
                            blur_sigma_px=blur, noise_sigma=noise, lighting=lighting,
                            occlusion=occlusion, rng=rng, depth=depth)
+
+
+def write_realsense_recording(path, frames, K: np.ndarray, fps: int = 30,
+                              depth_unit_m: float = 0.001) -> int:
+    """Write frames (``frame.Frame``) as a RealSense recording through pyrealsense2 itself.
+
+    A ``software_device`` with a colour sensor (bgr8) and a depth sensor (z16, already aligned:
+    same intrinsics, identity extrinsics) is recorded by ``rs.recorder``; stamps go in as
+    global-time milliseconds. librealsense 2.56+ writes only ``.db3`` (rosbag2/SQLite) files
+    ("Output file must have .db3 extension"). Returns the number of frames written.
+    """
+    import pyrealsense2 as rs
+
+    frames = list(frames)
+    if not frames:
+        raise InputError("write_realsense_recording: no frames")
+    h, w = frames[0].colour.shape[:2]
+    K = np.asarray(K, dtype=np.float64)
+    intr = rs.intrinsics()
+    intr.width, intr.height = w, h
+    intr.fx, intr.fy, intr.ppx, intr.ppy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    intr.model = rs.distortion.none
+    intr.coeffs = [0.0] * 5
+    device = rs.software_device()
+    colour_sensor = device.add_sensor("RGB Camera")
+    depth_sensor = device.add_sensor("Stereo Module")
+
+    def stream(kind, uid, bpp, fmt):
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid = kind, 0, uid
+        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, fps, bpp, fmt
+        vs.intrinsics = intr
+        return vs
+
+    colour_profile = colour_sensor.add_video_stream(stream(rs.stream.color, 0, 3, rs.format.bgr8))
+    depth_profile = depth_sensor.add_video_stream(stream(rs.stream.depth, 1, 2, rs.format.z16))
+    depth_sensor.add_read_only_option(rs.option.depth_units, float(depth_unit_m))
+    identity = rs.extrinsics()
+    identity.rotation = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]
+    identity.translation = [0.0, 0.0, 0.0]
+    depth_profile.register_extrinsics_to(colour_profile, identity)
+    recorder = rs.recorder(str(path), device)
+    queue = rs.frame_queue(64)
+    colour_sensor.open(colour_profile)
+    depth_sensor.open(depth_profile)
+    colour_sensor.start(queue)
+    depth_sensor.start(queue)
+    try:
+        for number, fr in enumerate(frames):
+            pairs = [(colour_sensor, colour_profile, np.ascontiguousarray(fr.colour), 3)]
+            if fr.depth is not None:
+                pairs.append((depth_sensor, depth_profile, np.ascontiguousarray(fr.depth), 2))
+            for sensor, profile, pixels, bpp in pairs:
+                f = rs.software_video_frame()
+                f.pixels, f.stride, f.bpp = pixels, w * bpp, bpp
+                f.timestamp = fr.stamp_ns / 1e6
+                f.domain = rs.timestamp_domain.global_time
+                f.frame_number = number
+                f.profile = profile.as_video_stream_profile()
+                sensor.on_video_frame(f)
+            while queue.poll_for_frame():
+                pass
+    finally:
+        for s in (colour_sensor, depth_sensor):
+            s.stop()
+            s.close()
+        del recorder
+    return len(frames)
