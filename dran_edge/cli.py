@@ -22,7 +22,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("dran_edge.commands.run", "run the robot daemon (what systemd starts)"),
     "status": ("dran_edge.commands.status", "show the running daemon's health"),
     "check-config": ("dran_edge.commands.check_config", "validate a robot config file"),
+    "simulate": ("dran_edge.commands.simulate", "simulate a multi-robot mission as a run directory"),
+    "replay": ("dran_edge.commands.replay", "replay a recorded run through the robot code"),
     "detect": ("dran_edge.commands.detect", "detect AprilTags in images, recordings or a camera"),
+    "eval": ("dran_edge.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
 }
 
 EXIT_USAGE = 2

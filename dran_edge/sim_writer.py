@@ -136,11 +136,14 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
                              gradient_angle_rad=float(rng.uniform(-np.pi, np.pi)))
             colour, depth = renderer.render(
                 sim.CAMERA_K, sim.CAMERA_WIDTH, sim.CAMERA_HEIGHT, poses, tag_ids[sel].tolist(),
-                w.tag_size_m, blur_sigma_px=float(rng.uniform(0.3, 0.9)), noise_sigma=2.0,
+                w.tag_size_m, blur_sigma_px=float(rng.uniform(0.3, 0.9)), noise_sigma=1.5,
                 lighting=light, rng=rng, depth=DepthModel())
             cname, dname = f"colour/{f:06d}.png", f"depth/{f:06d}.png"
-            cv2.imwrite(str(frames_dir / cname), colour, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            cv2.imwrite(str(frames_dir / dname), depth, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            # The rendered scene is grey (B = G = R): an 8-bit grey PNG holds it losslessly in
+            # a third of the bytes, and readers load it as BGR like any colour PNG.
+            assert np.array_equal(colour[..., 0], colour[..., 2])
+            cv2.imwrite(str(frames_dir / cname), colour[..., 0], [cv2.IMWRITE_PNG_COMPRESSION, 3])
+            cv2.imwrite(str(frames_dir / dname), depth, [cv2.IMWRITE_PNG_COMPRESSION, 3])
             colour_names.append(cname)
             depth_names.append(dname)
             if progress is not None:
