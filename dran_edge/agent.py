@@ -1,0 +1,509 @@
+r"""One robot's DRAN agent: the paper's Algorithm 1 as a pure state machine (DESIGN §3).
+
+``Agent.handle(event) -> list[Output]`` is the only way in. ``NeighbourData`` events are absorbed
+(latest value wins; missing, duplicated or reordered messages are normal); a ``Tick`` runs one
+round of Alg. 1 for this robot and returns the messages for its neighbours and an
+``EstimateUpdate``. No clock, socket, thread, environment or global state; the same events give
+the same outputs.
+
+Notation (Sec. 3–4): private trajectory x_i (tangent u), public object copies y_i (tangent v),
+neighbours' separators as fixed anchors (f_inter), duals λ_ij, MH weights w_ij, penalty β,
+dual step η, step sizes α (public) and γ (private).
+
+One round (Alg. 1, lines 3–13)::
+
+    absorb neighbour data; initialise unknown objects from neighbours (lines 3–8)
+    λ_ij ← λ_ij + η β w_ij φ(y_i, y_j)                                        (eq. 5b, line 9)
+    L̂_i = f_intra + f_inter + f_obj + Σ_j (β/2)‖w_ij φ(y_i, y_j) + λ_ij/β‖²  (eq. 6)
+    M = JᵀJ + μI = [[A, C], [Cᵀ, B]],  g = [g_x; g_y]                         (eq. 7)
+    ĝ = g_y − Cᵀ A⁻¹ g_x,  Ĥ = B − Cᵀ A⁻¹ C                                   (eqs. 11, 12)
+    v = −Ĥ⁻¹ ĝ,  u = −A⁻¹ (C v + g_x)                                        (line 11, eq. 8)
+    y ← Retr_y(α v),  x ← Retr_x(γ u)                                         (line 13)
+
+Sign convention: the paper writes both ``v = −Ĥ⁻¹ĝ`` and ``Retr(−αv)`` (Alg. 1) and
+``Retr(+αξ)`` with ``ξ = −M⁻¹g`` (Sec. 5). We implement the descent step
+``z⁺ = Retr_z(−α M⁻¹ g)``: (u, v) above are the minimiser of the model and are applied with ``+``.
+A step is accepted only when L̂_i decreases; otherwise μ grows and the step is retried (a few
+trials); if none decreases L̂_i the previous estimate is kept (DESIGN §4).
+
+Termination (Sec. 4.2.3): ``converged`` when ``‖u‖ ≤ ε_u`` and ``‖v‖ ≤ ε_v`` (optimality) and the
+largest ``φ²(y_i, y_j) ≤ ε_φ`` over the shared objects (feasibility; vacuous without objects), or
+after K_max rounds. We require both (the paper says "either"): feasibility alone is vacuous in
+object-free mode and optimality alone can hold while copies still disagree.
+
+Dynamic map consensus (Sec. 4.2.2): every copy is sent with a hop count (0: observed by the
+sender); a robot adopts an unknown object from a neighbour only when the entry's hop count is
+below ``relay_max_hops`` and relays it with hop + 1, so maps travel diameter − 1 rounds.
+
+The local problem comes from a :class:`LocalProblem` (docs/dran.md), built from a prebuilt
+partition (``LocalProblem.from_partition``; bench g2o, simulations) or by the daemon from the
+bounded online graph; the agent keeps estimates by keyframe id across ``set_problem`` calls.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.config import AgentConfig
+from dran_edge.consensus import ConsensusFactors, consensus_error, dual_update, phi, phi_dim
+from dran_edge.events import (
+    EstimateUpdate,
+    Health,
+    NeighbourData,
+    Outgoing,
+    Output,
+    Tick,
+)
+from dran_edge.factors import BetweenFactors, Cauchy, Huber, PriorFactors, isotropic_whitening
+from dran_edge.graph import PoseGraph, kinds_array
+from dran_edge.lm import LinearSolveError, build_plan, evaluate_cost, linearize, retract, schur_step
+from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
+
+log = logging.getLogger(__name__)
+
+_MAX_TRIALS = 6
+_MU_MIN = 1e-12
+
+
+# --------------------------------------------------------------------------- the local problem
+@dataclass(frozen=True, eq=False)
+class LocalProblem:
+    """Robot i's measurements, in its own terms (the interface between graph sources and the agent).
+
+    Poses are ``T_world_body`` in the fleet's common frame; indices ``own`` are positions into
+    ``pose_ids``. Whitening ``W`` has ``WᵀW = Ω`` in the coordinates of ``residual`` (diagonal
+    ``(m, r)`` or full ``(m, r, r)``).
+    """
+
+    dim: int
+    residual: str
+    """'geodesic' or 'chordal' (eq. 2) for every factor of this problem."""
+    pose_ids: np.ndarray
+    """(n,) int64 keyframe ids of the own poses (x_i); unique."""
+    pose_stamps_ns: np.ndarray
+    """(n,) int64 keyframe stamps."""
+    x0: np.ndarray
+    """(n, D, D) initial T_world_body."""
+    between: np.ndarray
+    """(m, 2) own indices (p, q) of odometry / intra-robot loop factors (f_intra)."""
+    between_T: np.ndarray
+    between_W: np.ndarray
+    between_robust: np.ndarray
+    """(m,) bool: apply the robust kernel (loops yes, odometry no)."""
+    inter_own: np.ndarray
+    """(k,) own index of each inter-robot factor (f_inter)."""
+    inter_owner: np.ndarray
+    """(k,) robot owning the other end (the anchor)."""
+    inter_anchor_id: np.ndarray
+    """(k,) keyframe id of the anchor in its owner's trajectory."""
+    inter_own_is_p: np.ndarray
+    """(k,) bool: the measurement is T̃ = T_own⁻¹ T_anchor (else T_anchor⁻¹ T_own)."""
+    inter_T: np.ndarray
+    inter_W: np.ndarray
+    inter_robust: np.ndarray
+    prior_own: np.ndarray
+    """(p,) own indices with a pose prior (known start pose, gauge)."""
+    prior_T: np.ndarray
+    prior_W: np.ndarray
+    obs_own: np.ndarray
+    """(o,) own index of the observing keyframe of each object observation (f_obj)."""
+    obs_object: np.ndarray
+    """(o,) object id."""
+    obs_T: np.ndarray
+    """(o, D, D) T_body_object measured."""
+    obs_W: np.ndarray
+    separators_for: dict = field(default_factory=dict)
+    """neighbour id -> (s,) own indices it needs as anchors."""
+
+    @property
+    def n(self) -> int:
+        return int(self.pose_ids.shape[0])
+
+    def to_dict(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "separators_for"}
+        out["separators_for"] = {int(k): np.asarray(v) for k, v in self.separators_for.items()}
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> LocalProblem:
+        kw = dict(data)
+        kw["separators_for"] = {int(k): np.asarray(v, np.int64) for k, v in data["separators_for"].items()}
+        return cls(**kw)
+
+    @classmethod
+    def empty(cls, dim: int, residual: str) -> LocalProblem:
+        D, r = dim + 1, (6 if dim == 3 else 3) if residual == "geodesic" else dim * dim + dim
+        z = np.zeros(0, np.int64)
+        T, W = np.zeros((0, D, D)), np.zeros((0, r))
+        return cls(dim, residual, z, z, T, np.zeros((0, 2), np.int64), T, W, np.zeros(0, bool),
+                   z, z, z, np.zeros(0, bool), T, W, np.zeros(0, bool), z, T, W, z, z, T, W, {})
+
+    @classmethod
+    def from_partition(cls, graph, partition, robot: int, x0: np.ndarray, kappa: np.ndarray,
+                       tau: np.ndarray, residual: str = "chordal") -> LocalProblem:
+        """Robot ``robot``'s problem from a partitioned g2o graph (Table 1, object-free mode);
+        keyframe ids are vertex positions; SE-Sync isotropic weights (κ, τ)."""
+        part = partition.parts[robot]
+        dim = graph.dim
+        W = isotropic_whitening(kappa, tau, residual, dim)
+        local = np.full(graph.num_vertices, -1, np.int64)
+        local[part.vertices] = np.arange(part.vertices.size)
+        e_in = graph.edges[part.intra_edges]
+        e_x = graph.edges[part.inter_edges]
+        own_is_p = partition.owner[e_x[:, 0]] == robot
+        own_end = np.where(own_is_p, e_x[:, 0], e_x[:, 1])
+        other = np.where(own_is_p, e_x[:, 1], e_x[:, 0])
+        z = np.zeros(0, np.int64)
+        D = dim + 1
+        gauge = 0 if robot == int(partition.owner[0]) else None
+        prior_own = np.array([local[0]], np.int64) if gauge is not None else z
+        prior_T = x0[prior_own] if gauge is not None else np.zeros((0, D, D))
+        prior_W = np.full((prior_own.size, W.shape[1]), 1e4 * float(np.sqrt(np.max(kappa))))
+        return cls(
+            dim=dim, residual=residual, pose_ids=part.vertices.astype(np.int64),
+            pose_stamps_ns=part.vertices.astype(np.int64), x0=x0[part.vertices].copy(),
+            between=local[e_in], between_T=graph.measurements[part.intra_edges],
+            between_W=W[part.intra_edges], between_robust=np.zeros(e_in.shape[0], bool),
+            inter_own=local[own_end], inter_owner=partition.owner[other].astype(np.int64),
+            inter_anchor_id=other.astype(np.int64), inter_own_is_p=own_is_p,
+            inter_T=graph.measurements[part.inter_edges], inter_W=W[part.inter_edges],
+            inter_robust=np.zeros(e_x.shape[0], bool),
+            prior_own=prior_own, prior_T=prior_T, prior_W=prior_W,
+            obs_own=z, obs_object=z, obs_T=np.zeros((0, D, D)), obs_W=np.zeros((0, W.shape[1])),
+            separators_for={q: local[v] for q, v in part.separators_for.items()},
+        )
+
+
+# --------------------------------------------------------------------------- the agent
+@dataclass(frozen=True, eq=False)
+class _Structure:
+    """The local PoseGraph of one topology and its structure plan (rebuilt when it changes)."""
+
+    key: tuple
+    graph: PoseGraph
+    plan: object
+    obj_ids: tuple
+    anchor_keys: tuple
+    pair_keys: tuple  # (neighbour, object id) for each consensus factor
+
+
+class Agent:
+    """Robot ``config.robot_id``'s DRAN agent (see the module docstring)."""
+
+    def __init__(self, config: AgentConfig, problem: LocalProblem | None = None,
+                 weights: dict | None = None):
+        self.config = config
+        self.id = int(config.robot_id)
+        self.neighbours = tuple(int(q) for q in config.neighbours)
+        deg = len(self.neighbours)
+        #: w_ij per neighbour (MH); without the neighbours' degrees we assume equal degrees.
+        self.w = {q: (float(weights[q]) if weights and q in weights else 1.0 / (1.0 + deg))
+                  for q in self.neighbours}
+        self.problem = problem if problem is not None else LocalProblem.empty(config.dim, config.residual)
+        self.x = self.problem.x0.copy()
+        self.k = 0
+        self.mu: float | None = None
+        self.y: dict[int, np.ndarray] = {}
+        self.hops: dict[int, int] = {}
+        self.origin: dict[int, int] = {}
+        self.anchors: dict[tuple[int, int], np.ndarray] = {}
+        self.anchor_round: dict[tuple[int, int], int] = {}
+        self.nbr_obj: dict[tuple[int, int], tuple[np.ndarray, int, int]] = {}
+        self.lam: dict[tuple[int, int], np.ndarray] = {}
+        self.last_sent: dict[tuple[int, str, int], tuple[np.ndarray, int]] = {}
+        self.counters = {"rounds": 0, "accepted": 0, "rejected": 0, "linear_fail": 0,
+                         "stale_dropped": 0, "objects_adopted": 0, "unhandled_events": 0}
+        self.converged = False
+        self.last_norms = (math.inf, math.inf, math.inf)
+        self.last_cost = math.nan
+        self.step_times: list = []
+        self._structure: _Structure | None = None
+        self._init_objects_from_observations()
+
+    # ----------------------------------------------------------------- inputs
+    def handle(self, event) -> list[Output]:
+        """The only way in: absorb one event, return the outputs it causes."""
+        if isinstance(event, NeighbourData):
+            self._absorb(event.message)
+            return []
+        if isinstance(event, Tick):
+            return self._round(int(event.stamp_ns))
+        self.counters["unhandled_events"] += 1
+        return [Health(getattr(event, "stamp_ns", 0), {"unhandled": type(event).__name__})]
+
+    def set_problem(self, problem: LocalProblem) -> None:
+        """Replace the local problem (the online graph changed); estimates kept by keyframe id."""
+        old = {int(k): i for i, k in enumerate(self.problem.pose_ids.tolist())}
+        x = problem.x0.copy()
+        for i, k in enumerate(problem.pose_ids.tolist()):
+            if k in old:
+                x[i] = self.x[old[k]]
+        self.problem, self.x, self._structure = problem, x, None
+        self._init_objects_from_observations()
+
+    def _absorb(self, msg: NeighbourMessage) -> None:
+        j, rnd = int(msg.sender_id), int(msg.round)
+        for e in msg.separators:
+            key = (int(e.owner_robot), int(e.keyframe_id))
+            if self.anchor_round.get(key, -1) > rnd:
+                self.counters["stale_dropped"] += 1
+                continue
+            self.anchors[key] = np.asarray(e.T_world_body, dtype=np.float64)
+            self.anchor_round[key] = rnd
+        for e in msg.objects:
+            key = (j, int(e.object_id))
+            prev = self.nbr_obj.get(key)
+            if prev is not None and prev[2] > rnd:
+                self.counters["stale_dropped"] += 1
+                continue
+            self.nbr_obj[key] = (np.asarray(e.T_world_object, np.float64), int(e.hop_count), rnd)
+
+    def _init_objects_from_observations(self) -> None:
+        """Own observations initialise unknown objects: y = x_p T̃_body_object."""
+        p = self.problem
+        for k in range(p.obs_object.size):
+            oid = int(p.obs_object[k])
+            if oid not in self.y:
+                self.y[oid] = self.x[p.obs_own[k]] @ p.obs_T[k]
+            self.hops[oid] = 0
+            self.origin[oid] = self.id
+
+    # ----------------------------------------------------------------- one round
+    def _adopt_unknown_objects(self) -> None:
+        """Alg. 1 lines 3–8: an object first heard of from a neighbour starts at its value."""
+        best: dict[int, tuple[int, int, np.ndarray]] = {}
+        for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
+            if oid in self.y or hop >= self.config.relay_max_hops:
+                continue
+            if oid not in best or hop < best[oid][0]:
+                best[oid] = (hop, j, T)
+        for oid, (hop, j, T) in best.items():
+            self.y[oid] = T.copy()
+            self.hops[oid] = hop + 1
+            self.origin[oid] = j
+            self.counters["objects_adopted"] += 1
+        for oid in self.y:
+            if self.hops.get(oid, 0) > 0:
+                hs = [h for (j, o), (_, h, _r) in self.nbr_obj.items() if o == oid]
+                if hs:
+                    self.hops[oid] = min(self.hops[oid], min(hs) + 1)
+
+    def _structure_for(self) -> _Structure:
+        p = self.problem
+        obj_ids = tuple(sorted(self.y))
+        anchor_keys = tuple(sorted({(int(o), int(a)) for o, a in zip(p.inter_owner, p.inter_anchor_id)
+                                    if (int(o), int(a)) in self.anchors}))
+        pair_keys = tuple(sorted(k for k in self.nbr_obj if k[1] in self.y and k[0] in self.w))
+        key = (obj_ids, anchor_keys, pair_keys)
+        if self._structure is not None and self._structure.key == key:
+            return self._structure
+        n, n_o, n_a, n_c = p.n, len(obj_ids), len(anchor_keys), len(pair_keys)
+        o_base, a_base, c_base = n, n + n_o, n + n_o + n_a
+        obj_slot = {oid: o_base + i for i, oid in enumerate(obj_ids)}
+        anc_slot = {k: a_base + i for i, k in enumerate(anchor_keys)}
+        kinds = kinds_array(n + n_o + n_a + n_c, public=np.arange(o_base, a_base),
+                            fixed=np.arange(a_base, c_base + n_c))
+        kernel = self._kernel()
+        blocks = []
+        if p.between.shape[0]:
+            rob = p.between_robust
+            for mask, ker, label in ((~rob, None, "intra"), (rob, kernel, "intra-loop")):
+                if mask.any():
+                    blocks.append(BetweenFactors(p.between[mask], p.between_T[mask], p.between_W[mask],
+                                                 p.residual, ker, label))
+        if p.inter_own.size:
+            keep = np.array([(int(o), int(a)) in anc_slot for o, a in zip(p.inter_owner, p.inter_anchor_id)])
+            if keep.any():
+                a_idx = np.array([anc_slot.get((int(o), int(a)), -1)
+                                  for o, a in zip(p.inter_owner, p.inter_anchor_id)])[keep]
+                own, is_p = p.inter_own[keep], p.inter_own_is_p[keep]
+                var = np.stack([np.where(is_p, own, a_idx), np.where(is_p, a_idx, own)], axis=1)
+                for mask, ker in ((~p.inter_robust[keep], None), (p.inter_robust[keep], kernel)):
+                    if mask.any():
+                        blocks.append(BetweenFactors(var[mask], p.inter_T[keep][mask],
+                                                     p.inter_W[keep][mask], p.residual, ker, "inter"))
+        if p.prior_own.size:
+            blocks.append(PriorFactors(p.prior_own[:, None], p.prior_T, p.prior_W, p.residual, None))
+        if p.obs_own.size:
+            var = np.stack([p.obs_own, np.array([obj_slot[int(o)] for o in p.obs_object])], axis=1)
+            blocks.append(BetweenFactors(var, p.obs_T, p.obs_W, p.residual, kernel, "object"))
+        graph = PoseGraph(dim=p.dim, kinds=kinds, factors=tuple(blocks))
+        plan = build_plan(graph.with_factors(*self._consensus_blocks(obj_slot, c_base, pair_keys)))
+        self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys)
+        return self._structure
+
+    def _consensus_blocks(self, obj_slot: dict, c_base: int, pair_keys: tuple) -> tuple:
+        if not pair_keys:
+            return ()
+        var = np.array([[obj_slot[oid], c_base + i] for i, (j, oid) in enumerate(pair_keys)])
+        r = phi_dim(self.config.residual, self.config.dim)
+        lam = np.stack([self.lam.get(k, np.zeros(r)) for k in pair_keys])
+        w = np.array([self.w[j] for j, _ in pair_keys])
+        return (ConsensusFactors(var, w, lam, self.config.beta, self.config.residual),)
+
+    def _kernel(self):
+        c = self.config
+        if c.robust_kernel == "huber":
+            return Huber(c.robust_threshold)
+        if c.robust_kernel == "cauchy":
+            return Cauchy(c.robust_threshold)
+        return None
+
+    def _poses(self, s: _Structure) -> np.ndarray:
+        p = self.problem
+        parts = [self.x]
+        D = p.dim + 1
+        if s.obj_ids:
+            parts.append(np.stack([self.y[o] for o in s.obj_ids]))
+        if s.anchor_keys:
+            parts.append(np.stack([self.anchors[k] for k in s.anchor_keys]))
+        if s.pair_keys:
+            parts.append(np.stack([self.nbr_obj[k][0] for k in s.pair_keys]))
+        return np.concatenate(parts) if len(parts) > 1 else self.x.reshape(-1, D, D).copy()
+
+    def _round(self, stamp_ns: int) -> list[Output]:
+        c = self.config
+        self.k += 1
+        self.counters["rounds"] += 1
+        self._adopt_unknown_objects()
+        s = self._structure_for()
+        # Dual update, eq. 5b, with the newest copies of both ends.
+        if s.pair_keys:
+            y_i = np.stack([self.y[o] for _, o in s.pair_keys])
+            y_j = np.stack([self.nbr_obj[k][0] for k in s.pair_keys])
+            r = phi_dim(c.residual, c.dim)
+            lam = np.stack([self.lam.get(k, np.zeros(r)) for k in s.pair_keys])
+            w = np.array([self.w[j] for j, _ in s.pair_keys])
+            lam = dual_update(lam, phi(y_i, y_j, c.residual), w, c.beta, c.eta)
+            for key, value in zip(s.pair_keys, lam):
+                self.lam[key] = value
+        n = self.problem.n
+        obj_slot = {oid: n + i for i, oid in enumerate(s.obj_ids)}
+        c_base = n + len(s.obj_ids) + len(s.anchor_keys)
+        graph = s.graph.with_factors(*self._consensus_blocks(obj_slot, c_base, s.pair_keys))
+        poses = self._poses(s)
+        norm_u, norm_v = self._local_step(graph, s.plan, poses)
+        phi2 = 0.0
+        if s.pair_keys:
+            y_i = np.stack([self.y[o] for _, o in s.pair_keys])
+            y_j = np.stack([self.nbr_obj[k][0] for k in s.pair_keys])
+            phi2 = float(np.max(consensus_error(y_i, y_j)))
+        self.last_norms = (norm_u, norm_v, phi2)
+        self.converged = (norm_u <= c.eps_u and norm_v <= c.eps_v and phi2 <= c.eps_phi) or self.k >= c.k_max
+        return self._outputs(stamp_ns, s, phi2)
+
+    def _local_step(self, graph: PoseGraph, plan, poses: np.ndarray) -> tuple[float, float]:
+        """One damped LM step with the Schur complement (eqs. 7–12); keeps x, y on rejection."""
+        c = self.config
+        lin = linearize(graph, plan, poses)
+        cost = lin.cost
+        if self.mu is None:
+            diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B), [1.0]])
+            self.mu = max(c.mu_init * float(np.max(diag)), _MU_MIN)
+        g = np.concatenate([lin.g_x, lin.g_y])
+        for _ in range(_MAX_TRIALS):
+            try:
+                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, self.mu)
+            except LinearSolveError:
+                self.counters["linear_fail"] += 1
+                self.mu *= 4.0
+                continue
+            new = retract(plan, poses, c.gamma * u, c.alpha * v)
+            new_cost = evaluate_cost(graph, new)
+            if math.isfinite(new_cost) and new_cost <= cost:
+                pred = -float(g @ np.concatenate([u, v]))
+                rho = (cost - new_cost) / pred if pred > 0 else 0.0
+                self.mu = max(self.mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), _MU_MIN)
+                self.counters["accepted"] += 1
+                self.last_cost = new_cost
+                self._store(plan, new)
+                return float(np.linalg.norm(c.gamma * u)), float(np.linalg.norm(c.alpha * v))
+            self.mu *= 4.0
+        self.counters["rejected"] += 1
+        self.last_cost = cost
+        return 0.0, 0.0
+
+    def _store(self, plan, poses: np.ndarray) -> None:
+        n = self.problem.n
+        self.x = poses[:n].copy()
+        for i, oid in enumerate(sorted(self.y)):
+            self.y[oid] = poses[n + i].copy()
+
+    # ----------------------------------------------------------------- outputs
+    def _changed(self, key: tuple, T: np.ndarray, force: bool) -> bool:
+        prev = self.last_sent.get(key)
+        c = self.config
+        if prev is None or force or self.k - prev[1] >= c.resend_period_rounds:
+            return True
+        return float(np.max(np.abs(T - prev[0]))) > c.send_threshold
+
+    def _outputs(self, stamp_ns: int, s: _Structure, phi2: float) -> list[Output]:
+        p = self.problem
+        out: list[Output] = []
+        objects = sorted(self.y.items())
+        for q in self.neighbours:
+            seps = []
+            for i in p.separators_for.get(q, np.zeros(0, np.int64)).tolist():
+                key = (q, "s", int(p.pose_ids[i]))
+                if self._changed(key, self.x[i], False):
+                    seps.append(SeparatorEntry(self.id, int(p.pose_ids[i]), int(p.pose_stamps_ns[i]),
+                                               self.x[i].copy()))
+                    self.last_sent[key] = (self.x[i].copy(), self.k)
+            objs = []
+            for oid, T in objects:
+                if self.hops.get(oid, 0) >= self.config.relay_max_hops:
+                    continue
+                key = (q, "o", oid)
+                if self._changed(key, T, False):
+                    objs.append(ObjectEntry(oid, T.copy(), self.origin.get(oid, self.id),
+                                            self.hops.get(oid, 0)))
+                    self.last_sent[key] = (T.copy(), self.k)
+            if seps or objs:
+                msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs))
+                out.append(Outgoing(msg, (q,)))
+        D = p.dim + 1
+        out.append(EstimateUpdate(
+            stamp_ns=stamp_ns, round=self.k, keyframe_stamps_ns=p.pose_stamps_ns.copy(),
+            T_world_body=self.x.copy(), object_ids=tuple(o for o, _ in objects),
+            T_world_object=(np.stack([T for _, T in objects]) if objects else np.zeros((0, D, D))),
+            cost=float(self.last_cost), step_norm_u=self.last_norms[0],
+            step_norm_v=self.last_norms[1], consensus_error=phi2, converged=self.converged))
+        return out
+
+    # ----------------------------------------------------------------- checkpoints
+    def to_state(self) -> dict:
+        """Everything needed to resume (plain dicts, lists and numpy arrays)."""
+        return {
+            "problem": self.problem.to_dict(), "x": self.x.copy(), "k": self.k, "mu": self.mu,
+            "y": {int(k): v.copy() for k, v in self.y.items()}, "hops": dict(self.hops),
+            "origin": dict(self.origin),
+            "anchors": {k: v.copy() for k, v in self.anchors.items()},
+            "anchor_round": dict(self.anchor_round),
+            "nbr_obj": {k: (v[0].copy(), v[1], v[2]) for k, v in self.nbr_obj.items()},
+            "lam": {k: v.copy() for k, v in self.lam.items()}, "w": dict(self.w),
+            "counters": dict(self.counters),
+        }
+
+    @classmethod
+    def from_state(cls, config: AgentConfig, state: dict) -> Agent:
+        agent = cls(config, LocalProblem.from_dict(state["problem"]), weights=state["w"])
+        agent.x = np.asarray(state["x"], np.float64).copy()
+        agent.k, agent.mu = int(state["k"]), state["mu"]
+        agent.y = {int(k): np.asarray(v, np.float64) for k, v in state["y"].items()}
+        agent.hops = {int(k): int(v) for k, v in state["hops"].items()}
+        agent.origin = {int(k): int(v) for k, v in state["origin"].items()}
+        agent.anchors = {tuple(k): np.asarray(v) for k, v in state["anchors"].items()}
+        agent.anchor_round = {tuple(k): int(v) for k, v in state["anchor_round"].items()}
+        agent.nbr_obj = {tuple(k): (np.asarray(v[0]), int(v[1]), int(v[2])) for k, v in state["nbr_obj"].items()}
+        agent.lam = {tuple(k): np.asarray(v) for k, v in state["lam"].items()}
+        agent.counters.update(state["counters"])
+        return agent
+
+    # ----------------------------------------------------------------- reporting
+    def local_objects(self) -> dict[int, np.ndarray]:
+        return {k: v.copy() for k, v in self.y.items()}

@@ -1,0 +1,286 @@
+"""Two-stage distributed chordal initialisation (paper Sec. 4.2.1) and the linear block solver
+shared with the DGS baseline (``dran_edge.dgs``).
+
+The centralized recipe is ``dran_edge.chordal`` (Carlone et al. 2015). Here every robot owns its
+vertices and solves only its block, holding the neighbours' separator values as known:
+
+1. Rotations. Relax ``R_v`` to any ``d×d`` matrix and minimise ``Σ κ_e ‖R_j − R_i R̃_e‖²_F``.
+   Row a of the residual is ``r_j^a − R̃_eᵀ r_i^a`` (``r^a`` the a-th row as a column), so with
+   ``X_v = R_vᵀ`` (column a = row a of ``R_v``) every edge is the linear residual
+   ``√w_e (X_j − M_e X_i − c_e)`` with ``M_e = R̃_eᵀ``, ``c_e = 0``, block size ``b = d`` and
+   ``d`` right-hand-side columns. The result is projected to SO(d).
+2. Translations. With the rotations fixed, ``Σ τ_e ‖t_j − t_i − R_i t̃_e‖²`` is the same form with
+   ``b = 1``, ``M_e = 1``, ``c_e = (R_i t̃_e)ᵀ`` and ``X_v = t_vᵀ``.
+
+Normal equations of that form (``Q X = Bv``): ``Q_ii += w M_eᵀM_e``, ``Q_jj += w I``,
+``Q_ij += −w M_eᵀ``, ``Q_ji += −w M_e``, ``Bv_i += −w M_eᵀ c_e``, ``Bv_j += w c_e``.
+
+Robot r's block update (Jacobi, or Gauss–Seidel over a colouring when ``colouring`` is given, with
+successive over-relaxation ω as in Choudhary et al. 2017):
+
+    X_r ← (1 − ω) X_r + ω Q_rr⁻¹ (Bv_r − Q_rk X_k)       (k: its anchors, the neighbours' separators)
+
+``Q_rr`` is factorised once per stage and reused. Values travel as ``InitEntry`` messages through
+the caller's ``exchange`` (the harness encodes them with the wire codec, so rounds and bytes are
+counted exactly like the optimisation's). The paper caps each stage at 50 iterations.
+
+Gauge: one vertex (``gauge``: position of the first vertex, owned by robot 0) is fixed to the
+identity; robots without it are anchored through their neighbours.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from dran_edge import geometry as geo
+from dran_edge.messages import InitEntry, InitStage
+from dran_edge.partition import Partition
+
+log = logging.getLogger(__name__)
+
+#: exchange(stage, iteration, outgoing) -> incoming. ``outgoing[r]`` is a list of
+#: (neighbour, entries) robot r sends; ``incoming[r]`` the entries robot r received.
+Exchange = Callable[[InitStage, int, dict], dict]
+
+
+@dataclass(frozen=True)
+class InitParams:
+    """Parameters of the distributed initialisation (Sec. 4.2.1; defaults from Sec. 6.1)."""
+
+    max_iterations: int = 50
+    """Cap on iterations (communication rounds) of each stage (the paper's 50)."""
+    rotation_tol: float = 1e-2
+    """Stage 1 stops when no robot's relaxed rotations change by more than this (max abs entry)."""
+    translation_tol: float = 1e-2
+    """Stage 2 stops when no robot's translations change by more than this, metres."""
+    send_tol: float = 1e-4
+    """A separator value is re-sent only when it moved by more than this since last sent."""
+    sor: float = 1.0
+    """Successive over-relaxation ω of the block update (1.0: plain Gauss–Seidel/Jacobi)."""
+    gauss_seidel: bool = False
+    """True: robots of one colour update per sub-step using the newest values (DGS);
+    False: all robots update in parallel from last round's values (Jacobi)."""
+
+
+@dataclass
+class _Block:
+    """One robot's share of one linear stage."""
+
+    own: np.ndarray  # global positions of unknown own vertices
+    known: np.ndarray  # global positions of anchors (+ the gauge if it is ours)
+    lu: object
+    Q_rk: sp.csr_matrix
+    Bv: np.ndarray
+    X: np.ndarray  # (len(own)*b, ncol)
+
+
+@dataclass
+class InitResult:
+    poses: np.ndarray
+    """(n, D, D) initial poses ``T_world_vertex`` (the gauge vertex at the identity)."""
+    rotation_iterations: int
+    translation_iterations: int
+    history: list = field(default_factory=list)
+
+
+def normal_equations(n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.ndarray,
+                     w: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """(Q, Bv) of ``Σ_e w_e ‖X_j − M_e X_i − c_e‖²`` (see module docstring), vectorised.
+
+    ``M`` is (m, b, b), ``c`` is (m, b, ncol), ``w`` (m,); Q is (n b, n b), Bv (n b, ncol).
+    """
+    m = edges.shape[0]
+    i, j = edges[:, 0], edges[:, 1]
+    ar = np.arange(b)
+    I = np.broadcast_to(np.eye(b), (m, b, b))
+    MtM = np.swapaxes(M, 1, 2) @ M
+    blocks = [(i, i, w[:, None, None] * MtM), (j, j, w[:, None, None] * I),
+              (i, j, -w[:, None, None] * np.swapaxes(M, 1, 2)), (j, i, -w[:, None, None] * M)]
+    rows, cols, vals = [], [], []
+    for p, q, val in blocks:
+        rows.append((p[:, None, None] * b + ar[None, :, None] + 0 * ar[None, None, :]).ravel())
+        cols.append((q[:, None, None] * b + ar[None, None, :] + 0 * ar[None, :, None]).ravel())
+        vals.append(val.ravel())
+    Q = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(n * b, n * b))
+    ncol = c.shape[-1]
+    Bv = np.zeros((n * b, ncol))
+    Mtc = -w[:, None, None] * (np.swapaxes(M, 1, 2) @ c)
+    np.add.at(Bv, (i[:, None] * b + ar[None]).ravel(), Mtc.reshape(-1, ncol))
+    np.add.at(Bv, (j[:, None] * b + ar[None]).ravel(), (w[:, None, None] * c).reshape(-1, ncol))
+    return Q, Bv
+
+
+def _expand(positions: np.ndarray, b: int) -> np.ndarray:
+    return (positions[:, None] * b + np.arange(b)[None]).ravel()
+
+
+def greedy_colouring(partition: Partition) -> np.ndarray:
+    """(R,) colour of each robot so that neighbours differ (DGS's ordering, Choudhary 2017)."""
+    colour = -np.ones(partition.num_robots, dtype=np.int64)
+    for p in sorted(partition.parts, key=lambda p: -len(p.neighbours)):
+        used = {int(colour[q]) for q in p.neighbours}
+        colour[p.robot_id] = next(c for c in range(partition.num_robots + 1) if c not in used)
+    return colour
+
+
+class LinearStage:
+    """One distributed linear least-squares stage over a partition (rotations or translations)."""
+
+    def __init__(self, partition: Partition, n: int, b: int, edges: np.ndarray, M: np.ndarray,
+                 c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
+                 X_gauge: np.ndarray, X0: np.ndarray):
+        """``c_of(r)`` gives robot r's (m, b, ncol) constants (they may use r's own knowledge)."""
+        self.partition, self.b = partition, b
+        self.X_known = X0.copy()  # each robot's view is taken from here per robot below
+        self.views: list[np.ndarray] = []
+        self.blocks: list[_Block] = []
+        for part in partition.parts:
+            eidx = np.concatenate([part.intra_edges, part.inter_edges])
+            Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c_of(part.robot_id)[eidx], w[eidx])
+            own = part.vertices[part.vertices != gauge]
+            known = part.anchors
+            if np.any(part.vertices == gauge):
+                known = np.concatenate([known, [gauge]])
+            ro, rk = _expand(own, b), _expand(known, b)
+            Q = Q.tocsr()
+            Q_rr = sp.csc_matrix(Q[ro][:, ro])
+            lu = spla.splu(Q_rr, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                           options={"SymmetricMode": True})
+            view = X0.copy()
+            view[_expand(np.array([gauge]), b)] = X_gauge
+            self.views.append(view)
+            self.blocks.append(_Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], X0[ro].copy()))
+
+    def update(self, r: int, sor: float) -> float:
+        """Robot r's block update from its current view; returns the max abs change."""
+        blk, view = self.blocks[r], self.views[r]
+        rhs = blk.Bv - blk.Q_rk @ view[_expand(blk.known, self.b)]
+        X_new = (1.0 - sor) * blk.X + sor * blk.lu.solve(rhs)
+        change = float(np.max(np.abs(X_new - blk.X), initial=0.0))
+        blk.X = X_new
+        view[_expand(blk.own, self.b)] = X_new
+        return change
+
+    def own_value(self, r: int, v: int) -> np.ndarray:
+        return self.views[r][v * self.b:(v + 1) * self.b]
+
+    def receive(self, r: int, v: int, X_v: np.ndarray) -> None:
+        self.views[r][v * self.b:(v + 1) * self.b] = X_v
+
+
+def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: InitParams,
+               tol: float, colour: np.ndarray | None, to_entry: Callable, from_entry: Callable,
+               history: list) -> int:
+    """Iterate ``stage`` through ``exchange``; returns the iterations used."""
+    part = stage.partition
+    R = part.num_robots
+    last_sent: dict[tuple[int, int], np.ndarray] = {}
+    groups = [list(range(R))] if colour is None else [
+        [r for r in range(R) if colour[r] == c] for c in np.unique(colour)]
+    iterations = 0
+    for it in range(params.max_iterations):
+        iterations = it + 1
+        max_change = 0.0
+        for group in groups:
+            outgoing: dict[int, list] = {}
+            for r in group:
+                max_change = max(max_change, stage.update(r, params.sor))
+                sends = []
+                for q in part.parts[r].neighbours:
+                    entries = []
+                    for v in part.parts[r].separators_for[q].tolist():
+                        X_v = stage.own_value(r, v)
+                        prev = last_sent.get((q, v))
+                        if prev is None or np.max(np.abs(X_v - prev)) > params.send_tol:
+                            entries.append(to_entry(r, v, X_v))
+                            last_sent[(q, v)] = X_v.copy()
+                    if entries:
+                        sends.append((q, entries))
+                outgoing[r] = sends
+            incoming = exchange(kind, it, outgoing)
+            for r, entries in incoming.items():
+                for e in entries:
+                    if InitStage(e.stage) == kind:
+                        stage.receive(r, int(e.keyframe_id), from_entry(e))
+        history.append((kind.name, it, max_change))
+        if max_change < tol:
+            break
+    return iterations
+
+
+def distributed_chordal_init(
+    dim: int,
+    n: int,
+    edges: np.ndarray,
+    measurements: np.ndarray,
+    kappa: np.ndarray,
+    tau: np.ndarray,
+    partition: Partition,
+    exchange: Exchange,
+    params: InitParams = InitParams(),
+    gauge: int = 0,
+) -> InitResult:
+    """Two-stage distributed chordal initialisation; every value crosses ``exchange``."""
+    d, D = dim, dim + 1
+    m = edges.shape[0]
+    colour = greedy_colouring(partition) if params.gauss_seidel else None
+    history: list = []
+    R_meas, t_meas = measurements[:, :d, :d], measurements[:, :d, d]
+    I_d = np.eye(d)
+    X0 = np.tile(I_d, (n, 1))  # X_v = R_vᵀ = I
+    rot = LinearStage(partition, n, d, edges, np.swapaxes(R_meas, 1, 2),
+                      lambda r: np.zeros((m, d, d)), np.asarray(kappa, float), gauge, I_d, X0)
+
+    def rot_entry(r: int, v: int, X_v: np.ndarray) -> InitEntry:
+        return InitEntry(InitStage.ROTATION, r, v, X_v.T.copy())
+
+    it_rot = _run_stage(rot, InitStage.ROTATION, exchange, params, params.rotation_tol, colour,
+                        rot_entry, lambda e: np.asarray(e.value, float).T, history)
+
+    # Each robot projects what it knows (own values and the neighbours' last relaxed values).
+    R_views = [geo.so3_project(v.reshape(n, d, d).swapaxes(1, 2)) if d == 3 else
+               _so2_project(v.reshape(n, d, d).swapaxes(1, 2)) for v in rot.views]
+
+    def c_of(r: int) -> np.ndarray:
+        Ri = R_views[r][edges[:, 0]]
+        return (Ri @ t_meas[:, :, None]).reshape(m, 1, d)
+
+    trans = LinearStage(partition, n, 1, edges, np.ones((m, 1, 1)), c_of,
+                        np.asarray(tau, float), gauge, np.zeros((1, d)), np.zeros((n, d)))
+
+    def trans_entry(r: int, v: int, X_v: np.ndarray) -> InitEntry:
+        T = np.eye(D)
+        T[:d, :d], T[:d, d] = R_views[r][v], X_v[0]
+        return InitEntry(InitStage.TRANSLATION, r, v, T)
+
+    it_tr = _run_stage(trans, InitStage.TRANSLATION, exchange, params, params.translation_tol,
+                       colour, trans_entry, lambda e: np.asarray(e.value, float)[:d, d][None], history)
+
+    poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
+    for part in partition.parts:
+        r, own = part.robot_id, part.vertices
+        poses[own, :d, :d] = R_views[r][own]
+        poses[own, :d, d] = trans.views[r][own]
+    return InitResult(poses, it_rot, it_tr, history)
+
+
+def _so2_project(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation of (..., 2, 2) matrices."""
+    theta = np.arctan2(M[..., 1, 0] - M[..., 0, 1], M[..., 0, 0] + M[..., 1, 1])
+    return geo.so2_exp(theta)
+
+
+def direct_exchange(stage: InitStage, iteration: int, outgoing: dict) -> dict:
+    """Lossless in-memory exchange (tests, centralized checks); counts nothing."""
+    incoming: dict[int, list] = {}
+    for _r, sends in outgoing.items():
+        for q, entries in sends:
+            incoming.setdefault(q, []).extend(entries)
+    return incoming
