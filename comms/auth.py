@@ -231,10 +231,12 @@ class Verifier:
 
     def _window_verdict(self, sender: int, epoch: int, seq: int) -> Reject | None:
         w = self._windows.get(sender)
-        if w is None or epoch > w.epoch or seq > w.top:
+        if w is None or epoch > w.epoch:
             return None
         if epoch < w.epoch:
             return Reject.STALE
+        if seq > w.top:
+            return None
         age = w.top - seq
         if age >= self.policy.replay_window:
             return Reject.STALE

@@ -58,10 +58,12 @@ _U32_MAX = 0xFFFFFFFF
 _VARINT_MAX_BYTES = 10  # a uint64 in LEB128
 
 # Smallest-three quaternion: 2-bit index of the dropped (largest) component in [x, y, z, w]
-# order, then three 23-bit components quantised over [-1/sqrt2, 1/sqrt2]; 71 of 72 bits used.
+# order, then three 23-bit fields u = s + 2^22 with s = round(c * sqrt2 * (2^22 - 1)) for a
+# component c in [-1/sqrt2, 1/sqrt2] (zero is exact); 71 of 72 bits used, the top one is 0.
 _Q_BITS = 23
-_Q_MAX = (1 << _Q_BITS) - 1
-_Q_MASK = np.uint64(_Q_MAX)
+_Q_MASK = np.uint64((1 << _Q_BITS) - 1)
+_Q_OFFSET = 1 << (_Q_BITS - 1)
+_Q_SCALE = float(_Q_OFFSET - 1)
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _POSE3 = np.dtype([("t", "<f4", (3,)), ("q_lo", "<u8"), ("q_hi", "u1")])  # 21 bytes
 # SE(2): theta quantised to 24 bits over [-pi, pi).
@@ -158,7 +160,8 @@ def _encode_poses3(T: np.ndarray) -> np.ndarray:
     keep = np.ones_like(q, dtype=bool)
     keep[np.arange(q.shape[0]), idx] = False
     small = q[keep].reshape(-1, 3)
-    u = np.rint((np.clip(small / _INV_SQRT2, -1.0, 1.0) + 1.0) * (_Q_MAX / 2.0)).astype(np.uint64)
+    signed = np.rint(np.clip(small / _INV_SQRT2, -1.0, 1.0) * _Q_SCALE).astype(np.int64)
+    u = (signed + _Q_OFFSET).astype(np.uint64)
     lo = (
         idx.astype(np.uint64)
         | (u[:, 0] << np.uint64(2))
@@ -187,7 +190,7 @@ def _decode_poses3(rec: np.ndarray) -> np.ndarray:
         ],
         axis=1,
     )
-    small = (u.astype(np.float64) * (2.0 / _Q_MAX) - 1.0) * _INV_SQRT2
+    small = (u.astype(np.float64) - _Q_OFFSET) * (_INV_SQRT2 / _Q_SCALE)
     sq = np.sum(small * small, axis=1)
     if np.any(sq > 1.0 + 1e-6):
         raise DecodeError("quaternion is not unit (smallest three have squared norm > 1)")
