@@ -183,8 +183,8 @@ def estimate_time_offset(
 
     The search is around ``initial_offset_s`` (default: the offset that lines up the first
     estimate stamp with the first tracked mocap frame), within ``±max_offset_s`` (default: any
-    lag leaving at least ``min_overlap_s`` of overlap). Raises InputError when the signals are
-    too short or the robot never turns (flat angular speed).
+    lag overlapping at least half of the shorter signal and ``min_overlap_s``). Raises
+    InputError when the signals are too short or the robot never turns (flat angular speed).
     """
     stamps_est_s = np.asarray(stamps_est_s, dtype=np.float64)
     time_ref_s = np.asarray(time_ref_s, dtype=np.float64)
@@ -194,7 +194,10 @@ def estimate_time_offset(
     if initial_offset_s is None:
         initial_offset_s = float(time_ref_s[vr][0] - stamps_est_s[0])
     step = 1.0 / rate_hz
-    smooth_n = max(1, int(round(smooth_s * rate_hz)))
+    # Smooth over at least three estimate periods: differencing sparse, noisy poses at the grid
+    # rate otherwise turns pose noise into large angular-speed spikes.
+    est_period_s = float(np.median(np.diff(stamps_est_s)))
+    smooth_n = max(1, int(round(max(smooth_s, 3.0 * est_period_s) * rate_hz)))
     est_grid = np.arange(stamps_est_s[0], stamps_est_s[-1], step)
     # The mocap grid in the estimate's clock (shifted by the initial offset), same phase.
     lo = time_ref_s[vr][0] - initial_offset_s
@@ -228,7 +231,10 @@ def estimate_time_offset(
         rho = cov / np.sqrt(ve * vr_)
     L = np.arange(n_e + n_r - 1) - (n_e - 1)
     offset_of_L = initial_offset_s + (L + j0) * step
-    need = min(min_n, int(0.5 * min(me.sum(), mr.sum())))
+    # A lag must overlap at least half of the shorter signal (and min_overlap_s when the signals
+    # allow it): short overlaps give spurious high correlations.
+    half = int(0.5 * min(me.sum(), mr.sum()))
+    need = max(half, min(min_n, 2 * half))
     ok = (n >= max(need, 3)) & np.isfinite(rho) & (ve > 1e-12 * n) & (vr_ > 1e-12 * n)
     if max_offset_s is not None:
         ok &= np.abs(offset_of_L - initial_offset_s) <= max_offset_s + 0.5 * step

@@ -1,0 +1,694 @@
+"""Score a run against OptiTrack: load, associate, align, compute the paper's metrics, report.
+
+The shell behind ``dran-edge eval`` (docs/eval.md). It reads the run directory
+(docs/run-format.md): ``mission.yaml``, the Motive CSV, and what ``dran-edge replay`` wrote under
+``out/`` (per robot ``trajectory.tum``, ``trajectory_init.tum``, ``objects.csv``; ``merged.g2o``,
+``merged_vertices.csv``, ``rounds.csv``, ``report.json``). Optional files that are absent only
+remove the metrics that need them (the report's ``notes`` say which and why); a file that is
+present but malformed is an error naming its line.
+
+Ground truth: ``T_world_body = T_world_marker · T_body_marker⁻¹`` (mission.yaml's pivot offset),
+objects averaged over their tracked frames (Fréchet mean). Time: ``t_mocap = t_est + offset``;
+the offset is given, or from ``mission.yaml`` (``mocap.start_ns``), or estimated from angular
+speeds (align.estimate_time_offset). Alignment: one for all robots (se3 / sim3 / yaw), none, or
+the paper's protocol (per robot, the initial world-to-robot frame from mocap at the first
+matched pose of the initial estimate; the same frame is used for the initial, final and
+centralized estimates and the robot's object copies).
+
+SR_ATE needs the centralized solution: ``out/centralized/<robot>/trajectory.tum`` if present;
+otherwise ``merged.g2o`` (decentralized final estimate as vertices) is solved with our centralized
+Schur-LM (dran_edge.pgo) and mapped back to robots and stamps by ``merged_vertices.csv``.
+SR_cost uses the SE-Sync objective of ``merged.g2o``: F_k at the file's vertices, F_init at the
+chordal initialisation (shared by all methods, paper Sec. 6.1) and F* at the centralized optimum.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dran_edge import align, metrics, motive, tum
+from dran_edge import geometry as geo
+from dran_edge.errors import InputError
+
+log = logging.getLogger(__name__)
+
+EVAL_FORMAT = "dran-edge-eval/1"
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """How to score a run."""
+
+    align: str = "paper"
+    """Alignment: none, se3, sim3, yaw or paper (see align.py)."""
+    mocap_path: str | None = None
+    """Motive CSV to use instead of the run's (``mission.yaml`` mocap.file or ``mocap.csv``)."""
+    time_offset_s: float | None = None
+    """``t_mocap = t_est + time_offset_s``; None: from mission.yaml, else estimated."""
+    max_gap_s: float = 0.1
+    """Longest mocap occlusion gap interpolated across (s)."""
+    rpe_delta_s: float = 1.0
+    """Pose-pair spacing of the relative pose error (s)."""
+    inter_robot_rate_hz: float = 2.0
+    """Rate of the common instants at which inter-robot relative poses are compared (Hz)."""
+    centralized: bool = True
+    """Solve merged.g2o centrally when no centralized trajectories are given."""
+    plots: bool = True
+    """Write PNG plots (needs matplotlib, the ``eval`` extra)."""
+
+
+@dataclass
+class _Robot:
+    name: str
+    T_body_marker: np.ndarray
+    gt_time_s: np.ndarray | None = None
+    gt_T: np.ndarray | None = None
+    gt_valid: np.ndarray | None = None
+    est: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    assoc: dict[str, align.Association] = field(default_factory=dict)
+    objects: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+def _clean(x: Any) -> Any:
+    """JSON-safe: NaN/inf -> None, numpy scalars/arrays -> Python."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(float(x)) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+# ----------------------------------------------------------------------------------- readers
+
+
+def read_objects_csv(path: Path) -> dict[int, np.ndarray]:
+    """``object_id,x,y,z,qx,qy,qz,qw`` rows (header line optional) -> {id: T_world_object}."""
+    out: dict[int, np.ndarray] = {}
+    with open(path, newline="", encoding="utf-8") as f:
+        for n, row in enumerate(csv.reader(f), start=1):
+            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+                continue
+            if n == 1 and row[0].strip() == "object_id":
+                continue
+            if len(row) != 8:
+                raise InputError(f"expected 8 fields object_id,x,y,z,qx,qy,qz,qw, got {len(row)}",
+                                 path=str(path), line=n)
+            try:
+                oid = int(row[0])
+                v = np.array([float(c) for c in row[1:]])
+            except ValueError:
+                raise InputError(f"expected an integer id and 7 numbers, got {','.join(row)!r}",
+                                 path=str(path), line=n) from None
+            if not np.isfinite(v).all() or abs(np.linalg.norm(v[3:]) - 1) > 1e-3:
+                raise InputError("expected finite numbers and a unit quaternion",
+                                 path=str(path), line=n)
+            if oid in out:
+                raise InputError(f"object {oid} appears twice", path=str(path), line=n)
+            out[oid] = geo.se3_from_xyz_quat_xyzw(v)
+    return out
+
+
+def read_rounds_csv(path: Path) -> dict[str, np.ndarray]:
+    """``rounds.csv`` -> {column: values}; needs a header with ``round``; numbers or blanks."""
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.reader(f))
+    if not rows or "round" not in [c.strip() for c in rows[0]]:
+        raise InputError("expected a header line naming the columns, with 'round' among them",
+                         path=str(path), line=1)
+    head = [c.strip() for c in rows[0]]
+    cols: dict[str, list[float]] = {h: [] for h in head}
+    for n, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        if len(row) != len(head):
+            raise InputError(f"expected {len(head)} fields like the header, got {len(row)}",
+                             path=str(path), line=n)
+        for h, c in zip(head, row):
+            try:
+                cols[h].append(float(c) if c.strip() else math.nan)
+            except ValueError:
+                raise InputError(f"column {h!r}: expected a number, got {c!r}",
+                                 path=str(path), line=n) from None
+    return {h: np.array(v) for h, v in cols.items()}
+
+
+def read_vertex_map(path: Path) -> dict[int, tuple[str, str, int]]:
+    """``merged_vertices.csv`` (``vertex_id,kind,name,stamp_ns``; kind ``pose`` or ``object``)
+    -> {vertex_id: (kind, robot name or object id, stamp_ns)}."""
+    out = {}
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.reader(f))
+    if not rows or [c.strip() for c in rows[0]] != ["vertex_id", "kind", "name", "stamp_ns"]:
+        raise InputError("expected the header vertex_id,kind,name,stamp_ns", path=str(path),
+                         line=1)
+    for n, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        try:
+            vid, kind, name, stamp = int(row[0]), row[1].strip(), row[2].strip(), int(row[3])
+        except (ValueError, IndexError):
+            raise InputError(f"expected vertex_id,kind,name,stamp_ns, got {','.join(row)!r}",
+                             path=str(path), line=n) from None
+        if kind not in ("pose", "object"):
+            raise InputError(f"kind: expected 'pose' or 'object', got {kind!r}",
+                             path=str(path), line=n)
+        out[vid] = (kind, name, stamp)
+    return out
+
+
+# ------------------------------------------------------------------------------- trajectory
+
+
+def body_ground_truth(take: motive.MotiveTake, body: str, T_body_marker: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(time_s, T_world_body, valid) of a Motive body carrying a marker at ``T_body_marker``."""
+    b = take.body(body)
+    T = b.T_world_marker @ geo.se3_inverse(T_body_marker)
+    return take.time_s, T, b.valid
+
+
+def resolve_time_offset(stamps_s, T_est, gt_time_s, gt_T, gt_valid,
+                        given: float | None) -> tuple[float, str, dict]:
+    """(offset, source, details): the given offset, or one estimated from angular speeds."""
+    if given is not None:
+        return float(given), "given", {}
+    res = align.estimate_time_offset(stamps_s, T_est, gt_time_s, gt_T, valid_ref=gt_valid)
+    return res.offset_s, "estimated", {"correlation": res.correlation, "overlap_s": res.overlap_s}
+
+
+def evaluate_trajectory(
+    stamps_s: np.ndarray,
+    T_est: np.ndarray,
+    take: motive.MotiveTake,
+    body: str,
+    *,
+    T_body_marker: np.ndarray | None = None,
+    align_kind: str = "se3",
+    time_offset_s: float | None = None,
+    max_gap_s: float = 0.1,
+    rpe_delta_s: float = 1.0,
+) -> dict[str, Any]:
+    """Score one trajectory against one Motive body (``dran-edge eval traj``)."""
+    T_bm = np.eye(4) if T_body_marker is None else T_body_marker
+    gt_t, gt_T, gt_v = body_ground_truth(take, body, T_bm)
+    offset, source, details = resolve_time_offset(stamps_s, T_est, gt_t, gt_T, gt_v,
+                                                  time_offset_s)
+    a = align.associate(stamps_s, T_est, gt_t, gt_T, valid_ref=gt_v, time_offset_s=offset,
+                        max_gap_s=max_gap_s, what=f"body {body!r}")
+    al = align.fit_alignment(align_kind, a.T_est, a.T_ref)
+    T_al = al.apply(a.T_est)
+    stats = metrics.ate_trans_stats_m(T_al, a.T_ref)
+    return {
+        "body": body,
+        "matched_poses": a.matched_poses,
+        "estimated_poses": int(len(stamps_s)),
+        "time_offset_s": offset,
+        "time_offset_source": source,
+        **{f"time_offset_{k}": v for k, v in details.items()},
+        "align": al.to_json(),
+        "ate_rmse_m": stats["rmse_m"],
+        "ate_mean_m": stats["mean_m"],
+        "ate_median_m": stats["median_m"],
+        "ate_max_m": stats["max_m"],
+        "ate_rot_rmse_deg": metrics.ate_rot_rmse_deg(T_al, a.T_ref),
+        "ate_log_rmse": metrics.ate_log_rmse(T_al, a.T_ref),
+        "rpe": metrics.rpe(a.stamps_s, T_al, a.T_ref, delta_s=rpe_delta_s),
+    }
+
+
+# ---------------------------------------------------------------------------------- run dir
+
+
+def _find_mocap(run_dir: Path, mission, opt: EvalOptions) -> Path | None:
+    if opt.mocap_path:
+        p = Path(opt.mocap_path)
+        if not p.exists():
+            raise InputError("Motive CSV given with --mocap does not exist", path=str(p))
+        return p
+    if mission.mocap_file:
+        p = run_dir / mission.mocap_file
+        if not p.exists():
+            raise InputError("mission.yaml names this mocap file but it does not exist",
+                             path=str(p))
+        return p
+    p = run_dir / "mocap.csv"
+    return p if p.exists() else None
+
+
+def _centralized_from_g2o(run_dir: Path, names: list[str], notes: list[str]
+                          ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
+    """Centralized trajectories {robot: (stamps_s, T)} and costs from merged.g2o."""
+    g2o_path = run_dir / "out" / "merged.g2o"
+    if not g2o_path.exists():
+        notes.append("SR_ATE / SR_cost: out/merged.g2o absent; no centralized solution")
+        return {}, {}
+    try:
+        from dran_edge.g2o import read_g2o
+        from dran_edge.pgo import solve_g2o
+    except ImportError as exc:  # the solver is another module of this package
+        notes.append(f"SR_ATE / SR_cost: centralized solver unavailable ({exc})")
+        return {}, {}
+    g = read_g2o(g2o_path)
+    if g.dim != 3:
+        raise InputError(f"expected SE(3) vertices in merged.g2o, got SE({g.dim})",
+                         path=str(g2o_path))
+    rep = solve_g2o(g, init="chordal")
+    cost = {
+        "source": "merged.g2o (SE-Sync objective, objective.sesync_objective)",
+        "F_k": rep.objective_input,
+        "F_init": rep.objective_init,
+        "F_star": rep.objective_final,
+        "centralized_status": str(getattr(rep.result.status, "value", rep.result.status)),
+        "centralized_iterations": int(getattr(rep.result, "iterations", -1)),
+    }
+    vmap_path = run_dir / "out" / "merged_vertices.csv"
+    if not vmap_path.exists():
+        notes.append("SR_ATE: out/merged_vertices.csv absent, cannot map merged.g2o vertices "
+                     "to robots and stamps")
+        return {}, cost
+    vmap = read_vertex_map(vmap_path)
+    out = {}
+    ids = g.vertex_ids
+    for name in names:
+        sel = [k for k, vid in enumerate(ids) if vmap.get(int(vid), ("", "", 0))[:2] ==
+               ("pose", name)]
+        if not sel:
+            continue
+        sel = np.array(sel)
+        stamps = np.array([vmap[int(ids[k])][2] for k in sel], dtype=np.int64)
+        order = np.argsort(stamps, kind="stable")
+        out[name] = (stamps[order] * 1e-9, rep.result.poses[sel[order]])
+    return out, cost
+
+
+def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[str, Any]:
+    """Score a run directory; returns the report (also the data the plots need, under ``_``)."""
+    from dran_edge.run_dir import read_mission
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError("expected a run directory (docs/run-format.md)", path=str(run_dir))
+    if opt.align not in align.ALIGN_KINDS:
+        raise InputError(f"alignment must be one of {', '.join(align.ALIGN_KINDS)}, "
+                         f"got {opt.align!r}")
+    mission = read_mission(run_dir / "mission.yaml")
+    out_dir = run_dir / "out"
+    notes: list[str] = []
+    robots: dict[str, _Robot] = {}
+    for r in mission.robots:
+        rb = _Robot(r.name, r.T_body_marker)
+        for kind, fname in (("final", "trajectory.tum"), ("init", "trajectory_init.tum"),
+                            ("centralized", None)):
+            p = (out_dir / r.name / fname) if fname else (out_dir / "centralized" / r.name /
+                                                         "trajectory.tum")
+            if p.exists():
+                rb.est[kind] = tum.read_tum(p)
+        p = out_dir / r.name / "objects.csv"
+        if p.exists():
+            rb.objects = read_objects_csv(p)
+        if "final" not in rb.est:
+            notes.append(f"robot {r.name}: out/{r.name}/trajectory.tum absent; robot skipped")
+            continue
+        robots[r.name] = rb
+    if not robots:
+        raise InputError("no robot has out/<name>/trajectory.tum: run 'dran-edge replay' on "
+                         "this run first", path=str(out_dir))
+
+    # Centralized solution (SR_ATE, SR_cost).
+    cost: dict[str, Any] = {}
+    if any("centralized" in rb.est for rb in robots.values()):
+        notes.append("centralized trajectories read from out/centralized/")
+    elif opt.centralized:
+        central, cost = _centralized_from_g2o(run_dir, list(robots), notes)
+        for name, est in central.items():
+            robots[name].est["centralized"] = est
+    report_json = out_dir / "report.json"
+    replay_report: dict[str, Any] = {}
+    if report_json.exists():
+        try:
+            replay_report = json.loads(report_json.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON: {exc.msg}", path=str(report_json),
+                             line=exc.lineno) from None
+        for k_rep, k_cost in (("cost_init", "F_init"), ("cost_final", "F_k"),
+                              ("cost_centralized", "F_star")):
+            if k_cost not in cost and isinstance(replay_report.get(k_rep), (int, float)):
+                cost[k_cost] = float(replay_report[k_rep])
+    if {"F_init", "F_k", "F_star"} <= cost.keys() and None not in (
+            cost["F_init"], cost["F_k"], cost["F_star"]):
+        cost["sr_cost_pct"] = metrics.sr_cost(cost["F_init"], cost["F_k"], cost["F_star"])
+
+    rounds = None
+    if (out_dir / "rounds.csv").exists():
+        rounds = read_rounds_csv(out_dir / "rounds.csv")
+
+    # Ground truth.
+    mocap_path = _find_mocap(run_dir, mission, opt)
+    take = None
+    if mocap_path is None:
+        notes.append("no Motive CSV: ATE, SR_ATE, Bias and per-object errors need ground truth")
+    else:
+        take = motive.read_motive_csv(mocap_path, up_axis=mission.mocap_up_axis)
+    bodies_used = []
+    if take is not None:
+        by_name = {r.name: r for r in mission.robots}
+        for name, rb in robots.items():
+            body = by_name[name].mocap_body
+            if body is None:
+                if name in take.bodies:
+                    body = name
+                else:
+                    notes.append(f"robot {name}: no mocap_body in mission.yaml and no rigid body "
+                                 f"of that name; not scored against mocap")
+                    continue
+            elif body not in take.bodies:
+                raise InputError(
+                    f"robot {name}: mocap_body {body!r} is not a rigid body of the Motive "
+                    f"take; it has: {', '.join(sorted(take.bodies)) or '(none)'}",
+                    path=str(mocap_path))
+            rb.gt_time_s, rb.gt_T, rb.gt_valid = body_ground_truth(take, body, rb.T_body_marker)
+            bodies_used.append(body)
+        if not bodies_used:
+            raise InputError(
+                "no robot of mission.yaml matches a rigid body of the Motive take (robots: "
+                f"{', '.join(robots)}; bodies: {', '.join(sorted(take.bodies)) or '(none)'}); "
+                "set mocap_body in mission.yaml", path=str(mocap_path))
+
+    scored = [n for n, rb in robots.items() if rb.gt_T is not None]
+    offset_info: dict[str, Any] = {}
+    if scored:
+        if opt.time_offset_s is not None:
+            offset, source = opt.time_offset_s, "given"
+        elif mission.mocap_start_ns is not None:
+            offset, source = -mission.mocap_start_ns * 1e-9, "mission.yaml mocap.start_ns"
+        else:
+            per = {}
+            for n in scored:
+                rb = robots[n]
+                # The initial estimate is the raw odometry: locally smoother than the
+                # optimised one, so its angular speed correlates best.
+                src = rb.est.get("init", rb.est["final"])
+                try:
+                    per[n] = align.estimate_time_offset(*src, rb.gt_time_s, rb.gt_T,
+                                                        valid_ref=rb.gt_valid).offset_s
+                except InputError as exc:
+                    notes.append(f"robot {n}: time offset not estimated ({exc})")
+            if not per:
+                raise InputError("could not estimate the mocap clock offset from any robot; "
+                                 "give --time-offset or mocap.start_ns in mission.yaml")
+            offset, source = float(np.median(list(per.values()))), "estimated"
+            offset_info["per_robot_s"] = per
+        offset_info.update({"time_offset_s": offset, "source": source})
+        for n in scored:
+            rb = robots[n]
+            for kind, (s, T) in rb.est.items():
+                rb.assoc[kind] = align.associate(s, T, rb.gt_time_s, rb.gt_T,
+                                                 valid_ref=rb.gt_valid, time_offset_s=offset,
+                                                 max_gap_s=opt.max_gap_s,
+                                                 what=f"robot {n} ({kind} estimate)")
+
+    # Alignment per estimate kind.
+    alignments: dict[str, dict[str, align.Alignment]] = {}
+    kinds = ("init", "final", "centralized")
+    for kind in kinds:
+        have = [n for n in scored if kind in robots[n].assoc]
+        if not have:
+            continue
+        if opt.align == "paper":
+            alignments[kind] = {}
+            for n in have:
+                rb = robots[n]
+                anchor = rb.assoc.get("init", rb.assoc["final"])
+                alignments[kind][n] = align.fit_alignment("paper", anchor.T_est, anchor.T_ref)
+        else:
+            Te = np.concatenate([robots[n].assoc[kind].T_est for n in have])
+            Tr = np.concatenate([robots[n].assoc[kind].T_ref for n in have])
+            a = align.fit_alignment(opt.align, Te, Tr)
+            alignments[kind] = {n: a for n in have}
+
+    # Trajectory metrics.
+    per_robot: dict[str, Any] = {}
+    overall: dict[str, Any] = {}
+    aligned: dict[str, dict[str, np.ndarray]] = {}
+    for kind, al_by in alignments.items():
+        Te_all, Tr_all, grp = [], [], []
+        for n, al in al_by.items():
+            a = robots[n].assoc[kind]
+            T_al = al.apply(a.T_est)
+            aligned.setdefault(n, {})[kind] = T_al
+            st = metrics.ate_trans_stats_m(T_al, a.T_ref)
+            entry = {
+                "matched_poses": a.matched_poses,
+                "ate_log_rmse": metrics.ate_log_rmse(T_al, a.T_ref),
+                "ate_trans_rmse_m": st["rmse_m"],
+                "ate_trans_max_m": st["max_m"],
+                "ate_rot_rmse_deg": metrics.ate_rot_rmse_deg(T_al, a.T_ref),
+                "alignment": al.to_json(),
+            }
+            if kind == "final":
+                entry["rpe"] = metrics.rpe(a.stamps_s, T_al, a.T_ref, delta_s=opt.rpe_delta_s)
+            per_robot.setdefault(n, {})[kind] = entry
+            Te_all.append(T_al)
+            Tr_all.append(a.T_ref)
+            grp.append(np.full(len(T_al), len(grp)))
+        Te_c, Tr_c, g_c = np.concatenate(Te_all), np.concatenate(Tr_all), np.concatenate(grp)
+        overall[kind] = {
+            "robots": len(al_by),
+            "ate_log_rmse": metrics.ate_log_rmse(Te_c, Tr_c, g_c),
+            "ate_trans_rmse_m": metrics.ate_trans_rmse_m(Te_c, Tr_c, g_c),
+        }
+    for n, e in per_robot.items():
+        if {"init", "final", "centralized"} <= e.keys():
+            e["sr_ate_pct"] = metrics.sr_ate(e["init"]["ate_log_rmse"], e["final"]["ate_log_rmse"],
+                                             e["centralized"]["ate_log_rmse"])
+    if {"init", "final", "centralized"} <= overall.keys():
+        overall["sr_ate_pct"] = metrics.sr_ate(overall["init"]["ate_log_rmse"],
+                                               overall["final"]["ate_log_rmse"],
+                                               overall["centralized"]["ate_log_rmse"])
+        overall["sr_ate_trans_pct"] = metrics.sr_ate(overall["init"]["ate_trans_rmse_m"],
+                                                     overall["final"]["ate_trans_rmse_m"],
+                                                     overall["centralized"]["ate_trans_rmse_m"])
+    elif scored:
+        missing = [k for k in kinds if k not in overall]
+        notes.append(f"SR_ATE: no {' / '.join(missing)} estimate to compare")
+
+    # Inter-robot relative poses at common instants (no alignment needed).
+    inter = _inter_robot(robots, scored, offset_info.get("time_offset_s", 0.0), opt)
+
+    # Objects.
+    objects_rep, obj_plot = _objects(mission, robots, take, alignments.get("final", {}), notes)
+
+    rounds_rep: dict[str, Any] = {}
+    if rounds is not None:
+        rounds_rep["count"] = int(len(rounds["round"]))
+        if "bytes_total" in rounds:
+            rounds_rep["bytes_total"] = float(np.nanmax(rounds["bytes_total"]))
+        if "cost" in rounds and {"F_init", "F_star"} <= cost.keys() and cost["F_init"] is not None:
+            rounds_rep["sr_cost_pct_last"] = float(
+                metrics.sr_cost(cost["F_init"], rounds["cost"][-1], cost["F_star"]))
+    for key in ("bytes_total", "rounds", "mission_s", "replay_wall_s"):
+        if key in replay_report:
+            rounds_rep.setdefault(f"replay_{key}", replay_report[key])
+
+    report = {
+        "format": EVAL_FORMAT,
+        "run": str(run_dir),
+        "mocap": str(mocap_path) if mocap_path else None,
+        "align": opt.align,
+        "time": offset_info,
+        "robots": per_robot,
+        "overall": overall,
+        "inter_robot": inter,
+        "objects": objects_rep,
+        "cost": cost,
+        "rounds": rounds_rep,
+        "notes": notes,
+    }
+    report = _clean(report)
+    report["_"] = {"robots": robots, "aligned": aligned, "rounds": rounds, "objects": obj_plot,
+                   "cost": cost}
+    return report
+
+
+def _inter_robot(robots, scored, offset, opt) -> dict[str, Any]:
+    out: dict[str, Any] = {"pairs": {}}
+    tr_all, rot_all = [], []
+    for i, a in enumerate(scored):
+        for b in scored[i + 1:]:
+            sa, Ta = robots[a].est["final"]
+            sb, Tb = robots[b].est["final"]
+            lo, hi = max(sa[0], sb[0]), min(sa[-1], sb[-1])
+            if hi - lo < 1.0 / opt.inter_robot_rate_hz:
+                continue
+            grid = np.arange(lo, hi, 1.0 / opt.inter_robot_rate_hz)
+            Ea, oka = align.interpolate_track(sa, Ta, grid, max_gap_s=5.0)
+            Eb, okb = align.interpolate_track(sb, Tb, grid, max_gap_s=5.0)
+            Ga, gka = align.interpolate_track(robots[a].gt_time_s, robots[a].gt_T, grid + offset,
+                                              valid=robots[a].gt_valid, max_gap_s=opt.max_gap_s)
+            Gb, gkb = align.interpolate_track(robots[b].gt_time_s, robots[b].gt_T, grid + offset,
+                                              valid=robots[b].gt_valid, max_gap_s=opt.max_gap_s)
+            ok = oka & okb & gka & gkb
+            if not ok.any():
+                continue
+            r = metrics.inter_robot_error(Ea[ok], Ga[ok], Eb[ok], Gb[ok])
+            out["pairs"][f"{a}-{b}"] = r
+            t, ang = metrics.relative_errors(Ea[ok], Ga[ok], Eb[ok], Gb[ok])
+            tr_all.append(t)
+            rot_all.append(ang)
+    if tr_all:
+        t, ang = np.concatenate(tr_all), np.concatenate(rot_all)
+        out["trans_rmse_m"] = float(np.sqrt(np.mean(t * t)))
+        out["rot_rmse_deg"] = float(np.sqrt(np.mean(ang * ang)))
+    return out
+
+
+def _objects(mission, robots, take, final_align, notes) -> tuple[dict[str, Any], dict]:
+    names = list(robots)
+    ids = sorted({oid for rb in robots.values() for oid in rb.objects}
+                 | {o.id for o in mission.objects})
+    if not ids or not any(rb.objects for rb in robots.values()):
+        notes.append("objects: no out/<robot>/objects.csv; CE and Bias not computed")
+        return {}, {}
+    col = {oid: k for k, oid in enumerate(ids)}
+    N, m = len(names), len(ids)
+    Y = np.tile(np.eye(4), (N, m, 1, 1))
+    present = np.zeros((N, m), bool)
+    for i, n in enumerate(names):
+        for oid, T in robots[n].objects.items():
+            Y[i, col[oid]] = T
+            present[i, col[oid]] = True
+    ce, y_avg = metrics.consistency_error(Y, present)
+    rep: dict[str, Any] = {"count": m, "copies": int(present.sum()), "ce": ce}
+    gt = np.full((m, 4, 4), np.nan)
+    if take is not None:
+        for o in mission.objects:
+            body = o.mocap_body or (o.name if o.name in take.bodies else None)
+            if body is None:
+                continue
+            if body not in take.bodies:
+                raise InputError(f"object {o.name}: mocap_body {body!r} is not a rigid body of "
+                                 f"the Motive take; it has: {', '.join(sorted(take.bodies))}",
+                                 path=take.path)
+            b = take.bodies[body]
+            if not b.valid.any():
+                notes.append(f"object {o.name}: never tracked by mocap")
+                continue
+            T = b.T_world_marker[b.valid] @ geo.se3_inverse(o.T_object_marker)
+            if o.id in col:
+                gt[col[o.id]] = metrics.frechet_mean_se3(T, np.ones(len(T)))
+    has_gt = np.all(np.isfinite(gt), axis=(-1, -2))
+    Y_al = Y.copy()
+    if final_align:
+        for i, n in enumerate(names):
+            if n in final_align:
+                Y_al[i] = final_align[n].apply(Y[i])
+    if has_gt.any():
+        rep["bias"] = metrics.object_bias(Y_al, present, gt)
+        _, y_avg_al = metrics.consistency_error(Y_al, present)
+        rep["bias_of_mean"] = metrics.object_bias_of_mean(y_avg_al, gt)
+        tr, rot = metrics.object_errors(Y_al, present, gt)
+        rep["per_object"] = {
+            str(oid): {
+                "copies": int(present[:, k].sum()),
+                "trans_err_m": {names[i]: tr[i, k] for i in range(N) if present[i, k]},
+                "rot_err_deg": {names[i]: rot[i, k] for i in range(N) if present[i, k]},
+            }
+            for oid, k in col.items() if has_gt[k]
+        }
+    else:
+        notes.append("objects: no object has a mocap rigid body; Bias not computed")
+    return rep, {"ids": ids, "names": names, "Y": Y_al, "present": present, "gt": gt,
+                 "y_avg": y_avg}
+
+
+# ----------------------------------------------------------------------------------- output
+
+
+def write_report(report: dict[str, Any], eval_dir: str | Path, *, plots: bool = True
+                 ) -> list[Path]:
+    """Write ``report.json``, ``summary.md`` and (``plots``) PNGs into ``eval_dir``."""
+    eval_dir = Path(eval_dir)
+    eval_dir.mkdir(parents=True, exist_ok=True)
+    data = {k: v for k, v in report.items() if k != "_"}
+    written = []
+    p = eval_dir / "report.json"
+    p.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+    written.append(p)
+    p = eval_dir / "summary.md"
+    p.write_text(summary_markdown(data), encoding="utf-8")
+    written.append(p)
+    if plots and "_" in report:
+        from dran_edge import eval_plots
+
+        written += eval_plots.write_plots(report, eval_dir)
+    return written
+
+
+def _f(v: Any, fmt: str = ".4f") -> str:
+    return "—" if v is None else format(v, fmt)
+
+
+def summary_markdown(r: dict[str, Any]) -> str:
+    """A short human summary of an eval report."""
+    lines = [f"# Evaluation of `{r['run']}`", ""]
+    lines.append(f"- mocap: `{r['mocap']}`" if r["mocap"] else "- mocap: none")
+    lines.append(f"- alignment: **{r['align']}**")
+    t = r.get("time") or {}
+    if t:
+        lines.append(f"- clock offset t_mocap − t_est: {_f(t.get('time_offset_s'), '.4f')} s "
+                     f"({t.get('source')})")
+    lines.append("")
+    if r["robots"]:
+        lines += ["## Trajectories", "",
+                  "| robot | poses | ATE trans (m) | ATE max (m) | rot RMSE (deg) | ATE log "
+                  "(paper) | ATE⁰ log | ATE* log | SR_ATE (%) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for n, e in r["robots"].items():
+            f = e.get("final", {})
+            lines.append(
+                f"| {n} | {f.get('matched_poses', '—')} | {_f(f.get('ate_trans_rmse_m'))} | "
+                f"{_f(f.get('ate_trans_max_m'))} | {_f(f.get('ate_rot_rmse_deg'), '.3f')} | "
+                f"{_f(f.get('ate_log_rmse'))} | {_f(e.get('init', {}).get('ate_log_rmse'))} | "
+                f"{_f(e.get('centralized', {}).get('ate_log_rmse'))} | "
+                f"{_f(e.get('sr_ate_pct'), '.1f')} |")
+        o = r["overall"]
+        lines += ["", f"Overall (each robot weighs 1/N): ATE log "
+                  f"{_f(o.get('final', {}).get('ate_log_rmse'))}, ATE trans "
+                  f"{_f(o.get('final', {}).get('ate_trans_rmse_m'))} m, SR_ATE "
+                  f"{_f(o.get('sr_ate_pct'), '.1f')} %.", ""]
+    ob = r.get("objects") or {}
+    if ob:
+        lines += ["## Objects", "",
+                  f"- {ob.get('count')} objects, {ob.get('copies')} robot copies",
+                  f"- CE (paper): {_f(ob.get('ce'), '.6f')}",
+                  f"- Bias (paper formula): {_f(ob.get('bias'))}; error of the mean map: "
+                  f"{_f(ob.get('bias_of_mean'))}", ""]
+    c = r.get("cost") or {}
+    if c:
+        lines += ["## Cost", "", f"- F_init {_f(c.get('F_init'))}, F_k {_f(c.get('F_k'))}, "
+                  f"F* {_f(c.get('F_star'))}, SR_cost {_f(c.get('sr_cost_pct'), '.1f')} %", ""]
+    ir = r.get("inter_robot") or {}
+    if ir.get("pairs"):
+        lines += ["## Inter-robot relative poses", "",
+                  f"- {len(ir['pairs'])} pairs: translation RMSE {_f(ir.get('trans_rmse_m'))} m, "
+                  f"rotation RMSE {_f(ir.get('rot_rmse_deg'), '.3f')} deg", ""]
+    rd = r.get("rounds") or {}
+    if rd:
+        lines += ["## Rounds and bytes", ""] + [f"- {k}: {v}" for k, v in rd.items()] + [""]
+    if r.get("notes"):
+        lines += ["## Not computed / notes", ""] + [f"- {n}" for n in r["notes"]] + [""]
+    return "\n".join(lines)
