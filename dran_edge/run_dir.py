@@ -8,7 +8,7 @@ score it::
     RUN/calib/                   tags.yaml + cameras/<robot>.yaml (docs/calibration.md)
     RUN/robots/<name>/robot.yaml the robot's config as used (docs/config.md)
     RUN/robots/<name>/ingest.bin ingest records, byte for byte (docs/ingest.md)
-    RUN/robots/<name>/frames/    frames.csv + colour/*.png + depth/*.png (optional)
+    RUN/robots/<name>/frames/    recorded frames (optional; perception's frames folder)
     RUN/out/                     written by ``dran-edge replay``
 
 Reading never guesses: a missing file, an unknown key, a wrong type or an inconsistent id
@@ -19,7 +19,6 @@ bytes and frames are handed to their own decoders by the replay.
 
 from __future__ import annotations
 
-import csv
 import math
 import re
 from dataclasses import dataclass, field
@@ -32,7 +31,6 @@ from dran_edge import geometry as geo
 from dran_edge.errors import InputError
 
 RUN_FORMAT = "dran-edge-run/1"
-FRAMES_HEADER = ("stamp_ns", "colour", "depth")
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")
 
 
@@ -91,15 +89,6 @@ class Mission:
     def neighbours(self, robot_id: int) -> tuple[int, ...]:
         out = [b if a == robot_id else a for a, b in self.comm_graph if robot_id in (a, b)]
         return tuple(sorted(out))
-
-
-@dataclass(frozen=True, eq=False)
-class FrameIndex:
-    """``frames/frames.csv``: stamps and the colour / depth files of recorded frames."""
-
-    stamps_ns: np.ndarray
-    colour: tuple[Path, ...]
-    depth: tuple[Path | None, ...]
 
 
 # ------------------------------------------------------------------------------ pose helpers
@@ -337,58 +326,6 @@ def write_mission(run_dir: str | Path, m: Mission) -> Path:
     write_yaml(path, mission_to_yaml_dict(m),
                header="dran-edge recorded run (docs/run-format.md)")
     return path
-
-
-# ------------------------------------------------------------------------------ frames.csv
-def write_frame_index(frames_dir: str | Path, stamps_ns, colour: list[str],
-                      depth: list[str] | None) -> Path:
-    """Write ``frames.csv`` (paths relative to the frames directory; depth may be empty)."""
-    path = Path(frames_dir) / "frames.csv"
-    with open(path, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(FRAMES_HEADER)
-        for i, stamp in enumerate(np.asarray(stamps_ns, dtype=np.int64).tolist()):
-            w.writerow([stamp, colour[i], depth[i] if depth else ""])
-    return path
-
-
-def read_frame_index(frames_dir: str | Path) -> FrameIndex:
-    """Read ``frames.csv``: header ``stamp_ns,colour,depth``, strictly increasing stamps."""
-    frames_dir = Path(frames_dir)
-    path = frames_dir / "frames.csv"
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("file not found: a frames/ folder needs frames.csv "
-                         "(docs/run-format.md)", path=str(path)) from None
-    rows = list(csv.reader(text.splitlines()))
-    if not rows or tuple(c.strip() for c in rows[0]) != FRAMES_HEADER:
-        raise InputError(f"expected the header {','.join(FRAMES_HEADER)}, got "
-                         f"{','.join(rows[0]) if rows else 'an empty file'}", path=str(path), line=1)
-    stamps, colour, depth = [], [], []
-    last = 0
-    for lineno, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        if len(row) != 3:
-            raise InputError(f"expected 3 fields (stamp_ns,colour,depth), got {len(row)}",
-                             path=str(path), line=lineno)
-        try:
-            stamp = int(row[0])
-        except ValueError:
-            raise InputError(f"stamp_ns: expected an integer, got {row[0]!r}",
-                             path=str(path), line=lineno) from None
-        if stamp <= last:
-            raise InputError(f"stamp_ns: expected increasing stamps > {last}, got {stamp}",
-                             path=str(path), line=lineno)
-        last = stamp
-        if not row[1] or Path(row[1]).is_absolute() or ".." in Path(row[1]).parts:
-            raise InputError(f"colour: expected a relative path inside frames/, got {row[1]!r}",
-                             path=str(path), line=lineno)
-        stamps.append(stamp)
-        colour.append(frames_dir / row[1])
-        depth.append(frames_dir / row[2] if row[2] else None)
-    return FrameIndex(np.asarray(stamps, np.int64), tuple(colour), tuple(depth))
 
 
 # ------------------------------------------------------------------------------ the run

@@ -19,6 +19,7 @@ each robot's frames depend only on its own seed, so the output does not depend o
 
 from __future__ import annotations
 
+import csv
 import logging
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -115,6 +116,7 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
     import cv2
 
     from dran_edge.perception.render import DepthModel, Lighting, TagRenderer
+    from dran_edge.perception.sources import FRAMES_CSV, FRAMES_CSV_HEADER
 
     renderer = TagRenderer()
     (frames_dir / "colour").mkdir(parents=True, exist_ok=True)
@@ -148,7 +150,11 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
             depth_names.append(dname)
             if progress is not None:
                 progress(1)
-    rd.write_frame_index(frames_dir, r.frame_stamps_ns, colour_names, depth_names)
+    with open(frames_dir / FRAMES_CSV, "w", newline="", encoding="utf-8") as f:
+        out = csv.writer(f, lineterminator="\n")
+        out.writerow(FRAMES_CSV_HEADER)
+        for stamp, c, d in zip(r.frame_stamps_ns.tolist(), colour_names, depth_names):
+            out.writerow([stamp, c, d, r.name])
     return len(colour_names)
 
 
