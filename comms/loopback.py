@@ -245,12 +245,49 @@ class GossipNode:
         }
 
 
+#: A message with this round number makes a DISH target print its counters and exit.
+STOP_ROUND = 2**40
+
+
+def _dish_target_main(robot: int, bind: str, max_s: float) -> int:
+    """A live DISH for robustness tests: prints ``ready``, then ``ok SENDER SEQ ROUND`` per
+    accepted datagram, and ``counters JSON`` + exit 0 on a message with ``STOP_ROUND``."""
+    from dran_edge.comms.radio import RadioParams, RadioTransport
+
+    spec = FleetSpec.from_json(sys.stdin.read())
+    end = time.time() + max_s
+    with RadioTransport(RadioParams(group=spec.group, bind=bind,
+                                    max_datagram_bytes=spec.max_datagram_bytes)) as radio:
+        link = NeighbourLink(radio, key=bytes.fromhex(spec.key_hex), policy=spec.policy(robot),
+                             boot_epoch=spec.boot_epoch)
+        print("ready", flush=True)
+        while time.time() < end:
+            radio.wait(0.05)
+            for msg in link.poll(now_ns=time.time_ns()):
+                if msg.round == STOP_ROUND:
+                    report = {"link": link.counters.snapshot(),
+                              "transport": radio.counters.snapshot()}
+                    print("counters " + json.dumps(report), flush=True)
+                    return 0
+                print(f"ok {msg.sender_id} {msg.sequence} {msg.round}", flush=True)
+    print("timeout", flush=True)
+    return 3
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="one loopback fleet node (FleetSpec JSON on stdin)")
+    ap = argparse.ArgumentParser(
+        description="a loopback fleet node, or (--dish-target) a live DISH that reports what it "
+                    "accepts; FleetSpec JSON on stdin")
     ap.add_argument("--robot", type=int, required=True)
-    ap.add_argument("--t0", type=float, required=True, help="shared start time (time.time())")
-    ap.add_argument("--out", required=True, help="JSON report path")
+    ap.add_argument("--t0", type=float, help="shared start time (time.time())")
+    ap.add_argument("--out", help="JSON report path")
+    ap.add_argument("--dish-target", metavar="BIND", help="run a DISH target bound to BIND")
+    ap.add_argument("--max-s", type=float, default=600.0, help="DISH target time limit")
     a = ap.parse_args(argv)
+    if a.dish_target:
+        return _dish_target_main(a.robot, a.dish_target, a.max_s)
+    if a.t0 is None or a.out is None:
+        ap.error("--t0 and --out are required for a fleet node")
     return _node_main(a.robot, a.t0, a.out)
 
 
