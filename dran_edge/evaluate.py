@@ -335,8 +335,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
             continue
         robots[r.name] = rb
     if not robots:
-        raise InputError("no robot has out/<name>/trajectory.tum: run 'dran-edge replay' on "
-                         "this run first", path=str(out_dir))
+        raise InputError("no robot has out/<name>/trajectory.tum (written by 'dran-edge "
+                         "replay' for every robot that produced an estimate)", path=str(out_dir))
 
     # Centralized solution (SR_ATE, SR_cost).
     cost: dict[str, Any] = {}
@@ -512,7 +512,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
                 metrics.sr_cost(cost["F_init"], rounds["cost"][-1], cost["F_star"]))
     for key in ("bytes_total", "rounds", "mission_s", "replay_wall_s"):
         if key in replay_report:
-            rounds_rep.setdefault(f"replay_{key}", replay_report[key])
+            rounds_rep.setdefault(key if key.startswith("replay") else f"replay_{key}",
+                                  replay_report[key])
 
     final = overall.get("final", {})
     summary = {

@@ -43,6 +43,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="alignment (default: paper for a run, se3 for traj)")
     p.add_argument("--time-offset", type=float, metavar="S",
                    help="t_mocap - t_est in seconds (default: mission.yaml or estimated)")
+    p.add_argument("--T-body-marker", type=float, nargs=7, default=None,
+                   metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                   help="(traj) the rigid body's pivot in the estimate's body frame "
+                        "(default identity; for a run it comes from mission.yaml)")
     p.add_argument("--up-axis", choices=("y", "z"), default=None,
                    help="(traj) vertical axis of the Motive export (default y, Motive's)")
     p.add_argument("--max-gap", type=float, default=0.1, metavar="S",
@@ -66,8 +70,19 @@ def _run_traj(args: argparse.Namespace) -> int:
         raise InputError("eval traj: expected --mocap FILE.csv and --body NAME")
     stamps, T = tum.read_tum(args.est)
     take = motive.read_motive_csv(args.mocap, up_axis=args.up_axis or "y")
+    T_bm = None
+    if args.T_body_marker is not None:
+        import numpy as np
+
+        from dran_edge import geometry as geo
+
+        v = np.array(args.T_body_marker)
+        if abs(np.linalg.norm(v[3:]) - 1.0) > 1e-3:
+            raise InputError(f"--T-body-marker: expected a unit quaternion, got norm "
+                             f"{np.linalg.norm(v[3:]):.6f}")
+        T_bm = geo.se3_from_xyz_quat_xyzw(v)
     res = evaluate.evaluate_trajectory(
-        stamps, T, take, args.body, align_kind=args.align or "se3",
+        stamps, T, take, args.body, T_body_marker=T_bm, align_kind=args.align or "se3",
         time_offset_s=args.time_offset, max_gap_s=args.max_gap, rpe_delta_s=args.rpe_delta)
     res = evaluate._clean(res)
     if args.json:
