@@ -117,12 +117,12 @@ def read_pose_graph_loops(path: str | Path) -> list[tuple[int, int, np.ndarray]]
         f = raw.split()
         if not f:
             continue
-        if len(f) != 25:
-            raise InputError(f"expected 25 fields (index time vioT pgT vioQ pgQ loop_index "
+        if len(f) != 26:
+            raise InputError(f"expected 26 fields (index time vioT pgT vioQ pgQ loop_index "
                              f"loop_info n_keypoints), got {len(f)}", path=path, line=lineno)
         try:
-            index, loop_index = int(f[0]), int(f[15])
-            info = [float(x) for x in f[16:24]]
+            index, loop_index = int(f[0]), int(f[16])
+            info = [float(x) for x in f[17:25]]
         except ValueError:
             raise InputError("expected integer index/loop_index and numeric loop_info",
                              path=path, line=lineno) from None
