@@ -98,12 +98,16 @@ class DishTarget:
     def ping(self, timeout_s=5.0) -> bool:
         """Send valid datagrams until one is acknowledged; False if none within timeout (stall)."""
         end = time.time() + timeout_s
+        wait_s = 0.05
         while time.time() < end:
             data = self.valid()
             seq = self.seq[2] - 1
             self.sent_valid.append(data)
             self.raw(self.frame(data))
-            wait_end = time.time() + 0.5
+            # A ping sent while the socket buffer is still full of a burst may be dropped by
+            # the kernel: retry with a growing wait.
+            wait_end = time.time() + wait_s
+            wait_s = min(2 * wait_s, 0.5)
             while time.time() < wait_end:
                 line = self._next(max(wait_end - time.time(), 0.01))
                 if line is None:
@@ -130,6 +134,20 @@ class DishTarget:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+def _udp_drops(port: int) -> int | None:
+    """Datagrams the kernel dropped on the DISH socket (buffer full), from /proc/net/udp."""
+    try:
+        with open("/proc/net/udp", encoding="ascii") as f:
+            rows = f.read().splitlines()[1:]
+    except OSError:
+        return None
+    for row in rows:
+        cols = row.split()
+        if cols[1].upper() == f"0100007F:{port:04X}":
+            return int(cols[-1])
+    return None
 
 
 def _hostile(rng: random.Random, target: DishTarget, valid_pool: list[bytes]) -> bytes:
@@ -187,7 +205,9 @@ def _run_fuzz(n_datagrams: int, burst: int, seed: int):
             pool = target.sent_valid[-50:]
         elapsed = time.time() - t_start
         assert target.proc.poll() is None
+        kernel_drops = _udp_drops(target.port)
         report = target.stop()
+        report["kernel_drops"] = kernel_drops
         assert target.proc.returncode == 0
     finally:
         target.kill()
@@ -199,17 +219,14 @@ def _run_fuzz(n_datagrams: int, burst: int, seed: int):
     return sent, bursts, elapsed, report
 
 
-def test_live_dish_survives_hostile_datagrams():
-    """Default run: 20 000 hostile datagrams in bursts of 500 (about 10-20 s)."""
-    sent, bursts, elapsed, report = _run_fuzz(20_000, burst=500, seed=1)
-    rejected = report["link"]["totals"]["datagrams_rejected"]
-    assert sent == 20_000 and rejected > 0
-
-
-@pytest.mark.slow
 def test_live_dish_survives_100k_hostile_datagrams():
-    sent, bursts, elapsed, report = _run_fuzz(120_000, burst=1000, seed=2)
-    assert sent == 120_000
+    """≥ 100 000 hostile datagrams that reached the DISH socket (kernel drops subtracted),
+    in bursts of 100 each followed by a valid ping; about 6 s on a 2-core box."""
+    sent, bursts, elapsed, report = _run_fuzz(110_000, burst=100, seed=2)
+    drops = report["kernel_drops"] or 0
+    print(f"fuzz: sent {sent}, kernel drops {drops}, {bursts} bursts, {elapsed:.1f} s, "
+          f"link {report['link']['totals']}")
+    assert sent - drops >= 100_000
 
 
 def test_attacks_rejected_and_counted_exactly():
