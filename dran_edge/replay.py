@@ -663,3 +663,38 @@ def _local_graph(core):
         if g is not None and hasattr(g, "factor_arrays") and hasattr(g, "node_keys"):
             return g
     return None
+
+
+# ---------------------------------------------------------------------------------- golden
+#: Keys of report.json kept in a golden summary (wall-clock fields are never among them).
+GOLDEN_KEYS = ("robots", "mission_s", "rounds", "mission_rounds", "bytes_total",
+               "frames_processed", "observations", "ingest_rejected", "keyframes",
+               "objects_known", "converged_robots", "final_cost", "final_consensus_error",
+               "sr_ate", "sr_cost", "ate_m", "ce", "bias")
+
+
+def golden_summary(report: dict) -> dict:
+    """The machine-independent part of a replay report (see ``WALL_CLOCK_FIELDS``)."""
+    return _json_clean({k: report.get(k) for k in GOLDEN_KEYS})
+
+
+def compare_summary(actual: Any, golden: Any, *, rtol: float = 1e-3, atol: float = 1e-6,
+                    path: str = "") -> list[str]:
+    """Differences between two summaries: floats within ``rtol``/``atol``, the rest exactly."""
+    diffs: list[str] = []
+    if isinstance(golden, dict) and isinstance(actual, dict):
+        for k in sorted(set(golden) | set(actual)):
+            p = f"{path}.{k}" if path else str(k)
+            if k not in actual or k not in golden:
+                diffs.append(f"{p}: {'missing' if k not in actual else 'not in golden'}")
+            else:
+                diffs += compare_summary(actual[k], golden[k], rtol=rtol, atol=atol, path=p)
+    elif isinstance(golden, float) or isinstance(actual, float):
+        if golden is None or actual is None:
+            if golden is not actual:
+                diffs.append(f"{path}: {actual!r} != golden {golden!r}")
+        elif not math.isclose(float(actual), float(golden), rel_tol=rtol, abs_tol=atol):
+            diffs.append(f"{path}: {actual!r} != golden {golden!r} (rtol {rtol})")
+    elif actual != golden:
+        diffs.append(f"{path}: {actual!r} != golden {golden!r}")
+    return diffs

@@ -1,0 +1,126 @@
+"""Replay end to end on a tiny simulated run: outputs, determinism, the golden summary, options."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dran_edge import replay as rp
+from dran_edge.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+GOLDEN = ROOT / "tests" / "data" / "golden" / "tiny_replay.json"
+
+
+@pytest.fixture(scope="module")
+def regen():
+    spec = importlib.util.spec_from_file_location("regen_golden", ROOT / "tools" / "regen_golden.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, regen):
+    """The tiny run, simulated and replayed once for the module."""
+    d = tmp_path_factory.mktemp("tiny")
+    report = regen.tiny_run(d)
+    return d / "run", report
+
+
+def test_outputs_exist_and_are_readable(tiny):
+    from dran_edge.evaluate import read_rounds_csv
+    from dran_edge.tum import read_tum
+
+    run, report = tiny
+    for key in ("robots", "mission_s", "replay_wall_s", "rounds", "bytes_total"):
+        assert key in report
+    assert report["robots"] == 3 and report["mission_s"] == 30.0
+    assert report["frames_processed"] == 3 * 60
+    assert report["observations"] > 0
+    assert report["ingest_rejected"] == {}
+    rounds = read_rounds_csv(run / "out" / "rounds.csv")
+    assert len(rounds["round"]) == report["rounds"]
+    assert np.all(np.diff(rounds["bytes_total"]) >= 0)
+    assert rounds["bytes_total"][-1] == report["bytes_total"]
+    on_disk = json.loads((run / "out" / "report.json").read_text())
+    assert on_disk["rounds"] == report["rounds"]
+    for name in ("dingo1", "dingo2", "dingo3"):
+        traj = run / "out" / name / "trajectory.tum"
+        if report["keyframes"][name]:
+            stamps, T = read_tum(traj)
+            assert len(stamps) == report["keyframes"][name]
+            assert stamps[0] * 1e9 >= 1.7e18
+        else:
+            pytest.xfail("the agent produced no keyframes: ingest events are not yet wired "
+                         "into the DRAN agent (see docs/replay.md)")
+
+
+def test_same_run_same_numbers(tiny, tmp_path):
+    run, report = tiny
+    again = tmp_path / "again"
+    shutil.copytree(run, again, ignore=shutil.ignore_patterns("out", "eval"))
+    report2 = rp.replay_run(again, rp.ReplayOptions(workers=2, settle_rounds=10)).report
+    assert rp.compare_summary(rp.golden_summary(report2), rp.golden_summary(report),
+                              rtol=0, atol=0) == []
+    a = (run / "out" / "rounds.csv").read_text()
+    b = (again / "out" / "rounds.csv").read_text()
+    assert a == b
+
+
+def test_matches_the_golden_summary(tiny):
+    _, report = tiny
+    if not GOLDEN.exists():
+        pytest.fail(f"{GOLDEN} missing: run tools/regen_golden.py")
+    golden = json.loads(GOLDEN.read_text())
+    diffs = rp.compare_summary(rp.golden_summary(report), golden)
+    assert diffs == [], "replay differs from the golden summary (tools/regen_golden.py " \
+                        "regenerates it when the change is intended):\n" + "\n".join(diffs)
+
+
+def test_compare_summary_tolerance_and_ignore_list():
+    gold = {"a": 1.0, "b": {"c": 2}, "d": None}
+    assert rp.compare_summary({"a": 1.0000001, "b": {"c": 2}, "d": None}, gold) == []
+    assert rp.compare_summary({"a": 1.1, "b": {"c": 2}, "d": None}, gold) == \
+        ["a: 1.1 != golden 1.0 (rtol 0.001)"]
+    assert rp.compare_summary({"a": 1.0, "b": {"c": 3}}, gold) == \
+        ["b.c: 3 != golden 2", "d: missing"]
+    summary = rp.golden_summary({"rounds": 3, "replay_wall_s": 9.9, "realtime_factor": 2.0})
+    assert not set(rp.WALL_CLOCK_FIELDS) & set(summary)
+
+
+def test_loss_reduces_what_arrives(tiny, tmp_path):
+    run, report = tiny
+    lossy = tmp_path / "lossy"
+    shutil.copytree(run, lossy, ignore=shutil.ignore_patterns("out", "eval"))
+    rep = rp.replay_run(lossy, rp.ReplayOptions(loss=0.5, settle_rounds=2, evaluate=False,
+                                                workers=1)).report
+    if report["bytes_total"] == 0:
+        pytest.xfail("the agents sent nothing (agent not wired to ingest events yet)")
+    assert sum(rep["datagrams_lost"].values()) > 0
+
+
+def test_options_are_validated():
+    with pytest.raises(InputError, match="transport"):
+        rp.ReplayOptions(transport="tcp")
+    with pytest.raises(InputError, match="loss"):
+        rp.ReplayOptions(loss=1.5)
+    with pytest.raises(InputError, match="bus"):
+        rp.ReplayOptions(transport="udp", loss=0.1)
+    assert rp.PartitionSpec.parse("3,4:20:40") == rp.PartitionSpec((3, 4), 20.0, 40.0)
+    for bad in ("3:40:20", "x:1:2", "3:1"):
+        with pytest.raises(InputError, match="--partition"):
+            rp.PartitionSpec.parse(bad)
+
+
+def test_missing_run_parts_are_named(tmp_path):
+    with pytest.raises(InputError, match="run directory"):
+        rp.replay_run(tmp_path / "nope")
+    (tmp_path / "mission.yaml").write_text("format: dran-edge-run/1\n")
+    with pytest.raises(InputError, match=r"mission.yaml.*required key is missing"):
+        rp.replay_run(tmp_path)
