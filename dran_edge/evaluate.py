@@ -24,10 +24,8 @@ chordal initialisation (shared by all methods, paper Sec. 6.1) and F* at the cen
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,7 +34,9 @@ import numpy as np
 
 from dran_edge import align, metrics, motive, tum
 from dran_edge import geometry as geo
-from dran_edge.errors import InputError
+from dran_edge.errors import DependencyError, InputError
+from dran_edge.eval_report import json_safe, summary_markdown
+from dran_edge.run_outputs import read_objects_csv, read_rounds_csv, read_vertex_map
 
 log = logging.getLogger(__name__)
 
@@ -75,99 +75,6 @@ class _Robot:
     est: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     assoc: dict[str, align.Association] = field(default_factory=dict)
     objects: dict[int, np.ndarray] = field(default_factory=dict)
-
-
-def _clean(x: Any) -> Any:
-    """JSON-safe: NaN/inf -> None, numpy scalars/arrays -> Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(float(x)) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
-
-
-# ----------------------------------------------------------------------------------- readers
-
-
-def read_objects_csv(path: Path) -> dict[int, np.ndarray]:
-    """``object_id,x,y,z,qx,qy,qz,qw`` rows (header line optional) -> {id: T_world_object}."""
-    out: dict[int, np.ndarray] = {}
-    with open(path, newline="", encoding="utf-8") as f:
-        for n, row in enumerate(csv.reader(f), start=1):
-            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
-                continue
-            if n == 1 and row[0].strip() == "object_id":
-                continue
-            if len(row) != 8:
-                raise InputError(f"expected 8 fields object_id,x,y,z,qx,qy,qz,qw, got {len(row)}",
-                                 path=str(path), line=n)
-            try:
-                oid = int(row[0])
-                v = np.array([float(c) for c in row[1:]])
-            except ValueError:
-                raise InputError(f"expected an integer id and 7 numbers, got {','.join(row)!r}",
-                                 path=str(path), line=n) from None
-            if not np.isfinite(v).all() or abs(np.linalg.norm(v[3:]) - 1) > 1e-3:
-                raise InputError("expected finite numbers and a unit quaternion",
-                                 path=str(path), line=n)
-            if oid in out:
-                raise InputError(f"object {oid} appears twice", path=str(path), line=n)
-            out[oid] = geo.se3_from_xyz_quat_xyzw(v)
-    return out
-
-
-def read_rounds_csv(path: Path) -> dict[str, np.ndarray]:
-    """``rounds.csv`` -> {column: values}; needs a header with ``round``; numbers or blanks."""
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.reader(f))
-    if not rows or "round" not in [c.strip() for c in rows[0]]:
-        raise InputError("expected a header line naming the columns, with 'round' among them",
-                         path=str(path), line=1)
-    head = [c.strip() for c in rows[0]]
-    cols: dict[str, list[float]] = {h: [] for h in head}
-    for n, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        if len(row) != len(head):
-            raise InputError(f"expected {len(head)} fields like the header, got {len(row)}",
-                             path=str(path), line=n)
-        for h, c in zip(head, row):
-            try:
-                cols[h].append(float(c) if c.strip() else math.nan)
-            except ValueError:
-                raise InputError(f"column {h!r}: expected a number, got {c!r}",
-                                 path=str(path), line=n) from None
-    return {h: np.array(v) for h, v in cols.items()}
-
-
-def read_vertex_map(path: Path) -> dict[int, tuple[str, str, int]]:
-    """``merged_vertices.csv`` (``vertex_id,kind,name,stamp_ns``; kind ``pose`` or ``object``)
-    -> {vertex_id: (kind, robot name or object id, stamp_ns)}."""
-    out = {}
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.reader(f))
-    if not rows or [c.strip() for c in rows[0]] != ["vertex_id", "kind", "name", "stamp_ns"]:
-        raise InputError("expected the header vertex_id,kind,name,stamp_ns", path=str(path),
-                         line=1)
-    for n, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        try:
-            vid, kind, name, stamp = int(row[0]), row[1].strip(), row[2].strip(), int(row[3])
-        except (ValueError, IndexError):
-            raise InputError(f"expected vertex_id,kind,name,stamp_ns, got {','.join(row)!r}",
-                             path=str(path), line=n) from None
-        if kind not in ("pose", "object"):
-            raise InputError(f"kind: expected 'pose' or 'object', got {kind!r}",
-                             path=str(path), line=n)
-        out[vid] = (kind, name, stamp)
-    return out
 
 
 # ------------------------------------------------------------------------------- trajectory
@@ -539,7 +446,7 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         "rounds": rounds_rep,
         "notes": notes,
     }
-    report = _clean(report)
+    report = json_safe(report)
     report["_"] = {"robots": robots, "aligned": aligned, "rounds": rounds, "objects": obj_plot,
                    "cost": cost}
     return report
@@ -653,63 +560,156 @@ def write_report(report: dict[str, Any], eval_dir: str | Path, *, plots: bool = 
     p.write_text(summary_markdown(data), encoding="utf-8")
     written.append(p)
     if plots and "_" in report:
-        from dran_edge import eval_plots
-
-        written += eval_plots.write_plots(report, eval_dir)
+        written += write_plots(report, eval_dir)
     return written
 
 
-def _f(v: Any, fmt: str = ".4f") -> str:
-    return "—" if v is None else format(v, fmt)
+
+# ------------------------------------------------------------------------------------- plots
+# matplotlib is imported lazily (the ``eval`` extra), with the Agg backend:
+# - trajectories.png: top view of every robot's estimate (initial, final) against mocap ground
+#   truth, with the objects: ground truth and each robot's copy (the paper's Fig. 1b/c);
+# - rounds.png: SR_cost, consensus error and bytes over the DRAN rounds (rounds.csv);
+# - errors.png: ATE per robot (initial / final / centralized), translation error over time.
 
 
-def summary_markdown(r: dict[str, Any]) -> str:
-    """A short human summary of an eval report."""
-    lines = [f"# Evaluation of `{r['run']}`", ""]
-    lines.append(f"- mocap: `{r['mocap']}`" if r["mocap"] else "- mocap: none")
-    lines.append(f"- alignment: **{r['align']}**")
-    t = r.get("time") or {}
-    if t:
-        lines.append(f"- clock offset t_mocap − t_est: {_f(t.get('time_offset_s'), '.4f')} s "
-                     f"({t.get('source')})")
-    lines.append("")
-    if r["robots"]:
-        lines += ["## Trajectories", "",
-                  "| robot | poses | ATE trans (m) | ATE max (m) | rot RMSE (deg) | ATE log "
-                  "(paper) | ATE⁰ log | ATE* log | SR_ATE (%) |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for n, e in r["robots"].items():
-            f = e.get("final", {})
-            lines.append(
-                f"| {n} | {f.get('matched_poses', '—')} | {_f(f.get('ate_trans_rmse_m'))} | "
-                f"{_f(f.get('ate_trans_max_m'))} | {_f(f.get('ate_rot_rmse_deg'), '.3f')} | "
-                f"{_f(f.get('ate_log_rmse'))} | {_f(e.get('init', {}).get('ate_log_rmse'))} | "
-                f"{_f(e.get('centralized', {}).get('ate_log_rmse'))} | "
-                f"{_f(e.get('sr_ate_pct'), '.1f')} |")
-        o = r["overall"]
-        lines += ["", f"Overall (each robot weighs 1/N): ATE log "
-                  f"{_f(o.get('final', {}).get('ate_log_rmse'))}, ATE trans "
-                  f"{_f(o.get('final', {}).get('ate_trans_rmse_m'))} m, SR_ATE "
-                  f"{_f(o.get('sr_ate_pct'), '.1f')} %.", ""]
-    ob = r.get("objects") or {}
+def _plt():
+    try:
+        import matplotlib
+    except ImportError:
+        raise DependencyError("plots need matplotlib: pip install 'dran-edge[eval]' (or pass "
+                              "--no-plots)") from None
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_plots(report: dict[str, Any], eval_dir: Path) -> list[Path]:
+    """The PNG plots of ``report`` (from :func:`evaluate_run`) into ``eval_dir``."""
+    plt = _plt()
+    data = report["_"]
+    written = []
+    for fn in (_trajectories, _rounds, _errors):
+        p = fn(plt, report, data, eval_dir)
+        if p is not None:
+            written.append(p)
+    return written
+
+
+def _trajectories(plt, report, data, eval_dir):
+    robots = data["robots"]
+    aligned = data["aligned"]
+    if not aligned and not data["objects"]:
+        return None
+    fig, ax = plt.subplots(figsize=(7.5, 7))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, (name, rb) in enumerate(robots.items()):
+        c = colours[k % len(colours)]
+        if name not in aligned:
+            continue
+        a = rb.assoc["final"]
+        ax.plot(a.T_ref[:, 0, 3], a.T_ref[:, 1, 3], color="0.25", lw=1.0, ls="--",
+                label="mocap" if k == 0 else None)
+        if "init" in aligned[name]:
+            Ti = aligned[name]["init"]
+            ax.plot(Ti[:, 0, 3], Ti[:, 1, 3], color=c, lw=0.8, ls=":", alpha=0.7)
+        Tf = aligned[name]["final"]
+        ax.plot(Tf[:, 0, 3], Tf[:, 1, 3], color=c, lw=1.6, label=name)
+    ob = data["objects"]
     if ob:
-        lines += ["## Objects", "",
-                  f"- {ob.get('count')} objects, {ob.get('copies')} robot copies",
-                  f"- CE (paper): {_f(ob.get('ce'), '.6f')}",
-                  f"- Bias (paper formula): {_f(ob.get('bias'))}; error of the mean map: "
-                  f"{_f(ob.get('bias_of_mean'))}", ""]
-    c = r.get("cost") or {}
-    if c:
-        lines += ["## Cost", "", f"- F_init {_f(c.get('F_init'))}, F_k {_f(c.get('F_k'))}, "
-                  f"F* {_f(c.get('F_star'))}, SR_cost {_f(c.get('sr_cost_pct'), '.1f')} %", ""]
-    ir = r.get("inter_robot") or {}
-    if ir.get("pairs"):
-        lines += ["## Inter-robot relative poses", "",
-                  f"- {len(ir['pairs'])} pairs: translation RMSE {_f(ir.get('trans_rmse_m'))} m, "
-                  f"rotation RMSE {_f(ir.get('rot_rmse_deg'), '.3f')} deg", ""]
-    rd = r.get("rounds") or {}
-    if rd:
-        lines += ["## Rounds and bytes", ""] + [f"- {k}: {v}" for k, v in rd.items()] + [""]
-    if r.get("notes"):
-        lines += ["## Not computed / notes", ""] + [f"- {n}" for n in r["notes"]] + [""]
-    return "\n".join(lines)
+        Y, present, gt, y_avg = ob["Y"], ob["present"], ob["gt"], ob["y_avg"]
+        for i, name in enumerate(ob["names"]):
+            c = colours[list(robots).index(name) % len(colours)]
+            P = Y[i][present[i]]
+            ax.scatter(P[:, 0, 3], P[:, 1, 3], marker="x", s=25, color=c, lw=1)
+        ok = np.all(np.isfinite(gt), axis=(-1, -2))
+        if ok.any():
+            ax.scatter(gt[ok, 0, 3], gt[ok, 1, 3], marker="s", s=70, facecolors="none",
+                       edgecolors="k", label="objects (mocap)")
+            for oid, g in zip(np.array(ob["ids"])[ok], gt[ok]):
+                ax.annotate(str(oid), (g[0, 3], g[1, 3]), xytext=(4, 4),
+                            textcoords="offset points", fontsize=7)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    o = report.get("overall", {}).get("final", {})
+    title = f"alignment {report['align']}"
+    if o:
+        title += f" — ATE {o.get('ate_trans_rmse_m', float('nan')):.3f} m"
+    ax.set_title(title + "\n(dotted: initial estimate, x: robots' object copies)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    p = eval_dir / "trajectories.png"
+    fig.tight_layout()
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    return p
+
+
+def _rounds(plt, report, data, eval_dir):
+    rounds = data["rounds"]
+    if rounds is None or len(rounds.get("round", [])) == 0:
+        return None
+    cost = data["cost"]
+    r = rounds["round"]
+    panels = []
+    if "cost" in rounds and cost.get("F_init") is not None and cost.get("F_star") is not None:
+        panels.append(("SR_cost (%)", metrics.sr_cost(cost["F_init"], rounds["cost"],
+                                                       cost["F_star"])))
+    elif "cost" in rounds:
+        panels.append(("cost", rounds["cost"]))
+    for col, label in (("consensus_error", "consensus error (CE)"), ("bias", "Bias"),
+                       ("bytes_total", "bytes sent (total)")):
+        if col in rounds:
+            panels.append((label, rounds[col]))
+    if not panels:
+        return None
+    fig, axes = plt.subplots(len(panels), 1, figsize=(7, 2.3 * len(panels)), sharex=True,
+                             squeeze=False)
+    for ax, (label, y) in zip(axes[:, 0], panels):
+        ax.plot(r, y, lw=1.4)
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(alpha=0.3)
+        if label.startswith("consensus") and np.nanmin(y) > 0:
+            ax.set_yscale("log")
+    axes[-1, 0].set_xlabel("round")
+    p = eval_dir / "rounds.png"
+    fig.tight_layout()
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    return p
+
+
+def _errors(plt, report, data, eval_dir):
+    per = report.get("robots", {})
+    if not per:
+        return None
+    names = list(per)
+    kinds = [k for k in ("init", "final", "centralized") if any(k in per[n] for n in names)]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+    w = 0.8 / max(len(kinds), 1)
+    x = np.arange(len(names))
+    for j, kind in enumerate(kinds):
+        v = [per[n].get(kind, {}).get("ate_trans_rmse_m") or np.nan for n in names]
+        a1.bar(x + (j - (len(kinds) - 1) / 2) * w, v, w, label=kind)
+    a1.set_xticks(x, names, rotation=30, fontsize=8)
+    a1.set_ylabel("ATE translation RMSE (m)")
+    a1.legend(fontsize=8)
+    a1.grid(axis="y", alpha=0.3)
+    for name in names:
+        rb = data["robots"][name]
+        if name not in data["aligned"]:
+            continue
+        a = rb.assoc["final"]
+        err = np.linalg.norm(data["aligned"][name]["final"][:, :3, 3] - a.T_ref[:, :3, 3], axis=1)
+        a2.plot(a.stamps_s - a.stamps_s[0], err, lw=1, label=name)
+    a2.set_xlabel("time since the robot's first pose (s)")
+    a2.set_ylabel("translation error (m)")
+    a2.grid(alpha=0.3)
+    a2.legend(fontsize=8)
+    p = eval_dir / "errors.png"
+    fig.tight_layout()
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    return p

@@ -84,7 +84,9 @@ def _run_traj(args: argparse.Namespace) -> int:
     res = evaluate.evaluate_trajectory(
         stamps, T, take, args.body, T_body_marker=T_bm, align_kind=args.align or "se3",
         time_offset_s=args.time_offset, max_gap_s=args.max_gap, rpe_delta_s=args.rpe_delta)
-    res = evaluate._clean(res)
+    from dran_edge.eval_report import json_safe
+
+    res = json_safe(res)
     if args.json:
         print(json.dumps(res, indent=2))
         return 0
