@@ -145,19 +145,25 @@ class TagMap:
     size_m: np.ndarray
     object_names: dict
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_index", {int(t): k for k, t in enumerate(self.tag_id)})
+        # precomputed for the per-frame path: T_tag_object and Adj(T_object_tag)
+        object.__setattr__(self, "T_tag_object", geo.se3_inverse(self.T_object_tag))
+        object.__setattr__(self, "adjoint_object_tag", geo.se3_adjoint(self.T_object_tag))
+        half = self.size_m[:, None, None] / 2 * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0],
+                                                    [-1.0, -1.0]])[None]  # detector corner order
+        object.__setattr__(self, "corners_object",
+                           np.einsum("kij,knj->kni", self.T_object_tag[:, :3, :2], half)
+                           + self.T_object_tag[:, None, :3, 3])
+
     @property
     def index(self) -> dict:
-        return {int(t): k for k, t in enumerate(self.tag_id)}
+        return dict(self._index)
 
     def lookup(self, tag_ids: np.ndarray) -> np.ndarray:
         """Positions ``(n,)`` of the given tag ids in this map, -1 for unknown tags."""
-        tag_ids = np.asarray(tag_ids, dtype=np.int64)
-        if self.tag_id.size == 0:
-            return np.full(tag_ids.shape, -1)
-        order = np.argsort(self.tag_id)
-        sorted_ids = self.tag_id[order]
-        pos = np.clip(np.searchsorted(sorted_ids, tag_ids), 0, sorted_ids.size - 1)
-        return np.where(sorted_ids[pos] == tag_ids, order[pos], -1)
+        get = self._index.get
+        return np.fromiter((get(int(t), -1) for t in tag_ids), np.int64, len(tag_ids))
 
 
 def load_tag_map(path: str | Path) -> TagMap:

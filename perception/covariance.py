@@ -34,28 +34,35 @@ from dran_edge import geometry as geo
 def project(K: np.ndarray, T: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Pixels ``(..., N, 2)`` of points ``P (..., N, 3)`` seen by poses ``T (..., 4, 4)``."""
     p = np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3]
-    z = p[..., 2:3]
-    return np.stack(
-        [K[0, 0] * p[..., 0] / z[..., 0] + K[0, 2], K[1, 1] * p[..., 1] / z[..., 0] + K[1, 2]],
-        axis=-1,
-    )
+    return p[..., :2] / p[..., 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+
+
+def linearise(K: np.ndarray, T: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(..., N, 2)`` and d pi(K, T Exp(delta) P) / d delta at delta = 0 ``(..., N, 2, 6)``.
+
+    Row i of the rotation block is ``-a_i^T R [P]x = cross(P, a_i)`` with ``a_i^T`` the
+    translation row ``D_i R`` (module docstring), which saves forming the 3x6 point Jacobian.
+    """
+    R = T[..., :3, :3]
+    p = np.einsum("...ij,...nj->...ni", R, P) + T[..., None, :3, 3]
+    inv_z = 1.0 / p[..., 2:3]
+    xy = p[..., :2] * inv_z  # normalised coordinates (..., N, 2)
+    f = K[[0, 1], [0, 1]]
+    # a_i = (f_i / z) (R_i - xy_i R_2): translation rows, (..., N, 2, 3)
+    a = (R[..., None, :2, :] - xy[..., :, None] * R[..., None, 2:3, :]) * (f[:, None]
+                                                                             * inv_z[..., None])
+    J = np.empty(a.shape[:-1] + (6,))
+    J[..., :3] = a
+    Pb = P[..., None, :]
+    J[..., 3] = Pb[..., 1] * a[..., 2] - Pb[..., 2] * a[..., 1]
+    J[..., 4] = Pb[..., 2] * a[..., 0] - Pb[..., 0] * a[..., 2]
+    J[..., 5] = Pb[..., 0] * a[..., 1] - Pb[..., 1] * a[..., 0]
+    return xy * f + K[:2, 2], J
 
 
 def projection_jacobian(K: np.ndarray, T: np.ndarray, P: np.ndarray) -> np.ndarray:
     """d pi(K, T Exp(delta) P) / d delta at delta = 0: ``(..., N, 2, 6)`` (module docstring)."""
-    R = T[..., :3, :3]
-    p = np.einsum("...ij,...nj->...ni", R, P) + T[..., None, :3, 3]
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    fx, fy = K[0, 0], K[1, 1]
-    D = np.zeros(p.shape[:-1] + (2, 3))
-    D[..., 0, 0] = fx / z
-    D[..., 0, 2] = -fx * x / (z * z)
-    D[..., 1, 1] = fy / z
-    D[..., 1, 2] = -fy * y / (z * z)
-    dp = np.empty(p.shape[:-1] + (3, 6))
-    dp[..., :3] = R[..., None, :, :]
-    dp[..., 3:] = -R[..., None, :, :] @ geo.hat3(P)
-    return D @ dp
+    return linearise(K, T, P)[1]
 
 
 def gauss_newton(
@@ -70,20 +77,46 @@ def gauss_newton(
 
     Minimises the sum of squared reprojection errors over the valid points (``mask (m, N)``)
     with ``iterations`` Gauss-Newton steps, all poses at once. Returns ``(T, JtJ (m, 6, 6),
-    residual (m, N, 2))`` at the final pose, residuals zero where masked.
+    residual (m, N, 2))``: the final pose and its residuals (zero where masked), and J^T J of
+    the last linearisation (at the input pose when ``iterations == 0``; one step before the
+    final pose otherwise, which changes the covariance by O(step)).
     """
-    w = np.ones(P.shape[:-1]) if mask is None else mask.astype(np.float64)
+    w = None if mask is None else mask.astype(np.float64)[..., None]
+    pred, J = linearise(K, T, P)
+    r = pred - uv
     for it in range(iterations + 1):
-        r = (project(K, T, P) - uv) * w[..., None]
-        J = projection_jacobian(K, T, P) * w[..., None, None]
+        if w is not None:
+            r = r * w
+            J = J * w[..., None]
         Jf = J.reshape(J.shape[:-3] + (-1, 6))
-        JtJ = np.swapaxes(Jf, -1, -2) @ Jf
+        Jt = np.swapaxes(Jf, -1, -2)
+        JtJ = Jt @ Jf
         if it == iterations:
             return T, JtJ, r
-        g = np.swapaxes(Jf, -1, -2) @ r.reshape(r.shape[:-2] + (-1, 1))
-        step = -np.linalg.solve(JtJ + 1e-12 * np.eye(6), g)[..., 0]
-        T = geo.se3_retract(T, step)
+        step = -np.linalg.solve(JtJ + 1e-12 * np.eye(6), Jt @ r.reshape(r.shape[:-2] + (-1, 1)))
+        T = _retract_fast(T, step[..., 0])
+        if it + 1 == iterations:  # last step: residuals only, keep this JtJ
+            r = project(K, T, P) - uv
+            return T, JtJ, (r * w if w is not None else r)
+        pred, J = linearise(K, T, P)
+        r = pred - uv
     raise AssertionError("unreachable")
+
+
+def _retract_fast(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """GN update ``R <- R Exp(phi)``, ``t <- t + R rho``: equal to ``T Exp(xi)`` to first order
+    (the Jacobian above is its derivative too), so the fixed point and the covariance do not
+    change; it avoids the full SE(3) exponential in the per-frame path. ``Exp(phi)`` is
+    OpenCV's Rodrigues formula, one call per pose (a handful per frame)."""
+    import cv2
+
+    out = T.copy()
+    R = T[..., :3, :3]
+    out[..., :3, 3] += np.einsum("...ij,...j->...i", R, xi[..., :3])
+    flat_xi = xi.reshape(-1, 6)
+    dR = np.stack([cv2.Rodrigues(v[3:].reshape(3, 1))[0] for v in flat_xi])
+    out[..., :3, :3] = R @ dR.reshape(xi.shape[:-1] + (3, 3))
+    return out
 
 
 def pose_covariance(JtJ: np.ndarray, corner_sigma_px: np.ndarray | float) -> np.ndarray:

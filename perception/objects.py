@@ -21,9 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dran_edge import geometry as geo
-from dran_edge.perception.covariance import gauss_newton, pose_covariance, transform_covariance
-from dran_edge.perception.tagpose import CORNER_TO_OPENCV_PX, TagPoses, tag_object_points
+from dran_edge.perception.covariance import gauss_newton, pose_covariance
+from dran_edge.perception.tagpose import CORNER_TO_OPENCV_PX, TagPoses
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,27 +42,39 @@ def fuse_objects(
     tag_poses: TagPoses,
     map_pos: np.ndarray,
     object_id_of_pos: np.ndarray,
-    T_object_tag: np.ndarray,
-    size_m_of_pos: np.ndarray,
+    T_tag_object: np.ndarray,
+    adjoint_object_tag: np.ndarray,
+    corners_object: np.ndarray,
     corner_sigma_px: float,
     max_reproj_px: float,
-    iterations: int = 3,
+    iterations: int = 2,
 ) -> ObjectPoses:
-    """Objects seen in one frame from its accepted tags (``map_pos`` = tag-map position or -1)."""
+    """Objects seen in one frame from its accepted tags (``map_pos`` = tag-map position or -1).
+
+    ``T_tag_object``, ``adjoint_object_tag`` = Adj(T_object_tag) and ``corners_object``
+    (k, 4, 3), the tag corners in the object frame, are precomputed by ``calib.TagMap`` and
+    indexed by tag-map position.
+    """
     use = np.flatnonzero(tag_poses.accepted & (map_pos >= 0))
     if use.size == 0:
         return ObjectPoses(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)),
                            np.zeros(0, np.int64))
     pos = map_pos[use]
-    T_ot = T_object_tag[pos]
-    T_co = tag_poses.T_camera_tag[use] @ geo.se3_inverse(T_ot)
-    cov = transform_covariance(tag_poses.covariance[use], geo.se3_inverse(T_ot))
     oid = object_id_of_pos[pos]
-    objects, first, counts = np.unique(oid, return_index=True, return_counts=True)
-    # the tag with the smallest covariance trace represents each object
-    trace = np.trace(cov, axis1=1, axis2=2)
-    best = np.array([np.flatnonzero(oid == o)[np.argmin(trace[oid == o])] for o in objects])
-    T_out, cov_out = T_co[best].copy(), cov[best].copy()
+    if use.size == 1:
+        objects, counts, best = oid, np.ones(1, np.int64), np.zeros(1, np.int64)
+    else:
+        objects, first, counts = np.unique(oid, return_index=True, return_counts=True)
+        best = first
+        if objects.size != oid.size:
+            # the tag with the smallest covariance trace represents (and starts) each object
+            trace = np.trace(tag_poses.covariance[use], axis1=1, axis2=2)
+            best = np.array([np.flatnonzero(oid == o)[np.argmin(trace[oid == o])]
+                             for o in objects])
+    pb = pos[best]
+    T_out = tag_poses.T_camera_tag[use[best]] @ T_tag_object[pb]
+    A = adjoint_object_tag[pb]  # = transform_covariance(cov, T_tag_object), precomputed
+    cov_out = A @ tag_poses.covariance[use[best]] @ np.swapaxes(A, -1, -2)
     multi = np.flatnonzero(counts > 1)
     if multi.size:
         n_pts = 4 * counts[multi].max()
@@ -72,14 +83,11 @@ def fuse_objects(
         mask = np.zeros((multi.size, n_pts), bool)
         for row, j in enumerate(multi):
             members = np.flatnonzero(oid == objects[j])
-            P_tag = tag_object_points(size_m_of_pos[pos[members]])  # (k, 4, 3)
-            P_obj = np.einsum("kij,knj->kni", T_ot[members, :3, :3], P_tag) + T_ot[members, None,
-                                                                                  :3, 3]
             k4 = 4 * members.size
-            P[row, :k4] = P_obj.reshape(-1, 3)
+            P[row, :k4] = corners_object[pos[members]].reshape(-1, 3)
             uv[row, :k4] = (corners[use[members]] + CORNER_TO_OPENCV_PX).reshape(-1, 2)
             mask[row, :k4] = True
-        T_j, JtJ, r = gauss_newton(K, T_co[best[multi]], P, uv, mask, iterations)
+        T_j, JtJ, r = gauss_newton(K, T_out[multi], P, uv, mask, iterations)
         rms = np.sqrt(np.sum(r * r, axis=(-1, -2)) / mask.sum(-1))
         ok = rms <= max_reproj_px
         T_out[multi[ok]] = T_j[ok]

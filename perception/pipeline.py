@@ -37,7 +37,7 @@ class PipelineParams:
     """Rejection, ambiguity and corner-noise parameters."""
     use_depth: bool = True
     """Use the aligned depth image (when a frame has one) to resolve ambiguous tags."""
-    fuse_iterations: int = 3
+    fuse_iterations: int = 1
     """Gauss-Newton steps of the joint fit of a multi-tag object."""
     default_tag_size_m: float | None = None
     """Size assumed for tags missing from the tag map (they get a pose but no object); None =
@@ -91,17 +91,19 @@ class ObservationPipeline:
             corners = self._undistorted(corners)
             det = TagDetections(det.tag_id, det.hamming, det.decision_margin, corners)
         map_pos = tags.lookup(det.tag_id)
-        known = map_pos >= 0
         fallback = np.nan if p.default_tag_size_m is None else p.default_tag_size_m
-        size = (tags.size_m[np.maximum(map_pos, 0)] if tags.size_m.size
-                else np.zeros(len(det))) if len(det) else np.zeros(0)
-        size = np.where(known, size, fallback)
+        if tags.size_m.size:
+            size = tags.size_m[map_pos]  # -1 picks the last entry; replaced just below
+            size[map_pos < 0] = fallback
+        else:
+            size = np.full(len(det), fallback)
         depth = frame.depth if p.use_depth else None
         if depth is not None and self._depth_scale is not None:
             depth = np.clip(depth * self._depth_scale, 0, 65535).astype(np.uint16)
         tp = estimate_tag_poses(det, cam.K, size, (w, h), depth, p.tag_pose)
         objs = fuse_objects(cam.K, cam.T_body_camera, corners, tp, map_pos, tags.object_id,
-                            tags.T_object_tag, tags.size_m, p.tag_pose.corner_sigma_px,
+                            tags.T_tag_object, tags.adjoint_object_tag, tags.corners_object,
+                            p.tag_pose.corner_sigma_px,
                             p.tag_pose.max_reproj_px, p.fuse_iterations)
         batch = ObservationBatch(
             stamp_ns=int(frame.stamp_ns),

@@ -89,8 +89,9 @@ class TagPoseParams:
     (and by more than 3x the noise of the medians)."""
     depth_max_residual_m: float = 0.10
     """Reject when the chosen solution's median depth residual exceeds this (misaligned depth)."""
-    refine_iterations: int = 2
-    """Gauss-Newton steps on the reprojection error after IPPE."""
+    refine_iterations: int = 0
+    """Gauss-Newton steps on the reprojection error after IPPE (IPPE is already within a few
+    hundredths of a pixel of the least-squares pose for four points; see the tests)."""
 
     def __post_init__(self) -> None:
         for name in ("min_edge_px", "max_range_m", "max_reproj_px", "corner_sigma_px",
@@ -115,13 +116,10 @@ class TagPoses:
     T_camera_tag_alt: np.ndarray
     rms_px: np.ndarray
     rms_alt_px: np.ndarray
-    JtJ: np.ndarray
     reject: np.ndarray
     method: np.ndarray
-
-    @property
-    def accepted(self) -> np.ndarray:
-        return self.reject == OK
+    accepted: np.ndarray
+    """Boolean ``(n,)``: ``reject == ""``."""
 
 
 def tag_object_points(size_m: np.ndarray) -> np.ndarray:
@@ -129,18 +127,25 @@ def tag_object_points(size_m: np.ndarray) -> np.ndarray:
     return UNIT_CORNERS[None] * (np.asarray(size_m, dtype=np.float64)[:, None, None] / 2)
 
 
-def _ippe_both(uv: np.ndarray, size_m: float, K: np.ndarray) -> np.ndarray:
-    """Both IPPE_SQUARE solutions ``(2, 4, 4)`` (the second repeats the first if only one)."""
+def _ippe_both(uv: np.ndarray, size_m: np.ndarray, K: np.ndarray):
+    """Both IPPE_SQUARE solutions ``(m, 2, 4, 4)`` per tag, sorted by reprojection error, and
+    their RMS reprojection errors ``(m, 2)`` in pixels per corner (OpenCV reports the RMS per
+    coordinate, i.e. this / sqrt 2). If OpenCV returns one solution it is repeated."""
     import cv2
 
-    obj = UNIT_CORNERS * (size_m / 2)
-    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, uv, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    out = np.tile(np.eye(4), (2, 1, 1))
-    for k in range(2):
-        j = min(k, n - 1)
-        out[k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
-        out[k, :3, 3] = tvecs[j].ravel()
-    return out
+    m = uv.shape[0]
+    out = np.zeros((m, 2, 4, 4))
+    out[..., 3, 3] = 1.0
+    err = np.empty((m, 2))
+    for i in range(m):
+        n, rvecs, tvecs, e = cv2.solvePnPGeneric(UNIT_CORNERS * (size_m[i] / 2), uv[i], K, None,
+                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        order = (0, 1) if n > 1 and e[0, 0] <= e[1, 0] else ((1, 0) if n > 1 else (0, 0))
+        for k, j in enumerate(order):
+            out[i, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
+            out[i, k, :3, 3] = tvecs[j][:, 0]
+            err[i, k] = e[j, 0]
+    return out, err * np.sqrt(2.0)
 
 
 def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: np.ndarray):
@@ -153,13 +158,13 @@ def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: 
     u = np.rint(K[0, 0] * p[..., 0] / z + K[0, 2]).astype(np.int64)
     v = np.rint(K[1, 1] * p[..., 1] / z + K[1, 2]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (z > 0)
-    meas = depth_mm[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)].astype(np.float64) * 1e-3
+    meas = depth_mm[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)] * 1e-3
     valid = inside & (meas > 0)
-    res = np.where(valid, np.abs(meas - z), np.nan)
+    res = np.sort(np.where(valid, np.abs(meas - z), np.inf), axis=-1)
     count = valid.sum(-1)
-    with np.errstate(all="ignore"):
-        med = np.nanmedian(np.where(count[..., None] > 0, res, 0.0), axis=-1)
-    return np.where(count > 0, med, np.inf), count
+    lo = np.take_along_axis(res, np.maximum((count - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(res, np.maximum(count // 2, 0)[..., None], -1)[..., 0]
+    return np.where(count > 0, 0.5 * (lo + hi), np.inf), count
 
 
 def estimate_tag_poses(
@@ -169,89 +174,86 @@ def estimate_tag_poses(
     image_size: tuple[int, int],
     depth_mm: np.ndarray | None = None,
     params: TagPoseParams | None = None,
-    known: np.ndarray | None = None,
 ) -> TagPoses:
-    """Poses of the detections ``det`` (``tag_size_m (n,)`` per detection; NaN = unknown size).
-
-    ``image_size`` is ``(width, height)``; ``depth_mm`` an aligned uint16 depth image or None;
-    ``known (n,)`` marks tags present in the tag map (others get ``REJECT_UNKNOWN`` and no pose).
-    """
+    """Poses of the detections ``det``; ``tag_size_m (n,)`` per detection, NaN for tags without a
+    known size (rejected as ``unknown_tag``). ``image_size`` is ``(width, height)``; ``depth_mm``
+    an aligned uint16 depth image in millimetres, or None."""
     p = params or TagPoseParams()
     n = len(det)
     K = np.asarray(K, dtype=np.float64)
     size = np.asarray(tag_size_m, dtype=np.float64).reshape(n)
-    nan44 = np.full((n, 4, 4), np.nan)
-    T_best, T_alt = nan44.copy(), nan44.copy()
+    T_best = np.full((n, 4, 4), np.nan)
+    T_alt = np.full((n, 4, 4), np.nan)
     cov = np.full((n, 6, 6), np.nan)
-    JtJ_best = np.full((n, 6, 6), np.nan)
     rms = np.full(n, np.nan)
     rms_alt = np.full(n, np.nan)
     reject = np.full(n, OK, dtype=object)
     method = np.full(n, "", dtype=object)
     if n == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, JtJ_best, reject, method)
+        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, np.zeros(0, bool))
 
     uv = det.corners + CORNER_TO_OPENCV_PX
-    edge = np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=-1).min(-1)
+    edge = np.sqrt(np.min(np.sum((uv[:, [1, 2, 3, 0]] - uv) ** 2, axis=-1), axis=-1))
     w, h = image_size
-    b = p.border_px
-    inside = np.all((uv[..., 0] >= b - 0.5) & (uv[..., 0] <= w - 0.5 - b)
-                    & (uv[..., 1] >= b - 0.5) & (uv[..., 1] <= h - 0.5 - b), axis=-1)
-    known = np.isfinite(size) if known is None else (np.asarray(known, bool) & np.isfinite(size))
+    b = p.border_px - 0.5
+    lo = uv.min(axis=1)
+    hi = uv.max(axis=1)
+    inside = (lo[:, 0] >= b) & (lo[:, 1] >= b) & (hi[:, 0] <= w - 1 - b) & (hi[:, 1] <= h - 1 - b)
     # first failing rule wins
-    for bad, why in ((~known, REJECT_UNKNOWN), (det.hamming > p.max_hamming, REJECT_HAMMING),
-                     (det.decision_margin < p.min_decision_margin, REJECT_MARGIN),
-                     (edge < p.min_edge_px, REJECT_SMALL), (~inside, REJECT_BORDER)):
-        reject[(reject == OK) & bad] = why
+    for bad, why in ((inside, REJECT_BORDER), (edge >= p.min_edge_px, REJECT_SMALL),
+                     (det.decision_margin >= p.min_decision_margin, REJECT_MARGIN),
+                     (det.hamming <= p.max_hamming, REJECT_HAMMING),
+                     (np.isfinite(size), REJECT_UNKNOWN)):
+        if not bad.all():
+            reject[~bad] = why
     idx = np.flatnonzero(reject == OK)
-    if idx.size == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, JtJ_best, reject, method)
-
     m = idx.size
-    T0 = np.stack([_ippe_both(uv[i], size[i], K) for i in idx])  # (m, 2, 4, 4)
-    P = np.repeat(tag_object_points(size[idx])[:, None], 2, axis=1)  # (m, 2, 4, 3)
-    obs = np.repeat(uv[idx][:, None], 2, axis=1)
-    T2, JtJ2, r2 = gauss_newton(K, T0, P, obs, iterations=p.refine_iterations)
-    rms2 = np.sqrt(np.mean(np.sum(r2 * r2, -1), -1))  # (m, 2)
-    order = np.argsort(rms2, axis=1)  # index 0 = lower reprojection error
-    pick = order[:, 0]
+    if m == 0:
+        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, np.zeros(n, bool))
+
+    T2, rms2 = _ippe_both(uv[idx], size[idx], K)  # (m, 2, 4, 4), best first
+    pick = np.zeros(m, np.int64)
     method_m = np.full(m, "reprojection", dtype=object)
     reject_m = np.full(m, OK, dtype=object)
-
-    ar = np.arange(m)
-    rb0, ra0 = rms2[ar, pick], rms2[ar, 1 - pick]
     floor = p.corner_sigma_px / 2
-    ambiguous = np.maximum(ra0, floor) / np.maximum(rb0, floor) < p.ambiguity_ratio
-    if depth_mm is not None:
-        dres, dcount = _depth_residual(T2, size[idx], K, depth_mm)
+    ambiguous = np.maximum(rms2[:, 1], floor) / np.maximum(rms2[:, 0], floor) < p.ambiguity_ratio
+    amb = np.flatnonzero(ambiguous)
+    if depth_mm is not None and amb.size:
+        # depth is consulted only for ambiguous tags (the others are decided by reprojection)
+        dres, dcount = _depth_residual(T2[amb], size[idx[amb]], K, depth_mm)
         enough = np.all(dcount >= p.depth_min_points, axis=1)
-        # depth decides an ambiguous tag only when its preference exceeds its own noise:
-        # the median of n samples of |N(0, s)| has a spread of about 1.25 s / sqrt(n).
-        z = np.abs(T2[:, 0, 2, 3])
+        # depth decides only when its preference exceeds its own noise: the median of n
+        # samples of |N(0, s)| has a spread of about 1.25 s / sqrt(n).
+        z = np.abs(T2[amb, 0, 2, 3])
         noise = 3 * 1.25 * p.depth_sigma_coeff_per_m * z * z / np.sqrt(np.maximum(dcount.min(1), 1))
         gap = np.abs(dres[:, 0] - dres[:, 1])
-        use = ambiguous & enough & (gap > np.maximum(noise, p.depth_decisive_m))
-        pick = np.where(use, np.argmin(dres, axis=1), pick)
-        method_m[use] = "depth"
-        ambiguous = ambiguous & ~use
-        chosen_res = dres[ar, pick]
-        reject_m[enough & (chosen_res > p.depth_max_residual_m)] = REJECT_DEPTH
+        use = enough & (gap > np.maximum(noise, p.depth_decisive_m))
+        choice = np.argmin(dres, axis=1)
+        pick[amb[use]] = choice[use]
+        method_m[amb[use]] = "depth"
+        ambiguous[amb[use]] = False
+        bad = use & (dres[np.arange(amb.size), choice] > p.depth_max_residual_m)
+        reject_m[amb[bad]] = REJECT_DEPTH
 
+    ar = np.arange(m)
     Tb, Ta = T2[ar, pick], T2[ar, 1 - pick]
     rb, ra = rms2[ar, pick], rms2[ar, 1 - pick]
-    cov_m = pose_covariance(JtJ2[ar, pick], p.corner_sigma_px)
-    if np.any(ambiguous):
+    Tb, JtJ, _ = gauss_newton(K, Tb, tag_object_points(size[idx]), uv[idx],
+                              iterations=p.refine_iterations)
+    cov_m = pose_covariance(JtJ, p.corner_sigma_px)
+    if ambiguous.any():
         d = geo.se3_log(geo.se3_between(Tb, Ta))  # (m, 6)
         angle = np.linalg.norm(d[:, 3:], axis=-1)
         merge = ambiguous & (angle < p.ambiguity_merge_angle_rad)
         cov_m = cov_m + merge[:, None, None] * (d[:, :, None] * d[:, None, :])
         reject_m[ambiguous & ~merge & (reject_m == OK)] = REJECT_AMBIGUOUS
-    too_far = np.linalg.norm(Tb[:, :3, 3], axis=-1) > p.max_range_m
-    reject_m[(reject_m == OK) & too_far] = REJECT_RANGE
+    far = np.einsum("ij,ij->i", Tb[:, :3, 3], Tb[:, :3, 3]) > p.max_range_m ** 2
+    reject_m[(reject_m == OK) & far] = REJECT_RANGE
     reject_m[(reject_m == OK) & ~(rb <= p.max_reproj_px)] = REJECT_REPROJ
 
     T_best[idx], T_alt[idx], cov[idx] = Tb, Ta, cov_m
-    JtJ_best[idx] = JtJ2[ar, pick]
     rms[idx], rms_alt[idx] = rb, ra
     reject[idx], method[idx] = reject_m, method_m
-    return TagPoses(T_best, cov, T_alt, rms, rms_alt, JtJ_best, reject, method)
+    accepted = np.zeros(n, bool)
+    accepted[idx] = reject_m == OK
+    return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted)
