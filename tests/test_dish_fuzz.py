@@ -270,3 +270,35 @@ def test_attacks_rejected_and_counted_exactly():
     # Rejections of fleet members are attributed to them; strangers go to "unknown".
     assert link["peers"]["4"]["rejected_by_reason"] == {"not_neighbour": n}
     assert link["peers"]["unknown"]["rejected_by_reason"]["malformed"] == n
+
+
+_DEMO_DISH = """
+import socket, time, zmq
+ctx = zmq.Context(); d = ctx.socket(zmq.DISH); d.bind('udp://127.0.0.1:%d'); d.join('dran')
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); time.sleep(0.2)
+s.sendto(bytes([0x80]), ('127.0.0.1', %d)); time.sleep(0.3)
+s.sendto(bytes([4]) + b'dran' + b'hello', ('127.0.0.1', %d))
+assert d.poll(2000) and d.recv() == b'hello'
+"""
+
+
+@pytest.mark.parametrize("which", ["ours", "unpatched"])
+def test_single_0x80_byte_kills_only_the_unpatched_libzmq(which):
+    """Sensitivity check: the same one-byte datagram aborts a DISH on unpatched libzmq
+    (set DRAN_UNPATCHED_LIBZMQ to its libzmq.so.5 to run that half) and not on ours."""
+    import os
+
+    env = dict(os.environ)
+    if which == "unpatched":
+        lib = os.environ.get("DRAN_UNPATCHED_LIBZMQ")
+        if not lib:
+            pytest.skip("DRAN_UNPATCHED_LIBZMQ not set (path to an unpatched draft libzmq.so.5)")
+        env["LD_PRELOAD"] = lib
+    port = _free_udp_port()
+    p = subprocess.run([sys.executable, "-c", _DEMO_DISH % (port, port, port)], env=env,
+                       capture_output=True, text=True, timeout=60)
+    if which == "ours":
+        assert p.returncode == 0, p.stderr
+    else:
+        assert p.returncode < 0 or p.returncode == 134, (p.returncode, p.stderr)
+        assert "udp_engine.cpp" in p.stderr
