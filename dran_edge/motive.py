@@ -194,39 +194,52 @@ def _rotmat_to_euler(R: np.ndarray, order: str) -> np.ndarray:
     return out
 
 
-def _parse_block(
-    data: np.ndarray, cols: list[int], first_line: int, path: str, what: str
+def _parse_table(
+    lines: list[str], width: int, first_line: int, path: str, column_names: list[str]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Parse text columns ``data[:, cols]`` to float; blank cells become NaN.
+    """Parse the data rows: (values ``(n, width)``, blank mask ``(n, width)``).
 
-    Returns (values ``(n, len(cols))``, blank mask). A cell that is neither blank nor a number
-    raises InputError naming its line.
+    One C-level pass (``np.fromstring``) over the text with blank cells spelled ``nan``; when
+    that fails, a per-cell pass finds the first bad cell and raises InputError with its line.
     """
-    block = data[:, cols]
-    blank = np.char.str_len(np.char.strip(block)) == 0
+    n = len(lines)
+    for r, line in enumerate(lines):
+        if line.count(",") != width - 1:
+            raise InputError(
+                f"expected {width} cells like the header, got {line.count(',') + 1} (truncated "
+                "or malformed row)",
+                path=path, line=first_line + r,
+            )
+    if n == 0:
+        return np.zeros((0, width)), np.zeros((0, width), bool)
+    body = "\n".join(lines) + "\n"
+    # Blank cells -> "nan" (two passes cover runs of blanks), also at line ends and starts.
+    body = body.replace(",,", ",nan,").replace(",,", ",nan,")
+    body = body.replace(",\n", ",nan\n").replace("\n,", "\nnan,")
+    if body.startswith(","):
+        body = "nan" + body
     try:
-        values = np.where(blank, "nan", block).astype(np.float64)
+        values = np.fromstring(body[:-1].replace("\n", ","), sep=",")
     except ValueError:
-        for r in range(block.shape[0]):
-            for c in range(block.shape[1]):
-                if not blank[r, c] and math.isnan(_float_or_nan(block[r, c])) and (
-                    block[r, c].strip().lower() != "nan"
-                ):
+        values = np.zeros(0)
+    if values.size != n * width:
+        for r, line in enumerate(lines):
+            for c, cell in enumerate(line.split(",")):
+                if cell.strip() and math.isnan(_float_or_nan(cell)):
                     raise InputError(
-                        f"{what}: expected a number or a blank cell in column {cols[c] + 1}, "
-                        f"got {block[r, c]!r}",
-                        path=path,
-                        line=first_line + r,
-                    ) from None
-        raise
-    bad = ~blank & ~np.isfinite(values)
+                        f"expected a number or a blank cell in column {c + 1} "
+                        f"({column_names[c]}), got {cell!r}",
+                        path=path, line=first_line + r,
+                    )
+        raise InputError("could not parse the data rows as numbers", path=path,
+                         line=first_line)
+    values = values.reshape(n, width)
+    blank = np.isnan(values)
+    bad = np.isinf(values)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise InputError(
-            f"{what}: expected a finite number in column {cols[c] + 1}, got {block[r, c]!r}",
-            path=path,
-            line=first_line + int(r),
-        )
+        raise InputError(f"expected a finite number in column {c + 1} ({column_names[c]}), "
+                         f"got {values[r, c]}", path=path, line=first_line + int(r))
     return values, blank
 
 
@@ -247,7 +260,8 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
     except UnicodeDecodeError as exc:
         raise InputError(f"expected a text (UTF-8) Motive CSV, got undecodable bytes: {exc}",
                          path=path) from None
-    rows = list(csv.reader(io.StringIO(text, newline="")))
+    lines = text.splitlines()
+    rows = list(csv.reader(lines[:40]))
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
         got = ",".join(rows[0])[:60] if rows else "an empty file"
         raise InputError(
@@ -343,21 +357,16 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
         layout[name][key] = c
 
     rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
-    # Data rows: every row after the axis row that is not blank.
+    # Data rows: every line after the axis row (trailing blank lines ignored).
     first = i_axis + 1
-    data_rows = rows[first:]
-    while data_rows and not any(c.strip() for c in data_rows[-1]):
-        data_rows.pop()
-    for r, row in enumerate(data_rows):
-        if len(row) != width:
-            raise InputError(
-                f"expected {width} cells like the header, got {len(row)} (truncated or "
-                "malformed row)",
-                path=path, line=first + r + 1,
-            )
-    n = len(data_rows)
-    data = np.array(data_rows, dtype=str).reshape(n, width)
-    fr_t, blank = _parse_block(data, [0, 1], first + 1, path, "Frame/Time")
+    data_lines = lines[first:]
+    while data_lines and not data_lines[-1].strip(","):
+        data_lines.pop()
+    n = len(data_lines)
+    column_names = ["Frame", "Time"] + [
+        f"{hdr['Name'][c]} {hdr['component'][c]} {axis[c]}".strip() for c in range(2, width)]
+    table, blank_all = _parse_table(data_lines, width, first + 1, path, column_names)
+    fr_t, blank = table[:, :2], blank_all[:, :2]
     if blank.any():
         r = int(np.argwhere(blank)[0][0])
         raise InputError("expected a frame number and a time in every data row, got a blank",
@@ -380,8 +389,8 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
                 f"Rotation Type {rotation_type}",
                 path=path, line=i_axis + 1,
             )
-        values, blank = _parse_block(data, [cols[k] for k in need], first + 1, path,
-                                     f"rigid body {name!r}")
+        sel = [cols[k] for k in need]
+        values, blank = table[:, sel], blank_all[:, sel]
         occluded = blank.all(axis=1)
         partial = blank.any(axis=1) & ~occluded
         if partial.any():
@@ -411,9 +420,8 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
         T[~valid] = np.nan
         mme = np.full(n, np.nan)
         if ("Mean Marker Error", "") in cols:
-            v, b = _parse_block(data, [cols[("Mean Marker Error", "")]], first + 1, path,
-                                f"rigid body {name!r} mean marker error")
-            mme = np.where(b[:, 0] | ~valid, np.nan, v[:, 0] * scale_m)
+            c = cols[("Mean Marker Error", "")]
+            mme = np.where(blank_all[:, c] | ~valid, np.nan, table[:, c] * scale_m)
         bodies[name] = MotiveBody(name, ids.get(name, ""), T, valid, mme)
 
     if not bodies:
