@@ -1,0 +1,90 @@
+"""Replay speed: mission time vs wall time of `dran-edge replay` on the default simulated mission.
+
+    .venv/bin/python tools/bench/bench_replay.py [--robots 6] [--duration-s 180] [--workdir DIR]
+
+Simulates the mission twice with the same seed into ``--workdir`` (kept between runs; the
+simulation itself is not timed): once with rendered camera frames (the replay runs the AprilTag
+pipeline on every frame, like ``make demo``) and once with tag observations written directly
+into ingest.bin (the back-end alone). Both are replayed back to back in this process with the
+default options (in-process bus, as fast as possible, evaluation off) and the script prints
+mission time, wall time and the real-time factor (mission / wall) of each, the wall-time split
+(perception / rounds) and the ratio of the two arms. The target (issue 8) is a real-time factor
+>= 5 for the full replay of the default 6-robot, 180 s mission on the 2-core reference machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+
+
+def _simulate(workdir: Path, frames: str, args) -> Path:
+    from dran_edge.sim_writer import write_run
+    from dran_edge.simulate import SimParams, generate_mission
+
+    tag = f"r{args.robots}_d{args.duration_s:g}_s{args.seed}_{frames}"
+    run = workdir / tag
+    if (run / "mission.yaml").exists() and (run / ".complete").exists():
+        return run
+    if run.exists():
+        shutil.rmtree(run)
+    p = SimParams(robots=args.robots, objects=9, duration_s=args.duration_s, seed=args.seed,
+                  arena_m=9.0)
+    write_run(generate_mission(p), run, frames=frames)
+    (run / ".complete").write_text("")
+    return run
+
+
+def _replay(run: Path, workers: int | None) -> dict:
+    from dran_edge.replay import ReplayOptions, replay_run
+
+    if (run / "out").exists():
+        shutil.rmtree(run / "out")
+    t0 = time.perf_counter()
+    rep = replay_run(run, ReplayOptions(evaluate=False, workers=workers)).report
+    rep["bench_wall_s"] = time.perf_counter() - t0
+    return rep
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--robots", type=int, default=6)
+    ap.add_argument("--duration-s", type=float, default=180.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=None, help="perception processes")
+    ap.add_argument("--workdir", default="/tmp/dran-edge-bench-replay")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    runs = {"full (frames -> perception -> agents)": _simulate(workdir, "render", args),
+            "back-end only (observations in ingest.bin)": _simulate(workdir, "none", args)}
+    results = {name: _replay(run, args.workers) for name, run in runs.items()}
+    print(f"machine: {os.cpu_count()} cores; mission {args.robots} robots x "
+          f"{args.duration_s:g} s (seed {args.seed})")
+    print(f"{'arm':<44} {'mission s':>9} {'wall s':>8} {'x real time':>11} "
+          f"{'perception s':>12} {'rounds s':>9} {'rounds':>6} {'MB sent':>8}")
+    for name, r in results.items():
+        wall = r["replay_wall_s"]
+        print(f"{name:<44} {r['mission_s']:>9.1f} {wall:>8.2f} {r['mission_s'] / wall:>11.2f} "
+              f"{r['perception_wall_s']:>12.2f} {r['rounds_wall_s']:>9.2f} {r['rounds']:>6d} "
+              f"{r['bytes_total'] / 1e6:>8.3f}")
+    full, back = results.values()
+    ratio = full["replay_wall_s"] / back["replay_wall_s"] if back["replay_wall_s"] else math.nan
+    print(f"ratio wall(full) / wall(back-end only): {ratio:.2f}")
+    print(f"target: full replay >= 5x real time -> "
+          f"{'met' if full['mission_s'] / full['replay_wall_s'] >= 5 else 'NOT met'}")
+    if args.json:
+        print(json.dumps({n: {k: r[k] for k in ("mission_s", "replay_wall_s", "perception_wall_s",
+                                                 "rounds_wall_s", "rounds", "bytes_total")}
+                          for n, r in results.items()}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
