@@ -287,3 +287,20 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
     assert c["sr_cost_pct"] == pytest.approx(100 * (c["F_init"] - c["F_k"]) / (c["F_init"]
                                                                                - c["F_star"]))
     assert r["summary"]["sr_ate_pct"] == pytest.approx(r["overall"]["sr_ate_pct"])
+
+
+def test_eval_run_error_when_no_robot_matches_a_body(tmp_path):
+    make_run(tmp_path / "run")
+    m = tmp_path / "run" / "mission.yaml"
+    m.write_text(m.read_text().replace("mocap_body: dingo1, ", "").replace(
+        "mocap_body: dingo2, ", ""))
+    other = tmp_path / "other.csv"
+    t = np.arange(0, 50, 1 / 30)
+    motive.write_motive_csv(other, motive.make_take(t, {"robotA": _track(t, 0)}))
+    with pytest.raises(InputError, match=r"no robot of mission.yaml matches a rigid body .*"
+                                         r"robots: dingo1, dingo2; bodies: robotA"):
+        evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False,
+                                                                     mocap_path=str(other)))
+    # With the run's own mocap the robots match by name, without mocap_body.
+    r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    assert set(r["robots"]) == {"dingo1", "dingo2"}
