@@ -19,7 +19,9 @@ SR_ATE needs the centralized solution: ``out/centralized/<robot>/trajectory.tum`
 otherwise ``merged.g2o`` (decentralized final estimate as vertices) is solved with our centralized
 Schur-LM (dran_edge.pgo) and mapped back to robots and stamps by ``merged_vertices.csv``.
 SR_cost uses the SE-Sync objective of ``merged.g2o``: F_k at the file's vertices, F_init at the
-chordal initialisation (shared by all methods, paper Sec. 6.1) and F* at the centralized optimum.
+chordal initialisation (shared by all methods, paper Sec. 6.1) and F* at the centralized optimum;
+without merged.g2o, ``cost_init / cost_final / cost_centralized`` of out/report.json. Per round,
+SR_cost needs the latter (the convention of rounds.csv's cost column).
 """
 
 from __future__ import annotations
@@ -261,13 +263,19 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         except json.JSONDecodeError as exc:
             raise InputError(f"not valid JSON: {exc.msg}", path=str(report_json),
                              line=exc.lineno) from None
-        for k_rep, k_cost in (("cost_init", "F_init"), ("cost_final", "F_k"),
-                              ("cost_centralized", "F_star")):
-            if k_cost not in cost and isinstance(replay_report.get(k_rep), (int, float)):
-                cost[k_cost] = float(replay_report[k_rep])
-    if {"F_init", "F_k", "F_star"} <= cost.keys() and None not in (
-            cost["F_init"], cost["F_k"], cost["F_star"]):
+    # Costs given by the replay (cost_init / cost_final / cost_centralized) are in the
+    # convention of rounds.csv's cost column; merged.g2o's are SE-Sync objectives. Never mix.
+    replay_cost = {k_cost: float(replay_report[k_rep]) for k_rep, k_cost in
+                   (("cost_init", "F_init"), ("cost_final", "F_k"),
+                    ("cost_centralized", "F_star"))
+                   if isinstance(replay_report.get(k_rep), (int, float))
+                   and not isinstance(replay_report.get(k_rep), bool)}
+    if not cost and replay_cost:
+        cost = {"source": "out/report.json (the convention of rounds.csv)", **replay_cost}
+    if all(cost.get(k) is not None for k in ("F_init", "F_k", "F_star")):
         cost["sr_cost_pct"] = metrics.sr_cost(cost["F_init"], cost["F_k"], cost["F_star"])
+    # Per-round SR_cost needs F_init and F* in the convention of rounds.csv's cost column.
+    round_cost_ref = replay_cost if {"F_init", "F_star"} <= replay_cost.keys() else None
 
     rounds = None
     if (out_dir / "rounds.csv").exists():
@@ -414,9 +422,12 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         rounds_rep["count"] = int(len(rounds["round"]))
         if "bytes_total" in rounds:
             rounds_rep["bytes_total"] = float(np.nanmax(rounds["bytes_total"]))
-        if "cost" in rounds and {"F_init", "F_star"} <= cost.keys() and cost["F_init"] is not None:
-            rounds_rep["sr_cost_pct_last"] = float(
-                metrics.sr_cost(cost["F_init"], rounds["cost"][-1], cost["F_star"]))
+        if "cost" in rounds and round_cost_ref is not None:
+            rounds_rep["sr_cost_pct_last"] = float(metrics.sr_cost(
+                round_cost_ref["F_init"], rounds["cost"][-1], round_cost_ref["F_star"]))
+        elif "cost" in rounds:
+            notes.append("rounds: no cost_init / cost_centralized in out/report.json, so "
+                         "rounds.csv's cost is plotted as is, not as SR_cost")
     for key in ("bytes_total", "rounds", "mission_s", "replay_wall_s"):
         if key in replay_report:
             rounds_rep.setdefault(key if key.startswith("replay") else f"replay_{key}",
@@ -448,7 +459,7 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
     }
     report = json_safe(report)
     report["_"] = {"robots": robots, "aligned": aligned, "rounds": rounds, "objects": obj_plot,
-                   "cost": cost}
+                   "round_cost_ref": round_cost_ref}
     return report
 
 
@@ -651,12 +662,12 @@ def _rounds(plt, report, data, eval_dir):
     rounds = data["rounds"]
     if rounds is None or len(rounds.get("round", [])) == 0:
         return None
-    cost = data["cost"]
+    ref = data["round_cost_ref"]
     r = rounds["round"]
     panels = []
-    if "cost" in rounds and cost.get("F_init") is not None and cost.get("F_star") is not None:
-        panels.append(("SR_cost (%)", metrics.sr_cost(cost["F_init"], rounds["cost"],
-                                                       cost["F_star"])))
+    if "cost" in rounds and ref is not None:
+        panels.append(("SR_cost (%)", metrics.sr_cost(ref["F_init"], rounds["cost"],
+                                                       ref["F_star"])))
     elif "cost" in rounds:
         panels.append(("cost", rounds["cost"]))
     for col, label in (("consensus_error", "consensus error (CE)"), ("bias", "Bias"),
