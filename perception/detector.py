@@ -8,7 +8,12 @@ The binding (pupil-apriltags 1.0.4.x, ecosystem-facts §3.1) has three traps thi
   0.25 becomes 0.0: after construction we write the float into the C struct directly and read it
   back, and log the value actually in force;
 - its pose estimator (``estimate_tag_pose=True``) can print to stdout from C: we never call it.
-  Pose comes from the corners (``tagpose.py``).
+  Pose comes from the corners (``tagpose.py``);
+- its ``__del__`` destroys the tag family before the detector, and
+  ``apriltag_detector_destroy`` then clears the family's quick-decode table through the freed
+  family (use after free: the rare "corrupted size vs. prev_size" / segfault at interpreter
+  exit). ``TagDetector.close()`` (also run by ``__del__``) destroys them in the right order and
+  disarms the binding's destructor.
 
 Corner convention (the library's, kept in our output): ``corners[i]`` for i = 0..3 are the
 image points of the tag-frame points (-s, +s), (+s, +s), (+s, -s), (-s, -s) with s = size/2
@@ -151,6 +156,25 @@ class TagDetector:
             )
         log.info("AprilTag detector parameters in force: %s (asked: %s)", self.in_force, asdict(p))
 
+    def close(self) -> None:
+        """Free the C detector, then its family (the reverse of the binding's order)."""
+        d = getattr(self, "_detector", None)
+        if d is None or d.tag_detector_ptr is None:
+            return
+        libc = d.libc
+        libc.apriltag_detector_destroy.restype = None
+        libc.apriltag_detector_destroy(d.tag_detector_ptr)  # uses the families: before them
+        for name, family in d.tag_families.items():
+            destroy = getattr(libc, f"{name}_destroy")
+            destroy.restype = None
+            destroy(family)
+        d.tag_families = {}
+        d.tag_detector_ptr = None  # the binding's __del__ now does nothing
+        self._detector = None
+
+    def __del__(self) -> None:
+        self.close()
+
     def detect(self, gray: np.ndarray) -> TagDetections:
         """Detect tags in a 2-D uint8 image (C-contiguous or not)."""
         if gray.ndim != 2 or gray.dtype != np.uint8:
@@ -158,6 +182,8 @@ class TagDetector:
                 f"detector input: expected a 2-D uint8 grey image, got shape {gray.shape} "
                 f"dtype {gray.dtype}"
             )
+        if self._detector is None:
+            raise DependencyError("TagDetector.detect after close()")
         dets = self._detector.detect(gray, estimate_tag_pose=False)
         n = len(dets)
         if n == 0:

@@ -109,20 +109,32 @@ class TagRenderer:
             self._tex[key] = tex
         return tex
 
-    def background(self, width: int, height: int) -> np.ndarray:
-        """A fixed low-contrast textured grey background (smooth blobs plus a few edges)."""
-        key = (width, height)
+    def background(self, width: int, height: int, clutter: bool = False) -> np.ndarray:
+        """A fixed textured grey background: smooth blobs plus a few edges, or with
+        ``clutter=True`` an indoor-like scene (many overlapping rectangles such as shelves,
+        boxes and posters, thin edges, fine texture) that gives the quad detector the kind of
+        edge content real frames have."""
+        key = (width, height, clutter)
         bg = self._backgrounds.get(key)
         if bg is None:
             cv2 = self._cv2
             rng = np.random.default_rng(self._background_seed)
             coarse = rng.uniform(70, 190, size=(height // 32 + 2, width // 32 + 2))
             bg = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
-            for _ in range(12):
+            if clutter:
+                for _ in range(60):
+                    x, y = rng.integers(0, [width, height])
+                    dx, dy = rng.integers(8, [160, 120])
+                    cv2.rectangle(bg, (int(x), int(y)), (int(x + dx), int(y + dy)),
+                                  float(rng.uniform(30, 230)), -1 if rng.random() < 0.7 else 2)
+                fine = rng.normal(0, 12, size=(height // 4 + 1, width // 4 + 1))
+                bg += cv2.resize(fine, (width, height), interpolation=cv2.INTER_LINEAR)
+            for _ in range(30 if clutter else 12):
                 p0 = rng.integers(0, [width, height])
                 p1 = p0 + rng.integers(-200, 200, size=2)
                 level = float(rng.uniform(60, 200))
-                cv2.line(bg, tuple(int(v) for v in p0), tuple(int(v) for v in p1), level, 3)
+                cv2.line(bg, tuple(int(v) for v in p0), tuple(int(v) for v in p1), level,
+                         int(rng.integers(1, 4)) if clutter else 3)
             bg = np.clip(bg, 0, 255).astype(np.uint8)
             self._backgrounds[key] = bg
         return bg
@@ -143,6 +155,7 @@ class TagRenderer:
         rng: np.random.Generator | None = None,
         depth: DepthModel | None = None,
         background: np.ndarray | None = None,
+        clutter: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Draw the tags; returns ``(colour BGR uint8 (H, W, 3), depth uint16 mm (H, W))``.
 
@@ -163,7 +176,7 @@ class TagRenderer:
         if len(ids) != n:
             raise InputError(f"render: {n} poses but {len(ids)} tag ids")
         if background is None:
-            gray = self.background(width, height).copy()
+            gray = self.background(width, height, clutter).copy()
         else:
             gray = np.ascontiguousarray(background, dtype=np.uint8).copy()
         depth_mm = np.full((height, width), depth.background_depth_mm, np.uint16)

@@ -127,27 +127,6 @@ def tag_object_points(size_m: np.ndarray) -> np.ndarray:
     return UNIT_CORNERS[None] * (np.asarray(size_m, dtype=np.float64)[:, None, None] / 2)
 
 
-def _ippe_both(uv: np.ndarray, size_m: np.ndarray, K: np.ndarray):
-    """Both IPPE_SQUARE solutions ``(m, 2, 4, 4)`` per tag, sorted by reprojection error, and
-    their RMS reprojection errors ``(m, 2)`` in pixels per corner (OpenCV reports the RMS per
-    coordinate, i.e. this / sqrt 2). If OpenCV returns one solution it is repeated."""
-    import cv2
-
-    m = uv.shape[0]
-    out = np.zeros((m, 2, 4, 4))
-    out[..., 3, 3] = 1.0
-    err = np.empty((m, 2))
-    for i in range(m):
-        n, rvecs, tvecs, e = cv2.solvePnPGeneric(UNIT_CORNERS * (size_m[i] / 2), uv[i], K, None,
-                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        order = (0, 1) if n > 1 and e[0, 0] <= e[1, 0] else ((1, 0) if n > 1 else (0, 0))
-        for k, j in enumerate(order):
-            out[i, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
-            out[i, k, :3, 3] = tvecs[j][:, 0]
-            err[i, k] = e[j, 0]
-    return out, err * np.sqrt(2.0)
-
-
 def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: np.ndarray):
     """Median |measured - predicted| depth (m) and valid count, per pose ``T (n, 2, 4, 4)``."""
     h, w = depth_mm.shape
@@ -167,6 +146,31 @@ def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: 
     return np.where(count > 0, 0.5 * (lo + hi), np.inf), count
 
 
+def _screen(corners: list, hamming: list, margin: list, size: list, w: int, h: int,
+            p: TagPoseParams) -> list[str]:
+    """Rejection before any pose maths, per tag in plain Python (a frame has a few tags; this
+    is several times cheaper than a dozen numpy calls on 4x2 arrays)."""
+    out = []
+    lo_x = lo_y = p.border_px - 0.5
+    hi_x, hi_y = w - 1 - lo_x, h - 1 - lo_y
+    min_edge_sq = p.min_edge_px ** 2
+    for c, ham, dm, s in zip(corners, hamming, margin, size):
+        if not s == s:  # NaN size: not in the tag map
+            out.append(REJECT_UNKNOWN)
+        elif ham > p.max_hamming:
+            out.append(REJECT_HAMMING)
+        elif dm < p.min_decision_margin:
+            out.append(REJECT_MARGIN)
+        elif min((c[k][0] - c[k - 1][0]) ** 2 + (c[k][1] - c[k - 1][1]) ** 2
+                 for k in range(4)) < min_edge_sq:
+            out.append(REJECT_SMALL)
+        elif not all(lo_x <= x <= hi_x and lo_y <= y <= hi_y for x, y in c):
+            out.append(REJECT_BORDER)
+        else:
+            out.append(OK)
+    return out
+
+
 def estimate_tag_poses(
     det: TagDetections,
     K: np.ndarray,
@@ -178,48 +182,54 @@ def estimate_tag_poses(
     """Poses of the detections ``det``; ``tag_size_m (n,)`` per detection, NaN for tags without a
     known size (rejected as ``unknown_tag``). ``image_size`` is ``(width, height)``; ``depth_mm``
     an aligned uint16 depth image in millimetres, or None."""
+    import cv2
+
     p = params or TagPoseParams()
     n = len(det)
-    K = np.asarray(K, dtype=np.float64)
     size = np.asarray(tag_size_m, dtype=np.float64).reshape(n)
     T_best = np.full((n, 4, 4), np.nan)
     T_alt = np.full((n, 4, 4), np.nan)
     cov = np.full((n, 6, 6), np.nan)
     rms = np.full(n, np.nan)
     rms_alt = np.full(n, np.nan)
-    reject = np.full(n, OK, dtype=object)
     method = np.full(n, "", dtype=object)
+    accepted = np.zeros(n, bool)
     if n == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, np.zeros(0, bool))
-
+        return TagPoses(T_best, cov, T_alt, rms, rms_alt, np.full(0, OK, dtype=object), method,
+                        accepted)
     uv = det.corners + CORNER_TO_OPENCV_PX
-    edge = np.sqrt(np.min(np.sum((uv[:, [1, 2, 3, 0]] - uv) ** 2, axis=-1), axis=-1))
-    w, h = image_size
-    b = p.border_px - 0.5
-    lo = uv.min(axis=1)
-    hi = uv.max(axis=1)
-    inside = (lo[:, 0] >= b) & (lo[:, 1] >= b) & (hi[:, 0] <= w - 1 - b) & (hi[:, 1] <= h - 1 - b)
-    # first failing rule wins
-    for bad, why in ((inside, REJECT_BORDER), (edge >= p.min_edge_px, REJECT_SMALL),
-                     (det.decision_margin >= p.min_decision_margin, REJECT_MARGIN),
-                     (det.hamming <= p.max_hamming, REJECT_HAMMING),
-                     (np.isfinite(size), REJECT_UNKNOWN)):
-        if not bad.all():
-            reject[~bad] = why
-    idx = np.flatnonzero(reject == OK)
-    m = idx.size
+    screened = _screen(uv.tolist(), det.hamming.tolist(), det.decision_margin.tolist(),
+                       size.tolist(), image_size[0], image_size[1], p)
+    reject = np.array(screened, dtype=object)
+    idx = [i for i, r in enumerate(screened) if r == OK]
+    m = len(idx)
     if m == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, np.zeros(n, bool))
+        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted)
 
-    T2, rms2 = _ippe_both(uv[idx], size[idx], K)  # (m, 2, 4, 4), best first
-    pick = np.zeros(m, np.int64)
-    method_m = np.full(m, "reprojection", dtype=object)
-    reject_m = np.full(m, OK, dtype=object)
+    # both IPPE solutions per tag, lower reprojection error first; OpenCV reports the RMS per
+    # coordinate, ours is per corner (x sqrt 2). One solution only -> repeated.
+    K = np.asarray(K, dtype=np.float64)
+    T2 = np.zeros((m, 2, 4, 4))
+    T2[..., 3, 3] = 1.0
+    rms2 = np.empty((m, 2))
+    for row, i in enumerate(idx):
+        k_sol, rvecs, tvecs, e = cv2.solvePnPGeneric(UNIT_CORNERS * (size[i] / 2), uv[i], K, None,
+                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        order = (0, 0) if k_sol < 2 else ((0, 1) if e[0, 0] <= e[1, 0] else (1, 0))
+        for k, j in enumerate(order):
+            T2[row, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
+            T2[row, k, :3, 3] = tvecs[j][:, 0]
+            rms2[row, k] = e[j, 0] * 1.4142135623730951
+    idx = np.asarray(idx)
+    r2 = rms2.tolist()
     floor = p.corner_sigma_px / 2
-    ambiguous = np.maximum(rms2[:, 1], floor) / np.maximum(rms2[:, 0], floor) < p.ambiguity_ratio
-    amb = np.flatnonzero(ambiguous)
-    if depth_mm is not None and amb.size:
+    ambiguous = [max(a, floor) / max(b, floor) < p.ambiguity_ratio for b, a in r2]
+    pick = np.zeros(m, np.int64)
+    method_m = ["reprojection"] * m
+    reject_m = [OK] * m
+    if depth_mm is not None and any(ambiguous):
         # depth is consulted only for ambiguous tags (the others are decided by reprojection)
+        amb = np.flatnonzero(ambiguous)
         dres, dcount = _depth_residual(T2[amb], size[idx[amb]], K, depth_mm)
         enough = np.all(dcount >= p.depth_min_points, axis=1)
         # depth decides only when its preference exceeds its own noise: the median of n
@@ -229,31 +239,40 @@ def estimate_tag_poses(
         gap = np.abs(dres[:, 0] - dres[:, 1])
         use = enough & (gap > np.maximum(noise, p.depth_decisive_m))
         choice = np.argmin(dres, axis=1)
-        pick[amb[use]] = choice[use]
-        method_m[amb[use]] = "depth"
-        ambiguous[amb[use]] = False
-        bad = use & (dres[np.arange(amb.size), choice] > p.depth_max_residual_m)
-        reject_m[amb[bad]] = REJECT_DEPTH
+        for a, row in enumerate(amb.tolist()):
+            if use[a]:
+                pick[row] = choice[a]
+                method_m[row] = "depth"
+                ambiguous[row] = False
+                if dres[a, choice[a]] > p.depth_max_residual_m:
+                    reject_m[row] = REJECT_DEPTH
 
     ar = np.arange(m)
     Tb, Ta = T2[ar, pick], T2[ar, 1 - pick]
     rb, ra = rms2[ar, pick], rms2[ar, 1 - pick]
-    Tb, JtJ, _ = gauss_newton(K, Tb, tag_object_points(size[idx]), uv[idx],
+    Tb, JtJ, _ = gauss_newton(K, Tb, UNIT_CORNERS * (size[idx, None, None] / 2), uv[idx],
                               iterations=p.refine_iterations)
     cov_m = pose_covariance(JtJ, p.corner_sigma_px)
-    if ambiguous.any():
+    if any(ambiguous):
         d = geo.se3_log(geo.se3_between(Tb, Ta))  # (m, 6)
         angle = np.linalg.norm(d[:, 3:], axis=-1)
-        merge = ambiguous & (angle < p.ambiguity_merge_angle_rad)
-        cov_m = cov_m + merge[:, None, None] * (d[:, :, None] * d[:, None, :])
-        reject_m[ambiguous & ~merge & (reject_m == OK)] = REJECT_AMBIGUOUS
-    far = np.einsum("ij,ij->i", Tb[:, :3, 3], Tb[:, :3, 3]) > p.max_range_m ** 2
-    reject_m[(reject_m == OK) & far] = REJECT_RANGE
-    reject_m[(reject_m == OK) & ~(rb <= p.max_reproj_px)] = REJECT_REPROJ
-
+        for row in range(m):
+            if ambiguous[row]:
+                if angle[row] < p.ambiguity_merge_angle_rad:
+                    cov_m[row] += np.outer(d[row], d[row])
+                elif reject_m[row] == OK:
+                    reject_m[row] = REJECT_AMBIGUOUS
+    t = Tb[:, :3, 3].tolist()
+    max_range_sq = p.max_range_m ** 2
+    for row, (x, y, z_) in enumerate(t):
+        if reject_m[row] == OK:
+            if x * x + y * y + z_ * z_ > max_range_sq:
+                reject_m[row] = REJECT_RANGE
+            elif not rb[row] <= p.max_reproj_px:
+                reject_m[row] = REJECT_REPROJ
     T_best[idx], T_alt[idx], cov[idx] = Tb, Ta, cov_m
     rms[idx], rms_alt[idx] = rb, ra
-    reject[idx], method[idx] = reject_m, method_m
-    accepted = np.zeros(n, bool)
-    accepted[idx] = reject_m == OK
+    reject[idx] = reject_m
+    method[idx] = method_m
+    accepted[idx] = [r == OK for r in reject_m]
     return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted)
