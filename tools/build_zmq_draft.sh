@@ -149,8 +149,12 @@ fi
 log "libzmq source $SRC_VERSION in $SRC"
 
 # ------------------------------------------------------------ patch, configure, build
-(cd "$SRC" && patch -p1 --forward --quiet < "$PATCH") \
-    || die "our patch does not apply to libzmq $SRC_VERSION ($PATCH)"
+if (cd "$SRC" && patch -p1 -R --dry-run --quiet < "$PATCH" >/dev/null 2>&1); then
+    log "patch already applied in $SRC"
+else
+    (cd "$SRC" && patch -p1 --forward --quiet < "$PATCH") \
+        || die "our patch does not apply to libzmq $SRC_VERSION ($PATCH)"
+fi
 
 BUILD="$CACHE/build"
 rm -rf "$BUILD" "$PREFIX"
