@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from dran_edge import align, tum
@@ -188,3 +190,54 @@ def test_tum_errors_name_the_line(tmp_path, line, msg):
     p.write_text("# header\n0.9 0 0 0 0 0 0 1\n\n" + line + "\n")
     with pytest.raises(InputError, match=rf"bad.tum:4: .*{msg}"):
         tum.read_tum(p)
+
+
+# -------------------------------------------------------------------------------------------
+# property tests
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(4, 60),
+       scale=st.floats(0.2, 5.0), kind=st.sampled_from(["se3", "sim3"]))
+def test_umeyama_property(seed, n, scale, kind):
+    rng = np.random.default_rng(seed)
+    p_ref = rng.normal(0, 2, (n, 3))
+    R, t, _ = _random_transform(rng)
+    s = scale if kind == "sim3" else 1.0
+    p_est = ((p_ref - t) @ R) / s
+    T_ref = _pose(np.eye(3), p_ref)
+    T_est = _pose(R.T, p_est)
+    a = align.fit_alignment(kind, T_est, T_ref)
+    np.testing.assert_allclose(a.apply(T_est), T_ref, atol=1e-8)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), yaw_deg=st.floats(-180, 180))
+def test_yaw_alignment_property(seed, yaw_deg):
+    rng = np.random.default_rng(seed)
+    p_ref = rng.normal(0, 2, (20, 3))
+    Rz = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+    t = rng.normal(0, 3, 3)
+    T_ref = _pose(Rotation.random(20, random_state=rng).as_matrix(), p_ref)
+    T_est = _pose(Rz.T @ T_ref[:, :3, :3], (p_ref - t) @ Rz)
+    a = align.fit_alignment("yaw", T_est, T_ref)
+    np.testing.assert_allclose(a.apply(T_est), T_ref, atol=1e-8)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), offset=st.floats(-5.0, 5.0))
+def test_association_matches_each_estimate_with_the_reference_at_its_instant(seed, offset):
+    rng = np.random.default_rng(seed)
+    t_ref = np.sort(rng.uniform(0, 20, 400))
+    t_ref = t_ref[np.r_[True, np.diff(t_ref) > 1e-6]]
+    w = rng.normal(0, 0.3, 3)
+    v = rng.normal(0, 0.5, 3)
+
+    def truth(tt):  # constant twist: slerp/lerp are exact on it
+        return _pose(Rotation.from_rotvec(np.outer(tt, w)).as_matrix(), np.outer(tt, v))
+
+    t_est = np.sort(rng.uniform(t_ref[0], t_ref[-1], 50)) - offset
+    a = align.associate(t_est, truth(t_est + offset), t_ref, truth(t_ref), time_offset_s=offset,
+                        max_gap_s=10.0)
+    assert a.matched_poses == 50
+    np.testing.assert_allclose(a.T_ref, a.T_est, atol=1e-8)
