@@ -158,9 +158,15 @@ def _find_mocap(run_dir: Path, mission, opt: EvalOptions) -> Path | None:
     return p if p.exists() else None
 
 
-def _centralized_from_g2o(run_dir: Path, names: list[str], notes: list[str]
+def _centralized_from_g2o(run_dir: Path, finals: dict[str, tuple[np.ndarray, np.ndarray]],
+                          notes: list[str]
                           ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
-    """Centralized trajectories {robot: (stamps_s, T)} and costs from merged.g2o."""
+    """Centralized trajectories {robot: (stamps_s, T)} and costs from merged.g2o.
+
+    ``finals`` are the robots' exported final estimates: merged.g2o's vertex values must be
+    the same poses (F_k is evaluated there); the largest difference is reported.
+    """
+    names = list(finals)
     g2o_path = run_dir / "out" / "merged.g2o"
     if not g2o_path.exists():
         notes.append("SR_ATE / SR_cost: out/merged.g2o absent; no centralized solution")
@@ -211,6 +217,20 @@ def _centralized_from_g2o(run_dir: Path, names: list[str], notes: list[str]
         stamps = np.array([vmap[int(ids[k])][2] for k in sel], dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         out[name] = (stamps[order] * 1e-9, rep.result.poses[sel[order]])
+        # The file's vertex values against the exported trajectory at the same stamps.
+        s_f, T_f = finals[name]
+        s_ns = np.round(s_f * 1e9).astype(np.int64)
+        pos = np.searchsorted(s_ns, stamps)
+        hit = (pos < len(s_ns)) & (s_ns[np.minimum(pos, len(s_ns) - 1)] == stamps)
+        if hit.any():
+            d = np.linalg.norm(g.poses[sel[hit]][:, :3, 3] - T_f[pos[hit]][:, :3, 3], axis=1)
+            worst = max(cost.get("merged_vs_trajectory_max_m", 0.0), float(d.max()))
+            cost["merged_vs_trajectory_max_m"] = worst
+    if cost.get("merged_vs_trajectory_max_m", 0.0) > 0.01:
+        notes.append(
+            f"merged.g2o: its vertex values differ from out/<robot>/trajectory.tum by up to "
+            f"{cost['merged_vs_trajectory_max_m']:.3f} m at the same stamps (another frame?); "
+            "F_k, SR_cost and the centralized solution (SR_ATE) are then not comparable")
     return out, cost
 
 
@@ -252,7 +272,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
     if any("centralized" in rb.est for rb in robots.values()):
         notes.append("centralized trajectories read from out/centralized/")
     elif opt.centralized:
-        central, cost = _centralized_from_g2o(run_dir, list(robots), notes)
+        central, cost = _centralized_from_g2o(
+            run_dir, {n: rb.est["final"] for n, rb in robots.items()}, notes)
         for name, est in central.items():
             robots[name].est["centralized"] = est
     report_json = out_dir / "report.json"

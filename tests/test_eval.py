@@ -280,6 +280,10 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
         assert e["centralized"]["ate_trans_rmse_m"] < 1e-4
     c = r["cost"]
     assert c["F_star"] < c["F_k"] and c["F_star"] < 1e-6  # consistent odometry: F* = 0
+    # The vertex values are the exported trajectory except each robot's first (the truth).
+    first_diff = [np.linalg.norm(tum.read_tum(out / n / "trajectory.tum")[1][0, :3, 3]
+                                 - truth[n][1][0, :3, 3]) for n in ("dingo1", "dingo2")]
+    assert c["merged_vs_trajectory_max_m"] == pytest.approx(max(first_diff), abs=1e-9)
     if not connected:
         assert "F_init" not in c and "sr_cost_pct" not in c
         assert any("chordal initialisation failed" in n for n in r["notes"])
