@@ -26,8 +26,24 @@ class PeerCounters:
     last_heard_ns: int | None = None
     sent_bytes_by_kind: dict = field(default_factory=lambda: defaultdict(int))
     received_bytes_by_kind: dict = field(default_factory=lambda: defaultdict(int))
+    #: A datagram counts once under every entry kind it carries ("header" if it carries none).
+    sent_datagrams_by_kind: dict = field(default_factory=lambda: defaultdict(int))
+    received_datagrams_by_kind: dict = field(default_factory=lambda: defaultdict(int))
     rejected_by_reason: dict = field(default_factory=lambda: defaultdict(int))
     dropped_by_reason: dict = field(default_factory=lambda: defaultdict(int))
+
+
+def _add_kinds(bytes_by_kind: dict, datagrams_by_kind: dict, by_kind: dict | None) -> None:
+    if not by_kind:
+        return
+    carried = False
+    for k, v in by_kind.items():
+        bytes_by_kind[k] += v
+        if v and k != "header":
+            datagrams_by_kind[k] += 1
+            carried = True
+    if not carried:
+        datagrams_by_kind["header"] += 1
 
 
 class CommCounters:
@@ -40,8 +56,7 @@ class CommCounters:
         c = self.peers[peer]
         c.datagrams_sent += 1
         c.bytes_sent += nbytes
-        for k, v in (by_kind or {}).items():
-            c.sent_bytes_by_kind[k] += v
+        _add_kinds(c.sent_bytes_by_kind, c.sent_datagrams_by_kind, by_kind)
 
     def dropped(self, peer: int | None, nbytes: int, reason: str) -> None:
         """A datagram we did not send or deliver (over cap, no link, lost on the bus)."""
@@ -55,8 +70,7 @@ class CommCounters:
         c = self.peers[peer]
         c.datagrams_received += 1
         c.bytes_received += nbytes
-        for k, v in (by_kind or {}).items():
-            c.received_bytes_by_kind[k] += v
+        _add_kinds(c.received_bytes_by_kind, c.received_datagrams_by_kind, by_kind)
         if now_ns is not None:
             c.last_heard_ns = now_ns
 
@@ -76,8 +90,8 @@ class CommCounters:
         peers = {}
         for peer, c in sorted(self.peers.items(), key=lambda kv: (kv[0] is None, kv[0] or 0)):
             d = {k: v for k, v in vars(c).items()}
-            for k in ("sent_bytes_by_kind", "received_bytes_by_kind", "rejected_by_reason",
-                      "dropped_by_reason"):
+            for k in ("sent_bytes_by_kind", "received_bytes_by_kind", "sent_datagrams_by_kind",
+                      "received_datagrams_by_kind", "rejected_by_reason", "dropped_by_reason"):
                 d[k] = dict(d[k])
             peers["unknown" if peer is None else str(peer)] = d
         return {"totals": self.totals(), "peers": peers}

@@ -184,6 +184,10 @@ def test_links_over_the_bus_count_every_byte_by_kind():
     assert len(received[1]) == 2 * 2 * 3
     c1 = links[1].counters.snapshot()["peers"]
     assert c1["0"]["last_heard_ns"] == 3 and c1["0"]["received_bytes_by_kind"]["object"] > 0
+    # 30 separators + 30 objects (24 B each) span two datagrams: all separators and 18
+    # objects in the first, 12 objects in the second -> over rounds 1..3, 3 datagrams carry
+    # separators and 6 carry objects.
+    assert c1["0"]["received_datagrams_by_kind"] == {"separator": 3, "object": 6}
     assert sum(links[1].counters.totals()[k] for k in ("datagrams_rejected",)) == 0
     # Byte totals agree between the bus (what went on the wire) and the links' counters.
     assert sum(links[i].counters.totals()["bytes_sent"] for i in ids) == sent_bytes
