@@ -433,7 +433,7 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         notes.append(f"SR_ATE: no {' / '.join(missing)} estimate to compare")
 
     # Inter-robot relative poses at common instants (no alignment needed).
-    inter = _inter_robot(robots, scored, offset_info.get("time_offset_s", 0.0), opt)
+    inter = _inter_robot(robots, aligned, offset_info.get("time_offset_s", 0.0), opt)
 
     # Objects.
     objects_rep, obj_plot = _objects(mission, robots, take, alignments.get("final", {}), notes)
@@ -484,13 +484,16 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
     return report
 
 
-def _inter_robot(robots, scored, offset, opt) -> dict[str, Any]:
+def _inter_robot(robots, aligned, offset, opt) -> dict[str, Any]:
+    """Robot b seen from robot a, for every pair, at common instants: the aligned final
+    estimates (with the paper's per-robot frames these differ from the files)."""
     out: dict[str, Any] = {"pairs": {}}
     tr_all, rot_all = [], []
+    scored = [n for n in robots if "final" in aligned.get(n, {})]
     for i, a in enumerate(scored):
         for b in scored[i + 1:]:
-            sa, Ta = robots[a].est["final"]
-            sb, Tb = robots[b].est["final"]
+            sa, Ta = robots[a].assoc["final"].stamps_s, aligned[a]["final"]
+            sb, Tb = robots[b].assoc["final"].stamps_s, aligned[b]["final"]
             lo, hi = max(sa[0], sb[0]), min(sa[-1], sb[-1])
             if hi - lo < 1.0 / opt.inter_robot_rate_hz:
                 continue
