@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("dran_edge.commands.replay", "replay a recorded run through the robot code"),
     "detect": ("dran_edge.commands.detect", "detect AprilTags in images, recordings or a camera"),
     "eval": ("dran_edge.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
+    "fleet-key": ("dran_edge.commands.fleet_key", "create or check the fleet key (HMAC) file"),
 }
 
 EXIT_USAGE = 2

@@ -137,3 +137,16 @@ def test_forgeries_never_accepted(data):
         mutated[i:i] = data.draw(st.binary(min_size=1, max_size=20))
     msg, reason = v.check(bytes(mutated))
     assert msg is None and reason is not None
+
+
+def test_fleet_key_command(tmp_path, capsys):
+    from dran_edge.cli import main
+
+    path = tmp_path / "fleet.key"
+    assert main(["fleet-key", "new", str(path)]) == 0
+    fp = capsys.readouterr().out.split("fingerprint ")[1].strip()
+    assert main(["fleet-key", "check", str(path)]) == 0
+    assert capsys.readouterr().out.strip().endswith(fp)
+    os.chmod(path, 0o644)
+    assert main(["fleet-key", "check", str(path)]) == 2
+    assert "0644" in capsys.readouterr().err
