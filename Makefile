@@ -21,7 +21,7 @@ help:
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh
+$(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/patches/*.patch
 	bash tools/setup_system.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -U pip setuptools wheel
