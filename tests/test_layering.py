@@ -29,6 +29,10 @@ SHELL_MODULES = {
     "evaluate",
     "multiagent",
     "run_dir",
+    "journal",  # the daemon's on-disk ingest journal
+    "sim_writer",  # writes simulated runs (renders frames, encodes ingest bytes)
+    "dgs",  # DGS baseline driven over the in-process bus (experiment driver)
+    "objects_sim",  # the Ego-like object experiment driver
 }
 SHELL_PACKAGES = {"commands"}
 CORE_THIRD_PARTY = {"numpy", "scipy", "yaml"}
