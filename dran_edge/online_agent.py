@@ -1,0 +1,124 @@
+"""One robot's online core: the bounded local graph fed by ingest events, the DRAN agent on top.
+
+``OnlineAgent.handle(event) -> list[Output]`` takes every event of :mod:`dran_edge.events`:
+
+- VIO odometry, keyframes, loops, resets and tag observation batches go into the robot's
+  :class:`~dran_edge.local_graph.LocalGraph` (keyframe selection, segments, bounded size);
+- on a ``Tick`` whose graph changed since the last round, the graph is turned into the agent's
+  :class:`~dran_edge.agent.LocalProblem` (``problem_from_graph``) and handed over with
+  ``Agent.set_problem`` (estimates are kept by keyframe id); then the tick runs one DRAN round;
+- neighbour data goes to the agent unchanged.
+
+Frames. The local graph works in the frame of the robot's first VIO segment (its first node
+is the gauge). The fleet's common world frame is ``T_world_odom`` — the paper's protocol gives
+each robot its initial world-to-robot transform (from mocap at the start, mission.yaml
+``T_world_odom``); identity when it is not known. The problem handed to the agent is that
+graph mapped into the world (``x = T_world_odom · x_graph``, priors likewise); before a rebuild
+the agent's estimates are written back into the graph, so new keyframes are chained from the
+optimised poses, not from the dead-reckoned ones.
+
+Pure core: numpy only, no clock, no I/O. ``to_state``/``from_state`` for checkpoints.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.agent import Agent, LocalProblem
+from dran_edge.config import AgentConfig
+from dran_edge.events import (
+    Keyframe,
+    LoopClosure,
+    ObservationBatch,
+    OdometrySample,
+    Tick,
+    VioReset,
+)
+from dran_edge.local_graph import (
+    KIND_LOOP,
+    KIND_OBSERVATION,
+    KIND_ODOMETRY,
+    KIND_PRIOR,
+    OBJ,
+    LocalGraph,
+    _whitening,
+)
+
+INGEST_EVENTS = (OdometrySample, Keyframe, LoopClosure, VioReset, ObservationBatch)
+
+
+def problem_from_graph(graph: LocalGraph, residual: str,
+                       T_world_graph: np.ndarray | None = None) -> LocalProblem:
+    """The agent's :class:`LocalProblem` of ``graph``, mapped into the world by ``T_world_graph``.
+
+    Odometry and loop factors between nodes become ``between`` (loops robust), node-object
+    factors become observations ``obs_*`` (``T_body_object`` measured from the node), unary
+    priors become ``prior_*``. Whitening from each factor's covariance (``WᵀW = Σ⁻¹``).
+    """
+    G = np.eye(4) if T_world_graph is None else np.asarray(T_world_graph, dtype=np.float64)
+    keys = graph.node_keys()
+    stamps = graph.node_stamps_ns()
+    x0 = G @ graph.T_world_body() if len(keys) else np.zeros((0, 4, 4))
+    fa = graph.factor_arrays()
+    p, q, kind = fa["p"], fa["q"], fa["kind"]
+    W = _whitening(fa["S"], residual)
+    node_p = (p >= 0) & (p < OBJ)
+    node_q = (q >= 0) & (q < OBJ)
+    idx = {int(k): i for i, k in enumerate(keys.tolist())}
+
+    def index(a: np.ndarray) -> np.ndarray:
+        return np.array([idx[int(k)] for k in a.tolist()], dtype=np.int64)
+
+    btw = node_p & node_q & ((kind == KIND_ODOMETRY) | (kind == KIND_LOOP))
+    obs = node_p & (q >= OBJ) & (kind == KIND_OBSERVATION)
+    pri = (p < 0) & node_q & (kind == KIND_PRIOR)
+    z = np.zeros(0, np.int64)
+    T0 = np.zeros((0, 4, 4))
+    return LocalProblem(
+        dim=3, residual=residual, pose_ids=keys.astype(np.int64),
+        pose_stamps_ns=stamps.astype(np.int64), x0=x0,
+        between=np.stack([index(p[btw]), index(q[btw])], axis=1).reshape(-1, 2),
+        between_T=fa["Z"][btw], between_W=W[btw], between_robust=kind[btw] == KIND_LOOP,
+        inter_own=z, inter_owner=z, inter_anchor_id=z, inter_own_is_p=np.zeros(0, bool),
+        inter_T=T0, inter_W=W[:0], inter_robust=np.zeros(0, bool),
+        prior_own=index(q[pri]), prior_T=G @ fa["Z"][pri], prior_W=W[pri],
+        obs_own=index(p[obs]), obs_object=(q[obs] - OBJ).astype(np.int64),
+        obs_T=fa["Z"][obs], obs_W=W[obs], separators_for={},
+    )
+
+
+class OnlineAgent:
+    """See the module docstring. ``agent`` and ``local_graph`` are public for shells and tests."""
+
+    def __init__(self, config: AgentConfig, T_world_odom: np.ndarray | None = None):
+        self.config = config
+        self.local_graph = LocalGraph(config)
+        self.agent = Agent(config)
+        self.T_world_odom = np.eye(4) if T_world_odom is None else np.asarray(T_world_odom, float)
+        self._dirty = False
+        self.rebuilds = 0
+
+    def set_world_frame(self, T_world_odom: np.ndarray) -> None:
+        """The robot's first VIO frame in the fleet's world (before its first keyframe)."""
+        self.T_world_odom = np.asarray(T_world_odom, dtype=np.float64)
+
+    def handle(self, event) -> list:
+        if isinstance(event, INGEST_EVENTS):
+            self._dirty |= bool(self.local_graph.handle(event))
+            return []
+        if isinstance(event, Tick) and self._dirty:
+            self._rebuild()
+        return self.agent.handle(event)
+
+    def _rebuild(self) -> None:
+        a, g = self.agent, self.local_graph
+        G_inv = geo.se3_inverse(self.T_world_odom)
+        if a.problem.n:
+            g.set_estimates(a.problem.pose_ids, G_inv @ a.x)
+        if a.y:
+            oids = np.array(sorted(a.y), dtype=np.int64)
+            g.set_estimates(OBJ + oids, G_inv @ np.stack([a.y[int(o)] for o in oids]))
+        a.set_problem(problem_from_graph(g, self.config.residual, self.T_world_odom))
+        self._dirty = False
+        self.rebuilds += 1
