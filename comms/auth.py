@@ -52,7 +52,8 @@ def load_fleet_key(path: str | os.PathLike) -> bytes:
     mode = stat.S_IMODE(st.st_mode)
     if mode & 0o077:
         raise ConfigError(
-            f"fleet key has mode {mode:04o}; expected no group/other access (run: chmod 600 {path})",
+            f"fleet key has mode {mode:04o}; expected no group/other access "
+            f"(run: chmod 600 {path})",
             path=path,
         )
     with open(path, encoding="ascii", errors="replace") as f:
@@ -73,11 +74,15 @@ def write_fleet_key(path: str | os.PathLike, key: bytes | None = None) -> bytes:
     """Create a new key file (mode 0600, refuses to overwrite); returns the key."""
     key = os.urandom(KEY_MIN_BYTES) if key is None else key
     if not KEY_MIN_BYTES <= len(key) <= KEY_MAX_BYTES:
-        raise ConfigError(f"expected a key of {KEY_MIN_BYTES}..{KEY_MAX_BYTES} bytes, got {len(key)}")
+        raise ConfigError(
+            f"expected a key of {KEY_MIN_BYTES}..{KEY_MAX_BYTES} bytes, got {len(key)}"
+        )
     try:
         fd = os.open(os.fspath(path), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except FileExistsError:
-        raise ConfigError("fleet key file exists; not overwriting it", path=os.fspath(path)) from None
+        raise ConfigError(
+            "fleet key file exists; not overwriting it", path=os.fspath(path)
+        ) from None
     with os.fdopen(fd, "w") as f:
         f.write("# dran-edge fleet key (HMAC-SHA256); keep mode 0600\n" + key.hex() + "\n")
     return key
@@ -120,7 +125,9 @@ class Signer:
 
     def __init__(self, key: bytes):
         if not KEY_MIN_BYTES <= len(key) <= KEY_MAX_BYTES:
-            raise ConfigError(f"expected a key of {KEY_MIN_BYTES}..{KEY_MAX_BYTES} bytes, got {len(key)}")
+            raise ConfigError(
+                f"expected a key of {KEY_MIN_BYTES}..{KEY_MAX_BYTES} bytes, got {len(key)}"
+            )
         self._key = bytes(key)
 
     def sign(self, datagram: bytes) -> bytes:

@@ -108,7 +108,7 @@ def random_connected_graph(robot_ids: Iterable[int], rho: float, seed: int) -> C
 
 
 def scheduled_graph(schedule: Iterable[tuple[int, Iterable[Edge]]]) -> CommGraph:
-    """Piecewise-constant graph: ``[(start_round, edges), ...]``; before the first start, no edges."""
+    """Piecewise-constant graph ``[(start_round, edges), ...]``; no edges before the first."""
     steps = sorted((int(r), _norm(e)) for r, e in schedule)
 
     def at(round_: int) -> frozenset[Edge]:
@@ -131,7 +131,9 @@ class Partition:
     end_round: int
 
     def cuts(self, a: int, b: int, round_: int) -> bool:
-        return self.start_round <= round_ < self.end_round and ((a in self.robots) != (b in self.robots))
+        return self.start_round <= round_ < self.end_round and (
+            (a in self.robots) != (b in self.robots)
+        )
 
 
 @dataclass(frozen=True)

@@ -131,14 +131,18 @@ def _read_varint(data: bytes, pos: int, end: int) -> tuple[int, int]:
                 raise DecodeError(f"varint ending at byte {pos - 1} exceeds 64 bits")
             return result, pos
         shift += 7
-    raise DecodeError(f"varint longer than {_VARINT_MAX_BYTES} bytes at byte {pos - _VARINT_MAX_BYTES}")
+    raise DecodeError(
+        f"varint longer than {_VARINT_MAX_BYTES} bytes at byte {pos - _VARINT_MAX_BYTES}"
+    )
 
 
 # --------------------------------------------------------------------------- pose blocks
 def _check_poses(T: np.ndarray, dim: int, what: str) -> None:
     n = dim + 1
     if T.shape[-2:] != (n, n):
-        raise EncodeError(f"{what}: expected ({n}, {n}) poses for SE({dim}), got shape {T.shape[-2:]}")
+        raise EncodeError(
+            f"{what}: expected ({n}, {n}) poses for SE({dim}), got shape {T.shape[-2:]}"
+        )
     if not np.all(np.isfinite(T)):
         raise EncodeError(f"{what}: pose contains NaN or inf")
     R = T[..., :dim, :dim]
@@ -268,8 +272,10 @@ def decode_header(data: bytes) -> Header:
     if size > HARD_CAP_BYTES:
         raise DecodeError(f"datagram of {size} bytes exceeds the {HARD_CAP_BYTES}-byte cap")
     if size < HEADER_FIXED_BYTES + 5 + TAG_BYTES:
-        raise DecodeError(f"truncated datagram: {size} bytes, header and tag need at least "
-                          f"{HEADER_FIXED_BYTES + 5 + TAG_BYTES}")
+        raise DecodeError(
+            f"truncated datagram: {size} bytes, header and tag need at least "
+            f"{HEADER_FIXED_BYTES + 5 + TAG_BYTES}"
+        )
     magic, version, flags, fleet_id, sender_id, boot_epoch, sequence = _FIXED.unpack_from(data)
     if magic != MAGIC:
         raise DecodeError(f"bad magic {magic!r}, expected {MAGIC!r}")
@@ -290,8 +296,20 @@ def decode_header(data: bytes) -> Header:
         raise DecodeError(
             f"entry counts {n_sep}/{n_obj}/{n_init} do not fit in the {end - pos} bytes left"
         )
-    return Header(version, dim, fleet_id, sender_id, boot_epoch, sequence, round_, stamp_ns,
-                  n_sep, n_obj, n_init, pos)
+    return Header(
+        version,
+        dim,
+        fleet_id,
+        sender_id,
+        boot_epoch,
+        sequence,
+        round_,
+        stamp_ns,
+        n_sep,
+        n_obj,
+        n_init,
+        pos,
+    )
 
 
 # --------------------------------------------------------------------------- decode
@@ -345,8 +363,8 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
             f"{h.n_separators}/{h.n_objects}/{h.n_init} need {sep_obj_bytes + init_bytes}"
         )
     pos = id_end
-    both_T = _decode_poses(data[pos:pos + sep_obj_bytes], dim)
-    sep_T, obj_T = both_T[: h.n_separators], both_T[h.n_separators:]
+    both_T = _decode_poses(data[pos : pos + sep_obj_bytes], dim)
+    sep_T, obj_T = both_T[: h.n_separators], both_T[h.n_separators :]
     pos += sep_obj_bytes
     init_values: list[np.ndarray] = []
     for stage, _, _ in init_ids:
@@ -358,7 +376,7 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
             init_values.append(v.reshape(dim, dim))
         else:
             nb = P
-            init_values.append(_decode_poses(data[pos:pos + P], dim)[0])
+            init_values.append(_decode_poses(data[pos : pos + P], dim)[0])
         pos += nb
     separators = tuple(
         SeparatorEntry(owner, kf, stamp, sep_T[i]) for i, (owner, kf, stamp) in enumerate(sep_ids)
@@ -376,8 +394,14 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
         KIND_INIT: id_end - obj_id_end + init_bytes,
     }
     return NeighbourMessage(
-        sender_id=h.sender_id, round=h.round, stamp_ns=h.stamp_ns, separators=separators,
-        objects=objects, init=init, fleet_id=h.fleet_id, boot_epoch=h.boot_epoch,
+        sender_id=h.sender_id,
+        round=h.round,
+        stamp_ns=h.stamp_ns,
+        separators=separators,
+        objects=objects,
+        init=init,
+        fleet_id=h.fleet_id,
+        boot_epoch=h.boot_epoch,
         sequence=h.sequence,
         extra={"datagram_bytes": len(data), "bytes_by_kind": by_kind, "dim": dim},
     )
@@ -409,22 +433,28 @@ def _entry_records(message: NeighbourMessage, dim: int):
     values: list[bytes] = []
     stamp = message.stamp_ns
     n_sep = len(message.separators)
-    poses = [e.T_world_body for e in message.separators] + [e.T_world_object for e in message.objects]
+    poses = [e.T_world_body for e in message.separators] + [
+        e.T_world_object for e in message.objects
+    ]
     if poses:
         T = np.asarray(poses, dtype=np.float64)
         _check_poses(T, dim, "separator/object")
         block = _encode_poses(T, dim)
-        values.extend(block[i * P:(i + 1) * P] for i in range(len(poses)))
+        values.extend(block[i * P : (i + 1) * P] for i in range(len(poses)))
     for e in message.separators:
         if e.stamp_ns < 0:
             raise EncodeError(f"separator stamp_ns must be >= 0, got {e.stamp_ns}")
         kinds.append(KIND_SEPARATOR)
-        ids.append(_varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
-                   + _varint(_zigzag(int(e.stamp_ns) - stamp)))
+        ids.append(
+            _varint(int(e.owner_robot))
+            + _varint(int(e.keyframe_id))
+            + _varint(_zigzag(int(e.stamp_ns) - stamp))
+        )
     for e in message.objects:
         kinds.append(KIND_OBJECT)
-        ids.append(_varint(int(e.object_id)) + _varint(int(e.origin_robot))
-                   + _varint(int(e.hop_count)))
+        ids.append(
+            _varint(int(e.object_id)) + _varint(int(e.origin_robot)) + _varint(int(e.hop_count))
+        )
     assert len(ids) == len(values) and n_sep <= len(ids)
     for e in message.init:
         stage = InitStage(e.stage)
@@ -471,14 +501,21 @@ def encode_datagrams(
     datagram (a heartbeat). The tag slot is zero; sign with ``auth.Signer``.
     """
     if not MIN_DATAGRAM_BYTES <= max_datagram_bytes <= HARD_CAP_BYTES:
-        raise EncodeError(f"max_datagram_bytes must be in [{MIN_DATAGRAM_BYTES}, "
-                          f"{HARD_CAP_BYTES}], got {max_datagram_bytes}")
-    for name, value, top in (("fleet_id", fleet_id, _U16_MAX), ("sender_id", message.sender_id,
-                             _U16_MAX), ("boot_epoch", boot_epoch, _U32_MAX)):
+        raise EncodeError(
+            f"max_datagram_bytes must be in [{MIN_DATAGRAM_BYTES}, "
+            f"{HARD_CAP_BYTES}], got {max_datagram_bytes}"
+        )
+    for name, value, top in (
+        ("fleet_id", fleet_id, _U16_MAX),
+        ("sender_id", message.sender_id, _U16_MAX),
+        ("boot_epoch", boot_epoch, _U32_MAX),
+    ):
         if not 0 <= int(value) <= top:
             raise EncodeError(f"{name} must be in [0, {top}], got {value}")
     if message.round < 0 or message.stamp_ns < 0:
-        raise EncodeError(f"round and stamp_ns must be >= 0, got {message.round}, {message.stamp_ns}")
+        raise EncodeError(
+            f"round and stamp_ns must be >= 0, got {message.round}, {message.stamp_ns}"
+        )
     dim = _message_dim(message)
     kinds, ids, values = _entry_records(message, dim)
     n = len(kinds)
@@ -508,9 +545,19 @@ def encode_datagrams(
         n_obj = sum(1 for x in kinds[a:b] if x == KIND_OBJECT)
         n_init = (b - a) - n_sep - n_obj
         head = (
-            _FIXED.pack(MAGIC, SCHEMA_VERSION, flags, fleet_id, message.sender_id, boot_epoch,
-                        first_sequence + k)
-            + fixed_prefix_tail + _varint(n_sep) + _varint(n_obj) + _varint(n_init)
+            _FIXED.pack(
+                MAGIC,
+                SCHEMA_VERSION,
+                flags,
+                fleet_id,
+                message.sender_id,
+                boot_epoch,
+                first_sequence + k,
+            )
+            + fixed_prefix_tail
+            + _varint(n_sep)
+            + _varint(n_obj)
+            + _varint(n_init)
         )
         data = b"".join([head, *ids[a:b], *values[a:b], bytes(TAG_BYTES)])
         by_kind = dict.fromkeys(KINDS, 0)
@@ -540,9 +587,12 @@ def encoded_size(
     message: NeighbourMessage, *, max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES
 ) -> ByteCount:
     """Datagrams and bytes ``message`` takes (sequence/epoch values do not change the size)."""
-    grams = encode_datagrams(message, fleet_id=0, boot_epoch=0, first_sequence=0,
-                             max_datagram_bytes=max_datagram_bytes)
-    return ByteCount(len(grams), sum(len(g.data) for g in grams), sum_kinds(g.bytes_by_kind for g in grams))
+    grams = encode_datagrams(
+        message, fleet_id=0, boot_epoch=0, first_sequence=0, max_datagram_bytes=max_datagram_bytes
+    )
+    return ByteCount(
+        len(grams), sum(len(g.data) for g in grams), sum_kinds(g.bytes_by_kind for g in grams)
+    )
 
 
 def sum_kinds(parts: Iterable[dict]) -> dict:

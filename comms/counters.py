@@ -65,8 +65,9 @@ class CommCounters:
         c.bytes_dropped += nbytes
         c.dropped_by_reason[reason] += 1
 
-    def received(self, peer: int, nbytes: int, by_kind: dict | None = None,
-                 now_ns: int | None = None) -> None:
+    def received(
+        self, peer: int, nbytes: int, by_kind: dict | None = None, now_ns: int | None = None
+    ) -> None:
         c = self.peers[peer]
         c.datagrams_received += 1
         c.bytes_received += nbytes
@@ -81,8 +82,16 @@ class CommCounters:
         c.rejected_by_reason[reason] += 1
 
     def totals(self) -> dict:
-        keys = ("datagrams_sent", "bytes_sent", "datagrams_received", "bytes_received",
-                "datagrams_rejected", "bytes_rejected", "datagrams_dropped", "bytes_dropped")
+        keys = (
+            "datagrams_sent",
+            "bytes_sent",
+            "datagrams_received",
+            "bytes_received",
+            "datagrams_rejected",
+            "bytes_rejected",
+            "datagrams_dropped",
+            "bytes_dropped",
+        )
         return {k: sum(getattr(c, k) for c in self.peers.values()) for k in keys}
 
     def snapshot(self) -> dict:
@@ -90,8 +99,14 @@ class CommCounters:
         peers = {}
         for peer, c in sorted(self.peers.items(), key=lambda kv: (kv[0] is None, kv[0] or 0)):
             d = {k: v for k, v in vars(c).items()}
-            for k in ("sent_bytes_by_kind", "received_bytes_by_kind", "sent_datagrams_by_kind",
-                      "received_datagrams_by_kind", "rejected_by_reason", "dropped_by_reason"):
+            for k in (
+                "sent_bytes_by_kind",
+                "received_bytes_by_kind",
+                "sent_datagrams_by_kind",
+                "received_datagrams_by_kind",
+                "rejected_by_reason",
+                "dropped_by_reason",
+            ):
                 d[k] = dict(d[k])
             peers["unknown" if peer is None else str(peer)] = d
         return {"totals": self.totals(), "peers": peers}

@@ -55,11 +55,15 @@ class NeighbourLink:
     def send_message(self, message: NeighbourMessage, to: Iterable[int]) -> list[bytes]:
         """Encode, sign and send ``message`` to each robot in ``to``; returns the datagrams."""
         if message.sender_id != self.policy.self_id:
-            raise ValueError(f"message sender {message.sender_id} is not this robot "
-                             f"({self.policy.self_id})")
+            raise ValueError(
+                f"message sender {message.sender_id} is not this robot ({self.policy.self_id})"
+            )
         grams = encode_datagrams(
-            message, fleet_id=self.policy.fleet_id, boot_epoch=self.boot_epoch,
-            first_sequence=self._next_sequence, max_datagram_bytes=self.max_datagram_bytes,
+            message,
+            fleet_id=self.policy.fleet_id,
+            boot_epoch=self.boot_epoch,
+            first_sequence=self._next_sequence,
+            max_datagram_bytes=self.max_datagram_bytes,
         )
         self._next_sequence += len(grams)
         targets = list(to)
@@ -74,8 +78,9 @@ class NeighbourLink:
                     self.counters.dropped(j, len(data), "transport_refused")
         return out
 
-    def poll(self, now_ns: int | None = None, max_datagrams: int | None = None
-             ) -> list[NeighbourMessage]:
+    def poll(
+        self, now_ns: int | None = None, max_datagrams: int | None = None
+    ) -> list[NeighbourMessage]:
         """Accepted messages among the datagrams that arrived; the rest counted and dropped."""
         accepted = []
         for _hint, data in self.transport.receive(max_datagrams):
@@ -88,6 +93,10 @@ class NeighbourLink:
             else:
                 claimed = self.verifier.last_claimed_sender
                 # Only fleet members get their own counter row (bounded memory under attack).
-                peer = claimed if claimed in self.policy.fleet_robots and reason != Reject.MALFORMED else None
+                peer = (
+                    claimed
+                    if claimed in self.policy.fleet_robots and reason != Reject.MALFORMED
+                    else None
+                )
                 self.counters.rejected(peer, len(data), reason.value)
         return accepted

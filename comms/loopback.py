@@ -1,10 +1,11 @@
-"""Run the same robot nodes as separate processes over real RADIO/DISH, or in one process on the bus.
+"""Run robot nodes as separate processes over real RADIO/DISH, or all in one process on the bus.
 
 A harness for tests and benchmarks (and for running the DRAN agents over UDP): one *node* per
 robot, built by a factory named ``"module:function"``::
 
     node = factory(robot_id: int, neighbours: list[int], config: dict)
-    node.step(round: int, received: list[NeighbourMessage]) -> list[tuple[NeighbourMessage, list[int]]]
+    node.step(round: int, received: list[NeighbourMessage])
+        -> list[tuple[NeighbourMessage, list[int]]]   # messages and their recipients
     node.result() -> JSON-serialisable value
 
 Both runners drive each node through ``link.NeighbourLink`` (encode, sign, verify, decode) with
@@ -70,9 +71,12 @@ class FleetSpec:
         return sorted({b if a == robot else a for a, b in self.edges if robot in (a, b)})
 
     def policy(self, robot: int) -> AuthPolicy:
-        return AuthPolicy(fleet_id=self.fleet_id, self_id=robot,
-                          fleet_robots=frozenset(self.robot_ids),
-                          neighbours=frozenset(self.neighbours(robot)))
+        return AuthPolicy(
+            fleet_id=self.fleet_id,
+            self_id=robot,
+            fleet_robots=frozenset(self.robot_ids),
+            neighbours=frozenset(self.neighbours(robot)),
+        )
 
     def port(self, robot: int) -> int:
         return self.base_port + list(self.robot_ids).index(robot)
@@ -95,8 +99,13 @@ def _make_node(spec: FleetSpec, robot: int):
 
 
 def _make_link(spec: FleetSpec, robot: int, transport) -> NeighbourLink:
-    link = NeighbourLink(transport, key=bytes.fromhex(spec.key_hex), policy=spec.policy(robot),
-                         boot_epoch=spec.boot_epoch, max_datagram_bytes=spec.max_datagram_bytes)
+    link = NeighbourLink(
+        transport,
+        key=bytes.fromhex(spec.key_hex),
+        policy=spec.policy(robot),
+        boot_epoch=spec.boot_epoch,
+        max_datagram_bytes=spec.max_datagram_bytes,
+    )
     link.accepted_datagrams = []
     return link
 
@@ -113,8 +122,9 @@ def _report(node, link: NeighbourLink) -> dict:
     }
 
 
-def run_bus_fleet(spec: FleetSpec, params: BusParams = BusParams()) -> dict[int, dict]:
-    """All nodes in this process over a ``Bus`` with the spec's edges."""
+def run_bus_fleet(spec: FleetSpec, params: BusParams | None = None) -> dict[int, dict]:
+    """All nodes in this process over a ``Bus`` with the spec's edges (default: lossless)."""
+    params = BusParams() if params is None else params
     bus = Bus(spec.robot_ids, graph=spec.edges, params=params)
     nodes = {i: _make_node(spec, i) for i in spec.robot_ids}
     links = {i: _make_link(spec, i, bus.endpoint(i)) for i in spec.robot_ids}
@@ -126,18 +136,36 @@ def run_bus_fleet(spec: FleetSpec, params: BusParams = BusParams()) -> dict[int,
     return {i: _report(nodes[i], links[i]) for i in spec.robot_ids}
 
 
-def run_loopback_fleet(spec: FleetSpec, *, start_delay_s: float = 3.0, timeout_s: float = 60.0
-                       ) -> dict[int, dict]:
+def run_loopback_fleet(
+    spec: FleetSpec, *, start_delay_s: float = 3.0, timeout_s: float = 60.0
+) -> dict[int, dict]:
     """One process per robot over RADIO/DISH on 127.0.0.1; raises ``DranError`` on failure."""
     t0 = time.time() + start_delay_s
     with tempfile.TemporaryDirectory(prefix="dran-loop-") as tmp:
         procs = {}
         for i in spec.robot_ids:
             out = os.path.join(tmp, f"robot{i}.json")
-            cmd = [sys.executable, "-m", "dran_edge.comms.loopback", "--robot", str(i),
-                   "--t0", repr(t0), "--out", out]
-            procs[i] = (subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         stderr=subprocess.PIPE, text=True), out)
+            cmd = [
+                sys.executable,
+                "-m",
+                "dran_edge.comms.loopback",
+                "--robot",
+                str(i),
+                "--t0",
+                repr(t0),
+                "--out",
+                out,
+            ]
+            procs[i] = (
+                subprocess.Popen(
+                    cmd,
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                ),
+                out,
+            )
             procs[i][0].stdin.write(spec.to_json())
             procs[i][0].stdin.close()
         deadline = t0 + spec.rounds * spec.period_s + timeout_s
@@ -167,7 +195,8 @@ def _node_main(robot: int, t0: float, out: str) -> int:
 
     spec = FleetSpec.from_json(sys.stdin.read())
     params = RadioParams(
-        group=spec.group, bind=f"udp://127.0.0.1:{spec.port(robot)}",
+        group=spec.group,
+        bind=f"udp://127.0.0.1:{spec.port(robot)}",
         neighbours={j: f"udp://127.0.0.1:{spec.port(j)}" for j in spec.neighbours(robot)},
         max_datagram_bytes=spec.max_datagram_bytes,
     )
@@ -227,21 +256,35 @@ class GossipNode:
                     self.known[e.object_id] = (e.T_world_object, e.origin_robot, hop)
         if not self.neighbours:
             return []
-        objects = tuple(ObjectEntry(oid, T, origin, hop)
-                        for oid, (T, origin, hop) in sorted(self.known.items()))
-        sep = SeparatorEntry(self.robot, round_, 1_000_000 * round_,
-                             self.separator_poses[round_ % len(self.separator_poses)])
-        msg = NeighbourMessage(sender_id=self.robot, round=round_, stamp_ns=1_000_000 * round_,
-                               separators=(sep,), objects=objects)
+        objects = tuple(
+            ObjectEntry(oid, T, origin, hop) for oid, (T, origin, hop) in sorted(self.known.items())
+        )
+        sep = SeparatorEntry(
+            self.robot,
+            round_,
+            1_000_000 * round_,
+            self.separator_poses[round_ % len(self.separator_poses)],
+        )
+        msg = NeighbourMessage(
+            sender_id=self.robot,
+            round=round_,
+            stamp_ns=1_000_000 * round_,
+            separators=(sep,),
+            objects=objects,
+        )
         return [(msg, self.neighbours)]
 
     def result(self):
         return {
             "messages_received": self.received,
-            "objects": {str(oid): {"origin": origin, "hop": hop,
-                                   "xyz_quat_xyzw": [round(float(v), 9) for v in
-                                                     geo.se3_to_xyz_quat_xyzw(T)]}
-                        for oid, (T, origin, hop) in sorted(self.known.items())},
+            "objects": {
+                str(oid): {
+                    "origin": origin,
+                    "hop": hop,
+                    "xyz_quat_xyzw": [round(float(v), 9) for v in geo.se3_to_xyz_quat_xyzw(T)],
+                }
+                for oid, (T, origin, hop) in sorted(self.known.items())
+            },
         }
 
 
@@ -256,17 +299,24 @@ def _dish_target_main(robot: int, bind: str, max_s: float) -> int:
 
     spec = FleetSpec.from_json(sys.stdin.read())
     end = time.time() + max_s
-    with RadioTransport(RadioParams(group=spec.group, bind=bind,
-                                    max_datagram_bytes=spec.max_datagram_bytes)) as radio:
-        link = NeighbourLink(radio, key=bytes.fromhex(spec.key_hex), policy=spec.policy(robot),
-                             boot_epoch=spec.boot_epoch)
+    with RadioTransport(
+        RadioParams(group=spec.group, bind=bind, max_datagram_bytes=spec.max_datagram_bytes)
+    ) as radio:
+        link = NeighbourLink(
+            radio,
+            key=bytes.fromhex(spec.key_hex),
+            policy=spec.policy(robot),
+            boot_epoch=spec.boot_epoch,
+        )
         print("ready", flush=True)
         while time.time() < end:
             radio.wait(0.05)
             for msg in link.poll(now_ns=time.time_ns()):
                 if msg.round == STOP_ROUND:
-                    report = {"link": link.counters.snapshot(),
-                              "transport": radio.counters.snapshot()}
+                    report = {
+                        "link": link.counters.snapshot(),
+                        "transport": radio.counters.snapshot(),
+                    }
                     print("counters " + json.dumps(report), flush=True)
                     return 0
                 print(f"ok {msg.sender_id} {msg.sequence} {msg.round}", flush=True)
@@ -277,7 +327,8 @@ def _dish_target_main(robot: int, bind: str, max_s: float) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description="a loopback fleet node, or (--dish-target) a live DISH that reports what it "
-                    "accepts; FleetSpec JSON on stdin")
+        "accepts; FleetSpec JSON on stdin"
+    )
     ap.add_argument("--robot", type=int, required=True)
     ap.add_argument("--t0", type=float, help="shared start time (time.time())")
     ap.add_argument("--out", help="JSON report path")

@@ -46,7 +46,9 @@ def require_draft_zmq():
     try:
         import zmq
     except ImportError:
-        raise DependencyError(f"UDP transport needs pyzmq, which is not installed; {_BUILD_HINT}") from None
+        raise DependencyError(
+            f"UDP transport needs pyzmq, which is not installed; {_BUILD_HINT}"
+        ) from None
     if not (zmq.has("draft") and getattr(zmq, "DRAFT_API", False) and hasattr(zmq, "RADIO")):
         raise DependencyError(
             f"UDP transport needs ZeroMQ RADIO/DISH (draft API), but pyzmq {zmq.__version__} / "
@@ -85,15 +87,18 @@ def hardened_libzmq_stamp() -> str | None:
 def _check_endpoint(endpoint: str, what: str, *, allow_wildcard: bool) -> str:
     m = _ENDPOINT_RE.match(endpoint)
     if not m or not 0 < int(m.group(2)) < 65536 or (m.group(1) == "*" and not allow_wildcard):
-        raise ConfigError(f"{what}: expected 'udp://HOST:PORT'{' or udp://*:PORT' if allow_wildcard else ''}"
-                          f", got {endpoint!r}")
+        raise ConfigError(
+            f"{what}: expected 'udp://HOST:PORT'{' or udp://*:PORT' if allow_wildcard else ''}"
+            f", got {endpoint!r}"
+        )
     return endpoint
 
 
 def check_group(group: str) -> str:
     if not (1 <= len(group) <= GROUP_MAX_CHARS and group.isascii() and group.isprintable()):
-        raise ConfigError(f"fleet group must be 1..{GROUP_MAX_CHARS} printable ASCII characters, "
-                          f"got {group!r}")
+        raise ConfigError(
+            f"fleet group must be 1..{GROUP_MAX_CHARS} printable ASCII characters, got {group!r}"
+        )
     return group
 
 
@@ -121,8 +126,10 @@ class RadioParams:
         for rid, ep in self.neighbours.items():
             _check_endpoint(ep, f"neighbour {rid} endpoint", allow_wildcard=False)
         if not 1 <= self.max_datagram_bytes <= HARD_CAP_BYTES:
-            raise ConfigError(f"max_datagram_bytes must be in [1, {HARD_CAP_BYTES}], "
-                              f"got {self.max_datagram_bytes}")
+            raise ConfigError(
+                f"max_datagram_bytes must be in [1, {HARD_CAP_BYTES}], "
+                f"got {self.max_datagram_bytes}"
+            )
 
 
 class RadioTransport:
@@ -157,8 +164,12 @@ class RadioTransport:
         except zmq.ZMQError as exc:
             self.close()
             raise ConfigError(f"cannot open RADIO/DISH sockets ({params.bind}): {exc}") from None
-        log.info("radio: DISH %s group %r, RADIO to %s", params.bind, params.group,
-                 dict(params.neighbours))
+        log.info(
+            "radio: DISH %s group %r, RADIO to %s",
+            params.bind,
+            params.group,
+            dict(params.neighbours),
+        )
 
     def send(self, to: int, data: bytes) -> bool:
         n = len(data)

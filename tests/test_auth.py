@@ -17,13 +17,23 @@ from dran_edge.messages import NeighbourMessage, ObjectEntry
 KEY = bytes(range(32))
 OTHER_KEY = bytes(range(1, 33))
 FLEET = 4
-POLICY = AuthPolicy(fleet_id=FLEET, self_id=1, fleet_robots=frozenset({1, 2, 3, 4, 5}),
-                    neighbours=frozenset({2, 3}), relay_from=frozenset({4}), replay_window=8)
+POLICY = AuthPolicy(
+    fleet_id=FLEET,
+    self_id=1,
+    fleet_robots=frozenset({1, 2, 3, 4, 5}),
+    neighbours=frozenset({2, 3}),
+    relay_from=frozenset({4}),
+    replay_window=8,
+)
 
 
 def _datagram(sender=2, seq=0, epoch=10, fleet=FLEET, key=KEY, n_obj=1):
-    msg = NeighbourMessage(sender_id=sender, round=3, stamp_ns=99,
-                           objects=tuple(ObjectEntry(i, np.eye(4), sender) for i in range(n_obj)))
+    msg = NeighbourMessage(
+        sender_id=sender,
+        round=3,
+        stamp_ns=99,
+        objects=tuple(ObjectEntry(i, np.eye(4), sender) for i in range(n_obj)),
+    )
     (g,) = codec.encode_message(msg, fleet_id=fleet, boot_epoch=epoch, first_sequence=seq)
     return Signer(key).sign(g)
 
@@ -110,8 +120,15 @@ def test_replay_window_and_restarted_neighbour():
     # Datagrams of the old epoch are now stale, even new sequence numbers.
     assert v.check(_datagram(seq=2**32 - 2, epoch=10)) == (None, Reject.STALE)
     assert v.peer_state() == {2: (11, 0)}
-    assert v.counts.rejected == {"malformed": 0, "wrong_fleet": 0, "unknown_sender": 0,
-                                 "not_neighbour": 0, "bad_tag": 0, "replayed": 4, "stale": 2}
+    assert v.counts.rejected == {
+        "malformed": 0,
+        "wrong_fleet": 0,
+        "unknown_sender": 0,
+        "not_neighbour": 0,
+        "bad_tag": 0,
+        "replayed": 4,
+        "stale": 2,
+    }
 
 
 def test_rejected_datagrams_do_not_advance_the_window():

@@ -95,9 +95,12 @@ def test_loss_rate_per_link_and_independence():
     bus2 = Bus([0, 1, 2], graph=[(0, 2)], params=p)
     log2 = _flood(bus2, 2001)
     assert [(k, d) for k, r, s, d in log if (s, r) == (0, 2)] == [
-        (k, d) for k, r, s, d in log2 if (s, r) == (0, 2)]
+        (k, d) for k, r, s, d in log2 if (s, r) == (0, 2)
+    ]
     # Different seed, different losses.
-    log3 = _flood(Bus([0, 1, 2], graph=[(0, 2)], params=BusParams(loss_probability=0.3, seed=6)), 200)
+    log3 = _flood(
+        Bus([0, 1, 2], graph=[(0, 2)], params=BusParams(loss_probability=0.3, seed=6)), 200
+    )
     assert [d for *_, d in log3] != [d for *_, d in log2[: len(log3)]]
 
 
@@ -125,7 +128,9 @@ def test_scheduled_graph_changes_over_time():
 
 
 def test_reordering_and_duplicates():
-    bus = Bus([0, 1], params=BusParams(max_extra_latency_rounds=3, duplicate_probability=0.5, seed=1))
+    bus = Bus(
+        [0, 1], params=BusParams(max_extra_latency_rounds=3, duplicate_probability=0.5, seed=1)
+    )
     for k in range(200):
         bus.endpoint(0).send(1, k.to_bytes(2, "little"))
         bus.advance()
@@ -156,9 +161,17 @@ def test_links_over_the_bus_count_every_byte_by_kind():
     key = bytes(32)
     bus = Bus(ids, graph=[(0, 1), (1, 2)])
     links = {
-        i: NeighbourLink(bus.endpoint(i), key=key, boot_epoch=1, policy=AuthPolicy(
-            fleet_id=3, self_id=i, fleet_robots=frozenset(ids),
-            neighbours=frozenset(bus.neighbours(i))))
+        i: NeighbourLink(
+            bus.endpoint(i),
+            key=key,
+            boot_epoch=1,
+            policy=AuthPolicy(
+                fleet_id=3,
+                self_id=i,
+                fleet_robots=frozenset(ids),
+                neighbours=frozenset(bus.neighbours(i)),
+            ),
+        )
         for i in ids
     }
     sent_bytes = 0
@@ -167,7 +180,9 @@ def test_links_over_the_bus_count_every_byte_by_kind():
         for i in ids:
             received[i] += links[i].poll(now_ns=k)
             msg = NeighbourMessage(
-                sender_id=i, round=k, stamp_ns=k,
+                sender_id=i,
+                round=k,
+                stamp_ns=k,
                 separators=tuple(SeparatorEntry(i, j, k, np.eye(4)) for j in range(30)),
                 objects=tuple(ObjectEntry(j, np.eye(4), i) for j in range(30)),
             )

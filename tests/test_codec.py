@@ -19,11 +19,15 @@ T2 = geo.se3_from_rt(geo.so3_exp(np.array([0.1, -0.2, 3.0])), np.array([100.25, 
 ROT_RELAXED = np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.25]])
 
 GOLDEN_MESSAGE = NeighbourMessage(
-    sender_id=7, round=42, stamp_ns=1_000_000_123,
+    sender_id=7,
+    round=42,
+    stamp_ns=1_000_000_123,
     separators=(SeparatorEntry(7, 300, 999_000_000, T1),),
     objects=(ObjectEntry(12, T2, 3, 2),),
-    init=(InitEntry(InitStage.ROTATION, 7, 5, ROT_RELAXED),
-          InitEntry(InitStage.TRANSLATION, 7, 6, T1)),
+    init=(
+        InitEntry(InitStage.ROTATION, 7, 5, ROT_RELAXED),
+        InitEntry(InitStage.TRANSLATION, 7, 6, T1),
+    ),
 )
 # Schema version 1. Changing these bytes needs a version bump + docs/wire-format.md CHANGELOG.
 GOLDEN_HEX = (
@@ -41,7 +45,9 @@ GOLDEN_HEARTBEAT_HEX = "44520101010001000000000000000000000000000000000000000000
 
 def _golden_se2_message():
     return NeighbourMessage(
-        sender_id=2, round=1, stamp_ns=0,
+        sender_id=2,
+        round=1,
+        stamp_ns=0,
         separators=(SeparatorEntry(2, 9, 0, geo.se2_from_xy_theta(np.array([3.0, -4.0, -2.5]))),),
         objects=(ObjectEntry(1, geo.se2_from_xy_theta(np.array([0.5, 0.25, 3.14159])), 2, 0),),
     )
@@ -68,7 +74,13 @@ def test_golden_bytes_se2_and_heartbeat():
 def test_golden_decodes_to_the_message():
     m = codec.decode_datagram(bytes.fromhex(GOLDEN_HEX))
     assert (m.sender_id, m.round, m.stamp_ns, m.fleet_id, m.boot_epoch, m.sequence) == (
-        7, 42, 1_000_000_123, 513, 1_700_000_000, 65537)
+        7,
+        42,
+        1_000_000_123,
+        513,
+        1_700_000_000,
+        65537,
+    )
     (s,), (o,) = m.separators, m.objects
     assert (s.owner_robot, s.keyframe_id, s.stamp_ns) == (7, 300, 999_000_000)
     assert (o.object_id, o.origin_robot, o.hop_count) == (12, 3, 2)
@@ -90,15 +102,23 @@ def _random_message(rng, n_sep, n_obj, dim=3, scale_m=100.0, stamp_ns=1_700_000_
             xi[:, :3] = rng.uniform(-scale_m, scale_m, size=(n, 3))
             xi[:, 3:] *= 2.0
             return geo.se3_exp(xi)
-        a = np.column_stack([rng.uniform(-scale_m, scale_m, size=(n, 2)), rng.uniform(-np.pi, np.pi, n)])
+        a = np.column_stack(
+            [rng.uniform(-scale_m, scale_m, size=(n, 2)), rng.uniform(-np.pi, np.pi, n)]
+        )
         return geo.se2_from_xy_theta(a)
 
-    S, O = poses(n_sep), poses(n_obj)
+    S, Ob = poses(n_sep), poses(n_obj)
     return NeighbourMessage(
-        sender_id=3, round=17, stamp_ns=stamp_ns,
-        separators=tuple(SeparatorEntry(3, 1000 + i, stamp_ns - 5_000_000 * i, S[i]) for i in range(n_sep)),
-        objects=tuple(ObjectEntry(i, O[i], int(rng.integers(0, 6)), int(rng.integers(0, 4)))
-                      for i in range(n_obj)),
+        sender_id=3,
+        round=17,
+        stamp_ns=stamp_ns,
+        separators=tuple(
+            SeparatorEntry(3, 1000 + i, stamp_ns - 5_000_000 * i, S[i]) for i in range(n_sep)
+        ),
+        objects=tuple(
+            ObjectEntry(i, Ob[i], int(rng.integers(0, 6)), int(rng.integers(0, 4)))
+            for i in range(n_obj)
+        ),
     )
 
 
@@ -112,18 +132,25 @@ def test_precision_far_below_solver_tolerances(dim):
     """Measured worst case over 4000 poses within ±100 m: ≤ 1e-5 m and ≤ 1e-6 rad."""
     rng = np.random.default_rng(11)
     msg = _random_message(rng, 2000, 2000, dim=dim)
-    seps, objs, _ = _decode_all(codec.encode_message(msg, fleet_id=1, boot_epoch=0, first_sequence=0))
-    T_in = np.stack([e.T_world_body for e in msg.separators] + [e.T_world_object for e in msg.objects])
+    seps, objs, _ = _decode_all(
+        codec.encode_message(msg, fleet_id=1, boot_epoch=0, first_sequence=0)
+    )
+    T_in = np.stack(
+        [e.T_world_body for e in msg.separators] + [e.T_world_object for e in msg.objects]
+    )
     T_out = np.stack([e.T_world_body for e in seps] + [e.T_world_object for e in objs])
     pos_err = np.abs(T_out[:, :dim, dim] - T_in[:, :dim, dim]).max()
     R_err = np.swapaxes(T_out[:, :dim, :dim], -1, -2) @ T_in[:, :dim, :dim]
-    rot_err = (np.abs(np.linalg.norm(geo.so3_log(R_err), axis=-1)) if dim == 3
-               else np.abs(geo.so2_log(R_err))).max()
+    rot_err = (
+        np.abs(np.linalg.norm(geo.so3_log(R_err), axis=-1))
+        if dim == 3
+        else np.abs(geo.so2_log(R_err))
+    ).max()
     assert pos_err < 1e-5
     assert rot_err < 1e-6
     # Decoded rotations are exact rotations (orthonormal, det +1).
-    I = np.swapaxes(T_out[:, :dim, :dim], -1, -2) @ T_out[:, :dim, :dim]
-    assert np.abs(I - np.eye(dim)).max() < 1e-12
+    RtR = np.swapaxes(T_out[:, :dim, :dim], -1, -2) @ T_out[:, :dim, :dim]
+    assert np.abs(RtR - np.eye(dim)).max() < 1e-12
     assert np.all(np.linalg.det(T_out[:, :dim, :dim]) > 0.999)
 
 
@@ -131,21 +158,24 @@ def test_split_respects_cap_and_each_datagram_decodes_alone():
     rng = np.random.default_rng(3)
     msg = _random_message(rng, 50, 20)
     for cap in (codec.MIN_DATAGRAM_BYTES, 300, 1200, codec.HARD_CAP_BYTES):
-        grams = codec.encode_datagrams(msg, fleet_id=9, boot_epoch=5, first_sequence=100,
-                                       max_datagram_bytes=cap)
+        grams = codec.encode_datagrams(
+            msg, fleet_id=9, boot_epoch=5, first_sequence=100, max_datagram_bytes=cap
+        )
         assert all(len(g.data) <= cap for g in grams)
         assert [g.sequence for g in grams] == list(range(100, 100 + len(grams)))
         seps, objs, msgs = _decode_all([g.data for g in grams])
         assert [m.sequence for m in msgs] == [g.sequence for g in grams]
         assert [(e.owner_robot, e.keyframe_id, e.stamp_ns) for e in seps] == [
-            (e.owner_robot, e.keyframe_id, e.stamp_ns) for e in msg.separators]
+            (e.owner_robot, e.keyframe_id, e.stamp_ns) for e in msg.separators
+        ]
         assert [(e.object_id, e.origin_robot, e.hop_count) for e in objs] == [
-            (e.object_id, e.origin_robot, e.hop_count) for e in msg.objects]
+            (e.object_id, e.origin_robot, e.hop_count) for e in msg.objects
+        ]
         size = codec.encoded_size(msg, max_datagram_bytes=cap)
         assert size.datagrams == len(grams)
         assert size.total_bytes == sum(len(g.data) for g in grams)
         assert sum(size.bytes_by_kind.values()) == size.total_bytes
-        for g, m in zip(grams, msgs):
+        for g, m in zip(grams, msgs, strict=True):
             assert m.extra["bytes_by_kind"] == g.bytes_by_kind
     # A round of 50 separators + 20 objects fits in two default datagrams.
     assert codec.encoded_size(msg).datagrams == 2
@@ -154,8 +184,9 @@ def test_split_respects_cap_and_each_datagram_decodes_alone():
 def test_entry_sizes_are_compact():
     """Per-entry bytes the Table 1 accounting relies on (SE(3) pose = 21 B, SE(2) = 11 B)."""
     assert codec.pose_bytes(3) == 21 and codec.pose_bytes(2) == 11
-    one = NeighbourMessage(sender_id=1, round=1, stamp_ns=10,
-                           separators=(SeparatorEntry(1, 5, 10, np.eye(4)),))
+    one = NeighbourMessage(
+        sender_id=1, round=1, stamp_ns=10, separators=(SeparatorEntry(1, 5, 10, np.eye(4)),)
+    )
     heartbeat = codec.encoded_size(NeighbourMessage(sender_id=1, round=1, stamp_ns=10))
     assert heartbeat.total_bytes == 37
     assert codec.encoded_size(one).total_bytes - heartbeat.total_bytes == 3 + 21
@@ -171,14 +202,20 @@ u64 = st.integers(0, 2**63)
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
-    sender=st.integers(0, 0xFFFF), fleet=st.integers(0, 0xFFFF), epoch=st.integers(0, 2**32 - 1),
-    seq=st.integers(0, 2**32 - 200), round_=u64, stamp=st.integers(0, 2**62),
+    sender=st.integers(0, 0xFFFF),
+    fleet=st.integers(0, 0xFFFF),
+    epoch=st.integers(0, 2**32 - 1),
+    seq=st.integers(0, 2**32 - 200),
+    round_=u64,
+    stamp=st.integers(0, 2**62),
     seps=st.lists(st.tuples(u64, u64, st.integers(0, 2**62), pose3), max_size=40),
     objs=st.lists(st.tuples(u64, u64, st.integers(0, 300), pose3), max_size=40),
 )
 def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, objs):
     msg = NeighbourMessage(
-        sender_id=sender, round=round_, stamp_ns=stamp,
+        sender_id=sender,
+        round=round_,
+        stamp_ns=stamp,
         separators=tuple(SeparatorEntry(o, k, s, T) for o, k, s, T in seps),
         objects=tuple(ObjectEntry(i, T, o, h) for i, o, h, T in objs),
     )
@@ -186,11 +223,19 @@ def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, obj
     got_s, got_o, msgs = _decode_all(grams)
     for m in msgs:
         assert (m.sender_id, m.round, m.stamp_ns, m.fleet_id, m.boot_epoch) == (
-            sender, round_, stamp, fleet, epoch)
+            sender,
+            round_,
+            stamp,
+            fleet,
+            epoch,
+        )
     assert [(e.owner_robot, e.keyframe_id, e.stamp_ns) for e in got_s] == [s[:3] for s in seps]
     assert [(e.object_id, e.origin_robot, e.hop_count) for e in got_o] == [o[:3] for o in objs]
-    for (_, _, _, T), e in zip(seps, got_s):
-        assert np.abs(e.T_world_body[:3, 3] - T[:3, 3]).max() <= 1e-7 * max(1.0, np.abs(T[:3, 3]).max()) + 1e-9
+    for (_, _, _, T), e in zip(seps, got_s, strict=True):
+        assert (
+            np.abs(e.T_world_body[:3, 3] - T[:3, 3]).max()
+            <= 1e-7 * max(1.0, np.abs(T[:3, 3]).max()) + 1e-9
+        )
         assert np.linalg.norm(geo.so3_log(e.T_world_body[:3, :3].T @ T[:3, :3])) < 1e-6
 
 
@@ -272,12 +317,19 @@ def test_encode_rejects_bad_input():
         with pytest.raises(codec.EncodeError):
             codec.encode_message(msg, fleet_id=1, boot_epoch=0, first_sequence=0)
     ok = NeighbourMessage(sender_id=1, round=0, stamp_ns=0, objects=(ObjectEntry(1, np.eye(4), 1),))
-    for kw in ({"fleet_id": 70000}, {"boot_epoch": -1}, {"first_sequence": 2**32},
-               {"max_datagram_bytes": 9000}, {"max_datagram_bytes": 10}):
+    for kw in (
+        {"fleet_id": 70000},
+        {"boot_epoch": -1},
+        {"first_sequence": 2**32},
+        {"max_datagram_bytes": 9000},
+        {"max_datagram_bytes": 10},
+    ):
         args = {"fleet_id": 1, "boot_epoch": 0, "first_sequence": 0, **kw}
         with pytest.raises(codec.EncodeError):
             codec.encode_message(ok, **args)
-    neg = NeighbourMessage(sender_id=1, round=0, stamp_ns=0, objects=(ObjectEntry(-1, np.eye(4), 1),))
+    neg = NeighbourMessage(
+        sender_id=1, round=0, stamp_ns=0, objects=(ObjectEntry(-1, np.eye(4), 1),)
+    )
     with pytest.raises(codec.EncodeError):
         codec.encode_message(neg, fleet_id=1, boot_epoch=0, first_sequence=0)
 

@@ -29,14 +29,23 @@ from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 
 zmq = pytest.importorskip("zmq")
 if not zmq.has("draft"):
-    pytest.skip("pyzmq without draft support (run tools/build_zmq_draft.sh)", allow_module_level=True)
+    pytest.skip(
+        "pyzmq without draft support (run tools/build_zmq_draft.sh)", allow_module_level=True
+    )
 
 GROUP = "dran.fuzz"
 KEY = bytes(range(100, 132))
 FOREIGN_KEY = bytes(range(32))
 # Robot 1 listens; 2 and 3 are neighbours; 4 is in the fleet but not a neighbour.
-SPEC = FleetSpec(robot_ids=(1, 2, 3, 4), edges=((1, 2), (1, 3), (3, 4)), rounds=0,
-                 fleet_id=7, group=GROUP, key_hex=KEY.hex(), boot_epoch=1)
+SPEC = FleetSpec(
+    robot_ids=(1, 2, 3, 4),
+    edges=((1, 2), (1, 3), (3, 4)),
+    rounds=0,
+    fleet_id=7,
+    group=GROUP,
+    key_hex=KEY.hex(),
+    boot_epoch=1,
+)
 
 
 def _free_udp_port() -> int:
@@ -51,9 +60,22 @@ class DishTarget:
     def __init__(self):
         self.port = _free_udp_port()
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "dran_edge.comms.loopback", "--robot", "1",
-             "--dish-target", f"udp://127.0.0.1:{self.port}", "--max-s", "900"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                "-m",
+                "dran_edge.comms.loopback",
+                "--robot",
+                "1",
+                "--dish-target",
+                f"udp://127.0.0.1:{self.port}",
+                "--max-s",
+                "900",
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         self.proc.stdin.write(SPEC.to_json())
         self.proc.stdin.close()
         self.lines: queue.Queue = queue.Queue()
@@ -89,9 +111,12 @@ class DishTarget:
             seq = self.seq[sender]
             self.seq[sender] += 1
         msg = NeighbourMessage(
-            sender_id=sender, round=round_, stamp_ns=123,
+            sender_id=sender,
+            round=round_,
+            stamp_ns=123,
             separators=(SeparatorEntry(sender, round_ % 1000, 123, np.eye(4)),),
-            objects=tuple(ObjectEntry(i, np.eye(4), sender) for i in range(n_obj)))
+            objects=tuple(ObjectEntry(i, np.eye(4), sender) for i in range(n_obj)),
+        )
         (g,) = codec.encode_message(msg, fleet_id=fleet, boot_epoch=epoch, first_sequence=seq)
         return Signer(key).sign(g)
 
@@ -126,7 +151,7 @@ class DishTarget:
                 if line and line.startswith("counters "):
                     self.proc.wait(timeout=10)
                     self.sock.close()
-                    return json.loads(line[len("counters "):])
+                    return json.loads(line[len("counters ") :])
                 assert line is None or line == "no-output" or line.startswith("ok 2 "), line
         raise AssertionError("DISH target did not stop: " + self.stderr())
 
@@ -175,13 +200,17 @@ def _hostile(rng: random.Random, target: DishTarget, valid_pool: list[bytes]) ->
             i = rng.randrange(len(d))
             d[i] ^= 1 << rng.randrange(8)
         if rng.random() < 0.3:
-            del d[rng.randrange(len(d)):]
+            del d[rng.randrange(len(d)) :]
         return target.frame(bytes(d))
     if k == 8:  # a replay of a datagram already accepted
         return target.frame(rng.choice(valid_pool))
     # other group (DISH must filter), or group of 255 characters
-    return rng.choice([target.frame(rng.choice(valid_pool), "other"),
-                       bytes([255]) + rng.randbytes(255) + rng.choice(valid_pool)])
+    return rng.choice(
+        [
+            target.frame(rng.choice(valid_pool), "other"),
+            bytes([255]) + rng.randbytes(255) + rng.choice(valid_pool),
+        ]
+    )
 
 
 def _run_fuzz(n_datagrams: int, burst: int, seed: int):
@@ -199,7 +228,9 @@ def _run_fuzz(n_datagrams: int, burst: int, seed: int):
                 target.raw(_hostile(rng, target, pool))
                 sent += 1
             bursts += 1
-            assert target.proc.poll() is None, f"DISH died after {sent} datagrams: {target.stderr()}"
+            assert target.proc.poll() is None, (
+                f"DISH died after {sent} datagrams: {target.stderr()}"
+            )
             if not target.ping():
                 stalls += 1
             pool = target.sent_valid[-50:]
@@ -224,8 +255,10 @@ def test_live_dish_survives_100k_hostile_datagrams():
     in bursts of 100 each followed by a valid ping; about 6 s on a 2-core box."""
     sent, bursts, elapsed, report = _run_fuzz(110_000, burst=100, seed=2)
     drops = report["kernel_drops"] or 0
-    print(f"fuzz: sent {sent}, kernel drops {drops}, {bursts} bursts, {elapsed:.1f} s, "
-          f"link {report['link']['totals']}")
+    print(
+        f"fuzz: sent {sent}, kernel drops {drops}, {bursts} bursts, {elapsed:.1f} s, "
+        f"link {report['link']['totals']}"
+    )
     assert sent - drops >= 100_000
 
 
@@ -234,8 +267,15 @@ def test_attacks_rejected_and_counted_exactly():
     target = DishTarget()
     try:
         assert target.ping()
-        expected = {"wrong_fleet": 0, "unknown_sender": 0, "not_neighbour": 0, "bad_tag": 0,
-                    "replayed": 0, "stale": 0, "malformed": 0}
+        expected = {
+            "wrong_fleet": 0,
+            "unknown_sender": 0,
+            "not_neighbour": 0,
+            "bad_tag": 0,
+            "replayed": 0,
+            "stale": 0,
+            "malformed": 0,
+        }
         n = 60
         for i in range(n):
             attacks = {
@@ -295,8 +335,13 @@ def test_single_0x80_byte_kills_only_the_unpatched_libzmq(which):
             pytest.skip("DRAN_UNPATCHED_LIBZMQ not set (path to an unpatched draft libzmq.so.5)")
         env["LD_PRELOAD"] = lib
     port = _free_udp_port()
-    p = subprocess.run([sys.executable, "-c", _DEMO_DISH % (port, port, port)], env=env,
-                       capture_output=True, text=True, timeout=60)
+    p = subprocess.run(
+        [sys.executable, "-c", _DEMO_DISH % (port, port, port)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     if which == "ours":
         assert p.returncode == 0, p.stderr
     else:

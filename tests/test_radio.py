@@ -89,10 +89,17 @@ def test_params_are_validated():
 @needs_draft
 def test_pair_delivers_and_never_hands_libzmq_an_oversized_message():
     pa, pb = _free_udp_ports(2)
-    with RadioTransport(RadioParams(group="dran.t", bind=f"udp://127.0.0.1:{pa}",
-                                    neighbours={2: f"udp://127.0.0.1:{pb}"},
-                                    max_datagram_bytes=1200)) as a, \
-         RadioTransport(RadioParams(group="dran.t", bind=f"udp://127.0.0.1:{pb}")) as b:
+    with (
+        RadioTransport(
+            RadioParams(
+                group="dran.t",
+                bind=f"udp://127.0.0.1:{pa}",
+                neighbours={2: f"udp://127.0.0.1:{pb}"},
+                max_datagram_bytes=1200,
+            )
+        ) as a,
+        RadioTransport(RadioParams(group="dran.t", bind=f"udp://127.0.0.1:{pb}")) as b,
+    ):
         time.sleep(0.1)
         assert not a.send(2, bytes(1201))  # refused before libzmq sees it
         assert not a.send(2, bytes(60_000))  # would overflow libzmq <= 4.3.5's buffer
@@ -118,8 +125,15 @@ def test_pair_delivers_and_never_hands_libzmq_an_oversized_message():
 def test_four_processes_over_radio_dish_match_the_in_process_bus():
     """4 robots on a line (relay over 3 hops), each a separate process with its own DISH."""
     base = _consecutive_free_ports(4)
-    spec = FleetSpec(robot_ids=(0, 1, 2, 3), edges=((0, 1), (1, 2), (2, 3)), rounds=10,
-                     period_s=0.1, base_port=base, node_config={"seed": 5}, fleet_id=3)
+    spec = FleetSpec(
+        robot_ids=(0, 1, 2, 3),
+        edges=((0, 1), (1, 2), (2, 3)),
+        rounds=10,
+        period_s=0.1,
+        base_port=base,
+        node_config={"seed": 5},
+        fleet_id=3,
+    )
     on_bus = run_bus_fleet(spec)
     on_udp = run_loopback_fleet(spec)
     for i in spec.robot_ids:
@@ -182,12 +196,16 @@ def test_two_hosts_in_network_namespaces():
             "print(sorted(got)); t.close(); sys.exit(0 if got else 1)\n"
         )
         procs = [
-            subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-c", code, me, peer],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            subprocess.Popen(
+                ["ip", "netns", "exec", ns, sys.executable, "-c", code, me, peer],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
             for ns, me, peer in ((ns_a, f"{net}.1", f"{net}.2"), (ns_b, f"{net}.2", f"{net}.1"))
         ]
         outs = [p.communicate(timeout=60) for p in procs]
-        for p, (out, err) in zip(procs, outs):
+        for p, (_out, err) in zip(procs, outs, strict=True):
             assert p.returncode == 0, err
         assert f"hello from {net}.2" in outs[0][0] and f"hello from {net}.1" in outs[1][0]
     finally:

@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import hmac
 import json
 import pickle
@@ -44,9 +43,12 @@ def round_message(rng, sender=0, n_sep=50, n_obj=20, round_=1):
     T = geo.se3_exp(xi)
     stamp = 1_700_000_000_000_000_000 + round_ * 500_000_000
     return NeighbourMessage(
-        sender_id=sender, round=round_, stamp_ns=stamp,
-        separators=tuple(SeparatorEntry(sender, 1000 + i, stamp - 70_000_000 * i, T[i])
-                         for i in range(n_sep)),
+        sender_id=sender,
+        round=round_,
+        stamp_ns=stamp,
+        separators=tuple(
+            SeparatorEntry(sender, 1000 + i, stamp - 70_000_000 * i, T[i]) for i in range(n_sep)
+        ),
         objects=tuple(ObjectEntry(i, T[n_sep + i], sender, i % 3) for i in range(n_obj)),
     )
 
@@ -65,8 +67,13 @@ def bench_codec(reps):
     rng = np.random.default_rng(0)
     msg = round_message(rng)
     signer = Signer(KEY)
-    policy = AuthPolicy(fleet_id=1, self_id=1, fleet_robots=frozenset({0, 1}),
-                        neighbours=frozenset({0}), replay_window=4096)
+    policy = AuthPolicy(
+        fleet_id=1,
+        self_id=1,
+        fleet_robots=frozenset({0, 1}),
+        neighbours=frozenset({0}),
+        replay_window=4096,
+    )
     state = {"seq": 0}
 
     def ours():
@@ -81,17 +88,30 @@ def bench_codec(reps):
         return grams
 
     def as_dict(m):
-        return {"sender_id": m.sender_id, "round": m.round, "stamp_ns": m.stamp_ns,
-                "separators": [[e.owner_robot, e.keyframe_id, e.stamp_ns, e.T_world_body.tolist()]
-                               for e in m.separators],
-                "objects": [[e.object_id, e.origin_robot, e.hop_count, e.T_world_object.tolist()]
-                            for e in m.objects]}
+        return {
+            "sender_id": m.sender_id,
+            "round": m.round,
+            "stamp_ns": m.stamp_ns,
+            "separators": [
+                [e.owner_robot, e.keyframe_id, e.stamp_ns, e.T_world_body.tolist()]
+                for e in m.separators
+            ],
+            "objects": [
+                [e.object_id, e.origin_robot, e.hop_count, e.T_world_object.tolist()]
+                for e in m.objects
+            ],
+        }
 
     def from_dict(d):
         return NeighbourMessage(
-            sender_id=d["sender_id"], round=d["round"], stamp_ns=d["stamp_ns"],
-            separators=tuple(SeparatorEntry(o, k, s, np.array(T)) for o, k, s, T in d["separators"]),
-            objects=tuple(ObjectEntry(i, np.array(T), o, h) for i, o, h, T in d["objects"]))
+            sender_id=d["sender_id"],
+            round=d["round"],
+            stamp_ns=d["stamp_ns"],
+            separators=tuple(
+                SeparatorEntry(o, k, s, np.array(T)) for o, k, s, T in d["separators"]
+            ),
+            objects=tuple(ObjectEntry(i, np.array(T), o, h) for i, o, h, T in d["objects"]),
+        )
 
     def json_hmac():
         body = json.dumps(as_dict(msg)).encode()
@@ -116,8 +136,9 @@ def bench_codec(reps):
         "ours_datagrams": len(ours()),
         "json_bytes": len(json_hmac()),
         "pickle_bytes": len(pickle_hmac()),
-        "encode_only_ms": _median_ms(lambda: codec.encode_message(
-            msg, fleet_id=1, boot_epoch=1, first_sequence=0), reps),
+        "encode_only_ms": _median_ms(
+            lambda: codec.encode_message(msg, fleet_id=1, boot_epoch=1, first_sequence=0), reps
+        ),
     }
     res["bytes_by_kind"] = codec.encoded_size(msg).bytes_by_kind
     return res
@@ -125,16 +146,28 @@ def bench_codec(reps):
 
 def bench_precision():
     rng = np.random.default_rng(1)
-    T = geo.se3_from_rt(geo.so3_exp(rng.normal(size=(20_000, 3)) * 2.0),
-                        rng.uniform(-100, 100, size=(20_000, 3)))
-    msg = NeighbourMessage(sender_id=0, round=0, stamp_ns=0,
-                           objects=tuple(ObjectEntry(i, T[i], 0) for i in range(len(T))))
-    grams = codec.encode_message(msg, fleet_id=1, boot_epoch=0, first_sequence=0,
-                                 max_datagram_bytes=codec.HARD_CAP_BYTES)
+    T = geo.se3_from_rt(
+        geo.so3_exp(rng.normal(size=(20_000, 3)) * 2.0), rng.uniform(-100, 100, size=(20_000, 3))
+    )
+    msg = NeighbourMessage(
+        sender_id=0,
+        round=0,
+        stamp_ns=0,
+        objects=tuple(ObjectEntry(i, T[i], 0) for i in range(len(T))),
+    )
+    grams = codec.encode_message(
+        msg, fleet_id=1, boot_epoch=0, first_sequence=0, max_datagram_bytes=codec.HARD_CAP_BYTES
+    )
     out = np.stack([e.T_world_object for g in grams for e in codec.decode_datagram(g).objects])
     pos = np.abs(out[:, :3, 3] - T[:, :3, 3]).max()
-    rot = np.linalg.norm(geo.so3_log(np.swapaxes(out[:, :3, :3], -1, -2) @ T[:, :3, :3]), axis=-1).max()
-    return {"poses": len(T), "max_position_error_m": float(pos), "max_rotation_error_rad": float(rot)}
+    rot = np.linalg.norm(
+        geo.so3_log(np.swapaxes(out[:, :3, :3], -1, -2) @ T[:, :3, :3]), axis=-1
+    ).max()
+    return {
+        "poses": len(T),
+        "max_position_error_m": float(pos),
+        "max_rotation_error_rad": float(rot),
+    }
 
 
 def _free_ports(n):
@@ -188,12 +221,25 @@ def bench_radio(rounds, rate_hz, saturate_s, plain_udp=False):
     if plain_udp:
         transports = {i: PlainUdpTransport(ports[i], {j: ports[j] for j in neigh[i]}) for i in ids}
     else:
-        transports = {i: RadioTransport(RadioParams(group="dran.bench", bind=ep[i],
-                                                    neighbours=neigh[i], max_datagram_bytes=1200))
-                      for i in ids}
-    links = {i: NeighbourLink(transports[i], key=KEY, boot_epoch=1, policy=AuthPolicy(
-        fleet_id=1, self_id=i, fleet_robots=frozenset(ids), neighbours=frozenset(neigh[i])))
-        for i in ids}
+        transports = {
+            i: RadioTransport(
+                RadioParams(
+                    group="dran.bench", bind=ep[i], neighbours=neigh[i], max_datagram_bytes=1200
+                )
+            )
+            for i in ids
+        }
+    links = {
+        i: NeighbourLink(
+            transports[i],
+            key=KEY,
+            boot_epoch=1,
+            policy=AuthPolicy(
+                fleet_id=1, self_id=i, fleet_robots=frozenset(ids), neighbours=frozenset(neigh[i])
+            ),
+        )
+        for i in ids
+    }
     time.sleep(0.3)
     rng = np.random.default_rng(2)
 
@@ -209,8 +255,12 @@ def bench_radio(rounds, rate_hz, saturate_s, plain_udp=False):
                 for m in links[j].poll():
                     per_nb_msgs[j] += 1
                     if per_nb_msgs[j] == 2:  # the round spans two datagrams
-                        reply = NeighbourMessage(sender_id=j, round=k, stamp_ns=m.stamp_ns,
-                                                 objects=(ObjectEntry(j, np.eye(4), j),))
+                        reply = NeighbourMessage(
+                            sender_id=j,
+                            round=k,
+                            stamp_ns=m.stamp_ns,
+                            objects=(ObjectEntry(j, np.eye(4), j),),
+                        )
                         links[j].send_message(reply, [0])
             for m in links[0].poll():
                 answered.add(m.sender_id)
@@ -230,8 +280,11 @@ def bench_radio(rounds, rate_hz, saturate_s, plain_udp=False):
     elapsed = time.perf_counter() - t_start
     sent_bytes = links[0].counters.totals()["bytes_sent"]
     res = {
-        "rounds": rounds, "rate_hz": rate_hz, "neighbours": n_nb,
-        "answers_received": delivered, "answers_expected": rounds * n_nb,
+        "rounds": rounds,
+        "rate_hz": rate_hz,
+        "neighbours": n_nb,
+        "answers_received": delivered,
+        "answers_expected": rounds * n_nb,
         "rtt_ms_median": 1e3 * statistics.median(rtts),
         "rtt_ms_p95": 1e3 * float(np.percentile(rtts, 95)),
         "centre_bytes_per_s": sent_bytes / elapsed,
@@ -270,29 +323,47 @@ def main(argv=None) -> int:
         return 0
     c = res["codec"]
     print("== full round, 50 separators + 20 objects (SE(3)), encode+sign+decode+verify")
-    print(f"  ours          {c['ours_ms']:.3f} ms  {c['ours_bytes']:6d} B in {c['ours_datagrams']} datagrams")
-    print(f"  json+hmac     {c['json_hmac_ms']:.3f} ms  {c['json_bytes']:6d} B   "
-          f"(ours: {c['json_hmac_ms'] / c['ours_ms']:.1f}x faster, {c['json_bytes'] / c['ours_bytes']:.1f}x smaller)")
-    print(f"  pickle+hmac   {c['pickle_hmac_ms']:.3f} ms  {c['pickle_bytes']:6d} B   "
-          f"(ours: {c['pickle_hmac_ms'] / c['ours_ms']:.2f}x the time, {c['pickle_bytes'] / c['ours_bytes']:.1f}x smaller)")
+    print(
+        f"  ours          {c['ours_ms']:.3f} ms  {c['ours_bytes']:6d} B in {c['ours_datagrams']} datagrams"
+    )
+    print(
+        f"  json+hmac     {c['json_hmac_ms']:.3f} ms  {c['json_bytes']:6d} B   "
+        f"(ours: {c['json_hmac_ms'] / c['ours_ms']:.1f}x faster, {c['json_bytes'] / c['ours_bytes']:.1f}x smaller)"
+    )
+    print(
+        f"  pickle+hmac   {c['pickle_hmac_ms']:.3f} ms  {c['pickle_bytes']:6d} B   "
+        f"(ours: {c['pickle_hmac_ms'] / c['ours_ms']:.2f}x the time, {c['pickle_bytes'] / c['ours_bytes']:.1f}x smaller)"
+    )
     print(f"  encode only   {c['encode_only_ms']:.3f} ms; bytes by kind {c['bytes_by_kind']}")
     p = res["precision"]
-    print(f"== precision over {p['poses']} poses within ±100 m: position {p['max_position_error_m']:.2e} m, "
-          f"rotation {p['max_rotation_error_rad']:.2e} rad")
+    print(
+        f"== precision over {p['poses']} poses within ±100 m: position {p['max_position_error_m']:.2e} m, "
+        f"rotation {p['max_rotation_error_rad']:.2e} rad"
+    )
     if "radio" in res:
         r, u = res["radio"], res["udp_baseline"]
-        print(f"== loopback RADIO->DISH, {r['neighbours']} neighbours at {r['rate_hz']:g} Hz, {r['rounds']} rounds")
-        print(f"  round trip (send round to 6, all 6 answers verified): median {r['rtt_ms_median']:.2f} ms, "
-              f"p95 {r['rtt_ms_p95']:.2f} ms")
-        print(f"  baseline, same link work over plain Python UDP sockets: median "
-              f"{u['rtt_ms_median']:.2f} ms, p95 {u['rtt_ms_p95']:.2f} ms "
-              f"(RADIO/DISH {r['rtt_ms_median'] / u['rtt_ms_median']:.2f}x); saturation "
-              f"{u['saturation_rounds_per_s']:.0f} rounds/s")
-        print(f"  answers {r['answers_received']}/{r['answers_expected']}, centre sends "
-              f"{r['centre_bytes_per_s'] / 1e3:.1f} kB/s, rejected {r['rejected_total']}")
-        print(f"  saturation: {r['saturation_rounds_per_s']:.0f} full rounds/s "
-              f"({r['saturation_rounds_per_s'] / r['rate_hz']:.0f}x the 2 Hz need), answers lost "
-              f"{r['saturation_answers_lost']}")
+        print(
+            f"== loopback RADIO->DISH, {r['neighbours']} neighbours at {r['rate_hz']:g} Hz, {r['rounds']} rounds"
+        )
+        print(
+            f"  round trip (send round to 6, all 6 answers verified): median {r['rtt_ms_median']:.2f} ms, "
+            f"p95 {r['rtt_ms_p95']:.2f} ms"
+        )
+        print(
+            f"  baseline, same link work over plain Python UDP sockets: median "
+            f"{u['rtt_ms_median']:.2f} ms, p95 {u['rtt_ms_p95']:.2f} ms "
+            f"(RADIO/DISH {r['rtt_ms_median'] / u['rtt_ms_median']:.2f}x); saturation "
+            f"{u['saturation_rounds_per_s']:.0f} rounds/s"
+        )
+        print(
+            f"  answers {r['answers_received']}/{r['answers_expected']}, centre sends "
+            f"{r['centre_bytes_per_s'] / 1e3:.1f} kB/s, rejected {r['rejected_total']}"
+        )
+        print(
+            f"  saturation: {r['saturation_rounds_per_s']:.0f} full rounds/s "
+            f"({r['saturation_rounds_per_s'] / r['rate_hz']:.0f}x the 2 Hz need), answers lost "
+            f"{r['saturation_answers_lost']}"
+        )
     else:
         print("== loopback RADIO->DISH not run: " + res["radio_error"])
     return 0
