@@ -151,12 +151,14 @@ class RadioTransport:
         self._radios: dict = {}
         try:
             self._dish = self._ctx.socket(zmq.DISH)
+            self._dish.setsockopt(zmq.IPV6, int("[" in params.bind))
             self._dish.setsockopt(zmq.RCVHWM, params.receive_hwm)
             self._dish.setsockopt(zmq.LINGER, 0)
             self._dish.bind(params.bind)
             self._dish.join(params.group)
             for rid, endpoint in params.neighbours.items():
                 radio = self._ctx.socket(zmq.RADIO)
+                radio.setsockopt(zmq.IPV6, int("[" in endpoint))
                 radio.setsockopt(zmq.SNDHWM, params.send_hwm)
                 radio.setsockopt(zmq.LINGER, 0)
                 radio.connect(endpoint)
@@ -185,6 +187,10 @@ class RadioTransport:
         except self._zmq.Again:
             self.counters.dropped(to, n, "send_queue_full")
             return False
+        except self._zmq.ZMQError as exc:
+            log.warning("radio: send to robot %s failed: %s", to, exc)
+            self.counters.dropped(to, n, "send_error")
+            return False
         self.counters.sent(to, n)
         return True
 
@@ -195,6 +201,9 @@ class RadioTransport:
             try:
                 frame = self._dish.recv(flags=zmq.NOBLOCK, copy=False)
             except zmq.Again:
+                break
+            except zmq.ZMQError as exc:
+                log.warning("radio: DISH receive failed: %s", exc)
                 break
             data = frame.bytes
             if len(data) > self.params.max_datagram_bytes:

@@ -120,7 +120,7 @@ class DishTarget:
         (g,) = codec.encode_message(msg, fleet_id=fleet, boot_epoch=epoch, first_sequence=seq)
         return Signer(key).sign(g)
 
-    def ping(self, timeout_s=5.0) -> bool:
+    def ping(self, timeout_s=10.0) -> bool:
         """Send valid datagrams until one is acknowledged; False if none within timeout (stall)."""
         end = time.time() + timeout_s
         wait_s = 0.05

@@ -129,7 +129,7 @@ def test_four_processes_over_radio_dish_match_the_in_process_bus():
         robot_ids=(0, 1, 2, 3),
         edges=((0, 1), (1, 2), (2, 3)),
         rounds=10,
-        period_s=0.1,
+        period_s=0.2,
         base_port=base,
         node_config={"seed": 5},
         fleet_id=3,
