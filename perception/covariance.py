@@ -75,7 +75,8 @@ def gauss_newton(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refine poses ``T (m, 4, 4)`` on points ``P (m, N, 3)`` observed at ``uv (m, N, 2)``.
 
-    Minimises the sum of squared reprojection errors over the valid points (``mask (m, N)``)
+    Minimises the sum of squared reprojection errors over the valid points (``mask (m, N)``,
+    boolean or float weights multiplying each residual and Jacobian row: 1/sigma whitens)
     with ``iterations`` Gauss-Newton steps, all poses at once. Returns ``(T, JtJ (m, 6, 6),
     residual (m, N, 2))``: the final pose and its residuals (zero where masked), and J^T J of
     the last linearisation (at the input pose when ``iterations == 0``; one step before the
@@ -141,7 +142,8 @@ def corner_sigma_from_residuals(residual_sq_sum: np.ndarray, n_points: np.ndarra
     """Pooled corner-noise estimate sqrt(sum r^2 / sum(2N - 6)) over detections (pixels).
 
     ``residual_sq_sum`` per detection is the summed squared reprojection residual at the
-    least-squares pose of its N points; 2N - 6 are its degrees of freedom.
+    least-squares pose of its N points (scaled by ``edge / ref_edge`` to estimate the noise at
+    the reference edge length of ``tagpose.corner_sigma``); 2N - 6 are its degrees of freedom.
     """
     dof = np.sum(2 * np.asarray(n_points) - 6)
     if dof <= 0:

@@ -8,7 +8,7 @@ For an accepted tag k of object o (``T_object_tag`` from calib/tags.yaml):
 frame, the object pose is re-estimated from ALL their corners at once (Gauss-Newton on the
 reprojection error of the corner points expressed in the object frame, started from the tag with
 the smallest covariance), which also removes the planar ambiguity of each single tag; the joint
-covariance is sigma^2 (J^T J)^-1 over all 8k rows. If the joint fit's RMS error exceeds
+covariance is (J^T W J)^-1 over all 8k rows, W = diag(1 / sigma_tag^2). If the joint fit's RMS error exceeds
 ``max_reproj_px`` (one tag is wrong), the best single tag is used.
 
 Finally ``T_body_object = T_body_camera @ T_camera_object``; a fixed left factor leaves a
@@ -45,7 +45,6 @@ def fuse_objects(
     T_tag_object: np.ndarray,
     adjoint_object_tag: np.ndarray,
     corners_object: np.ndarray,
-    corner_sigma_px: float,
     max_reproj_px: float,
     iterations: int = 2,
 ) -> ObjectPoses:
@@ -80,18 +79,21 @@ def fuse_objects(
         n_pts = 4 * counts[multi].max()
         P = np.zeros((multi.size, n_pts, 3))
         uv = np.zeros((multi.size, n_pts, 2))
-        mask = np.zeros((multi.size, n_pts), bool)
+        weight = np.zeros((multi.size, n_pts))
         for row, j in enumerate(multi):
             members = np.flatnonzero(oid == objects[j])
             k4 = 4 * members.size
             P[row, :k4] = corners_object[pos[members]].reshape(-1, 3)
             uv[row, :k4] = (corners[use[members]] + CORNER_TO_OPENCV_PX).reshape(-1, 2)
-            mask[row, :k4] = True
-        T_j, JtJ, r = gauss_newton(K, T_out[multi], P, uv, mask, iterations)
-        rms = np.sqrt(np.sum(r * r, axis=(-1, -2)) / mask.sum(-1))
+            weight[row, :k4] = np.repeat(1.0 / tag_poses.corner_sigma_px[use[members]], 4)
+        # whitened least squares: residual / sigma per corner, so the covariance is (J^T J)^-1
+        T_j, JtJ, r = gauss_newton(K, T_out[multi], P, uv, weight, iterations)
+        valid = weight > 0
+        r_px = r / np.where(valid, weight, 1.0)[..., None]
+        rms = np.sqrt(np.sum(r_px * r_px, axis=(-1, -2)) / valid.sum(-1))
         ok = rms <= max_reproj_px
         T_out[multi[ok]] = T_j[ok]
-        cov_out[multi[ok]] = pose_covariance(JtJ[ok], corner_sigma_px)
+        cov_out[multi[ok]] = pose_covariance(JtJ[ok], 1.0)
         counts = counts.copy()
         counts[multi[~ok]] = 1
     return ObjectPoses(objects.astype(np.int64), T_body_camera @ T_out, cov_out,

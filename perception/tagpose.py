@@ -72,8 +72,12 @@ class TagPoseParams:
     max_reproj_px: float = 1.5
     """Largest accepted RMS reprojection error of the chosen solution, pixels."""
     corner_sigma_px: float = 0.3
-    """Standard deviation of one corner coordinate, pixels (the covariance scale; calibrate with
-    ``dran-edge detect --json`` summary's ``corner_sigma_px`` on your camera)."""
+    """Standard deviation of one corner coordinate, pixels, for a tag whose shortest edge is
+    ``corner_sigma_ref_edge_px``; a tag with shortest edge L gets sigma * sqrt(ref / L) (edges are
+    line fits over L pixels). The covariance scale: calibrate with the ``corner_sigma_px`` of
+    ``dran-edge detect``'s summary on your camera."""
+    corner_sigma_ref_edge_px: float = 50.0
+    """Reference shortest-edge length in pixels for ``corner_sigma_px``."""
     ambiguity_ratio: float = 1.5
     """Without depth: the tag is ambiguous when rms(alternative) / rms(best) is below this
     (both RMS floored at ``corner_sigma_px / 2``)."""
@@ -120,6 +124,16 @@ class TagPoses:
     method: np.ndarray
     accepted: np.ndarray
     """Boolean ``(n,)``: ``reject == ""``."""
+    corner_sigma_px: np.ndarray
+    """Corner noise used for each tag's covariance ``(n,)`` (NaN where not computed)."""
+    min_edge_px: np.ndarray
+    """Shortest edge of each tag's quad in pixels ``(n,)``."""
+
+
+def corner_sigma(p: TagPoseParams, min_edge_px: np.ndarray) -> np.ndarray:
+    """Corner noise per tag: ``corner_sigma_px * sqrt(ref_edge / shortest edge)`` (pixels)."""
+    return p.corner_sigma_px * np.sqrt(p.corner_sigma_ref_edge_px
+                                       / np.maximum(np.asarray(min_edge_px, float), 1.0))
 
 
 def tag_object_points(size_m: np.ndarray) -> np.ndarray:
@@ -147,28 +161,30 @@ def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: 
 
 
 def _screen(corners: list, hamming: list, margin: list, size: list, w: int, h: int,
-            p: TagPoseParams) -> list[str]:
+            p: TagPoseParams) -> tuple[list[str], list[float]]:
     """Rejection before any pose maths, per tag in plain Python (a frame has a few tags; this
     is several times cheaper than a dozen numpy calls on 4x2 arrays)."""
-    out = []
+    out, edges = [], []
     lo_x = lo_y = p.border_px - 0.5
     hi_x, hi_y = w - 1 - lo_x, h - 1 - lo_y
     min_edge_sq = p.min_edge_px ** 2
     for c, ham, dm, s in zip(corners, hamming, margin, size):
+        edge_sq = min((c[k][0] - c[k - 1][0]) ** 2 + (c[k][1] - c[k - 1][1]) ** 2
+                      for k in range(4))
+        edges.append(edge_sq ** 0.5)
         if not s == s:  # NaN size: not in the tag map
             out.append(REJECT_UNKNOWN)
         elif ham > p.max_hamming:
             out.append(REJECT_HAMMING)
         elif dm < p.min_decision_margin:
             out.append(REJECT_MARGIN)
-        elif min((c[k][0] - c[k - 1][0]) ** 2 + (c[k][1] - c[k - 1][1]) ** 2
-                 for k in range(4)) < min_edge_sq:
+        elif edge_sq < min_edge_sq:
             out.append(REJECT_SMALL)
         elif not all(lo_x <= x <= hi_x and lo_y <= y <= hi_y for x, y in c):
             out.append(REJECT_BORDER)
         else:
             out.append(OK)
-    return out
+    return out, edges
 
 
 def estimate_tag_poses(
@@ -194,17 +210,19 @@ def estimate_tag_poses(
     rms_alt = np.full(n, np.nan)
     method = np.full(n, "", dtype=object)
     accepted = np.zeros(n, bool)
+    sigma = np.full(n, np.nan)
     if n == 0:
         return TagPoses(T_best, cov, T_alt, rms, rms_alt, np.full(0, OK, dtype=object), method,
-                        accepted)
+                        accepted, sigma, np.zeros(0))
     uv = det.corners + CORNER_TO_OPENCV_PX
-    screened = _screen(uv.tolist(), det.hamming.tolist(), det.decision_margin.tolist(),
+    screened, edges = _screen(uv.tolist(), det.hamming.tolist(), det.decision_margin.tolist(),
                        size.tolist(), image_size[0], image_size[1], p)
     reject = np.array(screened, dtype=object)
+    edge = np.asarray(edges)
     idx = [i for i, r in enumerate(screened) if r == OK]
     m = len(idx)
     if m == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted)
+        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted, sigma, edge)
 
     # both IPPE solutions per tag, lower reprojection error first; OpenCV reports the RMS per
     # coordinate, ours is per corner (x sqrt 2). One solution only -> repeated.
@@ -250,9 +268,12 @@ def estimate_tag_poses(
     ar = np.arange(m)
     Tb, Ta = T2[ar, pick], T2[ar, 1 - pick]
     rb, ra = rms2[ar, pick], rms2[ar, 1 - pick]
-    Tb, JtJ, _ = gauss_newton(K, Tb, UNIT_CORNERS * (size[idx, None, None] / 2), uv[idx],
-                              iterations=p.refine_iterations)
-    cov_m = pose_covariance(JtJ, p.corner_sigma_px)
+    Tb, JtJ, res = gauss_newton(K, Tb, UNIT_CORNERS * (size[idx, None, None] / 2), uv[idx],
+                                iterations=p.refine_iterations)
+    if p.refine_iterations:
+        rb = np.sqrt(np.mean(np.sum(res * res, axis=-1), axis=-1))
+    sigma_m = corner_sigma(p, edge[idx])
+    cov_m = pose_covariance(JtJ, sigma_m)
     if any(ambiguous):
         d = geo.se3_log(geo.se3_between(Tb, Ta))  # (m, 6)
         angle = np.linalg.norm(d[:, 3:], axis=-1)
@@ -275,4 +296,5 @@ def estimate_tag_poses(
     reject[idx] = reject_m
     method[idx] = method_m
     accepted[idx] = [r == OK for r in reject_m]
-    return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted)
+    sigma[idx] = sigma_m
+    return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted, sigma, edge)

@@ -126,8 +126,10 @@ def run(args: argparse.Namespace) -> int:
                     pipeline = ObservationPipeline(_calibration(args, w, h), params)
                 res = pipeline.process_detailed(frame)
                 tags = pipeline.calib.tags
-                ok = res.tag_poses.accepted
-                sq_sum.extend((res.tag_poses.rms_px[ok] ** 2 * 4).tolist())
+                tp = res.tag_poses
+                ok = tp.accepted
+                ref = params.tag_pose.corner_sigma_ref_edge_px
+                sq_sum.extend((tp.rms_px[ok] ** 2 * 4 * tp.min_edge_px[ok] / ref).tolist())
                 n_pts.extend([4] * int(ok.sum()))
             else:
                 dets: TagDetections = detector.detect(to_gray(frame.colour))
