@@ -313,18 +313,22 @@ def decode_header(data: bytes) -> Header:
 
 
 # --------------------------------------------------------------------------- decode
-def decode_datagram(data: bytes) -> NeighbourMessage:
-    """Decode one datagram alone into a ``NeighbourMessage`` carrying its entries.
+@dataclass(frozen=True)
+class _Ids:
+    sep: list
+    obj: list
+    init: list
+    sep_end: int
+    obj_end: int
+    end: int
+    init_value_bytes: int
 
-    ``fleet_id``, ``boot_epoch`` and ``sequence`` are filled; ``extra`` holds
-    ``datagram_bytes`` and ``bytes_by_kind``. The tag is not checked here (see auth).
-    """
-    h = decode_header(data)
-    data = bytes(data)
+
+def _walk_ids(data: bytes, h: Header) -> _Ids:
+    """Parse the id section and check the value block's length against the counts."""
     end = len(data) - TAG_BYTES
     pos = h.body_offset
-    dim = h.dim
-    P = pose_bytes(dim)
+    P = pose_bytes(h.dim)
     sep_ids = []
     for _ in range(h.n_separators):
         owner, pos = _read_varint(data, pos, end)
@@ -354,14 +358,39 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
         owner, pos = _read_varint(data, pos, end)
         kf, pos = _read_varint(data, pos, end)
         init_ids.append((InitStage(stage), owner, kf))
-        init_bytes += _rotation_value_bytes(dim) if stage == InitStage.ROTATION else P
-    id_end = pos
+        init_bytes += _rotation_value_bytes(h.dim) if stage == InitStage.ROTATION else P
     sep_obj_bytes = (h.n_separators + h.n_objects) * P
-    if end - id_end != sep_obj_bytes + init_bytes:
+    if end - pos != sep_obj_bytes + init_bytes:
         raise DecodeError(
-            f"value block is {end - id_end} bytes, counts "
+            f"value block is {end - pos} bytes, counts "
             f"{h.n_separators}/{h.n_objects}/{h.n_init} need {sep_obj_bytes + init_bytes}"
         )
+    return _Ids(sep_ids, obj_ids, init_ids, sep_id_end, obj_id_end, pos, init_bytes)
+
+
+def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
+    P = pose_bytes(h.dim)
+    return {
+        KIND_HEADER: h.body_offset + TAG_BYTES,
+        KIND_SEPARATOR: ids.sep_end - h.body_offset + h.n_separators * P,
+        KIND_OBJECT: ids.obj_end - ids.sep_end + h.n_objects * P,
+        KIND_INIT: ids.end - ids.obj_end + ids.init_value_bytes,
+    }
+
+
+def decode_datagram(data: bytes) -> NeighbourMessage:
+    """Decode one datagram alone into a ``NeighbourMessage`` carrying its entries.
+
+    ``fleet_id``, ``boot_epoch`` and ``sequence`` are filled; ``extra`` holds
+    ``datagram_bytes`` and ``bytes_by_kind``. The tag is not checked here (see auth).
+    """
+    h = decode_header(data)
+    data = bytes(data)
+    dim = h.dim
+    P = pose_bytes(dim)
+    ids = _walk_ids(data, h)
+    sep_ids, obj_ids, init_ids, id_end = ids.sep, ids.obj, ids.init, ids.end
+    sep_obj_bytes = (h.n_separators + h.n_objects) * P
     pos = id_end
     both_T = _decode_poses(data[pos : pos + sep_obj_bytes], dim)
     sep_T, obj_T = both_T[: h.n_separators], both_T[h.n_separators :]
@@ -387,12 +416,7 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
     init = tuple(
         InitEntry(stage, owner, kf, init_values[i]) for i, (stage, owner, kf) in enumerate(init_ids)
     )
-    by_kind = {
-        KIND_HEADER: h.body_offset + TAG_BYTES,
-        KIND_SEPARATOR: sep_id_end - h.body_offset + h.n_separators * P,
-        KIND_OBJECT: obj_id_end - sep_id_end + h.n_objects * P,
-        KIND_INIT: id_end - obj_id_end + init_bytes,
-    }
+    by_kind = _kind_split(h, ids)
     return NeighbourMessage(
         sender_id=h.sender_id,
         round=h.round,
@@ -408,9 +432,11 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
 
 
 def bytes_by_kind(data: bytes) -> dict[str, int]:
-    """Split a datagram's length over ``KINDS``; a malformed one counts as ``{"malformed": n}``."""
+    """Split a datagram's length over ``KINDS`` (header and ids parsed, values not decoded);
+    a malformed one counts as ``{"malformed": n}``."""
     try:
-        return decode_datagram(data).extra["bytes_by_kind"]
+        h = decode_header(data)
+        return _kind_split(h, _walk_ids(bytes(data), h))
     except DecodeError:
         return {"malformed": len(data)}
 

@@ -93,6 +93,8 @@ def test_golden_decodes_to_the_message():
     np.testing.assert_allclose(t.value, T1, atol=1e-6)
     assert m.extra["bytes_by_kind"] == {"header": 41, "separator": 27, "object": 24, "init": 63}
     assert sum(m.extra["bytes_by_kind"].values()) == 155
+    assert codec.bytes_by_kind(bytes.fromhex(GOLDEN_HEX)) == m.extra["bytes_by_kind"]
+    assert codec.bytes_by_kind(b"junk") == {"malformed": 4}
 
 
 def _random_message(rng, n_sep, n_obj, dim=3, scale_m=100.0, stamp_ns=1_700_000_000_000_000_000):
@@ -177,6 +179,7 @@ def test_split_respects_cap_and_each_datagram_decodes_alone():
         assert sum(size.bytes_by_kind.values()) == size.total_bytes
         for g, m in zip(grams, msgs, strict=True):
             assert m.extra["bytes_by_kind"] == g.bytes_by_kind
+            assert codec.bytes_by_kind(g.data) == g.bytes_by_kind
     # A round of 50 separators + 20 objects fits in two default datagrams.
     assert codec.encoded_size(msg).datagrams == 2
 
