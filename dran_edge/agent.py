@@ -403,8 +403,9 @@ class Agent:
         lin = linearize(graph, plan, poses)
         cost = lin.cost
         if self.mu is None:
-            diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B), [1.0]])
-            self.mu = max(c.mu_init * float(np.max(diag)), _MU_MIN)
+            diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
+            # relative to the median curvature: a stiff gauge prior must not inflate μ
+            self.mu = max(c.mu_init * float(np.median(diag)) if diag.size else 1.0, _MU_MIN)
         g = np.concatenate([lin.g_x, lin.g_y])
         for _ in range(_MAX_TRIALS):
             try:
@@ -416,7 +417,8 @@ class Agent:
             new = retract(plan, poses, c.gamma * u, c.alpha * v)
             new_cost = evaluate_cost(graph, new)
             if math.isfinite(new_cost) and new_cost <= cost:
-                pred = -float(g @ np.concatenate([u, v]))
+                step = np.concatenate([u, v])
+                pred = 0.5 * float(self.mu * step @ step - g @ step)  # model decrease (M ξ = −g)
                 rho = (cost - new_cost) / pred if pred > 0 else 0.0
                 self.mu = max(self.mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), _MU_MIN)
                 self.counters["accepted"] += 1

@@ -19,6 +19,7 @@ from dran_edge.errors import DranError
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("dran_edge.commands.demo", "run the end-to-end demo with no hardware"),
     "solve": ("dran_edge.commands.solve", "optimise a g2o pose graph (centralised Schur-LM)"),
+    "bench": ("dran_edge.commands.bench", "run the paper's experiments (Table 1, object simulation)"),
     "run": ("dran_edge.commands.run", "run the robot daemon (what systemd starts)"),
     "status": ("dran_edge.commands.status", "show the running daemon's health"),
     "check-config": ("dran_edge.commands.check_config", "validate a robot config file"),

@@ -63,6 +63,9 @@ class InitParams:
     """A separator value is re-sent only when it moved by more than this since last sent."""
     sor: float = 1.0
     """Successive over-relaxation ω of the block update (1.0: plain Gauss–Seidel/Jacobi)."""
+    frame_iterations: int = 20
+    """Of the ``max_iterations`` of a stage, at most this many align whole segments first
+    (warm start, see ``LinearStage.frame_update``); 0 disables it."""
     gauss_seidel: bool = False
     """True: robots of one colour update per sub-step using the newest values (DGS);
     False: all robots update in parallel from last round's values (Jacobi)."""
@@ -141,6 +144,7 @@ class LinearStage:
         self.X_known = X0.copy()  # each robot's view is taken from here per robot below
         self.views: list[np.ndarray] = []
         self.blocks: list[_Block] = []
+        self.frames: list[dict] = []
         for part in partition.parts:
             eidx = np.concatenate([part.intra_edges, part.inter_edges])
             Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c_of(part.robot_id)[eidx], w[eidx])
@@ -155,8 +159,31 @@ class LinearStage:
                            options={"SymmetricMode": True})
             view = X0.copy()
             view[_expand(np.array([gauge]), b)] = X_gauge
+            # Warm start: the segment solved alone (intra edges, its first vertex as gauge).
+            ei = part.intra_edges
+            Qi, Bi = normal_equations(n, b, edges[ei], M[ei], c_of(part.robot_id)[ei], w[ei])
+            first = int(part.vertices[0])
+            loc = part.vertices[part.vertices != first]
+            rl, rf = _expand(loc, b), _expand(np.array([first]), b)
+            Qi = Qi.tocsr()
+            X_first = X_gauge if first == gauge else X0[rf]
+            X_hat = X0.copy()
+            X_hat[rf] = X_first
+            if loc.size:
+                X_hat[rl] = spla.spsolve(sp.csc_matrix(Qi[rl][:, rl]),
+                                         Bi[rl] - Qi[rl][:, rf] @ X_first).reshape(-1, X0.shape[1])
+            view[_expand(part.vertices, b)] = X_hat[_expand(part.vertices, b)]
             self.views.append(view)
-            self.blocks.append(_Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], X0[ro].copy()))
+            self.blocks.append(_Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], view[ro].copy()))
+            ex = edges[part.inter_edges]
+            mine_j = partition.owner[ex[:, 1]] == part.robot_id
+            self.frames.append(dict(
+                fixed=bool(np.any(part.vertices == gauge)), X_hat=X_hat[_expand(part.vertices, b)]
+                .reshape(part.vertices.size, b, -1), verts=part.vertices, mine_j=mine_j,
+                own=np.where(mine_j, ex[:, 1], ex[:, 0]), other=np.where(mine_j, ex[:, 0], ex[:, 1]),
+                M=M[part.inter_edges], c=c_of(part.robot_id)[part.inter_edges], w=w[part.inter_edges]))
+        self.heard = [np.zeros(n, bool) for _ in partition.parts]
+        self.multiplicative = b > 1
 
     def update(self, r: int, sor: float) -> float:
         """Robot r's block update from its current view; returns the max abs change."""
@@ -168,11 +195,48 @@ class LinearStage:
         view[_expand(blk.own, self.b)] = X_new
         return change
 
+    def frame_update(self, r: int) -> float:
+        """Align robot r's whole segment to the anchors heard so far: ``X_v = X̂_v G`` (rotation
+        stage, G d×d) or ``X_v = X̂_v + s`` (translation stage), least squares over its
+        inter-robot edges. A segment solved alone is right up to such a transform, so a few of
+        these small steps remove the slow rigid modes before the block updates; returns the
+        max abs change of the segment."""
+        f, view, b = self.frames[r], self.views[r], self.b
+        if f["fixed"]:
+            return 0.0
+        sel = self.heard[r][f["other"]]
+        if not sel.any():
+            return 0.0
+        pos = {int(v): k for k, v in enumerate(f["verts"].tolist())}
+        own_k = np.array([pos[int(v)] for v in f["own"][sel]])
+        Xh = f["X_hat"][own_k]  # (e, b, ncol)
+        Xo = view.reshape(-1, b, view.shape[1])[f["other"][sel]]
+        M, c, w, mj = f["M"][sel], f["c"][sel], f["w"][sel], f["mine_j"][sel]
+        if self.multiplicative:
+            # own j: X̂_j G − (M X_i + c);  own i: M X̂_i G − (X_j − c)
+            P = np.where(mj[:, None, None], Xh, M @ Xh)
+            Qm = np.where(mj[:, None, None], M @ Xo + c, Xo - c)
+            lhs = np.einsum("e,eab,eac->bc", w, P, P)
+            G = np.linalg.solve(lhs, np.einsum("e,eab,eac->bc", w, P, Qm))
+            X_new = f["X_hat"] @ G
+        else:
+            # own j: X̂_j + s − X_i − c;  own i: s − (X_j − X̂_i − c)
+            Qm = np.where(mj[:, None, None], Xo + c - Xh, Xo - Xh - c)
+            s_off = np.einsum("e,eab->ab", w, Qm) / w.sum()
+            X_new = f["X_hat"] + s_off
+        idx = _expand(f["verts"], b)
+        change = float(np.max(np.abs(X_new.reshape(-1, view.shape[1]) - view[idx])))
+        view[idx] = X_new.reshape(-1, view.shape[1])
+        blk = self.blocks[r]
+        blk.X = view[_expand(blk.own, b)].copy()
+        return change
+
     def own_value(self, r: int, v: int) -> np.ndarray:
         return self.views[r][v * self.b:(v + 1) * self.b]
 
     def receive(self, r: int, v: int, X_v: np.ndarray) -> None:
         self.views[r][v * self.b:(v + 1) * self.b] = X_v
+        self.heard[r][v] = True
 
 
 def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: InitParams,
@@ -185,13 +249,18 @@ def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: 
     groups = [list(range(R))] if colour is None else [
         [r for r in range(R) if colour[r] == c] for c in np.unique(colour)]
     iterations = 0
+    frames_done = params.frame_iterations == 0
     for it in range(params.max_iterations):
         iterations = it + 1
         max_change = 0.0
         for group in groups:
             outgoing: dict[int, list] = {}
             for r in group:
-                max_change = max(max_change, stage.update(r, params.sor))
+                if it < params.frame_iterations and not frames_done:
+                    change = stage.frame_update(r)
+                else:
+                    change = stage.update(r, params.sor)
+                max_change = max(max_change, change)
                 sends = []
                 for q in part.parts[r].neighbours:
                     entries = []
@@ -210,6 +279,10 @@ def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: 
                     if InitStage(e.stage) == kind:
                         stage.receive(r, int(e.keyframe_id), from_entry(e))
         history.append((kind.name, it, max_change))
+        if it < params.frame_iterations and not frames_done:
+            if it > 0 and max_change < tol:
+                frames_done = True  # segments aligned: switch to block updates
+            continue
         if max_change < tol:
             break
     return iterations
