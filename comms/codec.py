@@ -6,13 +6,13 @@ entries, decodes alone, and is at most ``max_datagram_bytes`` long (default 1200
 ``HARD_CAP_BYTES`` = 4096, far below libzmq's 8192-byte UDP buffer). Bytes are the paper's
 headline metric (Table 1), so the layout is built for size:
 
-- header: 16 fixed little-endian bytes (magic ``DR``, version, flags, fleet id u16, sender id
-  u16, boot epoch u32, sequence u32) + LEB128 varints (round, stamp_ns, three entry counts);
+- header: magic ``DR``, version, flags (4 bytes), then LEB128 varints: fleet id (u16),
+  sender id (u16), boot epoch (u32), sequence (u32), round, stamp_ns, three entry counts;
 - an id section (varints) for all entries, then one packed value block, then the 16-byte
   authentication-tag slot (zeros here; ``dran_edge.comms.auth`` fills and checks it);
 - SE(3) pose = float32 translation (12 bytes) + "smallest three" unit quaternion with 23-bit
   components (9 bytes): 21 bytes. SE(2) pose = float32 x, y + 24-bit angle: 11 bytes.
-  Worst-case round-trip error: ~3.8e-6 m at 100 m, ~3e-7 rad (``tests/test_codec.py``
+  Worst-case round-trip error: ~3.8e-6 m at 100 m, ~4.4e-7 rad (``tests/test_codec.py``
   measures it; far below the solver's tolerances ε_u = 1e-2, ε_v = 1e-1).
 
 Decoding is strict: anything malformed (truncated, oversized, counts that do not match the
@@ -41,8 +41,11 @@ DEFAULT_MAX_DATAGRAM_BYTES = 1200
 #: Smallest allowed ``max_datagram_bytes``: header + tag + the largest single entry with room.
 MIN_DATAGRAM_BYTES = 160
 
-_FIXED = struct.Struct("<2sBBHHII")
-HEADER_FIXED_BYTES = _FIXED.size  # 16
+_FIXED = struct.Struct("<2sBB")
+#: Magic, version, flags; then varints fleet, sender, boot epoch, sequence, round, stamp_ns
+#: and the three entry counts.
+HEADER_FIXED_BYTES = _FIXED.size  # 4
+_HEADER_MIN_BYTES = HEADER_FIXED_BYTES + 9
 _FLAG_DIM3 = 0x01
 _FLAGS_KNOWN = _FLAG_DIM3
 
@@ -271,12 +274,12 @@ def decode_header(data: bytes) -> Header:
     size = len(data)
     if size > HARD_CAP_BYTES:
         raise DecodeError(f"datagram of {size} bytes exceeds the {HARD_CAP_BYTES}-byte cap")
-    if size < HEADER_FIXED_BYTES + 5 + TAG_BYTES:
+    if size < _HEADER_MIN_BYTES + TAG_BYTES:
         raise DecodeError(
             f"truncated datagram: {size} bytes, header and tag need at least "
-            f"{HEADER_FIXED_BYTES + 5 + TAG_BYTES}"
+            f"{_HEADER_MIN_BYTES + TAG_BYTES}"
         )
-    magic, version, flags, fleet_id, sender_id, boot_epoch, sequence = _FIXED.unpack_from(data)
+    magic, version, flags = _FIXED.unpack_from(data)
     if magic != MAGIC:
         raise DecodeError(f"bad magic {magic!r}, expected {MAGIC!r}")
     if version != SCHEMA_VERSION:
@@ -285,6 +288,18 @@ def decode_header(data: bytes) -> Header:
         raise DecodeError(f"unknown flag bits 0x{flags & ~_FLAGS_KNOWN:02x}")
     end = size - TAG_BYTES
     pos = HEADER_FIXED_BYTES
+    fleet_id, pos = _read_varint(data, pos, end)
+    sender_id, pos = _read_varint(data, pos, end)
+    boot_epoch, pos = _read_varint(data, pos, end)
+    sequence, pos = _read_varint(data, pos, end)
+    for name, value, top in (
+        ("fleet id", fleet_id, _U16_MAX),
+        ("sender id", sender_id, _U16_MAX),
+        ("boot epoch", boot_epoch, _U32_MAX),
+        ("sequence", sequence, _U32_MAX),
+    ):
+        if value > top:
+            raise DecodeError(f"{name} {value} exceeds {top}")
     round_, pos = _read_varint(data, pos, end)
     stamp_ns, pos = _read_varint(data, pos, end)
     n_sep, pos = _read_varint(data, pos, end)
@@ -545,10 +560,17 @@ def encode_datagrams(
     dim = _message_dim(message)
     kinds, ids, values = _entry_records(message, dim)
     n = len(kinds)
-    fixed_prefix_tail = _varint(int(message.round)) + _varint(int(message.stamp_ns))
-    # Counts are reserved at 2 varint bytes each (< 16384 entries per datagram, guaranteed
-    # by the size cap), so packing never overshoots; the real header may be shorter.
-    budget = max_datagram_bytes - HEADER_FIXED_BYTES - len(fixed_prefix_tail) - 6 - TAG_BYTES
+    flags = _FLAG_DIM3 if dim == 3 else 0
+    ident = (
+        _FIXED.pack(MAGIC, SCHEMA_VERSION, flags)
+        + _varint(fleet_id)
+        + _varint(int(message.sender_id))
+        + _varint(boot_epoch)
+    )
+    when = _varint(int(message.round)) + _varint(int(message.stamp_ns))
+    # The sequence is reserved at 5 varint bytes (u32) and the counts at 2 each (< 16384
+    # entries per datagram, guaranteed by the size cap), so packing never overshoots.
+    budget = max_datagram_bytes - len(ident) - 5 - len(when) - 6 - TAG_BYTES
     groups: list[tuple[int, int]] = []
     start = 0
     used = 0
@@ -564,23 +586,15 @@ def encode_datagrams(
     last_sequence = first_sequence + len(groups) - 1
     if first_sequence < 0 or last_sequence > _U32_MAX:
         raise EncodeError(f"sequence numbers {first_sequence}..{last_sequence} leave [0, 2^32)")
-    flags = _FLAG_DIM3 if dim == 3 else 0
     out = []
     for k, (a, b) in enumerate(groups):
         n_sep = sum(1 for x in kinds[a:b] if x == KIND_SEPARATOR)
         n_obj = sum(1 for x in kinds[a:b] if x == KIND_OBJECT)
         n_init = (b - a) - n_sep - n_obj
         head = (
-            _FIXED.pack(
-                MAGIC,
-                SCHEMA_VERSION,
-                flags,
-                fleet_id,
-                message.sender_id,
-                boot_epoch,
-                first_sequence + k,
-            )
-            + fixed_prefix_tail
+            ident
+            + _varint(first_sequence + k)
+            + when
             + _varint(n_sep)
             + _varint(n_obj)
             + _varint(n_init)

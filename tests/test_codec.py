@@ -31,16 +31,16 @@ GOLDEN_MESSAGE = NeighbourMessage(
 )
 # Schema version 1. Changing these bytes needs a version bump + docs/wire-format.md CHANGELOG.
 GOLDEN_HEX = (
-    "445201010102070000f15365010001002afb94ebdc0301010207ac02f58a7a0c03020107050207060000803f"
-    "000000c0000060400300000100807764560080c842000000000000e0c006020cfdfd73d506460000803f0000"
-    "003f00000000000000000000803f0000000000000000000000000000a0bf0000803f000000c0000060400300"
-    "0001008077645600000000000000000000000000000000"
+    "4452010181040780e2cfaa068180042afb94ebdc0301010207ac02f58a7a0c03020107050207060000803f00"
+    "0000c0000060400300000100807764560080c842000000000000e0c006020cfdfd73d506460000803f000000"
+    "3f00000000000000000000803f0000000000000000000000000000a0bf0000803f000000c000006040030000"
+    "01008077645600000000000000000000000000000000"
 )
 GOLDEN_SE2_HEX = (
-    "44520100010002000000000000000000010001010002090001020000004040000080c00e241a0000003f0000"
-    "803ef9ffff00000000000000000000000000000000"
+    "4452010001020000010001010002090001020000004040000080c00e241a0000003f0000803ef9ffff000000"
+    "00000000000000000000000000"
 )
-GOLDEN_HEARTBEAT_HEX = "44520101010001000000000000000000000000000000000000000000000000000000000000"
+GOLDEN_HEARTBEAT_HEX = "4452010101010000000000000000000000000000000000000000000000"
 
 
 def _golden_se2_message():
@@ -63,7 +63,7 @@ def _one(msg, **kw):
 def test_golden_bytes_se3_all_entry_kinds():
     data = _one(GOLDEN_MESSAGE, fleet_id=513, boot_epoch=1_700_000_000, first_sequence=65537)
     assert data.hex() == GOLDEN_HEX
-    assert len(data) == 155
+    assert len(data) == 154
 
 
 def test_golden_bytes_se2_and_heartbeat():
@@ -91,8 +91,8 @@ def test_golden_decodes_to_the_message():
     np.testing.assert_array_equal(r.value, ROT_RELAXED)  # exactly representable in float32
     assert t.stage == InitStage.TRANSLATION and t.keyframe_id == 6
     np.testing.assert_allclose(t.value, T1, atol=1e-6)
-    assert m.extra["bytes_by_kind"] == {"header": 41, "separator": 27, "object": 24, "init": 63}
-    assert sum(m.extra["bytes_by_kind"].values()) == 155
+    assert m.extra["bytes_by_kind"] == {"header": 40, "separator": 27, "object": 24, "init": 63}
+    assert sum(m.extra["bytes_by_kind"].values()) == 154
     assert codec.bytes_by_kind(bytes.fromhex(GOLDEN_HEX)) == m.extra["bytes_by_kind"]
     assert codec.bytes_by_kind(b"junk") == {"malformed": 4}
 
@@ -191,7 +191,7 @@ def test_entry_sizes_are_compact():
         sender_id=1, round=1, stamp_ns=10, separators=(SeparatorEntry(1, 5, 10, np.eye(4)),)
     )
     heartbeat = codec.encoded_size(NeighbourMessage(sender_id=1, round=1, stamp_ns=10))
-    assert heartbeat.total_bytes == 37
+    assert heartbeat.total_bytes == 29
     assert codec.encoded_size(one).total_bytes - heartbeat.total_bytes == 3 + 21
 
 
@@ -266,8 +266,9 @@ def test_malformed_is_decode_error(mutate, match):
 
 
 def _header_with_counts(n_sep, n_obj, n_init, body=b"", dim3=True):
-    fixed = struct.pack("<2sBBHHII", b"DR", 1, 1 if dim3 else 0, 1, 2, 3, 4)
-    return fixed + bytes([0, 0, n_sep, n_obj, n_init]) + body + bytes(codec.TAG_BYTES)
+    # magic, version, flags; fleet 1, sender 2, epoch 3, sequence 4, round 0, stamp 0, counts
+    fixed = struct.pack("<2sBB", b"DR", 1, 1 if dim3 else 0) + bytes([1, 2, 3, 4, 0, 0])
+    return fixed + bytes([n_sep, n_obj, n_init]) + body + bytes(codec.TAG_BYTES)
 
 
 def test_bad_counts_nan_and_nonunit_quaternion():
@@ -370,3 +371,17 @@ def test_fuzz_mutated_valid_datagrams_only_decode_error(data):
         T = getattr(e, "T_world_body", None)
         T = e.T_world_object if T is None else T
         assert np.all(np.isfinite(T))
+
+
+@pytest.mark.parametrize("field", [0, 1, 2, 3])
+def test_header_ids_out_of_range(field):
+    """fleet/sender are u16 and boot epoch/sequence u32 even though they travel as varints."""
+    values = [1, 2, 3, 4]
+    values[field] = (1 << 16) if field < 2 else (1 << 32)
+    head = struct.pack("<2sBB", b"DR", 1, 1) + b"".join(codec._varint(v) for v in values)
+    data = head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES)
+    with pytest.raises(DecodeError, match="exceeds"):
+        codec.decode_header(data)
+    values[field] -= 1
+    head = struct.pack("<2sBB", b"DR", 1, 1) + b"".join(codec._varint(v) for v in values)
+    assert codec.decode_header(head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES))
