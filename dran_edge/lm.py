@@ -16,8 +16,8 @@ eliminating ``u`` for fixed ``v``:
 
 Signs: (u, v) returned by :func:`schur_step` are the model's minimiser ``−M⁻¹ g`` (a descent
 step, applied with ``+``). ``A`` is large and sparse: it is factorised once per damping trial
-(SuperLU in symmetric mode with a minimum-degree ordering of AᵀA+A) and the factor is reused for
-the right-hand sides ``[g_x, C]``; ``Ĥ`` is small and dense (Cholesky). With no public variables
+(supernodal multifrontal Cholesky, :mod:`dran_edge.sparse_cholesky`, analysed once per topology;
+or SuperLU in symmetric mode) and the factor is reused for the right-hand sides ``[g_x, C]``; ``Ĥ`` is small and dense (Cholesky). With no public variables
 this is plain sparse LM; with no private ones it is dense LM on ``v``.
 
 Three tiers, each a pure function: :func:`build_plan` (index maps and sparsity pattern, once per
@@ -42,6 +42,7 @@ import scipy.sparse.linalg as spla
 from dran_edge import geometry as geo
 from dran_edge.factors import Factor, factor_cost
 from dran_edge.graph import PoseGraph, VariableKind
+from dran_edge.sparse_cholesky import NotPositiveDefinite, SymbolicCholesky
 
 log = logging.getLogger(__name__)
 
@@ -88,17 +89,41 @@ class StructurePlan:
         return int(self.public_vars.shape[0]) * self.dof
 
 
-def _csc_pattern(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int, extra_keys=None):
-    """Unique CSC pattern of (rows, cols) plus optional extra keys; returns indices, indptr,
-    target position of every input entry, and of every extra key."""
-    keys = cols.astype(np.int64) * n_rows + rows
-    n_src = keys.shape[0]
-    if extra_keys is not None:
-        keys = np.concatenate([keys, extra_keys])
+def _block_csc_plan(brow, bcol, base, stride, nbr: int, nbc: int, dof: int, with_diag: bool):
+    """Scatter plan of dense dof×dof blocks into one CSC matrix (nbr·dof × nbc·dof).
+
+    Block i sits at block (brow[i], bcol[i]) and its element (r, c) is read at
+    ``base[i] + r·stride[i] + c`` of the concatenated Hessian blocks. The pattern is unique at
+    block level (every stored block is dense); ``with_diag`` adds all diagonal blocks so that a
+    damping μI has somewhere to go. Returns indices, indptr, src, tgt and the data positions of
+    the diagonal (empty without ``with_diag``)."""
+    keys = bcol.astype(np.int64) * nbr + brow
+    if with_diag:
+        keys = np.concatenate([keys, np.arange(nbr, dtype=np.int64) * (nbr + 1)])
     uniq, inv = np.unique(keys, return_inverse=True)
-    indices = (uniq % max(n_rows, 1)).astype(np.int32)
-    indptr = np.searchsorted(uniq // max(n_rows, 1), np.arange(n_cols + 1)).astype(np.int32)
-    return indices, indptr, inv[:n_src], inv[n_src:]
+    ub_row, ub_col = uniq % max(nbr, 1), uniq // max(nbr, 1)
+    col_start = np.searchsorted(ub_col, np.arange(nbc + 1))
+    blocks_per_col = np.diff(col_start)
+    rank = np.arange(uniq.size) - col_start[ub_col]
+    # scalar column j = bc·dof + c holds dof entries per block of block column bc
+    indptr = np.concatenate([[0], np.cumsum(np.repeat(blocks_per_col * dof, dof))]).astype(np.int32)
+    ar = np.arange(dof)
+    # the scalar rows of column (bc, c): all blocks of bc in order, dof rows each (same for all c)
+    col_rows = (ub_row[:, None] * dof + ar).ravel()  # per block, its dof rows
+    indices = np.concatenate([
+        col_rows[col_start[bc] * dof:col_start[bc + 1] * dof] for bc in range(nbc) for _ in range(dof)
+    ]) if uniq.size else np.zeros(0)
+    indices = indices.astype(np.int32)
+    r, c = np.divmod(np.arange(dof * dof), dof)
+    n_src = brow.shape[0]
+    blk = inv[:n_src]
+    src = (base[:, None] + r[None] * stride[:, None] + c[None]).ravel()
+    tgt = (indptr[(ub_col[blk] * dof)[:, None] + c[None]] + (rank[blk] * dof)[:, None] + r[None]).ravel()
+    diag = np.zeros(0, dtype=np.int64)
+    if with_diag:
+        d = inv[n_src:]
+        diag = (indptr[(ub_col[d] * dof)[:, None] + ar] + (rank[d] * dof)[:, None] + ar).ravel()
+    return indices, indptr, src, tgt.astype(np.int64), diag
 
 
 def build_plan(graph: PoseGraph) -> StructurePlan:
@@ -117,7 +142,8 @@ def build_plan(graph: PoseGraph) -> StructurePlan:
     rr, cc = np.divmod(np.arange(dof * dof), dof)
     ar = np.arange(dof)
     parts: dict[str, list[np.ndarray]] = {key: [] for key in (
-        "A_r", "A_c", "A_s", "C_r", "C_c", "C_s", "B_r", "B_c", "B_s", "gx_t", "gx_s", "gy_t", "gy_s")}
+        "A_r", "A_c", "A_s", "A_k", "C_r", "C_c", "C_s", "C_k", "B_r", "B_c", "B_s",
+        "gx_t", "gx_s", "gy_t", "gy_s")}
     H_offsets, g_offsets = [], []
     H_off = g_off = 0
     for block in graph.factors:
@@ -138,29 +164,33 @@ def build_plan(graph: PoseGraph) -> StructurePlan:
                 parts[name + "_s"].append(g_src[sel].ravel())
             for b in range(k):
                 # element (f, a·dof+i, b·dof+j) of the (m, kd, kd) block array
-                src = H_off + (fi * kd * kd + a * dof * kd + b * dof)[:, None] + (rr * kd + cc)[None]
-                rows = sl[:, a, None] * dof + rr[None]
-                cols = sl[:, b, None] * dof + cc[None]
+                base = H_off + fi * kd * kd + a * dof * kd + b * dof
                 for name, ka, kb in (("A", VariableKind.PRIVATE, VariableKind.PRIVATE),
-                                     ("C", VariableKind.PRIVATE, VariableKind.PUBLIC),
-                                     ("B", VariableKind.PUBLIC, VariableKind.PUBLIC)):
+                                     ("C", VariableKind.PRIVATE, VariableKind.PUBLIC)):
                     sel = (kind[:, a] == ka) & (kind[:, b] == kb)
-                    parts[name + "_r"].append(rows[sel].ravel())
-                    parts[name + "_c"].append(cols[sel].ravel())
-                    parts[name + "_s"].append(src[sel].ravel())
+                    parts[name + "_r"].append(sl[sel, a])
+                    parts[name + "_c"].append(sl[sel, b])
+                    parts[name + "_s"].append(base[sel])
+                    parts[name + "_k"].append(np.full(int(sel.sum()), kd, dtype=np.int64))
+                sel = (kind[:, a] == VariableKind.PUBLIC) & (kind[:, b] == VariableKind.PUBLIC)
+                parts["B_r"].append((sl[sel, a, None] * dof + rr[None]).ravel())
+                parts["B_c"].append((sl[sel, b, None] * dof + cc[None]).ravel())
+                parts["B_s"].append((base[sel, None] + (rr * kd + cc)[None]).ravel())
         H_off += m * kd * kd
         g_off += m * kd
 
     cat = {key: (np.concatenate(val) if val else np.zeros(0, np.int64)) for key, val in parts.items()}
-    diag_keys = np.arange(n_u, dtype=np.int64) * (n_u + 1)
-    A_indices, A_indptr, A_tgt, A_diag = _csc_pattern(cat["A_r"], cat["A_c"], n_u, n_u, diag_keys)
-    C_indices, C_indptr, C_tgt, _ = _csc_pattern(cat["C_r"], cat["C_c"], n_u, n_v)
+    n_pu, n_pv = private_vars.shape[0], public_vars.shape[0]
+    A_indices, A_indptr, A_src, A_tgt, A_diag = _block_csc_plan(
+        cat["A_r"], cat["A_c"], cat["A_s"], cat["A_k"], n_pu, n_pu, dof, True)
+    C_indices, C_indptr, C_src, C_tgt, _ = _block_csc_plan(
+        cat["C_r"], cat["C_c"], cat["C_s"], cat["C_k"], n_pu, n_pv, dof, False)
     return StructurePlan(
         dof=dof,
         private_vars=private_vars,
         public_vars=public_vars,
-        A_indices=A_indices, A_indptr=A_indptr, A_diag=A_diag, A_src=cat["A_s"], A_tgt=A_tgt,
-        C_indices=C_indices, C_indptr=C_indptr, C_src=cat["C_s"], C_tgt=C_tgt,
+        A_indices=A_indices, A_indptr=A_indptr, A_diag=A_diag, A_src=A_src, A_tgt=A_tgt,
+        C_indices=C_indices, C_indptr=C_indptr, C_src=C_src, C_tgt=C_tgt,
         B_src=cat["B_s"], B_tgt=cat["B_r"] * n_v + cat["B_c"],
         gx_src=cat["gx_s"], gx_tgt=cat["gx_t"], gy_src=cat["gy_s"], gy_tgt=cat["gy_t"],
         H_offsets=tuple(H_offsets), g_offsets=tuple(g_offsets),
@@ -262,6 +292,23 @@ def _factorize(A_mu: sp.csc_matrix):
         raise LinearSolveError(str(exc)) from None
 
 
+def cholesky_factorizer(plan: StructurePlan) -> Callable[[sp.csc_matrix, float], object] | None:
+    """A ``factorize(A, mu)`` for :func:`schur_step` using the supernodal Cholesky of
+    :mod:`dran_edge.sparse_cholesky`, analysed once for the plan's pattern of A (tier 1).
+    ``A`` must be a :class:`Linearization`'s A for this plan. None when there is no private block."""
+    if plan.n_u == 0:
+        return None
+    symbolic = SymbolicCholesky(plan.A_indptr, plan.A_indices, plan.n_u, plan.dof)
+
+    def factorize(A: sp.csc_matrix, mu: float):
+        try:
+            return symbolic.factorize(A.data, mu)
+        except NotPositiveDefinite as exc:
+            raise LinearSolveError(str(exc)) from None
+
+    return factorize
+
+
 def schur_step(
     A: sp.spmatrix,
     B: np.ndarray,
@@ -269,19 +316,24 @@ def schur_step(
     g_x: np.ndarray,
     g_y: np.ndarray,
     mu: float,
+    factorize: Callable[[sp.csc_matrix, float], object] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tier 3: the minimiser (u, v) = −M⁻¹ g of the damped model (eqs. 8, 11, 12).
 
-    One sparse factorisation of ``A + μI`` serves both right-hand sides ``[g_x, C]``.
-    Raises :class:`LinearSolveError` when a factorisation fails.
+    One sparse factorisation of ``A + μI`` serves both right-hand sides ``[g_x, C]``: by
+    ``factorize(A, mu)`` when given (an object with ``solve(rhs)``, e.g. from
+    :func:`cholesky_factorizer`), else SuperLU. Raises :class:`LinearSolveError` when a
+    factorisation fails.
     """
     n_u, n_v = g_x.shape[0], g_y.shape[0]
     if n_u == 0:
         Ainv_g = np.zeros(0)
         Ainv_C = np.zeros((0, n_v))
     else:
-        A_mu = sp.csc_matrix(A + mu * sp.identity(n_u, format="csc"))
-        lu = _factorize(A_mu)
+        if factorize is not None:
+            lu = factorize(A, mu)
+        else:
+            lu = _factorize(sp.csc_matrix(A + mu * sp.identity(n_u, format="csc")))
         C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
         X = lu.solve(np.column_stack([g_x, C_dense]) if n_v else g_x[:, None])
         Ainv_g, Ainv_C = X[:, 0], X[:, 1:]
@@ -319,8 +371,9 @@ class LMParams:
     """Cap on accepted steps (linearisations)."""
     max_trials: int = 30
     """Cap on damped solves per iteration before giving up."""
-    mu_init: float = 1e-5
-    """Initial μ relative to the largest diagonal entry of JᵀJ."""
+    mu_init: float = 1e-8
+    """Initial μ relative to the largest diagonal entry of JᵀJ (small: near-Gauss–Newton steps
+    from a good initialisation; rejected steps raise it)."""
     mu_min: float = 1e-20
     """Absolute lower bound of μ."""
     cost_tol: float = 1e-10
@@ -330,6 +383,8 @@ class LMParams:
     """Converged when an accepted step's ‖(u, v)‖₂ < step_tol (metres/radians mixed)."""
     gradient_tol: float = 0.0
     """Converged when ‖g‖_∞ ≤ gradient_tol at a linearisation point (whitened units)."""
+    linear_solver: str = "cholesky"
+    """Factorisation of A + μI: 'cholesky' (supernodal, dran_edge.sparse_cholesky) or 'superlu'."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -361,6 +416,9 @@ def solve(
     ``callback(iteration, cost, mu)`` is called after every accepted step (progress reports).
     """
     plan = build_plan(graph) if plan is None else plan
+    if params.linear_solver not in ("cholesky", "superlu"):
+        raise ValueError(f"linear_solver must be 'cholesky' or 'superlu', got {params.linear_solver!r}")
+    factorize = cholesky_factorizer(plan) if params.linear_solver == "cholesky" else None
     poses = np.asarray(poses, dtype=np.float64)
     cost = evaluate_cost(graph, poses)
     history = [cost]
@@ -388,7 +446,7 @@ def solve(
         for _ in range(params.max_trials):
             trials += 1
             try:
-                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu)
+                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, factorize)
             except LinearSolveError as exc:
                 log.debug("damped solve failed at mu=%g: %s", mu, exc)
                 mu, nu = mu * nu, nu * 2.0

@@ -1,0 +1,151 @@
+"""Benchmark: our centralised Schur-LM vs GTSAM's Levenberg-Marquardt on the paper's six g2o graphs.
+
+    .venv/bin/python tools/bench/bench_g2o.py [DATA_DIR] [--only NAME ...] [--repeat N]
+
+DATA_DIR defaults to ../shared/data/g2o when it exists. For every graph, in the same process:
+read it, compute the chordal initialisation once, then time (best of --repeat runs)
+
+- ours, geodesic residual, SE-Sync isotropic weights, stopping at a relative cost decrease < 1e-5
+  (GTSAM's default relativeErrorTol), the same rule as GTSAM's run;
+- ours, chordal residual, SE-Sync weights, stopping at 1e-8 (the CLI default): the minimiser of the
+  SE-Sync objective F itself (paper Table 1);
+- GTSAM LM (default parameters: lambda0 1e-5, factor 10, relative/absolute error tol 1e-5) with
+  BetweenFactorPose{2,3} and the same isotropic weights (precision τ on translation, 2κ on
+  rotation, which equals SE-Sync's F to first order), from the same initial values, vertex 0 fixed
+  by a constrained prior.
+
+Times are the optimiser only (ours: solve() including its structure plan; GTSAM: optimize()),
+not file reading, initialisation or graph building. F is the SE-Sync objective of each result.
+gtsam is a benchmark-only dependency (pip install gtsam, or the project's 'bench' extra).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+# Our frontal matrices are small: one BLAS thread per process (threaded OpenBLAS oversubscribes
+# a busy 2-core machine badly). Must be set before numpy loads; GTSAM is not affected.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from dran_edge.g2o import read_g2o  # noqa: E402
+from dran_edge.lm import LMParams, solve  # noqa: E402
+from dran_edge.objective import sesync_objective, sesync_weights  # noqa: E402
+from dran_edge.pgo import initial_poses, pose_graph  # noqa: E402
+
+# F* of the data README (exact LM, ‖grad‖ ≤ 2e-4); the paper prints them rounded.
+DATASETS = {
+    "parking-garage": ("parking-garage.g2o", 1.26252443),
+    "sphere2500": ("sphere2500.g2o", 1687.00581),
+    "torus3D": ("torus3D.g2o", 24227.0456),
+    "CSAIL": ("CSAIL.g2o", 31.4703317),
+    "intel": ("input_INTEL_g2o.g2o", 393.652541),
+    "manhattan": ("input_M3500_g2o.g2o", 193.862258),
+}
+
+
+def _gtsam_problem(gtsam, g, T0, kappa, tau):
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    if g.dim == 3:
+        for k in range(g.num_vertices):
+            values.insert(k, gtsam.Pose3(T0[k]))
+        for e in range(g.num_edges):
+            i, j = (int(x) for x in g.edges[e])
+            noise = gtsam.noiseModel.Diagonal.Precisions(np.r_[[2 * kappa[e]] * 3, [tau[e]] * 3])
+            graph.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(g.measurements[e]), noise))
+        graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(T0[0]), gtsam.noiseModel.Constrained.All(6)))
+    else:
+        def pose2(T):
+            return gtsam.Pose2(T[0, 2], T[1, 2], np.arctan2(T[1, 0], T[0, 0]))
+
+        for k in range(g.num_vertices):
+            values.insert(k, pose2(T0[k]))
+        for e in range(g.num_edges):
+            i, j = (int(x) for x in g.edges[e])
+            noise = gtsam.noiseModel.Diagonal.Precisions(np.r_[[tau[e]] * 2, [2 * kappa[e]]])
+            graph.add(gtsam.BetweenFactorPose2(i, j, pose2(g.measurements[e]), noise))
+        graph.add(gtsam.PriorFactorPose2(0, pose2(T0[0]), gtsam.noiseModel.Constrained.All(3)))
+    return graph, values
+
+
+def _gtsam_run(gtsam, graph, values, g):
+    params = gtsam.LevenbergMarquardtParams()
+    t = time.perf_counter()
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    res = opt.optimize()
+    dt = time.perf_counter() - t
+    get = res.atPose3 if g.dim == 3 else res.atPose2
+    T = np.array([get(k).matrix() for k in range(g.num_vertices)])
+    return dt, opt.iterations(), T
+
+
+def _ours(g, T0, residual, cost_tol):
+    graph = pose_graph(g, residual, "sesync")
+    t = time.perf_counter()
+    res = solve(graph, T0, LMParams(cost_tol=cost_tol))
+    return time.perf_counter() - t, res
+
+
+def main(argv: list[str] | None = None) -> int:
+    default = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "g2o"
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data_dir", nargs="?", default=str(default) if default.exists() else None)
+    ap.add_argument("--only", nargs="+", choices=list(DATASETS), help="a subset of the graphs")
+    ap.add_argument("--repeat", type=int, default=3, help="timed runs per solver (best is kept)")
+    ap.add_argument("--no-gtsam", action="store_true", help="skip GTSAM")
+    args = ap.parse_args(argv)
+    if args.data_dir is None:
+        ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
+    gtsam = None
+    if not args.no_gtsam:
+        try:
+            import gtsam  # noqa: F811  (benchmark-only dependency, imported lazily)
+        except ImportError:
+            print("gtsam is not installed (pip install gtsam); use --no-gtsam", file=sys.stderr)
+            return 3
+    print(f"# cpu: {os.cpu_count()} cores; numpy {np.__version__}; best of {args.repeat} runs")
+    head = (f"{'dataset':15s} {'n':>5s} {'m':>5s} {'F_init':>11s} | {'geo s':>6s} {'it':>3s} "
+            f"{'F geo':>12s} {'relF*':>8s} | {'gtsam s':>7s} {'it':>3s} {'F gtsam':>12s} "
+            f"{'relF*':>8s} | {'ratio':>5s} | {'chord s':>7s} {'it':>3s} {'F chordal':>12s} {'relF*':>8s}")
+    print(head)
+    print("-" * len(head))
+    for name in args.only or DATASETS:
+        fname, F_star = DATASETS[name]
+        g = read_g2o(Path(args.data_dir) / fname)
+        kappa, tau = sesync_weights(g.dim, g.information)
+
+        def F(T):
+            return sesync_objective(T, g.edges, g.measurements, kappa, tau)
+
+        T0 = initial_poses(g, "chordal")
+        geo_runs = [_ours(g, T0, "geodesic", 1e-5) for _ in range(args.repeat)]
+        t_geo = min(r[0] for r in geo_runs)
+        res_geo = geo_runs[0][1]
+        cho_runs = [_ours(g, T0, "chordal", 1e-8) for _ in range(max(1, args.repeat // 3))]
+        t_cho = min(r[0] for r in cho_runs)
+        res_cho = cho_runs[0][1]
+        if gtsam is not None:
+            graph, values = _gtsam_problem(gtsam, g, T0, kappa, tau)
+            gt_runs = [_gtsam_run(gtsam, graph, values, g) for _ in range(args.repeat)]
+            t_gt = min(r[0] for r in gt_runs)
+            it_gt, F_gt = gt_runs[0][1], F(gt_runs[0][2])
+            gt_txt = f"{t_gt:7.3f} {it_gt:3d} {F_gt:12.6f} {(F_gt - F_star) / F_star:8.1e} | {t_geo / t_gt:5.2f}"
+        else:
+            gt_txt = f"{'-':>7s} {'-':>3s} {'-':>12s} {'-':>8s} | {'-':>5s}"
+        F_geo, F_cho = F(res_geo.poses), F(res_cho.poses)
+        print(f"{name:15s} {g.num_vertices:5d} {g.num_edges:5d} {F(T0):11.4f} | {t_geo:6.3f} "
+              f"{res_geo.iterations:3d} {F_geo:12.6f} {(F_geo - F_star) / F_star:8.1e} | {gt_txt} | "
+              f"{t_cho:7.3f} {res_cho.iterations:3d} {F_cho:12.6f} {(F_cho - F_star) / F_star:8.1e}",
+              flush=True)
+    print("ratio = ours (geodesic) / GTSAM wall time of the optimiser; relF* = (F - F*) / F*")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
