@@ -5,8 +5,9 @@
 set -euo pipefail
 
 # build-essential/cmake/pkg-config: the draft-enabled libzmq and pyzmq build;
-# libsystemd-dev: systemd-python; python3-venv: the project venv.
-want=(python3-venv python3-dev build-essential cmake pkg-config libsystemd-dev dpkg-dev iproute2)
+# libsystemd-dev: systemd-python; python3-venv: the project venv; libusb-1.0-0: the pyrealsense2
+# wheel links it (ImportError "libusb-1.0.so.0" without it).
+want=(python3-venv python3-dev build-essential cmake pkg-config libsystemd-dev dpkg-dev iproute2 libusb-1.0-0)
 # ROS Noetic from Debian, only for the vins_bridge test (skipped cleanly when absent).
 optional=(ros-core python3-rospy python3-nav-msgs python3-std-msgs python3-geometry-msgs)
 
