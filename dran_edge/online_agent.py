@@ -98,6 +98,11 @@ class OnlineAgent:
         self.T_world_odom = np.eye(4) if T_world_odom is None else np.asarray(T_world_odom, float)
         self._dirty = False
         self.rebuilds = 0
+        #: node key -> (stamp_ns, T_world_body by odometry alone): the estimate before any
+        #: optimisation (SR_ATE's ATE^0), chained like the local graph initialises nodes.
+        self.dead_reckoning: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
+        self._dr_last_of_segment: dict[int, int] = {}
+        self._dr_last: int | None = None
 
     def set_world_frame(self, T_world_odom: np.ndarray) -> None:
         """The robot's first VIO frame in the fleet's world (before its first keyframe)."""
@@ -111,8 +116,35 @@ class OnlineAgent:
             self._rebuild()
         return self.agent.handle(event)
 
+    def _track_dead_reckoning(self) -> None:
+        g = self.local_graph
+        for key in g.node_keys().tolist():
+            if key in self.dead_reckoning:
+                continue
+            seg, T_odom = g.node_segment[key], g.node_odom[key]
+            prev = self._dr_last_of_segment.get(seg)
+            if prev is not None:
+                _, T_prev, T_odom_prev = self.dead_reckoning[prev]
+                T = T_prev @ geo.se3_between(T_odom_prev, T_odom)
+            elif self._dr_last is None:
+                T = self.T_world_odom @ T_odom
+            else:  # a new segment starts where the robot last was (as the local graph does)
+                T = self.dead_reckoning[self._dr_last][1].copy()
+            self.dead_reckoning[key] = (int(g.node_stamp[key]), T, T_odom)
+            self._dr_last_of_segment[seg] = key
+            self._dr_last = key
+
+    def initial_estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_ns, T_world_body) of the current nodes by odometry alone (no optimisation)."""
+        keys = [k for k in self.local_graph.node_keys().tolist() if k in self.dead_reckoning]
+        if not keys:
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        return (np.array([self.dead_reckoning[k][0] for k in keys], np.int64),
+                np.stack([self.dead_reckoning[k][1] for k in keys]))
+
     def _rebuild(self) -> None:
         a, g = self.agent, self.local_graph
+        self._track_dead_reckoning()
         G_inv = geo.se3_inverse(self.T_world_odom)
         if a.problem.n:
             g.set_estimates(a.problem.pose_ids, G_inv @ a.x)

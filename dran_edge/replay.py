@@ -554,10 +554,17 @@ def write_outputs(run: rd.Run, robots: dict[int, _Robot], rounds_rows: list[dict
         stamps = stamps[order]
         write_tum(d / "trajectory.tum", stamps * 1e-9, np.asarray(u.T_world_body)[order],
                   header=f"{r.info.name}: final estimate (dran-edge replay)")
-        T0 = np.stack([r.first_seen.get(int(s), u.T_world_body[i]) for s, i in
-                       zip(stamps.tolist(), order.tolist())])
-        write_tum(d / "trajectory_init.tum", stamps * 1e-9, T0,
-                  header=f"{r.info.name}: each keyframe's first estimate (dran-edge replay)")
+        if hasattr(r.core, "initial_estimate"):
+            s0, T0 = r.core.initial_estimate()
+            what = "odometry alone, before any optimisation"
+        else:
+            s0 = stamps
+            T0 = np.stack([r.first_seen.get(int(s), u.T_world_body[i]) for s, i in
+                           zip(stamps.tolist(), order.tolist())])
+            what = "each keyframe's first estimate"
+        o0 = np.argsort(s0, kind="stable")
+        write_tum(d / "trajectory_init.tum", s0[o0] * 1e-9, T0[o0],
+                  header=f"{r.info.name}: initial estimate, {what} (dran-edge replay)")
         with open(d / "objects.csv", "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")
             w.writerow(["object_id", "x", "y", "z", "qx", "qy", "qz", "qw"])
@@ -581,7 +588,8 @@ def write_merged_g2o(run: rd.Run, robots: dict[int, _Robot]) -> bool:
     Vertices: robot ``r``'s keyframe ``j`` is ``r * 1_000_000 + j`` (by stamp order), object
     ``k`` is ``1_000_000_000 + k`` (shared by every robot that observed it). Edges: every
     odometry, loop and observation factor with information ``Σ⁻¹``; a robot's gauge prior fixes
-    its node (FIX). Values: the final decentralized estimate.
+    its node (FIX). Values: the final decentralized estimate (each robot's agent, world frame;
+    an object takes the copy of the lowest robot id that has one).
     """
     from dran_edge.g2o import G2oGraph, write_g2o
 
@@ -598,7 +606,11 @@ def write_merged_g2o(run: rd.Run, robots: dict[int, _Robot]) -> bool:
         fa = graph.factor_arrays()
         keys = graph.node_keys()
         stamps = graph.node_stamps_ns()
-        est = graph.T_world_body()
+        # vertex values: the agent's final estimate (world frame), matched by keyframe stamp
+        final = {int(s): T for s, T in zip(r.last.keyframe_stamps_ns.tolist(), r.last.T_world_body)}
+        keep = np.array([int(s) in final for s in stamps.tolist()], bool)
+        keys, stamps = keys[keep], stamps[keep]
+        est = np.stack([final[int(s)] for s in stamps.tolist()]) if len(stamps) else np.zeros((0, 4, 4))
         order = np.argsort(stamps, kind="stable")
         key_vid = {}
         for j, i in enumerate(order.tolist()):
@@ -609,7 +621,7 @@ def write_merged_g2o(run: rd.Run, robots: dict[int, _Robot]) -> bool:
             rows.append((v, "pose", r.info.name, int(stamps[i])))
         from dran_edge.local_graph import OBJ
 
-        for oid, T in zip(graph.object_ids().tolist(), graph.T_world_object()):
+        for oid, T in zip(r.last.object_ids, r.last.T_world_object):
             obj_vertex.setdefault(int(oid), T)
 
         def vertex(key: int) -> int | None:

@@ -86,9 +86,9 @@ class SimParams:
     mocap_rate_hz: float = 30.0
     """Motive export frame rate, Hz."""
     # --- VIO drift
-    scale_error_sigma: float = 0.01
+    scale_error_sigma: float = 0.02
     """Per-segment scale error of the VIO translation (1 sigma, fraction)."""
-    yaw_bias_sigma_rad_s: float = 2e-4
+    yaw_bias_sigma_rad_s: float = 5e-4
     """Initial yaw-rate bias of a segment (1 sigma), rad/s."""
     yaw_bias_walk_rad_s_sqrt_s: float = 5e-5
     """Random walk of the yaw-rate bias, rad/s per sqrt(s)."""
