@@ -156,35 +156,43 @@ def run_loopback_fleet(
                 "--out",
                 out,
             ]
-            procs[i] = (
-                subprocess.Popen(
+            # stderr to a file, not a pipe: a chatty node must never block on a full pipe.
+            err_path = os.path.join(tmp, f"robot{i}.err")
+            with open(err_path, "w", encoding="utf-8") as err_file:
+                p = subprocess.Popen(
                     cmd,
                     stdin=subprocess.PIPE,
-                    stdout=subprocess.PIPE,
-                    stderr=subprocess.PIPE,
+                    stdout=subprocess.DEVNULL,
+                    stderr=err_file,
                     text=True,
-                ),
-                out,
-            )
-            procs[i][0].stdin.write(spec.to_json())
-            procs[i][0].stdin.close()
-        deadline = t0 + spec.rounds * spec.period_s + timeout_s
-        failures = []
-        reports = {}
-        for i, (p, out) in procs.items():
-            try:
-                p.wait(timeout=max(deadline - time.time(), 1.0))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-                failures.append(f"robot {i}: timed out")
-                continue
-            err = p.stderr.read()
-            if p.returncode != 0:
-                failures.append(f"robot {i}: exit {p.returncode}: {err.strip()[-2000:]}")
-                continue
-            with open(out, encoding="utf-8") as f:
-                reports[i] = json.load(f)
+                )
+            procs[i] = (p, out, err_path)
+            p.stdin.write(spec.to_json())
+            p.stdin.close()
+        try:
+            deadline = t0 + spec.rounds * spec.period_s + timeout_s
+            failures = []
+            reports = {}
+            for i, (p, out, err_path) in procs.items():
+                try:
+                    p.wait(timeout=max(deadline - time.time(), 1.0))
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+                    failures.append(f"robot {i}: timed out")
+                    continue
+                with open(err_path, encoding="utf-8", errors="replace") as f:
+                    err = f.read()
+                if p.returncode != 0:
+                    failures.append(f"robot {i}: exit {p.returncode}: {err.strip()[-2000:]}")
+                    continue
+                with open(out, encoding="utf-8") as f:
+                    reports[i] = json.load(f)
+        finally:
+            for p, _, _ in procs.values():
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
         if failures:
             raise DranError("loopback fleet failed: " + "; ".join(failures))
     return reports
