@@ -117,7 +117,7 @@ class _Reader:
             raise self.fail(key, f"expected a list of {n} finite numbers, got {v!r}")
         return np.asarray(v, dtype=np.float64)
 
-    def child(self, key: str) -> "_Reader":
+    def child(self, key: str) -> _Reader:
         line = self.node.lines.get(key) if hasattr(self.node, "lines") else None
         return _Reader(self.path, self.node.get(key), f"{self.where}.{key}" if self.where else key,
                        line)
@@ -128,7 +128,8 @@ class _Reader:
         r.check_keys({"xyz", "quat_xyzw"})
         xyz, q = r.vector("xyz", 3), r.vector("quat_xyzw", 4)
         if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise r.fail("quat_xyzw", f"expected a unit quaternion, got norm {np.linalg.norm(q):.6f}")
+            raise r.fail("quat_xyzw",
+                         f"expected a unit quaternion, got norm {np.linalg.norm(q):.6f}")
         return geo.se3_from_xyz_quat_xyzw(np.concatenate([xyz, q / np.linalg.norm(q)]))
 
 
@@ -263,7 +264,8 @@ def load_calibration(calib_dir: str | Path, robot: str) -> Calibration:
     camera_path = calib_dir / "cameras" / f"{robot}.yaml"
     if not camera_path.exists():
         known = sorted(p.stem for p in (calib_dir / "cameras").glob("*.yaml"))
-        raise ConfigError(f"no camera file for robot {robot!r}; found {known}", path=str(camera_path))
+        raise ConfigError(f"no camera file for robot {robot!r}; found {known}",
+                          path=str(camera_path))
     camera = load_camera(camera_path)
     if camera.robot != robot:
         raise ConfigError(f"robot: expected {robot!r} (the file name), got {camera.robot!r}",

@@ -102,7 +102,7 @@ class TagDetections:
         return int(self.tag_id.shape[0])
 
     @staticmethod
-    def empty() -> "TagDetections":
+    def empty() -> TagDetections:
         return TagDetections(
             np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4, 2))
         )
@@ -197,7 +197,7 @@ class TagDetector:
 
 
 def to_gray(colour_bgr: np.ndarray) -> np.ndarray:
-    """BGR uint8 (H, W, 3) -> grey (H, W) uint8 with OpenCV's BT.601 weights; grey passes through."""
+    """BGR uint8 (H, W, 3) -> grey (H, W) uint8 (OpenCV BT.601 weights); grey passes through."""
     import cv2
 
     if colour_bgr.ndim == 2:

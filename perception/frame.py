@@ -1,4 +1,6 @@
-"""One camera frame, and its compact byte layout for the daemon's ingest socket (docs/perception.md).
+"""One camera frame, and its compact byte layout for the daemon's ingest socket.
+
+Documented in docs/perception.md ("Frame byte layout").
 
 A ``Frame`` is ``(stamp_ns, colour BGR uint8 (H, W, 3), depth uint16 (H, W) in the camera's depth
 unit (mm for RealSense) aligned to colour, or None, camera_id)``.

@@ -8,8 +8,8 @@ For an accepted tag k of object o (``T_object_tag`` from calib/tags.yaml):
 frame, the object pose is re-estimated from ALL their corners at once (Gauss-Newton on the
 reprojection error of the corner points expressed in the object frame, started from the tag with
 the smallest covariance), which also removes the planar ambiguity of each single tag; the joint
-covariance is (J^T W J)^-1 over all 8k rows, W = diag(1 / sigma_tag^2). If the joint fit's RMS error exceeds
-``max_reproj_px`` (one tag is wrong), the best single tag is used.
+covariance is (J^T W J)^-1 over all 8k rows, W = diag(1 / sigma_tag^2). If the joint fit's RMS
+error exceeds ``max_reproj_px`` (one tag is wrong), the best single tag is used.
 
 Finally ``T_body_object = T_body_camera @ T_camera_object``; a fixed left factor leaves a
 right-perturbation covariance unchanged. The extrinsic's own uncertainty is not added.
@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 from dran_edge.perception.covariance import gauss_newton, pose_covariance
 from dran_edge.perception.tagpose import CORNER_TO_OPENCV_PX, TagPoses
 
@@ -59,17 +58,19 @@ def fuse_objects(
         return ObjectPoses(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)),
                            np.zeros(0, np.int64))
     pos = map_pos[use]
-    oid = object_id_of_pos[pos]
-    if use.size == 1:
-        objects, counts, best = oid, np.ones(1, np.int64), np.zeros(1, np.int64)
+    # group the (few) accepted tags by object in plain Python: cheaper than np.unique here
+    groups: dict[int, list[int]] = {}
+    for k, o in enumerate(object_id_of_pos[pos].tolist()):
+        groups.setdefault(o, []).append(k)
+    objects = sorted(groups)
+    counts = np.array([len(groups[o]) for o in objects], np.int64)
+    if counts.max() == 1:
+        best = np.array([groups[o][0] for o in objects])
     else:
-        objects, first, counts = np.unique(oid, return_index=True, return_counts=True)
-        best = first
-        if objects.size != oid.size:
-            # the tag with the smallest covariance trace represents (and starts) each object
-            trace = np.trace(tag_poses.covariance[use], axis1=1, axis2=2)
-            best = np.array([np.flatnonzero(oid == o)[np.argmin(trace[oid == o])]
-                             for o in objects])
+        # the tag with the smallest covariance trace represents (and starts) each object
+        trace = np.trace(tag_poses.covariance[use], axis1=1, axis2=2).tolist()
+        best = np.array([min(groups[o], key=trace.__getitem__) for o in objects])
+    objects = np.array(objects, np.int64)
     pb = pos[best]
     T_out = tag_poses.T_camera_tag[use[best]] @ T_tag_object[pb]
     A = adjoint_object_tag[pb]  # = transform_covariance(cov, T_tag_object), precomputed
@@ -81,7 +82,7 @@ def fuse_objects(
         uv = np.zeros((multi.size, n_pts, 2))
         weight = np.zeros((multi.size, n_pts))
         for row, j in enumerate(multi):
-            members = np.flatnonzero(oid == objects[j])
+            members = np.asarray(groups[int(objects[j])])
             k4 = 4 * members.size
             P[row, :k4] = corners_object[pos[members]].reshape(-1, 3)
             uv[row, :k4] = (corners[use[members]] + CORNER_TO_OPENCV_PX).reshape(-1, 2)

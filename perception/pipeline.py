@@ -16,13 +16,13 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from dran_edge.events import ObjectObservation, ObservationBatch
 from dran_edge.perception.calib import Calibration
 from dran_edge.perception.detector import DetectorParams, TagDetections, TagDetector, to_gray
 from dran_edge.perception.frame import Frame
 from dran_edge.perception.objects import ObjectPoses, fuse_objects
 from dran_edge.perception.tagpose import TagPoseParams, TagPoses, estimate_tag_poses
+
+from dran_edge.events import ObjectObservation, ObservationBatch
 
 log = logging.getLogger(__name__)
 

@@ -21,8 +21,8 @@ neither aliased nor over-blurred); noise comes from a pre-drawn pool at a random
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -101,7 +101,7 @@ class TagRenderer:
         return bits
 
     def texture(self, tag_id: int, module_px: int) -> np.ndarray:
-        """The tag with its quiet zone, ``module_px`` pixels per module, upright as OpenCV draws it."""
+        """The tag with its quiet zone, ``module_px`` px per module, upright as OpenCV draws it."""
         key = (tag_id, module_px)
         tex = self._tex.get(key)
         if tex is None:

@@ -21,13 +21,13 @@ from __future__ import annotations
 import csv
 import logging
 import time
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
+from dran_edge.perception.frame import Frame, frame_from_bytes
 
 from dran_edge.errors import DecodeError, DependencyError, InputError
-from dran_edge.perception.frame import Frame, frame_from_bytes
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ class FrameSource:
     def close(self) -> None:
         pass
 
-    def __enter__(self) -> "FrameSource":
+    def __enter__(self) -> FrameSource:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -7,10 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
-from dran_edge import geometry as geo
 from dran_edge.perception.covariance import (
     gauss_newton,
     linearise,
@@ -18,6 +14,10 @@ from dran_edge.perception.covariance import (
     project,
     transform_covariance,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dran_edge import geometry as geo
 
 K = np.array([[615.0, 0, 320.0], [0, 610.0, 240.0], [0, 0, 1]])
 

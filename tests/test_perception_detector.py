@@ -12,11 +12,12 @@ import pytest
 pytest.importorskip("pupil_apriltags")
 cv2 = pytest.importorskip("cv2")
 
-from dran_edge import geometry as geo  # noqa: E402
-from dran_edge.errors import ConfigError, InputError  # noqa: E402
 from dran_edge.perception.detector import DetectorParams, TagDetector, to_gray  # noqa: E402
 from dran_edge.perception.render import DepthModel, TagRenderer  # noqa: E402
 from dran_edge.perception.tagpose import UNIT_CORNERS  # noqa: E402
+
+from dran_edge import geometry as geo  # noqa: E402
+from dran_edge.errors import ConfigError, InputError  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "apriltag"
 K = np.array([[615.0, 0, 320.0], [0, 615.0, 240.0], [0, 0, 1]])

@@ -10,9 +10,6 @@ import pytest
 pytest.importorskip("pupil_apriltags")
 pytest.importorskip("cv2")
 
-from dran_edge import geometry as geo  # noqa: E402
-from dran_edge.errors import ConfigError, InputError  # noqa: E402
-from dran_edge.events import ObservationBatch  # noqa: E402
 from dran_edge.perception.calib import (  # noqa: E402
     load_calibration,
     load_camera,
@@ -21,6 +18,10 @@ from dran_edge.perception.calib import (  # noqa: E402
 from dran_edge.perception.frame import Frame  # noqa: E402
 from dran_edge.perception.pipeline import ObservationPipeline, PipelineParams  # noqa: E402
 from dran_edge.perception.render import TagRenderer  # noqa: E402
+
+from dran_edge import geometry as geo  # noqa: E402
+from dran_edge.errors import ConfigError, InputError  # noqa: E402
+from dran_edge.events import ObservationBatch  # noqa: E402
 
 CALIB = Path(__file__).resolve().parents[1] / "calib"
 
@@ -37,7 +38,8 @@ def test_example_calibration_loads():
     assert np.all(np.einsum("ki,ki->k", R[:, :, 2], tags.T_object_tag[:, :3, 3]) < 0)
     for i in range(1, 7):
         cal = load_calibration(CALIB, f"dingo{i}")
-        assert cal.camera.robot == f"dingo{i}" and (cal.camera.width, cal.camera.height) == (640, 480)
+        assert cal.camera.robot == f"dingo{i}"
+        assert (cal.camera.width, cal.camera.height) == (640, 480)
     assert tags.lookup(np.array([5, 999, 0])).tolist() == [5, -1, 0]
 
 

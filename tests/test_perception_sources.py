@@ -15,8 +15,6 @@ from hypothesis import strategies as st
 
 cv2 = pytest.importorskip("cv2")
 
-from dran_edge import geometry as geo  # noqa: E402
-from dran_edge.errors import DecodeError, InputError  # noqa: E402
 from dran_edge.perception.frame import FRAME_HEADER, Frame, frame_from_bytes, frame_to_bytes  # noqa: E402
 from dran_edge.perception.sources import (  # noqa: E402
     ForwardedFramesSource,
@@ -25,6 +23,9 @@ from dran_edge.perception.sources import (  # noqa: E402
     open_source,
     write_recorded_frames,
 )
+
+from dran_edge import geometry as geo  # noqa: E402
+from dran_edge.errors import DecodeError, InputError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "apriltag"
@@ -197,8 +198,9 @@ def test_depthai_source_skips_cleanly_without_depthai():
     try:
         import depthai  # noqa: F401
     except ImportError:
-        from dran_edge.errors import DependencyError
         from dran_edge.perception.sources import DepthAISource
+
+        from dran_edge.errors import DependencyError
 
         with pytest.raises(DependencyError, match="depthai"):
             DepthAISource()

@@ -8,7 +8,6 @@ import pytest
 pytest.importorskip("pupil_apriltags")
 pytest.importorskip("cv2")
 
-from dran_edge import geometry as geo  # noqa: E402
 from dran_edge.perception.detector import TagDetections, TagDetector, to_gray  # noqa: E402
 from dran_edge.perception.render import DepthModel, TagRenderer  # noqa: E402
 from dran_edge.perception.tagpose import (  # noqa: E402
@@ -22,6 +21,8 @@ from dran_edge.perception.tagpose import (  # noqa: E402
     TagPoseParams,
     estimate_tag_poses,
 )
+
+from dran_edge import geometry as geo  # noqa: E402
 
 K = np.array([[615.0, 0, 320.0], [0, 615.0, 240.0], [0, 0, 1]])
 
@@ -65,7 +66,7 @@ def test_16cm_tag_at_1m_no_blur(tools):
 
 
 def sweep(renderer, det, use_depth: bool):
-    """Viewing-angle sweep; returns (accepted, flips, rejected) with flip = rotation error > 10 deg."""
+    """Viewing-angle sweep -> (accepted, flips, rejected); a flip = rotation error > 10 deg."""
     rng = np.random.default_rng(21)
     accepted = flips = rejected = 0
     for dist in (1.0, 2.0, 3.0):

@@ -51,7 +51,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
 
 def _calibration(args, width: int, height: int):
     from dran_edge.errors import InputError
-    from dran_edge.perception.calib import CameraCalib, Calibration, TagMap, load_calibration
+    from dran_edge.perception.calib import Calibration, CameraCalib, TagMap, load_calibration
 
     if args.calib:
         return load_calibration(args.calib, args.robot)
@@ -99,7 +99,7 @@ def _record(frame, index, res, i, tags) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from dran_edge.perception.covariance import corner_sigma_from_residuals
-    from dran_edge.perception.detector import DetectorParams, TagDetector, TagDetections, to_gray
+    from dran_edge.perception.detector import DetectorParams, TagDetections, TagDetector, to_gray
     from dran_edge.perception.pipeline import ObservationPipeline, PipelineParams
     from dran_edge.perception.sources import open_source
 

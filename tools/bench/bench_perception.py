@@ -4,14 +4,15 @@
 
 Frames: 640x480 renders of the example fleet's boxes (calib/), 1-3 boxes in view at 0.8-3 m,
 blur 0.5 px, aligned depth; two scenes: the renderer's smooth low-texture background (grey
-noise 2) and its cluttered indoor-like background (noise 3), closer to real frames' edge content. Both arms run decimation 2, one thread. For each
-frame the two arms run back to back and each keeps its fastest of ``--repeats`` passes (the
-sum of per-frame minima is reported): both arms see the same machine state and bursts of other
-processes on a shared machine are filtered out. Times are process CPU time; both arms are
-single-threaded.
+noise 2) and its cluttered indoor-like background (noise 3), closer to real frames' edge
+content. Both arms run decimation 2, one thread. For each frame the two arms run back to back
+and each keeps its fastest of ``--repeats`` passes (the sum of per-frame minima is reported):
+both arms see the same machine state and bursts of other processes on a shared machine are
+filtered out. Times are process CPU time; both arms are single-threaded.
+
 The baseline arm is colour->grey + ``TagDetector.detect``; the full arm is
-``ObservationPipeline.process`` (the same detection + both IPPE poses + Gauss-Newton + depth
-check + covariance + object fusion + ObservationBatch).
+``ObservationPipeline.process`` (the same detection + both IPPE solutions + ambiguity and depth
+check + covariance + object mapping and multi-tag fusion + ObservationBatch).
 """
 
 from __future__ import annotations
@@ -21,13 +22,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from dran_edge import geometry as geo
 from dran_edge.perception.calib import load_calibration
 from dran_edge.perception.detector import DetectorParams, TagDetector, to_gray
 from dran_edge.perception.frame import Frame
 from dran_edge.perception.pipeline import ObservationPipeline, PipelineParams
 from dran_edge.perception.render import TagRenderer
+
+from dran_edge import geometry as geo
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -20,12 +20,12 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-
-from dran_edge import geometry as geo
 from dran_edge.perception.covariance import corner_sigma_from_residuals
 from dran_edge.perception.detector import TagDetector, to_gray
 from dran_edge.perception.render import TagRenderer
 from dran_edge.perception.tagpose import TagPoseParams, estimate_tag_poses
+
+from dran_edge import geometry as geo
 
 K = np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]])
 SIZE_M = 0.16
