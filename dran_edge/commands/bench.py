@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
+
+# One BLAS thread: the local steps are small dense products, and OpenBLAS's thread pool on a
+# busy 2-core machine made them ~75x slower (measured, docs/benchmarks.md). Must precede numpy.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 HELP = "run the paper's experiments: Table 1 on a g2o graph, or the object simulation sweeps"
 

@@ -1,0 +1,130 @@
+"""Table 2 ablation: one DRAN local step with and without the Schur complement, same problems.
+
+Usage: .venv/bin/python tools/bench/bench_schur.py [--steps 300] [--seed 0]
+
+The problem is the size of one robot of the paper's real-world run: 112 trajectory poses, 165
+edges (111 odometry + 54 object observations), 9 objects, each object also tied to 2 neighbours'
+copies by the eq. 6 consensus term. One local step = linearise (A, B, C, g_x, g_y) + damped solve
++ retraction. Variants, timed side by side in this process on identical linearisations:
+
+- ``schur``: eliminate the private poses (sparse LU of A + μI, reused for [g_x, C]), dense Ĥ on
+  the 9 objects (eqs. 8, 11, 12) — ``lm.schur_step``;
+- ``full-dense``: solve the whole damped system M ξ = −g densely (the unreduced step);
+- ``full-sparse``: the whole system as one sparse LU (objects treated as private).
+
+Then each variant runs 30 LM steps from the same start and the final local costs are printed.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see docs/benchmarks.md
+
+import argparse
+import time
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+
+from dran_edge import geometry as geo
+from dran_edge.consensus import ConsensusFactors
+from dran_edge.factors import BetweenFactors, PriorFactors
+from dran_edge.graph import PoseGraph, kinds_array
+from dran_edge.lm import build_plan, evaluate_cost, linearize, retract, schur_step
+
+
+def problem(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    n, n_obj, n_obs, n_nbr = 112, 9, 54, 2
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False) * 1.5
+    xyz = np.column_stack([2.0 * np.cos(ang), 2.0 * np.sin(ang), np.zeros(n)])
+    T_gt = geo.se3_from_rt(geo.so3_exp(np.column_stack([np.zeros((n, 2)), ang + np.pi / 2])), xyz)
+    obj = geo.se3_from_rt(geo.so3_exp(rng.normal(0, 1, (n_obj, 3))),
+                          np.column_stack([3.0 * np.cos(np.arange(n_obj)), 3.0 * np.sin(np.arange(n_obj)),
+                                           rng.normal(0, 0.2, n_obj)]))
+    noise = lambda m, s: geo.se3_exp(rng.normal(0, s, (m, 6)))  # noqa: E731
+    odo = geo.se3_between(T_gt[:-1], T_gt[1:]) @ noise(n - 1, 0.01)
+    pi = np.sort(rng.choice(n, n_obs, replace=False))
+    oi = rng.integers(0, n_obj, n_obs)
+    obs = geo.se3_between(T_gt[pi], obj[oi]) @ noise(n_obs, 0.01)
+    nbr = obj[np.repeat(np.arange(n_obj), n_nbr)] @ noise(n_obj * n_nbr, 0.02)
+    N = n + n_obj + n_obj * n_nbr
+    o_base, c_base = n, n + n_obj
+    W = np.ones(6)
+    blocks = (
+        BetweenFactors(np.column_stack([np.arange(n - 1), np.arange(1, n)]), odo, np.tile(W, (n - 1, 1))),
+        BetweenFactors(np.column_stack([pi, o_base + oi]), obs, np.tile(W, (n_obs, 1)), label="object"),
+        PriorFactors(np.array([[0]]), T_gt[:1], np.full((1, 6), 100.0)),
+        ConsensusFactors(np.column_stack([o_base + np.repeat(np.arange(n_obj), n_nbr),
+                                          c_base + np.arange(n_obj * n_nbr)]),
+                         np.full(n_obj * n_nbr, 1 / 3), np.zeros((n_obj * n_nbr, 6)), 1.0),
+    )
+    x0 = [T_gt[0]]
+    for Z in odo:
+        x0.append(x0[-1] @ Z)
+    y0 = np.stack([np.stack(x0)[pi[oi == k][0]] @ obs[oi == k][0] for k in range(n_obj)])
+    poses = np.concatenate([np.stack(x0), y0, nbr])
+    kinds = kinds_array(N, public=np.arange(o_base, c_base), fixed=np.arange(c_base, N))
+    kinds_flat = kinds_array(N, fixed=np.arange(c_base, N))
+    return PoseGraph(3, kinds, blocks), PoseGraph(3, kinds_flat, blocks), poses
+
+
+def full_dense_step(lin, mu):
+    A = lin.A.toarray()
+    C = lin.C.toarray()
+    M = np.block([[A, C], [C.T, lin.B]]) + mu * np.eye(A.shape[0] + lin.B.shape[0])
+    g = np.concatenate([lin.g_x, lin.g_y])
+    xi = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(M), g)
+    return xi[: A.shape[0]], xi[A.shape[0]:]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    g_red, g_flat, poses = problem(args.seed)
+    p_red, p_flat = build_plan(g_red), build_plan(g_flat)
+    print(f"problem: 112 poses, 9 objects, {sum(b.variables.shape[0] for b in g_red.factors[:2])} edges "
+          f"+ prior + {g_red.factors[3].variables.shape[0]} consensus terms")
+    mu = 1e-3
+    # correctness: the reduced step equals the full dense step
+    lin = linearize(g_red, p_red, poses)
+    u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu)
+    u2, v2 = full_dense_step(lin, mu)
+    print(f"max |reduced - full dense| step difference: {max(np.abs(u - u2).max(), np.abs(v - v2).max()):.2e}")
+    times = {"schur": [], "full-dense": [], "full-sparse": []}
+    for _ in range(args.steps):
+        for name in times:
+            t0 = time.perf_counter()
+            if name == "full-sparse":
+                lin = linearize(g_flat, p_flat, poses)
+                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu)
+                new = retract(p_flat, poses, u, v)
+            else:
+                lin = linearize(g_red, p_red, poses)
+                u, v = (schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu) if name == "schur"
+                        else full_dense_step(lin, mu))
+                new = retract(p_red, poses, u, v)
+            times[name].append(1e3 * (time.perf_counter() - t0))
+            del new
+    base = np.median(times["schur"])
+    for name, ts in times.items():
+        print(f"{name:<12} local step median {np.median(ts):7.3f} ms  (p90 {np.percentile(ts, 90):7.3f})"
+              f"  ratio to schur {np.median(ts) / base:5.2f}")
+    for name, graph, plan in (("schur", g_red, p_red), ("full-dense", g_red, p_red),
+                              ("full-sparse", g_flat, p_flat)):
+        P = poses.copy()
+        for _ in range(30):
+            lin = linearize(graph, plan, P)
+            u, v = (full_dense_step(lin, mu) if name == "full-dense"
+                    else schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu))
+            P = retract(plan, P, u, v)
+        print(f"{name:<12} local cost after 30 steps {evaluate_cost(graph, P):.10g}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,80 @@
+"""Table 1 of the paper: DRAN and our DGS baseline on the six g2o benchmarks, 5 robots.
+
+Usage: .venv/bin/python tools/bench/bench_table1.py DATA_DIR [--robots 5] [--only NAME ...] [--json OUT]
+
+Prints a Table-1-like table with the paper's columns next to ours: objective (SE-Sync convention)
+at the distributed initialisation and at the end, rounds and total transmitted bytes (every byte
+of every datagram, initialisation included) for DRAN and DGS.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see docs/benchmarks.md
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from dran_edge.config import AgentConfig
+from dran_edge.dgs import run_g2o_dgs
+from dran_edge.g2o import read_g2o
+from dran_edge.multiagent import run_g2o_dran
+
+# name: (file, F*, paper DGS F, paper DRAN F, paper DGS MB, paper DRAN MB)
+PAPER = {
+    "parking-garage": ("parking-garage.g2o", 1.263, 1.33, 1.289, 5.41, 1.23),
+    "sphere2500": ("sphere2500.g2o", 1687.0, 1689, 1687, 13.73, 1.34),
+    "torus3D": ("torus3D.g2o", 24227.0, 24246, 24227, 9.14, 3.23),
+    "CSAIL": ("CSAIL.g2o", 31.47, 31.49, 31.47, 11.857, 0.01),
+    "intel": ("input_INTEL_g2o.g2o", 393.7, 428.89, 393.7, 0.06, 0.54),
+    "manhattan": ("input_M3500_g2o.g2o", 193.9, 242.05, 194.0, 152.31, 13.47),
+}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("data_dir")
+    ap.add_argument("--robots", type=int, default=5)
+    ap.add_argument("--only", nargs="*")
+    ap.add_argument("--json", help="append one JSON line per run to this file")
+    ap.add_argument("--max-rounds", type=int, default=500)
+    args = ap.parse_args(argv)
+    rows = []
+    for name, (fname, F_star, dgs_F, dran_F, dgs_MB, dran_MB) in PAPER.items():
+        if args.only and name not in args.only:
+            continue
+        g = read_g2o(Path(args.data_dir) / fname)
+        cfg = AgentConfig(dim=g.dim, residual="chordal", robust_kernel="none")
+        dran = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds)
+        dgs = run_g2o_dgs(g, args.robots)
+        row = {
+            "dataset": name, "F_star": F_star,
+            "dran_F_init": dran["objective_init"], "dran_F": dran["objective_final"],
+            "dran_gap_pct": 100 * (dran["objective_final"] / F_star - 1),
+            "dran_rounds": dran["rounds_total"], "dran_MB": dran["bytes_total"] / 1e6,
+            "dran_init_MB": dran["bytes_init"] / 1e6, "dran_step_ms": dran["local_step_ms_median"],
+            "dran_wall_s": dran["wall_s"],
+            "dgs_F": dgs["objective_final"], "dgs_rounds": dgs["rounds"], "dgs_MB": dgs["bytes_total"] / 1e6,
+            "paper_dran_F": dran_F, "paper_dgs_F": dgs_F, "paper_dran_MB": dran_MB, "paper_dgs_MB": dgs_MB,
+        }
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+        if args.json:
+            with open(args.json, "a") as fh:
+                fh.write(json.dumps(row) + "\n")
+    hdr = (f"{'dataset':<15}{'F*':>10}{'DRAN F0':>11}{'DRAN F':>11}{'gap %':>8}{'DGS F':>11}"
+           f"{'paperDGS':>10}{'DRAN MB':>9}{'paper':>7}{'DGS MB':>8}{'paper':>8}{'rounds':>8}")
+    print(hdr)
+    for r in rows:
+        print(f"{r['dataset']:<15}{r['F_star']:>10.4g}{r['dran_F_init']:>11.5g}{r['dran_F']:>11.5g}"
+              f"{r['dran_gap_pct']:>8.3f}{r['dgs_F']:>11.5g}{r['paper_dgs_F']:>10.5g}"
+              f"{r['dran_MB']:>9.3f}{r['paper_dran_MB']:>7.2f}{r['dgs_MB']:>8.3f}{r['paper_dgs_MB']:>8.2f}"
+              f"{r['dran_rounds']:>8}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
