@@ -194,6 +194,27 @@ def test_live_realsense_frames_and_stamps():
     assert np.all(np.diff(stamps) > 0)
 
 
+@pytest.mark.hardware
+def test_live_realsense_reconnects_after_hardware_reset():
+    """A hardware reset drops the device off USB like an unplug; iteration must resume."""
+    rs = pytest.importorskip("pyrealsense2", exc_type=ImportError)
+    if len(rs.context().query_devices()) == 0:
+        pytest.skip("no RealSense device connected")
+    from dran_edge.perception.sources import RealSenseSource
+
+    src = RealSenseSource(timeout_ms=1000, reconnect_s=1.0, max_reconnects=20)
+    n_after = 0
+    for i, _ in enumerate(src):
+        if i == 10:
+            src._pipe.get_active_profile().get_device().hardware_reset()
+        if src.reconnects:
+            n_after += 1
+            if n_after == 10:
+                break
+    src.close()
+    assert src.reconnects >= 1 and n_after == 10
+
+
 def test_depthai_source_skips_cleanly_without_depthai():
     try:
         import depthai  # noqa: F401
