@@ -328,14 +328,17 @@ class RealSenseRecordingSource(FrameSource):
 
 # --------------------------------------------------------------------------- OAK
 class DepthAISource(FrameSource):
-    """An OAK camera through depthai 2.x: ISP colour scaled to ``width x height`` and, when the
-    device has stereo cameras, stereo depth aligned to the colour camera (mm).
+    """An OAK camera through depthai 2.x: the colour camera's ISP output scaled by ``isp_scale``
+    (1080p sensor mode / 3 = 640x360 BGR) and, when ``depth`` is set, stereo depth aligned to the
+    colour camera at the same size (mm).
 
-    Stamps: ``getTimestamp()`` is the host-synchronised device clock (steady clock of the host).
-    Untested here: depthai is not installed on the development machine (``oak`` extra).
+    Write the camera file for that size (intrinsics: ``device.readCalibration()
+    .getCameraIntrinsics(CAM_A, 640, 360)``). Stamps: ``getTimestamp()``, the device clock
+    synchronised to the host's steady clock. Untested here: depthai is not installed on the
+    development machine (``oak`` extra), so this follows the depthai 2.x documentation only.
     """
 
-    def __init__(self, width: int = 640, height: int = 480, fps: int = 30,
+    def __init__(self, isp_scale: tuple[int, int] = (1, 3), fps: int = 30,
                  depth: bool = True) -> None:
         try:
             import depthai as dai
@@ -343,7 +346,7 @@ class DepthAISource(FrameSource):
             raise DependencyError(f"depthai is needed for OAK cameras ({exc}); pip install "
                                   "'dran-edge[oak]'") from exc
         self.dai = dai
-        self.width, self.height, self.fps, self.depth = width, height, fps, depth
+        self.isp_scale, self.fps, self.depth = isp_scale, fps, depth
         self._device = None
 
     def _pipeline(self):
@@ -352,23 +355,21 @@ class DepthAISource(FrameSource):
         cam = pipeline.create(dai.node.ColorCamera)
         cam.setBoardSocket(dai.CameraBoardSocket.CAM_A)
         cam.setResolution(dai.ColorCameraProperties.SensorResolution.THE_1080_P)
-        cam.setIspScale(1, 3)  # 1920x1080 -> 640x360; the preview below gives width x height
-        cam.setPreviewSize(self.width, self.height)
-        cam.setPreviewKeepAspectRatio(False)
-        cam.setInterleaved(False)
-        cam.setColorOrder(dai.ColorCameraProperties.ColorOrder.BGR)
+        cam.setIspScale(*self.isp_scale)
         cam.setFps(self.fps)
         xout = pipeline.create(dai.node.XLinkOut)
         xout.setStreamName("colour")
-        cam.preview.link(xout.input)
+        cam.isp.link(xout.input)  # YUV420; getCvFrame() converts to BGR
         if self.depth:
             left = pipeline.create(dai.node.MonoCamera)
             right = pipeline.create(dai.node.MonoCamera)
             left.setBoardSocket(dai.CameraBoardSocket.CAM_B)
             right.setBoardSocket(dai.CameraBoardSocket.CAM_C)
+            left.setFps(self.fps)
+            right.setFps(self.fps)
             stereo = pipeline.create(dai.node.StereoDepth)
             stereo.setDepthAlign(dai.CameraBoardSocket.CAM_A)
-            stereo.setOutputSize(self.width, self.height)
+            stereo.setOutputSize(*cam.getIspSize())
             left.out.link(stereo.left)
             right.out.link(stereo.right)
             xd = pipeline.create(dai.node.XLinkOut)
@@ -383,15 +384,14 @@ class DepthAISource(FrameSource):
         camera_id = self._device.getMxId()
         while True:
             c = qc.get()
-            d = qd.tryGet() if qd is not None else None
-            stamp_ns = int(c.getTimestamp().total_seconds() * 1e9)
             colour = np.ascontiguousarray(c.getCvFrame())
             depth = None
+            d = qd.tryGet() if qd is not None else None
             if d is not None:
                 dep = d.getFrame()
                 if dep.shape == colour.shape[:2]:
                     depth = dep.astype(np.uint16)
-            yield Frame(stamp_ns, colour, depth, camera_id)
+            yield Frame(int(c.getTimestamp().total_seconds() * 1e9), colour, depth, camera_id)
 
     def close(self) -> None:
         if self._device is not None:
