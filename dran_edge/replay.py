@@ -696,9 +696,16 @@ def golden_summary(report: dict) -> dict:
     return _json_clean({k: report.get(k) for k in GOLDEN_KEYS})
 
 
+#: Counts that must match exactly; other integer counts (bytes, observations, keyframes) may
+#: move by ``count_rtol`` across machines (a float that differs in the last bit can flip one
+#: send or detection decision).
+EXACT_KEYS = ("robots", "mission_s", "rounds", "mission_rounds", "frames_processed")
+
+
 def compare_summary(actual: Any, golden: Any, *, rtol: float = 1e-3, atol: float = 1e-6,
-                    path: str = "") -> list[str]:
-    """Differences between two summaries: floats within ``rtol``/``atol``, the rest exactly."""
+                    count_rtol: float = 0.02, path: str = "") -> list[str]:
+    """Differences between two summaries: floats within ``rtol``/``atol``, integer counts
+    within ``count_rtol`` except ``EXACT_KEYS``, everything else exactly."""
     diffs: list[str] = []
     if isinstance(golden, dict) and isinstance(actual, dict):
         for k in sorted(set(golden) | set(actual)):
@@ -706,7 +713,12 @@ def compare_summary(actual: Any, golden: Any, *, rtol: float = 1e-3, atol: float
             if k not in actual or k not in golden:
                 diffs.append(f"{p}: {'missing' if k not in actual else 'not in golden'}")
             else:
-                diffs += compare_summary(actual[k], golden[k], rtol=rtol, atol=atol, path=p)
+                diffs += compare_summary(actual[k], golden[k], rtol=rtol, atol=atol,
+                                         count_rtol=count_rtol, path=p)
+    elif (isinstance(golden, int) and isinstance(actual, int) and not isinstance(golden, bool)
+          and path.split(".")[0] not in EXACT_KEYS):
+        if not math.isclose(actual, golden, rel_tol=count_rtol, abs_tol=0):
+            diffs.append(f"{path}: {actual!r} != golden {golden!r} (count rtol {count_rtol})")
     elif isinstance(golden, float) or isinstance(actual, float):
         if golden is None or actual is None:
             if golden is not actual:

@@ -71,7 +71,7 @@ def test_same_run_same_numbers(tiny, tmp_path):
     shutil.copytree(run, again, ignore=shutil.ignore_patterns("out", "eval"))
     report2 = rp.replay_run(again, rp.ReplayOptions(workers=2, settle_rounds=10)).report
     assert rp.compare_summary(rp.golden_summary(report2), rp.golden_summary(report),
-                              rtol=0, atol=0) == []
+                              rtol=0, atol=0, count_rtol=0) == []
     a = (run / "out" / "rounds.csv").read_text()
     b = (again / "out" / "rounds.csv").read_text()
     assert a == b
@@ -93,7 +93,9 @@ def test_compare_summary_tolerance_and_ignore_list():
     assert rp.compare_summary({"a": 1.1, "b": {"c": 2}, "d": None}, gold) == \
         ["a: 1.1 != golden 1.0 (rtol 0.001)"]
     assert rp.compare_summary({"a": 1.0, "b": {"c": 3}}, gold) == \
-        ["b.c: 3 != golden 2", "d: missing"]
+        ["b.c: 3 != golden 2 (count rtol 0.02)", "d: missing"]
+    assert rp.compare_summary({"bytes_total": 1010}, {"bytes_total": 1000}) == []
+    assert rp.compare_summary({"rounds": 71}, {"rounds": 70}) == ["rounds: 71 != golden 70"]
     summary = rp.golden_summary({"rounds": 3, "replay_wall_s": 9.9, "realtime_factor": 2.0})
     assert not set(rp.WALL_CLOCK_FIELDS) & set(summary)
 
