@@ -170,6 +170,45 @@ def chordal_jacobians(
     return r, J_p, J_q
 
 
+def _tangent_generators(d: int) -> np.ndarray:
+    """E_a with ξ^ = Σ ξ_a E_a for ξ = [ρ, φ]: (6, 4, 4) for SE(3), (3, 3, 3) for SE(2)."""
+    G = _generators(d)
+    E = np.zeros((d + G.shape[0], d + 1, d + 1))
+    E[np.arange(d), np.arange(d), d] = 1.0
+    E[d:, :d, :d] = G
+    return E
+
+
+def _sym_generator_products(d: int) -> np.ndarray:
+    """½(E_a E_b + E_b E_a): the second derivative ∂²Exp(ξ)/∂ξ_a∂ξ_b at ξ = 0."""
+    E = _tangent_generators(d)
+    P = np.einsum("aij,bjk->abik", E, E)
+    return 0.5 * (P + np.swapaxes(P, 0, 1))
+
+
+def chordal_second_order(
+    T_p: np.ndarray, T_q: np.ndarray, T_meas: np.ndarray, S: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(H_pp, H_qq): ``Σ_i S_i ∂²r_i`` of the chordal residual for weights ``S`` (…, r).
+
+    With ``S = WᵀW r`` this is the part of the Hessian of ``½‖W r(T_p Exp δ_p, T_q Exp δ_q)‖²``
+    that Gauss–Newton drops; ``JᵀWᵀWJ + [[H_pp, 0], [0, H_qq]]`` is then the exact Hessian of
+    the pullback at δ = 0 (r is separately linear in T_p Exp δ_p and T_q Exp δ_q, so there is no
+    cross term). ``∂²(T_p Exp δ T̃)/∂δ_a∂δ_b = T_p ½(E_a E_b + E_b E_a) T̃``, hence
+    ``H_pp[a, b] = ⟨T_pᵀ Ŝ T̃ᵀ, ½(E_aE_b + E_bE_a)⟩`` and ``H_qq[a, b] = −⟨T_qᵀ Ŝ, ·⟩`` with
+    Ŝ the weights laid out as the top d×(d+1) block of a (d+1)×(d+1) matrix.
+    """
+    d = T_p.shape[-1] - 1
+    D = d + 1
+    Shat = np.zeros(S.shape[:-1] + (D, D))
+    Shat[..., :d, :d] = S[..., : d * d].reshape(S.shape[:-1] + (d, d))
+    Shat[..., :d, d] = S[..., d * d :]
+    G2 = _sym_generator_products(d)
+    Mp = np.swapaxes(T_p, -1, -2) @ Shat @ np.swapaxes(T_meas, -1, -2)
+    Mq = -(np.swapaxes(T_q, -1, -2) @ Shat)
+    return np.einsum("...ij,abij->...ab", Mp, G2), np.einsum("...ij,abij->...ab", Mq, G2)
+
+
 _RESIDUALS = {"geodesic": (geodesic_residual, geodesic_jacobians),
               "chordal": (chordal_residual, chordal_jacobians)}
 
@@ -255,6 +294,22 @@ class BetweenFactors:
         J = np.stack([_whiten(self.whitening, J_p), _whiten(self.whitening, J_q)], axis=1)
         return _whiten(self.whitening, r), J
 
+    def second_order(self, poses: np.ndarray) -> np.ndarray | None:
+        """(m, 2·dof, 2·dof) Hessian terms Gauss–Newton drops (chordal residual only, where
+        they are cheap and matter: its residuals stay large at the optimum), else None."""
+        if self.residual != "chordal":
+            return None
+        p, q = self.variables[:, 0], self.variables[:, 1]
+        T_p, T_q = poses[p], poses[q]
+        rw = _whiten(self.whitening, chordal_residual(T_p, T_q, self.measurements))
+        S = self.whitening * rw if self.whitening.ndim == 2 else np.einsum("mji,mj->mi", self.whitening, rw)
+        H_pp, H_qq = chordal_second_order(T_p, T_q, self.measurements, S)
+        dof = H_pp.shape[-1]
+        out = np.zeros((p.shape[0], 2 * dof, 2 * dof))
+        out[:, :dof, :dof] = H_pp
+        out[:, dof:, dof:] = H_qq
+        return out
+
 
 @dataclass(frozen=True, eq=False)
 class PriorFactors:
@@ -283,6 +338,16 @@ class PriorFactors:
         fn = _RESIDUALS[self.residual][1]
         r, _, J_q = fn(self.measurements, poses[self.variables[:, 0]], self._identity())
         return _whiten(self.whitening, r), _whiten(self.whitening, J_q)[:, None]
+
+    def second_order(self, poses: np.ndarray) -> np.ndarray | None:
+        """(m, dof, dof) Hessian terms Gauss–Newton drops (chordal residual only), else None."""
+        if self.residual != "chordal":
+            return None
+        T_q = poses[self.variables[:, 0]]
+        I = self._identity()
+        rw = _whiten(self.whitening, chordal_residual(self.measurements, T_q, I))
+        S = self.whitening * rw if self.whitening.ndim == 2 else np.einsum("mji,mj->mi", self.whitening, rw)
+        return chordal_second_order(self.measurements, T_q, I, S)[1]
 
 
 def factor_cost(factor: Factor, poses: np.ndarray) -> float:

@@ -213,8 +213,11 @@ class Linearization:
     """Σ ½ ρ(‖W r‖²) at the linearisation point."""
 
 
-def _block_normal_equations(block: Factor, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(JᵀJ blocks (m, kd, kd), Jᵀr (m, kd), cost) of one factor block, with IRLS weights."""
+def _block_normal_equations(
+    block: Factor, poses: np.ndarray, exact_hessian: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """(JᵀJ blocks (m, kd, kd), Jᵀr (m, kd), cost) of one factor block, with IRLS weights; with
+    ``exact_hessian`` plus the block's ``second_order`` terms where it has them."""
     r, J = block.linearize(poses)
     m, k, rdim, dof = J.shape
     s = np.sum(r * r, axis=1)
@@ -229,14 +232,25 @@ def _block_normal_equations(block: Factor, poses: np.ndarray) -> tuple[np.ndarra
         w = kernel.weight(s)
         H = (Jt * w[:, None, None]) @ np.swapaxes(Jt, 1, 2)
         g = (Jt @ (w[:, None] * r)[:, :, None])[:, :, 0]
+    if exact_hessian and hasattr(block, "second_order"):
+        H2 = block.second_order(poses)
+        if H2 is not None:
+            H = H + (H2 if kernel is None else kernel.weight(s)[:, None, None] * H2)
     return H, g, cost
 
 
-def linearize(graph: PoseGraph, plan: StructurePlan, poses: np.ndarray) -> Linearization:
-    """Tier 2: residuals and Jacobians of every block, scattered into A, B, C, g_x, g_y (eq. 7)."""
+def linearize(
+    graph: PoseGraph, plan: StructurePlan, poses: np.ndarray, exact_hessian: bool = False
+) -> Linearization:
+    """Tier 2: residuals and Jacobians of every block, scattered into A, B, C, g_x, g_y (eq. 7).
+
+    ``exact_hessian`` adds the second-order residual terms of the blocks that provide them
+    (chordal residual): [[A, C], [Cᵀ, B]] is then the Hessian of the pullback, not JᵀJ, and LM
+    becomes a damped Newton method (quadratic instead of linear convergence for the chordal cost).
+    """
     Hs, gs, cost = [], [], 0.0
     for block in graph.factors:
-        H, g, c = _block_normal_equations(block, poses)
+        H, g, c = _block_normal_equations(block, poses, exact_hessian)
         Hs.append(H.ravel())
         gs.append(g.ravel())
         cost += c
@@ -383,8 +397,16 @@ class LMParams:
     """Converged when an accepted step's ‖(u, v)‖₂ < step_tol (metres/radians mixed)."""
     gradient_tol: float = 0.0
     """Converged when ‖g‖_∞ ≤ gradient_tol at a linearisation point (whitened units)."""
-    linear_solver: str = "cholesky"
-    """Factorisation of A + μI: 'cholesky' (supernodal, dran_edge.sparse_cholesky) or 'superlu'."""
+    hessian: str = "gauss_newton"
+    """'gauss_newton' (M = JᵀJ + μI, the paper's LM) or 'exact' (adds the chordal residual's
+    second-order terms — damped Newton; in an iteration where that model cannot be factorised
+    (indefinite, Cholesky only) or its step does not lower the cost, the iteration continues with
+    the Gauss–Newton model at the same μ)."""
+    linear_solver: str = "superlu"
+    """Factorisation of A + μI: 'superlu' or 'cholesky' (supernodal, dran_edge.sparse_cholesky:
+    2–5× faster on large graphs with a single-threaded BLAS, but many small BLAS calls, which a
+    multi-threaded OpenBLAS on an oversubscribed machine slows down badly — shells that pick it
+    set OPENBLAS_NUM_THREADS=1 before numpy loads)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -418,6 +440,8 @@ def solve(
     plan = build_plan(graph) if plan is None else plan
     if params.linear_solver not in ("cholesky", "superlu"):
         raise ValueError(f"linear_solver must be 'cholesky' or 'superlu', got {params.linear_solver!r}")
+    if params.hessian not in ("gauss_newton", "exact"):
+        raise ValueError(f"hessian must be 'gauss_newton' or 'exact', got {params.hessian!r}")
     factorize = cholesky_factorizer(plan) if params.linear_solver == "cholesky" else None
     poses = np.asarray(poses, dtype=np.float64)
     cost = evaluate_cost(graph, poses)
@@ -429,7 +453,8 @@ def solve(
     mu: float | None = None
     nu = 2.0
     for iteration in range(params.max_iterations):
-        lin = linearize(graph, plan, poses)
+        exact = params.hessian == "exact"
+        lin = linearize(graph, plan, poses, exact)
         g = np.concatenate([lin.g_x, lin.g_y])
         if not np.all(np.isfinite(g)) or not np.all(np.isfinite(lin.A.data)):
             return LMResult(LMStatus.NON_FINITE, poses, cost, iteration, trials, tuple(history),
@@ -449,6 +474,9 @@ def solve(
                 u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, factorize)
             except LinearSolveError as exc:
                 log.debug("damped solve failed at mu=%g: %s", mu, exc)
+                if exact:  # indefinite exact model: Gauss–Newton for this iteration, same μ
+                    lin, exact = linearize(graph, plan, poses, False), False
+                    continue
                 mu, nu = mu * nu, nu * 2.0
                 continue
             solved_any = True
@@ -463,6 +491,9 @@ def solve(
                 nu = 2.0
                 accepted = True
                 break
+            if exact:  # the exact model's step failed: Gauss–Newton for this iteration, same μ
+                lin, exact = linearize(graph, plan, poses, False), False
+                continue
             mu, nu = mu * nu, nu * 2.0
         if not accepted:
             if not solved_any:

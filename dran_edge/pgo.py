@@ -117,7 +117,7 @@ def solve_g2o(
     init: str = "chordal",
     residual: str = "chordal",
     weights: str = "sesync",
-    params: LMParams = LMParams(),
+    params: LMParams = LMParams(hessian="exact", cost_tol=1e-8),
     callback: Callable[[int, float, float], None] | None = None,
 ) -> SolveReport:
     """Initialise and optimise ``g``; objectives in the SE-Sync convention (see objective.py)."""

@@ -65,22 +65,37 @@ class _Supernode:
     """Flat positions of the pivot block's diagonal in the front (for the shift μ)."""
 
 
-def _lower_pattern(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
-    """(pattern of the Cholesky factor, effective order) of the block graph eliminated in
-    ``order``: SuperLU's symbolic fill, read from an LU of a diagonally dominant matrix with that
-    pattern (with NATURAL ordering SuperLU keeps ``order``; if it permutes, the permutation is
-    folded into the returned order)."""
+def _symbolic(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
+    r"""Symbolic Cholesky of the block graph eliminated in ``order`` (Davis, ch. 4):
+    struct[k] = adj_below(k) ∪ ⋃_{children c} struct[c] \ {k}, parent[k] = min struct[k].
+    Returns (rows below the diagonal of each column, ascending and concatenated; column
+    pointers; parent) in the permuted numbering."""
     pos = np.empty(nb, dtype=np.int64)
     pos[order] = np.arange(nb)
-    M = sp.csc_matrix((np.ones(rows.size), (pos[rows], pos[cols])), shape=(nb, nb))
-    M = sp.csc_matrix(M + sp.identity(nb) * (nb + 1.0))
-    lu = spla.splu(M, permc_spec="NATURAL", diag_pivot_thresh=0.0, relax=1,
-                   options={"SymmetricMode": True})
-    if not np.array_equal(lu.perm_r, lu.perm_c):
-        raise ArithmeticError("SuperLU pivoted off the diagonal on a diagonally dominant pattern")
-    L = sp.csc_matrix(lu.L)
-    L.sort_indices()
-    return L, order[np.argsort(lu.perm_c)]
+    pr, pc = pos[rows], pos[cols]
+    lo, hi = np.maximum(pr, pc), np.minimum(pr, pc)
+    key = np.unique(hi[lo > hi] * nb + lo[lo > hi])
+    kc, kr = key // nb, key % nb
+    starts = np.searchsorted(kc, np.arange(nb + 1)).tolist()
+    kr_list = kr.tolist()
+    struct: list[list[int]] = []
+    pending: list[set[int]] = [set() for _ in range(nb)]
+    parent = np.full(nb, -1, dtype=np.int64)
+    for k in range(nb):
+        st = pending[k]
+        st.update(kr_list[starts[k]:starts[k + 1]])
+        st.discard(k)
+        srt = sorted(st)
+        struct.append(srt)
+        pending[k] = set()
+        if srt:
+            p = srt[0]
+            parent[k] = p
+            pending[p].update(srt[1:])
+    ptr = np.zeros(nb + 1, dtype=np.int64)
+    ptr[1:] = np.cumsum([len(x) for x in struct])
+    flat = np.fromiter((r for x in struct for r in x), dtype=np.int64, count=int(ptr[-1]))
+    return flat, ptr, parent
 
 
 class SymbolicCholesky:
@@ -101,14 +116,9 @@ class SymbolicCholesky:
         col_of = np.repeat(np.arange(n), np.diff(indptr))
         brow, bcol = indices // block, col_of // block
         order = _block_order(nb, brow, bcol)
-        # elimination tree from the factor's pattern, then a postorder of it (same fill; every
-        # chain of the tree becomes contiguous, so that it can form a supernode)
-        L, order = _lower_pattern(nb, brow, bcol, order)
-        Lcol = np.repeat(np.arange(nb), np.diff(L.indptr))
-        below = L.indices > Lcol
-        parent = np.full(nb, -1, dtype=np.int64)
-        cols_b, first = np.unique(Lcol[below], return_index=True)
-        parent[cols_b] = L.indices[below][first]  # sorted rows: the first below is the minimum
+        # elimination tree, then a postorder of it (same fill; every chain of the tree becomes
+        # contiguous, so that it can form a supernode)
+        _, _, parent = _symbolic(nb, brow, bcol, order)
         children: list[list[int]] = [[] for _ in range(nb)]
         for k, p in enumerate(parent.tolist()):
             if p >= 0:
@@ -123,15 +133,9 @@ class SymbolicCholesky:
                     continue
                 stack.append((node, True))
                 stack.extend((c, False) for c in reversed(children[node]))
-        L, order = _lower_pattern(nb, brow, bcol, order[np.asarray(post, dtype=np.int64)])
-        Lcol = np.repeat(np.arange(nb), np.diff(L.indptr))
-        keep = L.indices > Lcol
-        s_rows, s_cols = L.indices[keep], Lcol[keep]
-        s_ptr = np.searchsorted(s_cols, np.arange(nb + 1))
+        order = order[np.asarray(post, dtype=np.int64)]
+        s_rows, s_ptr, parent = _symbolic(nb, brow, bcol, order)
         counts = np.diff(s_ptr)
-        parent = np.full(nb, -1, dtype=np.int64)
-        has = counts > 0
-        parent[has] = s_rows[s_ptr[:-1][has]]
         # relaxed supernodes: merge k into the supernode ending at k−1 when k is its parent
         bounds = [0]
         actual = 0

@@ -117,3 +117,34 @@ def test_kernel_weight_is_derivative_of_rho(kernel):
     numeric = (kernel.rho(s + h) - kernel.rho(s - h)) / (2 * h)
     np.testing.assert_allclose(kernel.weight(s), numeric, rtol=1e-5)
     assert np.all(kernel.rho(s) <= s + 1e-12)  # robust kernels never exceed the quadratic
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_chordal_second_order_gives_the_exact_hessian(dim):
+    """JᵀJ + Σ S_i ∂²r_i equals the finite-difference Hessian of ½‖W r‖² on the pullback."""
+    rng = np.random.default_rng(dim)
+    dof = 6 if dim == 3 else 3
+    T = geo.exp(rng.normal(size=(2, dof)))
+    Z = geo.exp(rng.normal(size=(1, dof)))
+    W = isotropic_whitening(np.array([3.0]), np.array([2.0]), "chordal", dim)
+    block = BetweenFactors(np.array([[0, 1]]), Z, W, "chordal")
+    prior = PriorFactors(np.array([[1]]), geo.exp(rng.normal(size=(1, dof))), W, "chordal")
+
+    def cost(x):
+        P = geo.retract(T, x.reshape(2, dof))
+        return 0.5 * np.sum(block.residuals(P) ** 2) + 0.5 * np.sum(prior.residuals(P) ** 2)
+
+    n, h = 2 * dof, 1e-4
+    Hn = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            ei, ej = np.eye(n)[i] * h, np.eye(n)[j] * h
+            Hn[i, j] = (cost(ei + ej) - cost(ei - ej) - cost(ej - ei) + cost(-ei - ej)) / (4 * h * h)
+    _, J = block.linearize(T)
+    Jf = np.concatenate([J[0, 0], J[0, 1]], axis=1)
+    H = Jf.T @ Jf + block.second_order(T)[0]
+    _, Jp = prior.linearize(T)
+    H[dof:, dof:] += Jp[0, 0].T @ Jp[0, 0] + prior.second_order(T)[0]
+    np.testing.assert_allclose(H, Hn, atol=1e-5 * np.abs(Hn).max())
+    assert BetweenFactors(np.array([[0, 1]]), Z, isotropic_whitening(
+        np.array([3.0]), np.array([2.0]), "geodesic", dim), "geodesic").second_order(T) is None

@@ -182,3 +182,15 @@ def test_max_iterations_status_keeps_best_iterate():
     assert result.iterations == 2
     assert result.cost == min(result.cost_history)
     np.testing.assert_allclose(result.cost, evaluate_cost(graph, result.poses))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_exact_hessian_reaches_the_gauss_newton_optimum_in_fewer_steps(dim):
+    g, truth = synthetic_graph(dim, side=4, layers=2, seed=12, sigma_t_m=0.1, sigma_r_rad=0.1)
+    graph = pose_graph(g, "chordal", "sesync")
+    gn = solve(graph, truth, LMParams(cost_tol=1e-13, max_iterations=500))
+    ex = solve(graph, truth, LMParams(cost_tol=1e-13, hessian="exact", linear_solver="cholesky"))
+    assert gn.status is LMStatus.CONVERGED and ex.status is LMStatus.CONVERGED
+    np.testing.assert_allclose(ex.cost, gn.cost, rtol=1e-9)
+    np.testing.assert_allclose(ex.poses, gn.poses, atol=1e-5)
+    assert ex.iterations < gn.iterations

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -36,12 +37,21 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     parser.add_argument("--cost-tol", type=float, default=1e-8, metavar="REL",
                         help="stop when a step lowers the cost by less than REL relative "
                         "(default 1e-8)")
+    parser.add_argument("--hessian", choices=("exact", "gauss_newton"), default="exact",
+                        help="LM model: exact (adds the chordal residual's second-order terms, "
+                        "Gauss-Newton where that is indefinite; default) or gauss_newton (J'J)")
+    parser.add_argument("--linear-solver", choices=("cholesky", "superlu"), default="cholesky",
+                        help="sparse factorisation of the damped normal equations (default "
+                        "cholesky: supernodal, faster on large graphs)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return parser
 
 
 def run(args: argparse.Namespace) -> int:
+    # The supernodal Cholesky makes many small BLAS calls: one BLAS thread (only effective when
+    # numpy is not loaded yet, i.e. from the command line).
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from dran_edge.errors import InputError
     from dran_edge.g2o import read_g2o, write_g2o
     from dran_edge.lm import LMParams, LMStatus
@@ -63,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{args.input}: {graph.num_vertices} vertices, {graph.num_edges} edges, "
               f"SE({graph.dim}); init {args.init}, residual {args.residual}, "
               f"weights {args.weights}", file=sys.stderr)
-    params = LMParams(max_iterations=args.max_iterations, cost_tol=args.cost_tol)
+    params = LMParams(max_iterations=args.max_iterations, cost_tol=args.cost_tol,
+                      linear_solver=args.linear_solver, hessian=args.hessian)
     report = solve_g2o(graph, args.init, args.residual, args.weights, params, progress)
     write_g2o(args.out, graph, report.result.poses)
     wall_s = time.perf_counter() - t0

@@ -88,7 +88,7 @@ def _gtsam_run(gtsam, graph, values, g):
 def _ours(g, T0, residual, cost_tol):
     graph = pose_graph(g, residual, "sesync")
     t = time.perf_counter()
-    res = solve(graph, T0, LMParams(cost_tol=cost_tol))
+    res = solve(graph, T0, LMParams(cost_tol=cost_tol, linear_solver="cholesky"))
     return time.perf_counter() - t, res
 
 
