@@ -129,3 +129,20 @@ def test_missing_run_parts_are_named(tmp_path):
     (tmp_path / "mission.yaml").write_text("format: dran-edge-run/1\n")
     with pytest.raises(InputError, match=r"mission.yaml.*required key is missing"):
         rp.replay_run(tmp_path)
+
+
+def test_udp_loopback_gives_the_bus_numbers(tiny, tmp_path):
+    """--transport udp: real RADIO/DISH sockets on 127.0.0.1, same rounds.csv as the bus."""
+    from dran_edge.errors import DependencyError
+
+    run, report = tiny
+    udp = tmp_path / "udp"
+    shutil.copytree(run, udp, ignore=shutil.ignore_patterns("out", "eval"))
+    try:
+        rep = rp.replay_run(udp, rp.ReplayOptions(transport="udp", settle_rounds=10,
+                                                  evaluate=False, workers=1)).report
+    except DependencyError as exc:
+        pytest.skip(f"no draft-enabled ZeroMQ here: {exc}")
+    assert rep["transport"] == "udp"
+    assert rep["bytes_total"] == report["bytes_total"]
+    assert (udp / "out" / "rounds.csv").read_text() == (run / "out" / "rounds.csv").read_text()
