@@ -32,7 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from dran_edge.perception.covariance import gauss_newton, pose_covariance
+from dran_edge.perception.covariance import gauss_newton, linearise, pose_covariance
 from dran_edge.perception.detector import TagDetections
 
 from dran_edge import geometry as geo
@@ -137,7 +137,7 @@ class TagPoses:
 def corner_sigma(p: TagPoseParams, min_edge_px: np.ndarray) -> np.ndarray:
     """Corner noise per tag: ``corner_sigma_px * sqrt(ref_edge / shortest edge)`` (pixels)."""
     return p.corner_sigma_px * np.sqrt(p.corner_sigma_ref_edge_px
-                                       / np.maximum(np.asarray(min_edge_px, float), 1.0))
+                                       / np.maximum(np.asarray(min_edge_px, dtype=float), 1.0))
 
 
 def tag_object_points(size_m: np.ndarray) -> np.ndarray:
@@ -207,26 +207,28 @@ def estimate_tag_poses(
     p = params or TagPoseParams()
     n = len(det)
     size = np.asarray(tag_size_m, dtype=np.float64).reshape(n)
-    T_both = np.full((n, 2, 4, 4), np.nan)
-    T_best, T_alt = T_both[:, 0], T_both[:, 1]
+    T_both = np.full((n, 2, 4, 4), np.nan)  # [chosen, alternative]
     cov = np.full((n, 6, 6), np.nan)
     rms_both = np.full((n, 2), np.nan)
-    rms, rms_alt = rms_both[:, 0], rms_both[:, 1]
-    method = np.full(n, "", dtype=object)
-    accepted = np.zeros(n, bool)
     sigma = np.full(n, np.nan)
+    method = [""] * n
     if n == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, np.full(0, OK, dtype=object), method,
-                        accepted, sigma, np.zeros(0))
+        return TagPoses(T_both[:, 0], cov, T_both[:, 1], rms_both[:, 0], rms_both[:, 1],
+                        np.array([], dtype=object), np.array([], dtype=object), np.zeros(0, bool),
+                        sigma, np.zeros(0))
     uv = det.corners + CORNER_TO_OPENCV_PX
-    screened, edges = _screen(uv.tolist(), det.hamming.tolist(), det.decision_margin.tolist(),
-                       size.tolist(), image_size[0], image_size[1], p)
-    reject = np.array(screened, dtype=object)
-    edge = np.asarray(edges)
-    idx = [i for i, r in enumerate(screened) if r == OK]
+    reject, edges = _screen(uv.tolist(), det.hamming.tolist(), det.decision_margin.tolist(),
+                            size.tolist(), image_size[0], image_size[1], p)
+    idx = [i for i, r in enumerate(reject) if r == OK]
     m = len(idx)
+
+    def result() -> TagPoses:
+        return TagPoses(T_both[:, 0], cov, T_both[:, 1], rms_both[:, 0], rms_both[:, 1],
+                        np.array(reject, dtype=object), np.array(method, dtype=object),
+                        np.array([r == OK for r in reject]), sigma, np.asarray(edges))
+
     if m == 0:
-        return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted, sigma, edge)
+        return result()
 
     # both IPPE solutions per tag, lower reprojection error first; OpenCV reports the RMS per
     # coordinate, ours is per corner (x sqrt 2). One solution only -> repeated.
@@ -242,17 +244,16 @@ def estimate_tag_poses(
             T2[row, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
             T2[row, k, :3, 3] = tvecs[j][:, 0]
             rms2[row, k] = e[j, 0] * 1.4142135623730951
-    idx = np.asarray(idx)
-    r2 = rms2.tolist()
+    idx_a = np.asarray(idx)
     floor = p.corner_sigma_px / 2
-    ambiguous = [max(a, floor) / max(b, floor) < p.ambiguity_ratio for b, a in r2]
-    pick = np.zeros(m, np.int64)
+    ambiguous = [max(a, floor) / max(b, floor) < p.ambiguity_ratio for b, a in rms2.tolist()]
     method_m = ["reprojection"] * m
     reject_m = [OK] * m
+    swap = [False] * m
     if depth_mm is not None and any(ambiguous):
         # depth is consulted only for ambiguous tags (the others are decided by reprojection)
         amb = np.flatnonzero(ambiguous)
-        dres, dcount = _depth_residual(T2[amb], size[idx[amb]], K, depth_mm)
+        dres, dcount = _depth_residual(T2[amb], size[idx_a[amb]], K, depth_mm)
         enough = np.all(dcount >= p.depth_min_points, axis=1)
         # depth decides only when its preference exceeds its own noise: the median of n
         # samples of |N(0, s)| has a spread of about 1.25 s / sqrt(n).
@@ -263,23 +264,28 @@ def estimate_tag_poses(
         choice = np.argmin(dres, axis=1)
         for a, row in enumerate(amb.tolist()):
             if use[a]:
-                pick[row] = choice[a]
+                swap[row] = bool(choice[a] == 1)
                 method_m[row] = "depth"
                 ambiguous[row] = False
                 if dres[a, choice[a]] > p.depth_max_residual_m:
                     reject_m[row] = REJECT_DEPTH
-
-    ar = np.arange(m)
-    Tb, Ta = T2[ar, pick], T2[ar, 1 - pick]
-    rb, ra = rms2[ar, pick], rms2[ar, 1 - pick]
-    Tb, JtJ, res = gauss_newton(K, Tb, UNIT_CORNERS * (size[idx, None, None] / 2), uv[idx],
-                                iterations=p.refine_iterations)
+    if any(swap):
+        flip = np.asarray(swap)
+        T2[flip] = T2[flip][:, ::-1]
+        rms2[flip] = rms2[flip][:, ::-1]
+    Tb = T2[:, 0]
+    P = UNIT_CORNERS * (size[idx_a, None, None] / 2)
     if p.refine_iterations:
-        rb = np.sqrt(np.mean(np.sum(res * res, axis=-1), axis=-1))
-    sigma_m = corner_sigma(p, edge[idx])
+        Tb, JtJ, res = gauss_newton(K, Tb, P, uv[idx_a], iterations=p.refine_iterations)
+        T2[:, 0] = Tb
+        rms2[:, 0] = np.sqrt(np.mean(np.sum(res * res, axis=-1), axis=-1))
+    else:
+        J = linearise(K, Tb, P)[1].reshape(m, 8, 6)
+        JtJ = np.swapaxes(J, 1, 2) @ J
+    sigma_m = corner_sigma(p, [edges[i] for i in idx])
     cov_m = pose_covariance(JtJ, sigma_m)
     if any(ambiguous):
-        d = geo.se3_log(geo.se3_between(Tb, Ta))  # (m, 6)
+        d = geo.se3_log(geo.se3_between(Tb, T2[:, 1]))  # (m, 6)
         angle = np.linalg.norm(d[:, 3:], axis=-1)
         for row in range(m):
             if ambiguous[row]:
@@ -287,18 +293,19 @@ def estimate_tag_poses(
                     cov_m[row] += np.outer(d[row], d[row])
                 elif reject_m[row] == OK:
                     reject_m[row] = REJECT_AMBIGUOUS
-    t = Tb[:, :3, 3].tolist()
     max_range_sq = p.max_range_m ** 2
-    for row, (x, y, z_) in enumerate(t):
+    rb = rms2[:, 0].tolist()
+    for row, (x, y, z_) in enumerate(Tb[:, :3, 3].tolist()):
         if reject_m[row] == OK:
             if x * x + y * y + z_ * z_ > max_range_sq:
                 reject_m[row] = REJECT_RANGE
             elif not rb[row] <= p.max_reproj_px:
                 reject_m[row] = REJECT_REPROJ
-    T_best[idx], T_alt[idx], cov[idx] = Tb, Ta, cov_m
-    rms[idx], rms_alt[idx] = rb, ra
-    reject[idx] = reject_m
-    method[idx] = method_m
-    accepted[idx] = [r == OK for r in reject_m]
-    sigma[idx] = sigma_m
-    return TagPoses(T_best, cov, T_alt, rms, rms_alt, reject, method, accepted, sigma, edge)
+    T_both[idx_a] = T2
+    rms_both[idx_a] = rms2
+    cov[idx_a] = cov_m
+    sigma[idx_a] = sigma_m
+    for row, i in enumerate(idx):
+        reject[i] = reject_m[row]
+        method[i] = method_m[row]
+    return result()
