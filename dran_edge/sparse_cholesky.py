@@ -46,6 +46,27 @@ def _block_order(nb: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return np.argsort(lu.perm_c)
 
 
+def _etree(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Elimination tree of the block graph eliminated in ``order`` (Liu's algorithm with path
+    compression; Davis, "Direct Methods for Sparse Linear Systems", sec. 4.1)."""
+    pos = np.empty(nb, dtype=np.int64)
+    pos[order] = np.arange(nb)
+    pr, pc = pos[rows], pos[cols]
+    upper = pr < pc
+    key = np.unique(pc[upper] * nb + pr[upper])  # column k, rows i < k, ascending
+    kc, kr = (key // nb).tolist(), (key % nb).tolist()
+    parent = [-1] * nb
+    ancestor = [-1] * nb
+    for k, i in zip(kc, kr):
+        while i != -1 and i < k:
+            nxt = ancestor[i]
+            ancestor[i] = k
+            if nxt == -1:
+                parent[i] = k
+            i = nxt
+    return np.asarray(parent, dtype=np.int64)
+
+
 @dataclass(frozen=True, eq=False)
 class _Supernode:
     c0: int
@@ -114,11 +135,13 @@ class SymbolicCholesky:
         indptr = np.asarray(indptr, dtype=np.int64)
         indices = np.asarray(indices, dtype=np.int64)
         col_of = np.repeat(np.arange(n), np.diff(indptr))
-        brow, bcol = indices // block, col_of // block
+        # the block pattern, from one representative (top-left) entry per stored block
+        rep = (indices % block == 0) & (col_of % block == 0)
+        brow, bcol = indices[rep] // block, col_of[rep] // block
         order = _block_order(nb, brow, bcol)
         # elimination tree, then a postorder of it (same fill; every chain of the tree becomes
         # contiguous, so that it can form a supernode)
-        _, _, parent = _symbolic(nb, brow, bcol, order)
+        parent = _etree(nb, brow, bcol, order)
         children: list[list[int]] = [[] for _ in range(nb)]
         for k, p in enumerate(parent.tolist()):
             if p >= 0:
@@ -168,36 +191,48 @@ class SymbolicCholesky:
         fronts_b = [np.concatenate([np.arange(bounds_arr[s], bounds_arr[s + 1]), sn_rows_b[s]])
                     for s in range(nsn)]
         # where each stored entry of A goes: the front of the supernode owning its column, when
-        # its row is at or below that supernode's first column (the rest is the transpose)
+        # its row is at or below that supernode's first column (the rest is the transpose).
+        # Positions inside fronts are found by one search in the sorted keys s·nb + block row.
         pos = np.empty(nb, dtype=np.int64)
         pos[order] = np.arange(nb)
-        pr, pc = pos[brow], pos[bcol]
+        sizes = np.array([fb.size for fb in fronts_b], dtype=np.int64)
+        front_start = np.concatenate([[0], np.cumsum(sizes)])
+        front_keys = np.repeat(np.arange(nsn), sizes) * nb + np.concatenate(fronts_b)
+        pr, pc = pos[indices // block], pos[col_of // block]
         s_of = owner[pc]
         take = np.flatnonzero(pr >= bounds_arr[s_of])
-        by_sn = np.argsort(s_of[take], kind="stable")
-        take = take[by_sn]
-        sn_ptr = np.searchsorted(s_of[take], np.arange(nsn + 1))
+        take = take[np.argsort(s_of[take], kind="stable")]
+        s_k = s_of[take]
+        sn_ptr = np.searchsorted(s_k, np.arange(nsn + 1))
+        lrow = (np.searchsorted(front_keys, s_k * nb + pr[take]) - front_start[s_k]) * block \
+            + indices[take] % block
+        lcol = (pc[take] - bounds_arr[s_k]) * block + col_of[take] % block
+        a_dst = lrow * (sizes[s_k] * block) + lcol
+        # where each supernode's rows sit in its parent's front
+        lens = np.array([rb.size for rb in sn_rows_b], dtype=np.int64)
+        par_rep = np.repeat(sn_parent, lens)
+        all_rows = np.concatenate(sn_rows_b) if nsn else np.zeros(0, np.int64)
+        loc_all = np.zeros(all_rows.size, dtype=np.int64)
+        has_par = par_rep >= 0
+        loc_all[has_par] = (np.searchsorted(front_keys, par_rep[has_par] * nb + all_rows[has_par])
+                            - front_start[par_rep[has_par]])
+        loc_split = np.split(loc_all, np.cumsum(lens)[:-1])
         supernodes = []
         for s in range(nsn):
             a, b = int(bounds_arr[s]), int(bounds_arr[s + 1])
-            fb = fronts_b[s]
-            f = fb.size * block
-            idx = take[sn_ptr[s]:sn_ptr[s + 1]]
-            lrow = np.searchsorted(fb, pr[idx]) * block + indices[idx] % block
-            lc = (pc[idx] - a) * block + col_of[idx] % block
+            f = int(sizes[s]) * block
             k = np.arange((b - a) * block)
             p = int(sn_parent[s])
             if p >= 0:
-                loc = np.searchsorted(fronts_b[p], sn_rows_b[s])
-                rel_s = (loc[:, None] * block + ar).ravel()
-                fp = fronts_b[p].size * block
-                rel = (rel_s[:, None] * fp + rel_s[None, :]).ravel()
+                rel_s = (loc_split[s][:, None] * block + ar).ravel()
+                rel = (rel_s[:, None] * (int(sizes[p]) * block) + rel_s[None, :]).ravel()
             else:
                 rel = np.zeros(0, dtype=np.int64)
             supernodes.append(_Supernode(
                 c0=a * block, c1=b * block,
                 rows=(sn_rows_b[s][:, None] * block + ar).ravel(),
-                parent=p, rel=rel, a_src=idx, a_dst=lrow * f + lc, diag=k * f + k,
+                parent=p, rel=rel, a_src=take[sn_ptr[s]:sn_ptr[s + 1]],
+                a_dst=a_dst[sn_ptr[s]:sn_ptr[s + 1]], diag=k * f + k,
             ))
         self._supernodes = supernodes
         self._perm = (order[:, None] * block + ar).ravel()  # permuted scalar index -> original
