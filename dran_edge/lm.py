@@ -367,6 +367,10 @@ def schur_step(
 # ----------------------------------------------------------------------------- the LM loop
 
 
+AUTO_CHOLESKY_MIN_POSES = 1000
+"""linear_solver='auto' uses the supernodal Cholesky from this many private SE(3) poses on."""
+
+
 class LMStatus(str, Enum):
     CONVERGED = "converged"
     MAX_ITERATIONS = "max_iterations"
@@ -403,10 +407,12 @@ class LMParams:
     (indefinite, Cholesky only) or its step does not lower the cost, the iteration continues with
     the Gauss–Newton model at the same μ)."""
     linear_solver: str = "superlu"
-    """Factorisation of A + μI: 'superlu' or 'cholesky' (supernodal, dran_edge.sparse_cholesky:
-    2–5× faster on large graphs with a single-threaded BLAS, but many small BLAS calls, which a
-    multi-threaded OpenBLAS on an oversubscribed machine slows down badly — shells that pick it
-    set OPENBLAS_NUM_THREADS=1 before numpy loads)."""
+    """Factorisation of A + μI: 'superlu', 'cholesky' (supernodal, dran_edge.sparse_cholesky) or
+    'auto' (cholesky for SE(3) graphs with ≥ AUTO_CHOLESKY_MIN_POSES private poses, else superlu;
+    from tools/bench/bench_cholesky.py: 2–7× faster factorisations on the 3D benchmark graphs,
+    no gain on the small 2D ones once its analysis is paid). The Cholesky makes many small BLAS
+    calls, which a multi-threaded OpenBLAS on an oversubscribed machine slows down badly: shells
+    that use it set OPENBLAS_NUM_THREADS=1 before numpy loads."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -438,11 +444,15 @@ def solve(
     ``callback(iteration, cost, mu)`` is called after every accepted step (progress reports).
     """
     plan = build_plan(graph) if plan is None else plan
-    if params.linear_solver not in ("cholesky", "superlu"):
-        raise ValueError(f"linear_solver must be 'cholesky' or 'superlu', got {params.linear_solver!r}")
+    if params.linear_solver not in ("cholesky", "superlu", "auto"):
+        raise ValueError(
+            f"linear_solver must be 'cholesky', 'superlu' or 'auto', got {params.linear_solver!r}")
+    use_cholesky = params.linear_solver == "cholesky" or (
+        params.linear_solver == "auto" and plan.dof == 6
+        and plan.private_vars.shape[0] >= AUTO_CHOLESKY_MIN_POSES)
     if params.hessian not in ("gauss_newton", "exact"):
         raise ValueError(f"hessian must be 'gauss_newton' or 'exact', got {params.hessian!r}")
-    factorize = cholesky_factorizer(plan) if params.linear_solver == "cholesky" else None
+    factorize = cholesky_factorizer(plan) if use_cholesky else None
     poses = np.asarray(poses, dtype=np.float64)
     cost = evaluate_cost(graph, poses)
     history = [cost]

@@ -40,9 +40,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     parser.add_argument("--hessian", choices=("exact", "gauss_newton"), default="exact",
                         help="LM model: exact (adds the chordal residual's second-order terms, "
                         "Gauss-Newton where that is indefinite; default) or gauss_newton (J'J)")
-    parser.add_argument("--linear-solver", choices=("cholesky", "superlu"), default="cholesky",
-                        help="sparse factorisation of the damped normal equations (default "
-                        "cholesky: supernodal, faster on large graphs)")
+    parser.add_argument("--linear-solver", choices=("auto", "cholesky", "superlu"), default="auto",
+                        help="sparse factorisation of the damped normal equations: supernodal "
+                        "cholesky, superlu, or auto (cholesky for large 3D graphs; default)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return parser

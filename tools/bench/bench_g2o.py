@@ -5,6 +5,8 @@
 DATA_DIR defaults to ../shared/data/g2o when it exists. For every graph, in the same process:
 read it, compute the chordal initialisation once, then time (best of --repeat runs)
 
+Our linear solver is 'auto' (supernodal Cholesky on the 3D graphs, SuperLU on the 2D ones).
+
 - ours, geodesic residual, SE-Sync isotropic weights, Gauss-Newton model (M = JᵀJ + μI), stopping
   at a relative cost decrease < 1e-5 (GTSAM's default relativeErrorTol), the same rule as GTSAM;
 - ours, chordal residual, SE-Sync weights, exact Hessian (damped Newton), stopping at 1e-8 (the
@@ -88,7 +90,7 @@ def _gtsam_run(gtsam, graph, values, g):
 def _ours(g, T0, residual, cost_tol, hessian):
     graph = pose_graph(g, residual, "sesync")
     t = time.perf_counter()
-    res = solve(graph, T0, LMParams(cost_tol=cost_tol, linear_solver="cholesky", hessian=hessian))
+    res = solve(graph, T0, LMParams(cost_tol=cost_tol, linear_solver="auto", hessian=hessian))
     return time.perf_counter() - t, res
 
 
