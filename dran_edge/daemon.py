@@ -42,6 +42,8 @@ from dran_edge.config import RobotConfig, config_to_dict
 from dran_edge.errors import DependencyError, DranError
 from dran_edge.events import EstimateUpdate, Health, ObservationBatch, Outgoing, Tick
 from dran_edge.journal import IngestJournal
+from dran_edge.local_graph import OBJ, LocalGraph, gauge_anchor
+from dran_edge.online_agent import problem_from_graph
 from dran_edge.notify import Notifier
 
 log = logging.getLogger(__name__)
@@ -326,21 +328,27 @@ class Daemon:
             log.error("checkpoint in %s belongs to robot %s, not %s: ignoring it",
                       self.state_dir, saved.get("robot_id"), cfg.robot.id)
             saved = None
+        graph_state = None
         if saved is not None:
             agent_state = saved["agent"]
+            graph_state = saved.get("graph")
             pos = saved.get("journal_position")
             self.applied_position = (int(pos[0]), int(pos[1])) if pos else None
             self.counters.update(saved.get("counters", {}))
             log.info("resuming from checkpoint (journal position %s)", self.applied_position)
+        anchor = gauge_anchor(cfg.agent)
         try:
             self.agent = self.agent_factory(cfg, agent_state)
+            self.graph = (LocalGraph.from_state(cfg.agent, graph_state, anchor_first=anchor)
+                          if graph_state is not None else LocalGraph(cfg.agent, anchor_first=anchor))
         except DranError:
             raise
         except Exception:
             if agent_state is None:
                 raise
-            log.exception("the checkpointed agent state does not load; starting afresh")
+            log.exception("the checkpointed state does not load; starting afresh from the journal")
             self.agent = self.agent_factory(cfg, None)
+            self.graph = LocalGraph(cfg.agent, anchor_first=anchor)
             self.applied_position = None
         self.journal = IngestJournal(self.state_dir)
         recovered = self.journal.read_after(self.applied_position)
@@ -423,8 +431,15 @@ class Daemon:
                 self.counters["observations_unencodable"] += 1
                 log.warning("dropping an observation batch that does not encode: %s", exc)
         outputs: list = []
+        changed = False
         for record, pos in self.journal.take_pending():
-            ok &= self._handle(record.event, outputs)
+            try:
+                changed |= bool(self.graph.handle(record.event))
+            except Exception:
+                self.stats.agent_errors += 1
+                ok = False
+                log.exception("local graph failed on %s; the record is dropped",
+                              type(record.event).__name__)
             self.applied_position = pos
             self.counters[f"applied_{type(record.event).__name__}"] += 1
             if self._record_file is not None:
@@ -438,7 +453,15 @@ class Daemon:
             for data in incoming:
                 ok &= self._handle(data, outputs)
         t = time.perf_counter()
+        if changed:
+            try:
+                self.agent.set_problem(problem_from_graph(self.graph, self.cfg.agent.residual))
+            except Exception:
+                ok = False
+                self.stats.agent_errors += 1
+                log.exception("could not hand the new local problem to the agent")
         ok &= self._handle(Tick(time.time_ns()), outputs)
+        self._write_back()
         dt = time.perf_counter() - t
         self.stats.ticks += 1
         self.stats.round_last_s = dt
@@ -459,6 +482,18 @@ class Daemon:
             line = self._status_line()
             self.notifier.status(line)
             log.info("status: %s", line)
+
+    def _write_back(self) -> None:
+        """Agent estimates -> local graph (new nodes start from them; marginalisation
+        linearises at them)."""
+        problem = getattr(self.agent, "problem", None)
+        if problem is None:
+            return
+        self.graph.set_estimates(problem.pose_ids, self.agent.x)
+        objs = self.agent.local_objects()
+        if objs:
+            keys = np.array([OBJ + int(k) for k in objs], np.int64)
+            self.graph.set_estimates(keys, np.stack(list(objs.values())))
 
     def _handle(self, event: Any, outputs: list) -> bool:
         try:
@@ -506,6 +541,7 @@ class Daemon:
             "counters": dict(self.counters),
             "ticks": self.stats.ticks,
             "agent": self.agent.to_state(),
+            "graph": self.graph.to_state(),
             "transport": (self.transport.to_state()  # type: ignore[attr-defined]
                           if self.transport is not None and hasattr(self.transport, "to_state")
                           else None),
@@ -547,10 +583,13 @@ class Daemon:
             "boot_epoch": getattr(self, "boot_epoch", None),
             "uptime_s": time.monotonic() - self._started_mono,
             "rounds": self.stats.as_dict(),
-            "graph": None if est is None else {
+            "graph": {"nodes": self.graph.num_nodes if hasattr(self, "graph") else 0,
+                      "factors": self.graph.num_factors if hasattr(self, "graph") else 0,
+                      **({} if est is None else {
                 "round": est.round, "keyframes": int(len(est.keyframe_stamps_ns)),
                 "objects": len(est.object_ids), "cost": est.cost,
-                "consensus_error": est.consensus_error, "converged": est.converged},
+                "consensus_error": est.consensus_error, "converged": est.converged})},
+            "graph_counters": dict(self.graph.counters) if hasattr(self, "graph") else {},
             "neighbours": transport_stats.get("neighbours", {}),
             "transport": transport_stats,
             "ingest": None if ingest is None else {

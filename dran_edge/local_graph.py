@@ -68,6 +68,13 @@ KEYFRAME_BUFFER = 20000  # recent VIO keyframe poses kept for late loops
 PENDING_OBSERVATIONS = 256
 
 
+def gauge_anchor(config: AgentConfig) -> bool:
+    """Whether this robot's first node carries the gauge prior: exactly when its id is below
+    all its neighbours' (a lone robot anchors; in a fleet the lowest id does, the others are
+    placed by object consensus)."""
+    return all(config.robot_id < q for q in config.neighbours)
+
+
 def rotation_angle(R: np.ndarray) -> float:
     """|Log(R)| in radians (a cheap form for thresholds and noise models)."""
     return float(np.arccos(np.clip((np.trace(R) - 1.0) * 0.5, -1.0, 1.0)))
@@ -653,9 +660,19 @@ class LocalGraph:
         keys = sorted(self.obj_est)
         return np.stack([self.obj_est[k] for k in keys]) if keys else np.zeros((0, 4, 4))
 
-    def factor_arrays(self) -> dict:
-        """All factors as arrays: p, q (variable keys; p = -1 for priors), Z, Σ, kind."""
-        return _arrays([self.factors[s] for s in sorted(self.factors)])
+    def factor_arrays(self, include_prior: bool = True) -> dict:
+        """All factors as arrays: p, q (variable keys; p = -1 for unary priors), Z, Σ, kind.
+
+        With ``include_prior`` the dense marginalisation prior is appended in sparsified form
+        (:meth:`_sparsified_prior`), so a consumer that knows only binary and unary factors
+        still gets the information of removed nodes; :meth:`problem` uses the exact dense prior.
+        """
+        fa = _arrays([self.factors[s] for s in sorted(self.factors)])
+        if include_prior and self.prior is not None:
+            extra = self._sparsified_prior()
+            for key in ("p", "q", "Z", "S", "kind"):
+                fa[key] = np.concatenate([fa[key], extra[key]])
+        return fa
 
     def problem(self, residual: str | None = None) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
         """(graph, poses, keys): variables = nodes (PRIVATE) then objects (PUBLIC).
@@ -671,10 +688,46 @@ class LocalGraph:
             else np.zeros((0, 4, 4))
         kinds = np.concatenate([np.full(len(nodes), VariableKind.PRIVATE, np.int8),
                                 np.full(len(objs), VariableKind.PUBLIC, np.int8)])
-        blocks = self._blocks(self.factor_arrays(), keys, residual)
+        blocks = self._blocks(self.factor_arrays(include_prior=False), keys, residual)
         if self.prior is not None:
             blocks.append(self._prior_block(keys))
         return PoseGraph(3, kinds, tuple(blocks)), poses, keys
+
+    def _sparsified_prior(self) -> dict:
+        """The marginalisation prior as binary/unary factors, for consumers without a dense-prior
+        factor (the DRAN agent's LocalProblem): a unary prior on the prior's oldest node (its
+        marginal) and one relative factor from that root to each other variable of the prior with
+        the conditional covariance given the root. Correlations between the non-root variables
+        (e.g. object-object) are dropped: a sparsification, measured in docs/benchmarks.md."""
+        if self.prior is None:
+            return _arrays([])
+        keys = self.prior["keys"]
+        nodes_in = [i for i, k in enumerate(keys.tolist()) if k < OBJ]
+        if not nodes_in:
+            self._count("prior_without_node")
+            return _arrays([])
+        W, e = self.prior["W"], self.prior["e"]
+        H = W.T @ W
+        Sigma = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
+        delta = -(Sigma @ (W.T @ e)).reshape(-1, 6)
+        T_mean = self.prior["T_lin"] @ geo.se3_exp(delta)
+        r = nodes_in[0]
+        sr = slice(6 * r, 6 * r + 6)
+        S_rr = 0.5 * (Sigma[sr, sr] + Sigma[sr, sr].T)
+        items = []
+        if np.all(np.diag(S_rr) < 1e6):
+            items.append((NONE, int(keys[r]), T_mean[r], S_rr + 1e-12 * np.eye(6), KIND_PRIOR))
+        S_rr_inv = np.linalg.pinv(S_rr, hermitian=True)
+        T_r_inv = _inv(T_mean[r])
+        for i, k in enumerate(keys.tolist()):
+            if i == r:
+                continue
+            si = slice(6 * i, 6 * i + 6)
+            S_cond = Sigma[si, si] - Sigma[si, sr] @ S_rr_inv @ Sigma[sr, si]
+            S_cond = 0.5 * (S_cond + S_cond.T) + 1e-12 * np.eye(6)
+            kind = KIND_OBSERVATION if k >= OBJ else KIND_ODOMETRY
+            items.append((int(keys[r]), int(k), T_r_inv @ T_mean[i], S_cond, kind))
+        return _arrays(items)
 
     def set_estimates(self, keys: np.ndarray, poses: np.ndarray) -> None:
         """Write solver results back (variables by key, as returned by :meth:`problem`)."""
@@ -699,7 +752,7 @@ class LocalGraph:
 
     # ------------------------------------------------------------------ state
     def to_state(self) -> dict:
-        fa = self.factor_arrays()
+        fa = self.factor_arrays(include_prior=False)
         nodes = self.node_keys()
         return {
             "next_node": self.next_node,

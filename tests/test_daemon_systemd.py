@@ -1,0 +1,135 @@
+"""The systemd protocol for real: the daemon as a process, NOTIFY_SOCKET on a socket we listen on."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from dran_edge.comms import ingest as I
+from dran_edge.commands.status import query_status
+from daemon_helpers import NotifyListener, start_daemon, stop, wait_status, write_config
+
+REPO = Path(__file__).resolve().parents[1]
+WATCHDOG_USEC = 2_000_000  # systemd would kill us after 2 s without a ping
+
+
+def test_ready_watchdog_status_stopping(tmp_path):
+    cfg = write_config(tmp_path)
+    listener = NotifyListener(tmp_path / "notify.sock")
+    proc = start_daemon(cfg, {"NOTIFY_SOCKET": str(listener.path),
+                              "WATCHDOG_USEC": str(WATCHDOG_USEC)})
+    try:
+        listener.collect(60.0, until="READY=1")
+        assert listener.times("READY=1"), "no READY=1"
+        # sockets are up when READY arrives
+        st = query_status(tmp_path / "run" / "status.sock")
+        assert st["state"] == "running" and st["robot"]["name"] == "testbot"
+        with socket.socket(socket.AF_UNIX) as s:
+            s.connect(str(tmp_path / "run" / "ingest.sock"))
+            s.sendall(I.pack_keyframe(1_000_000_000, [0, 0, 0], [0, 0, 0, 1])
+                      + b"\x00" * 40  # garbage: counted, not fatal
+                      + I.pack_keyframe(2_000_000_000, [1, 0, 0], [0, 0, 0, 1]))
+        listener.collect(4.0)
+        st = wait_status(tmp_path / "run" / "status.sock",
+                         lambda s: s["ingest"]["records"] == 2, proc=proc)
+        assert st["ingest"]["rejected_by_reason"] == {"bad_magic": 1}
+        rc, out = stop(proc)
+        listener.collect(2.0, until="STOPPING=1")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        listener.close()
+    assert rc == 0, out
+    ready = listener.times("READY=1")[0]
+    pings = listener.times("WATCHDOG=1")
+    assert pings and min(pings) > ready, "a watchdog ping before READY"
+    assert len(pings) >= 3, f"only {len(pings)} watchdog pings in ~4 s"
+    gaps = [b - a for a, b in zip(pings, pings[1:])]
+    # Cadence: about WATCHDOG_USEC/2, never faster than a tick, never near the timeout.
+    assert min(gaps) >= 0.2 * 0.9
+    assert max(gaps) < WATCHDOG_USEC / 1e6
+    statuses = [m for _, m in listener.messages if m.startswith("STATUS=")]
+    assert any("rounds=" in m and "records=2" in m and "rejected=1" in m for m in statuses), statuses
+    assert listener.times("STOPPING=1"), "no STOPPING=1 on SIGTERM"
+    assert "not started by systemd" not in out
+
+
+def test_without_systemd_says_so_once_and_runs(tmp_path):
+    cfg = write_config(tmp_path)
+    proc = start_daemon(cfg, {})
+    try:
+        wait_status(tmp_path / "run" / "status.sock", lambda s: s["rounds"]["ticks"] >= 3,
+                    proc=proc)
+    finally:
+        rc, out = stop(proc)
+    assert rc == 0, out
+    assert out.count("not started by systemd") == 1, out
+
+
+def test_laptop_config_starts_reports_ready_and_idles(tmp_path):
+    listener = NotifyListener(tmp_path / "notify.sock")
+    proc = start_daemon(REPO / "calib" / "fleet" / "laptop.yaml",
+                        {"NOTIFY_SOCKET": str(listener.path)}, cwd=tmp_path)
+    try:
+        listener.collect(60.0, until="READY=1")
+        st = wait_status(tmp_path / "dran-edge-state" / "run" / "status.sock",
+                         lambda s: s["rounds"]["ticks"] >= 2, proc=proc)
+        assert st["ingest"] is None and st["robot"]["name"] == "laptop"
+    finally:
+        rc, out = stop(proc)
+        listener.close()
+    assert listener.times("READY=1"), out
+    assert rc == 0, out
+
+
+def test_status_command_prints_health(tmp_path):
+    cfg = write_config(tmp_path)
+    proc = start_daemon(cfg, {})
+    try:
+        wait_status(tmp_path / "run" / "status.sock", lambda s: s["rounds"]["ticks"] >= 1,
+                    proc=proc)
+        res = subprocess.run([sys.executable, "-m", "dran_edge.cli", "status", "--config",
+                              str(cfg)], capture_output=True, text=True, timeout=30)
+    finally:
+        stop(proc)
+    assert res.returncode == 0, res.stderr
+    for word in ("rounds", "graph", "ingest", "neighbours", "queues"):
+        assert word in res.stdout
+    res = subprocess.run([sys.executable, "-m", "dran_edge.cli", "status", "--socket",
+                          str(tmp_path / "absent.sock")], capture_output=True, text=True,
+                         timeout=30)
+    assert res.returncode == 1 and "no daemon answers" in res.stderr
+
+
+def _systemd_running() -> bool:
+    return Path("/run/systemd/system").is_dir() and shutil.which("systemd-run") is not None
+
+
+@pytest.mark.skipif(not _systemd_running(), reason="no running systemd on this machine")
+def test_under_systemd_run(tmp_path):
+    cfg = write_config(tmp_path)
+    unit = f"dran-edge-test-{uuid.uuid4().hex[:8]}"
+    user = [] if os.geteuid() == 0 else ["--user"]
+    res = subprocess.run(
+        ["systemd-run", *user, "--unit", unit, "--property=Type=notify",
+         "--property=WatchdogSec=4", "--collect", sys.executable, "-m", "dran_edge.cli", "run",
+         "--config", str(cfg)], capture_output=True, text=True, timeout=60)
+    if res.returncode != 0:
+        pytest.skip(f"systemd-run refused: {res.stderr.strip()}")
+    try:
+        # systemd-run returns after READY=1 for Type=notify
+        time.sleep(5.0)  # longer than WatchdogSec: still active only if pings arrive
+        show = subprocess.run(["systemctl", *user, "show", unit, "-p", "ActiveState",
+                               "-p", "StatusText"], capture_output=True, text=True)
+        assert "ActiveState=active" in show.stdout, show.stdout
+        assert "rounds=" in show.stdout
+    finally:
+        subprocess.run(["systemctl", *user, "stop", unit], capture_output=True)
