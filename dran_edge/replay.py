@@ -13,7 +13,9 @@
    start. In round k (stamp ``t_k = start + (k+1)·period``) each robot, in id order, gets: every
    input whose stamp is ≤ t_k (ingest records in file order), then the neighbour messages that
    arrived, then ``Tick(t_k)``; its outgoing messages are encoded, signed and sent. After the
-   mission's data ends, ``settle_rounds`` more rounds let consensus finish.
+   mission's data ends, ``settle_rounds`` more rounds let consensus finish. A robot's round
+   depends only on its own state and inbox, so robots are spread over ``workers`` processes
+   (:mod:`dran_edge.replay_robots`); the numbers do not depend on how many.
 3. **Communication.** By default the in-process bus (:mod:`dran_edge.comms.bus`) with its loss,
    latency and partition model, carrying the same authenticated datagrams as the radio
    (:class:`~dran_edge.comms.link.NeighbourLink`). ``transport="udp"`` uses real ZeroMQ
@@ -30,31 +32,27 @@ rounds (``speed`` = times real time). Same run, same options -> same numbers.
 
 from __future__ import annotations
 
-import bisect
 import csv
 import json
 import logging
 import math
+import os
 import time
-import zlib
 from collections import Counter
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from dran_edge import geometry as geo
 from dran_edge import run_dir as rd
-from dran_edge.errors import DependencyError, InputError
-from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
+from dran_edge.errors import InputError
 
 log = logging.getLogger(__name__)
 
-#: HMAC key of replayed links. A run never stores the fleet's secret; replay signs and verifies
-#: with this fixed key so the authentication code path runs as on the robot.
-REPLAY_KEY = bytes(range(32))
 REPORT_FORMAT = "dran-edge-replay/1"
 #: Fields of report.json that depend on the machine's speed (golden comparisons ignore them).
 WALL_CLOCK_FIELDS = ("replay_wall_s", "realtime_factor", "perception_wall_s", "rounds_wall_s")
@@ -69,7 +67,7 @@ class PartitionSpec:
     end_s: float
 
     @staticmethod
-    def parse(text: str) -> "PartitionSpec":
+    def parse(text: str) -> PartitionSpec:
         """``"3,4:20:40"`` -> robots 3 and 4 cut off from 20 s to 40 s."""
         try:
             ids, start, end = text.split(":")
@@ -146,134 +144,6 @@ def _perceive_robot(args: tuple[str, str, str]) -> tuple[str, list[bytes], int, 
     return name, records, frames, time.perf_counter() - t0
 
 
-# ---------------------------------------------------------------------------------- robots
-@dataclass
-class _Robot:
-    """One replayed robot: its core, its link and its input queue."""
-
-    info: rd.RunRobot
-    cfg: Any
-    core: Any
-    link: Any = None
-    events: list = field(default_factory=list)
-    """(release_stamp_ns, order, event), sorted."""
-    next_event: int = 0
-    last: EstimateUpdate | None = None
-    first_seen: dict = field(default_factory=dict)
-    """keyframe stamp -> T_world_body of the first estimate that contained it."""
-    health: dict = field(default_factory=dict)
-    rejected: Counter = field(default_factory=Counter)
-    frames: int = 0
-    observations: int = 0
-
-
-def _decode_ingest(data: bytes, what: str) -> tuple[list, Counter]:
-    from dran_edge.comms.ingest import IngestDecodeError, iter_records
-
-    events, rejected = [], Counter()
-    for item in iter_records(data):
-        if isinstance(item, IngestDecodeError):
-            rejected[item.reason] += 1
-            log.debug("%s: %s", what, item)
-        else:
-            events.append(item.event)
-    return events, rejected
-
-
-def _event_stamp(ev) -> int:
-    stamp = getattr(ev, "stamp_ns", None)
-    return int(stamp if stamp is not None else getattr(ev, "stamp_cur_ns"))
-
-
-def make_core(cfg, robot: rd.RunRobot):
-    """The robot's agent as the daemon builds it (ingest events in, outputs out).
-
-    The run's ``T_world_odom`` (the paper's protocol: the robot's initial frame in the world,
-    from mocap) is handed to agents that accept it.
-    """
-    from dran_edge.daemon import default_agent_factory
-
-    core = default_agent_factory(cfg, None)
-    if not hasattr(core, "set_world_frame"):
-        # The daemon's factory returned the bare agent, which ignores ingest events: put the
-        # online core (bounded local graph + agent) around it, as the robot needs.
-        from dran_edge.online_agent import OnlineAgent
-
-        core = OnlineAgent(cfg.agent)
-    if robot.T_world_odom is not None:
-        core.set_world_frame(robot.T_world_odom)
-    return core
-
-
-def _fleet_id(fleet: str) -> int:
-    return zlib.crc32(fleet.encode("utf-8")) & 0xFFFF
-
-
-def _make_links(run: rd.Run, robots: dict[int, _Robot], opt: ReplayOptions, period_s: float):
-    from dran_edge.comms.auth import AuthPolicy
-    from dran_edge.comms.link import NeighbourLink
-
-    mission = run.mission
-    ids = sorted(robots)
-    fleet_id = _fleet_id(mission.fleet)
-    bus = None
-    if opt.transport == "bus":
-        from dran_edge.comms.bus import Bus, BusParams, Partition
-
-        parts = [Partition(frozenset(p.robots), int(math.floor(p.start_s / period_s)),
-                           int(math.ceil(p.end_s / period_s))) for p in opt.partitions]
-        bus = Bus(ids, graph=mission.comm_graph,
-                  params=BusParams(loss_probability=opt.loss, latency_rounds=opt.latency_rounds,
-                                   seed=opt.seed),
-                  partitions=parts)
-    for rid in ids:
-        r = robots[rid]
-        policy = AuthPolicy(fleet_id=fleet_id, self_id=rid, fleet_robots=frozenset(ids),
-                            neighbours=frozenset(mission.neighbours(rid)),
-                            relay_from=frozenset(r.cfg.comms.allow_relay_from))
-        if bus is not None:
-            transport = bus.endpoint(rid)
-        else:
-            transport = _udp_transport(r.cfg, mission)
-        r.link = NeighbourLink(transport, key=REPLAY_KEY, policy=policy, boot_epoch=1,
-                               max_datagram_bytes=r.cfg.comms.datagram_max_bytes)
-    return bus
-
-
-class _BufferedUdp:
-    """A RADIO/DISH transport whose received datagrams are collected by the round loop."""
-
-    def __init__(self, radio):
-        self.radio = radio
-        self.buffer: list[tuple[int | None, bytes]] = []
-
-    def send(self, to: int, data: bytes) -> bool:
-        return self.radio.send(to, data)
-
-    def pull(self) -> int:
-        got = self.radio.receive()
-        self.buffer.extend(got)
-        return len(got)
-
-    def receive(self, max_datagrams: int | None = None):
-        out = sorted(self.buffer, key=lambda x: x[1])
-        self.buffer = []
-        return out
-
-    def close(self) -> None:
-        self.radio.close()
-
-
-def _udp_transport(cfg, mission: rd.Mission) -> _BufferedUdp:
-    from dran_edge.comms.radio import RadioParams, RadioTransport
-
-    neighbours = {n.id: f"udp://{n.address.rsplit(':', 1)[0].strip('[]')}:"
-                  f"{n.address.rsplit(':', 1)[1]}" for n in cfg.neighbours}
-    params = RadioParams(group=mission.fleet, bind=f"udp://{cfg.comms.bind_address}:{cfg.comms.port}",
-                         neighbours=neighbours, max_datagram_bytes=cfg.comms.datagram_max_bytes)
-    return _BufferedUdp(RadioTransport(params))
-
-
 # ---------------------------------------------------------------------------------- the replay
 @dataclass
 class ReplayResult:
@@ -281,44 +151,21 @@ class ReplayResult:
     out_dir: Path
 
 
-def _load_robots(run: rd.Run) -> dict[int, _Robot]:
-    from dran_edge.comms.ingest import decode_record  # noqa: F401  (fail early if missing)
-
-    robots: dict[int, _Robot] = {}
+def _run_perception(run: rd.Run, opt: ReplayOptions,
+                    progress: Callable[[str, int, int], None] | None
+                    ) -> tuple[dict[str, tuple[bytes, int]], float]:
+    """{robot name: (observation records, frames)} for robots with recorded frames."""
+    jobs = []
     for info in run.mission.robots:
         cfg = run.load_config(info.name)
-        try:
-            core = make_core(cfg, info)
-        except DependencyError:
-            raise
-        events, rejected = _decode_ingest(run.read_ingest(info.name),
-                                          str(run.ingest_path(info.name)))
-        r = _Robot(info, cfg, core, rejected=rejected)
-        release = 0
-        for order, ev in enumerate(events):
-            release = max(release, _event_stamp(ev))
-            r.events.append((release, order, ev))
-            if isinstance(ev, ObservationBatch):
-                r.observations += len(ev.observations)
-        robots[info.id] = r
-    return robots
-
-
-def _run_perception(run: rd.Run, robots: dict[int, _Robot], opt: ReplayOptions,
-                    progress: Callable[[str, int, int], None] | None) -> float:
-    jobs = []
-    for r in robots.values():
-        if r.cfg.camera.source != "recorded" or run.frames_dir(r.info.name) is None:
+        if cfg.camera.source != "recorded" or run.frames_dir(info.name) is None:
             continue
-        calib = r.cfg.resolve(r.cfg.camera.calib_dir) or run.calib_dir
-        jobs.append((str(run.config_path(r.info.name)), str(calib), r.info.name))
+        calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
+        jobs.append((str(run.config_path(info.name)), str(calib), info.name))
     if not jobs:
-        return 0.0
+        return {}, 0.0
     t0 = time.perf_counter()
-    by_name = {r.info.name: r for r in robots.values()}
-    import os
-
-    workers = opt.workers or min(len(jobs), os.cpu_count() or 1)
+    workers = max(1, min(len(jobs), opt.workers or os.cpu_count() or 1))
     if progress:
         progress("perception", 0, len(jobs))
     results = []
@@ -333,39 +180,49 @@ def _run_perception(run: rd.Run, robots: dict[int, _Robot], opt: ReplayOptions,
                 results.append(res)
                 if progress:
                     progress("perception", k + 1, len(jobs))
-    for name, records, frames, _wall in results:
-        r = by_name[name]
-        r.frames = frames
-        events, rejected = _decode_ingest(b"".join(records), f"{name} observations")
-        r.rejected.update(rejected)
-        base = len(r.events)
-        for k, ev in enumerate(events):
-            r.events.append((_event_stamp(ev), base + k, ev))
-            r.observations += len(ev.observations)
-        r.events.sort(key=lambda x: (x[0], x[1]))
-    return time.perf_counter() - t0
+    out = {name: (b"".join(records), frames) for name, records, frames, _ in results}
+    return out, time.perf_counter() - t0
 
 
 def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
                progress: Callable[[str, int, int], None] | None = None) -> ReplayResult:
     """Replay the run at ``run_dir`` and write ``run_dir/out`` (see the module docstring)."""
+    from dran_edge.replay_robots import RobotRunner, RobotSpec, WorkerPool
+
     wall0 = time.perf_counter()
     run = rd.open_run(run_dir)
     mission = run.mission
-    robots = _load_robots(run)
-    periods = {r.cfg.comms.period_s for r in robots.values()}
+    ids = sorted(r.id for r in mission.robots)
+    configs = {r.id: run.load_config(r.name) for r in mission.robots}
+    periods = {c.comms.period_s for c in configs.values()}
     if len(periods) != 1:
         raise InputError(f"robots of one run must share comms.period_s, got {sorted(periods)}",
                          path=str(run.root))
     period_s = periods.pop()
     period_ns = int(round(period_s * 1e9))
-    perception_wall = _run_perception(run, robots, opt, progress)
-    bus = _make_links(run, robots, opt, period_s)
-    last_stamp = max([mission.start_ns + int(mission.duration_s * 1e9)]
-                     + [r.events[-1][0] for r in robots.values() if r.events])
+    perceived, perception_wall = _run_perception(run, opt, progress)
+    by_id = {r.id: r for r in mission.robots}
+    specs = [RobotSpec(str(run.root), by_id[i].name, *perceived.get(by_id[i].name, (b"", 0)))
+             for i in ids]
+    workers = 1 if opt.transport == "udp" else max(1, min(len(ids), opt.workers or
+                                                         os.cpu_count() or 1))
+    if workers > 1:
+        robots = WorkerPool(specs, ids, workers)
+    else:
+        robots = RobotRunner(specs, "mailbox" if opt.transport == "bus" else "udp")
+    bus = None
+    if opt.transport == "bus":
+        from dran_edge.comms.bus import Bus, BusParams, Partition
+
+        parts = [Partition(frozenset(p.robots), int(math.floor(p.start_s / period_s)),
+                           int(math.ceil(p.end_s / period_s))) for p in opt.partitions]
+        bus = Bus(ids, graph=mission.comm_graph,
+                  params=BusParams(loss_probability=opt.loss, latency_rounds=opt.latency_rounds,
+                                   seed=opt.seed),
+                  partitions=parts)
+    last_stamp = max(mission.start_ns + int(mission.duration_s * 1e9), robots.last_stamp())
     mission_rounds = max(1, int(math.ceil((last_stamp - mission.start_ns) / period_ns)))
     total_rounds = mission_rounds + opt.settle_rounds
-    ids = sorted(robots)
     rounds_rows = []
     bytes_total = 0
     expected: Counter = Counter()
@@ -374,88 +231,68 @@ def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
         for k in range(total_rounds):
             t_k = mission.start_ns + (k + 1) * period_ns
             if opt.speed > 0:
-                target = t_rounds + (k + 1) * period_s / opt.speed
-                delay = target - time.perf_counter()
+                delay = t_rounds + (k + 1) * period_s / opt.speed - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
-            if bus is None:
+            if bus is not None:
+                inboxes = {i: [d for _, d in bus.endpoint(i).receive()] for i in ids}
+            else:
                 _udp_collect(robots, expected, opt.udp_wait_s)
-            bytes_round = 0
+                inboxes = None
+            outs = robots.step(t_k, inboxes)
             expected = Counter()
-            for rid in ids:
-                r = robots[rid]
-                outputs: list = []
-                stamps = r.events
-                end = bisect.bisect_right(stamps, (t_k, math.inf), lo=r.next_event)
-                for _, _, ev in stamps[r.next_event:end]:
-                    outputs.extend(r.core.handle(ev) or ())
-                r.next_event = end
-                for msg in r.link.poll(now_ns=t_k):
-                    outputs.extend(r.core.handle(NeighbourData(t_k, msg)) or ())
-                outputs.extend(r.core.handle(Tick(t_k)) or ())
-                for out in outputs:
-                    if isinstance(out, Outgoing):
-                        grams = r.link.send_message(out.message, out.to)
-                        n = sum(len(g) for g in grams) * len(out.to)
-                        bytes_round += n
-                        for j in out.to:
-                            expected[j] += len(grams)
-                    elif isinstance(out, EstimateUpdate):
-                        r.last = out
-                        for s, T in zip(out.keyframe_stamps_ns.tolist(), out.T_world_body):
-                            if s not in r.first_seen:
-                                r.first_seen[s] = T.copy()
-                    elif isinstance(out, Health):
-                        r.health.update(out.counters)
+            bytes_round = 0
+            for i in ids:
+                for to, data in outs[i]["outbox"]:
+                    bytes_round += len(data)
+                    expected[to] += 1
+                    if bus is not None:
+                        bus.endpoint(i).send(to, data)
             if bus is not None:
                 bus.advance()
             bytes_total += bytes_round
-            lasts = [robots[i].last for i in ids]
-            costs = [u.cost for u in lasts if u is not None and math.isfinite(u.cost)]
-            cerr = [u.consensus_error for u in lasts if u is not None
-                    and math.isfinite(u.consensus_error)]
+            costs = [o["cost"] for o in outs.values() if math.isfinite(o["cost"])]
+            cerr = [o["consensus_error"] for o in outs.values()
+                    if math.isfinite(o["consensus_error"])]
             rounds_rows.append({
                 "round": k, "stamp_ns": t_k, "bytes_total": bytes_total, "bytes_round": bytes_round,
                 "cost": float(np.sum(costs)) if costs else math.nan,
                 "consensus_error": float(np.max(cerr)) if cerr else math.nan,
-                "converged_robots": sum(1 for u in lasts if u is not None and u.converged),
+                "converged_robots": sum(1 for o in outs.values() if o["converged"]),
                 "datagrams_lost": int(sum(bus.lost.values())) if bus is not None else 0,
             })
             if progress:
                 progress("rounds", k + 1, total_rounds)
+        results = robots.results()
     finally:
-        for r in robots.values():
-            if r.link is not None and bus is None:
-                r.link.transport.close()
+        robots.close()
     rounds_wall = time.perf_counter() - t_rounds
     out_dir = run.out_dir
     out_dir.mkdir(exist_ok=True)
-    write_outputs(run, robots, rounds_rows)
+    write_outputs(run, results, rounds_rows)
     wall = time.perf_counter() - wall0
-    frames = sum(r.frames for r in robots.values())
+    res = [results[i] for i in ids]
     report: dict[str, Any] = {
         "format": REPORT_FORMAT,
         "run": str(run.root),
-        "robots": len(robots),
+        "robots": len(ids),
         "mission_s": float(mission.duration_s),
         "replay_wall_s": round(wall, 3),
         "perception_wall_s": round(perception_wall, 3),
         "rounds_wall_s": round(rounds_wall, 3),
         "realtime_factor": round(mission.duration_s / wall, 3) if wall > 0 else None,
+        "round_workers": workers,
         "rounds": total_rounds,
         "mission_rounds": mission_rounds,
         "bytes_total": int(bytes_total),
         "transport": opt.transport,
         "options": {k: v for k, v in asdict(opt).items() if k not in ("workers",)},
-        "frames_processed": frames,
-        "observations": sum(r.observations for r in robots.values()),
-        "ingest_rejected": dict(sum((r.rejected for r in robots.values()), Counter())),
-        "converged_robots": sum(1 for r in robots.values() if r.last is not None
-                                and r.last.converged),
-        "keyframes": {r.info.name: int(len(r.last.keyframe_stamps_ns)) if r.last else 0
-                      for r in robots.values()},
-        "objects_known": {r.info.name: len(r.last.object_ids) if r.last else 0
-                          for r in robots.values()},
+        "frames_processed": sum(r.frames for r in res),
+        "observations": sum(r.observations for r in res),
+        "ingest_rejected": dict(sum((r.rejected for r in res), Counter())),
+        "converged_robots": rounds_rows[-1]["converged_robots"] if rounds_rows else 0,
+        "keyframes": {r.name: len(r.last.keyframe_stamps_ns) if r.last else 0 for r in res},
+        "objects_known": {r.name: len(r.last.object_ids) if r.last else 0 for r in res},
         "final_cost": rounds_rows[-1]["cost"] if rounds_rows else None,
         "final_consensus_error": rounds_rows[-1]["consensus_error"] if rounds_rows else None,
     }
@@ -468,15 +305,15 @@ def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
     return ReplayResult(report, out_dir)
 
 
-def _udp_collect(robots: dict[int, _Robot], expected: Counter, wait_s: float) -> None:
+def _udp_collect(robots, expected: Counter, wait_s: float) -> None:
     """Wait until each robot's DISH has the datagrams sent to it last round (or time out)."""
     deadline = time.monotonic() + wait_s
     got: Counter = Counter()
     while True:
-        for rid, r in robots.items():
-            got[rid] += r.link.transport.pull()
-        if all(got[rid] >= expected[rid] for rid in robots) or time.monotonic() > deadline:
-            missing = {rid: expected[rid] - got[rid] for rid in robots if got[rid] < expected[rid]}
+        got.update(robots.pull_udp())
+        ids = list(robots.robots)
+        if all(got[i] >= expected[i] for i in ids) or time.monotonic() > deadline:
+            missing = {i: expected[i] - got[i] for i in ids if got[i] < expected[i]}
             if missing:
                 log.warning("udp: datagrams not arrived within %.2f s: %s", wait_s, missing)
             return
@@ -536,26 +373,27 @@ def pick_metrics(ev: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------- outputs
-def write_outputs(run: rd.Run, robots: dict[int, _Robot], rounds_rows: list[dict]) -> None:
+def write_outputs(run: rd.Run, results: dict, rounds_rows: list[dict]) -> None:
+    """Per-robot TUM files and object maps, rounds.csv, merged.g2o (docs/run-format.md)."""
     from dran_edge.tum import write_tum
 
     out = run.out_dir
-    for r in robots.values():
-        d = out / r.info.name
+    for r in results.values():
+        d = out / r.name
         d.mkdir(parents=True, exist_ok=True)
         u = r.last
         if u is None or len(u.keyframe_stamps_ns) == 0:
             for f in ("trajectory.tum", "trajectory_init.tum", "objects.csv"):
                 (d / f).unlink(missing_ok=True)
-            log.warning("robot %s produced no estimate", r.info.name)
+            log.warning("robot %s produced no estimate", r.name)
             continue
         stamps = np.asarray(u.keyframe_stamps_ns, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         stamps = stamps[order]
         write_tum(d / "trajectory.tum", stamps * 1e-9, np.asarray(u.T_world_body)[order],
-                  header=f"{r.info.name}: final estimate (dran-edge replay)")
-        if hasattr(r.core, "initial_estimate"):
-            s0, T0 = r.core.initial_estimate()
+                  header=f"{r.name}: final estimate (dran-edge replay)")
+        if r.initial is not None and len(r.initial[0]):
+            s0, T0 = r.initial
             what = "odometry alone, before any optimisation"
         else:
             s0 = stamps
@@ -564,7 +402,7 @@ def write_outputs(run: rd.Run, robots: dict[int, _Robot], rounds_rows: list[dict
             what = "each keyframe's first estimate"
         o0 = np.argsort(s0, kind="stable")
         write_tum(d / "trajectory_init.tum", s0[o0] * 1e-9, T0[o0],
-                  header=f"{r.info.name}: initial estimate, {what} (dran-edge replay)")
+                  header=f"{r.name}: initial estimate, {what} (dran-edge replay)")
         with open(d / "objects.csv", "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")
             w.writerow(["object_id", "x", "y", "z", "qx", "qy", "qz", "qw"])
@@ -579,10 +417,10 @@ def write_outputs(run: rd.Run, robots: dict[int, _Robot], rounds_rows: list[dict
             w.writerow(["" if isinstance(row[c], float) and not math.isfinite(row[c])
                         else (f"{row[c]:.9g}" if isinstance(row[c], float) else row[c])
                         for c in cols])
-    write_merged_g2o(run, robots)
+    write_merged_g2o(run, results)
 
 
-def write_merged_g2o(run: rd.Run, robots: dict[int, _Robot]) -> bool:
+def write_merged_g2o(run: rd.Run, results: dict) -> bool:
     """``merged.g2o`` + ``merged_vertices.csv`` from every robot's local graph (if it has one).
 
     Vertices: robot ``r``'s keyframe ``j`` is ``r * 1_000_000 + j`` (by stamp order), object
@@ -598,35 +436,29 @@ def write_merged_g2o(run: rd.Run, robots: dict[int, _Robot]) -> bool:
     rows: list[tuple[int, str, str, int]] = []
     edges, meas, info, fixed_ids = [], [], [], set()
     obj_vertex: dict[int, np.ndarray] = {}
-    for rid in sorted(robots):
-        r = robots[rid]
-        graph = _local_graph(r.core)
-        if graph is None or r.last is None:
+    for rid in sorted(results):
+        r = results[rid]
+        if r.graph is None or r.last is None:
             continue
-        fa = graph.factor_arrays()
-        keys = graph.node_keys()
-        stamps = graph.node_stamps_ns()
-        # vertex values: the agent's final estimate (world frame), matched by keyframe stamp
+        fa, keys, stamps, OBJ = (r.graph["factors"], r.graph["keys"], r.graph["stamps"],
+                                 r.graph["obj_base"])
         final = {int(s): T for s, T in zip(r.last.keyframe_stamps_ns.tolist(), r.last.T_world_body)}
         keep = np.array([int(s) in final for s in stamps.tolist()], bool)
         keys, stamps = keys[keep], stamps[keep]
-        est = np.stack([final[int(s)] for s in stamps.tolist()]) if len(stamps) else np.zeros((0, 4, 4))
         order = np.argsort(stamps, kind="stable")
         key_vid = {}
         for j, i in enumerate(order.tolist()):
             v = rid * 1_000_000 + j
             key_vid[int(keys[i])] = v
             vid.append(v)
-            poses.append(est[i])
-            rows.append((v, "pose", r.info.name, int(stamps[i])))
-        from dran_edge.local_graph import OBJ
-
+            poses.append(final[int(stamps[i])])
+            rows.append((v, "pose", r.name, int(stamps[i])))
         for oid, T in zip(r.last.object_ids, r.last.T_world_object):
             obj_vertex.setdefault(int(oid), T)
 
-        def vertex(key: int) -> int | None:
+        def vertex(key: int, OBJ=OBJ, key_vid=key_vid) -> int | None:
             if key >= OBJ:
-                return 1_000_000_000 + int(key - OBJ)
+                return 1_000_000_000 + int(key - OBJ) if int(key - OBJ) in obj_vertex else None
             return key_vid.get(int(key))
 
         for p, q, Z, S in zip(fa["p"].tolist(), fa["q"].tolist(), fa["Z"], fa["S"]):
@@ -672,15 +504,6 @@ def write_merged_g2o(run: rd.Run, robots: dict[int, _Robot]) -> bool:
         for row in sorted(rows):
             w.writerow(row)
     return True
-
-
-def _local_graph(core):
-    """The core's bounded local graph (``LocalGraph``) when it exposes one."""
-    for name in ("local_graph", "graph"):
-        g = getattr(core, name, None)
-        if g is not None and hasattr(g, "factor_arrays") and hasattr(g, "node_keys"):
-            return g
-    return None
 
 
 # ---------------------------------------------------------------------------------- golden

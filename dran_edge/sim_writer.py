@@ -22,9 +22,9 @@ from __future__ import annotations
 import csv
 import logging
 import os
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -84,8 +84,14 @@ def _robot_config(m: sim.Mission, r: sim.RobotMission, frames: bool) -> dict:
 
 def _ingest_bytes(m: sim.Mission, r: sim.RobotMission, frames_mode: str) -> bytes:
     from dran_edge.comms import ingest
-    from dran_edge.events import (Keyframe, LoopClosure, ObjectObservation, ObservationBatch,
-                                  OdometrySample, VioReset)
+    from dran_edge.events import (
+        Keyframe,
+        LoopClosure,
+        ObjectObservation,
+        ObservationBatch,
+        OdometrySample,
+        VioReset,
+    )
 
     records: list[tuple[int, int, bytes]] = []  # (stamp, order, bytes)
     stamps = r.odom_stamps_ns.tolist()

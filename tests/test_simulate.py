@@ -188,8 +188,9 @@ def written_run(tmp_path_factory, mission):
 
 def test_written_run_reads_back_with_the_projects_readers(written_run, mission):
     from dran_edge.comms.ingest import IngestDecodeError, iter_records
-    from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
     from dran_edge.perception.calib import load_calibration
+
+    from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
 
     run = rd.open_run(written_run)
     m = run.mission

@@ -41,6 +41,7 @@ def _vins_rows(stamps, T, velocity=True) -> str:
 
 def test_odometry_keyframes_and_loops_round_trip(tmp_path, tool, robot):
     from dran_edge.comms.ingest import IngestDecodeError, iter_records
+
     from dran_edge.events import Keyframe, LoopClosure, OdometrySample, VioReset
 
     stamps, T = robot.odom_stamps_ns, robot.T_odom_body
@@ -107,7 +108,6 @@ def test_second_robot_extends_the_run_and_links_it(tmp_path, tool, robot):
 
 def test_images_become_a_frames_folder(tmp_path, tool, robot):
     import cv2
-
     from dran_edge.perception.sources import RecordedFramesSource
 
     csv = tmp_path / "a.csv"

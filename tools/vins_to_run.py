@@ -173,6 +173,7 @@ def build_ingest(stamps: np.ndarray, T: np.ndarray, kf_stamps: np.ndarray,
                  loops: list[tuple[int, int, np.ndarray]], gap_ns: int) -> tuple[bytes, dict]:
     """Ingest records (docs/ingest.md) for one robot, in stamp order."""
     from dran_edge.comms import ingest
+
     from dran_edge.events import Keyframe, LoopClosure, OdometrySample, VioReset
 
     order = np.argsort(stamps, kind="stable")

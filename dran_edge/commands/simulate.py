@@ -60,8 +60,8 @@ def _progress(prefix: str):
 def run(args: argparse.Namespace) -> int:
     import math
 
-    from dran_edge.simulate import SimParams, generate_mission
     from dran_edge.sim_writer import write_run
+    from dran_edge.simulate import SimParams, generate_mission
 
     arena = args.arena_m if args.arena_m is not None else max(6.0, 3.0 * math.sqrt(args.objects))
     params = SimParams(robots=args.robots, objects=args.objects, duration_s=args.duration_s,
