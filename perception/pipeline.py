@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from dran_edge.perception.calib import Calibration
@@ -121,3 +122,94 @@ class ObservationPipeline:
         pts = (corners.reshape(-1, 1, 2) - 0.5).astype(np.float64)
         und = cv2.undistortPoints(pts, cam.K, cam.distortion, P=cam.K)
         return und.reshape(corners.shape) + 0.5
+
+
+# --------------------------------------------------------------------------- daemon adapter
+def _camera_file(cfg) -> Path:
+    """The camera file named by ``camera.calib_dir``: a file, ``<path>.yaml``, or a directory
+    holding ``<robot name>.yaml``."""
+    from dran_edge.errors import ConfigError
+
+    base = cfg.resolve(cfg.camera.calib_dir)
+    if base is None:
+        raise ConfigError("camera.calib_dir: expected the robot's camera file or its directory, "
+                          "got nothing", path=cfg.source_path or None)
+    for candidate in (base, Path(str(base) + ".yaml"), base / f"{cfg.robot.name}.yaml"):
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(f"camera.calib_dir: no camera file at {base}, {base}.yaml or "
+                      f"{base}/{cfg.robot.name}.yaml", path=cfg.source_path or None)
+
+
+def calibration_from_config(cfg) -> Calibration:
+    """Camera and tag map named by a robot config's ``camera`` section (docs/config.md).
+
+    ``tags_file`` "" falls back to ``tags.yaml`` next to the ``cameras/`` directory.
+    """
+    from dran_edge.errors import ConfigError
+    from dran_edge.perception.calib import load_camera, load_tag_map
+
+    camera_path = _camera_file(cfg)
+    camera = load_camera(camera_path)
+    if (camera.width, camera.height) != (cfg.camera.width, cfg.camera.height):
+        raise ConfigError(f"camera.width/height: {cfg.camera.width}x{cfg.camera.height}, but "
+                          f"{camera_path} is calibrated for {camera.width}x{camera.height}",
+                          path=cfg.source_path or None)
+    tags_path = cfg.resolve(cfg.camera.tags_file) or camera_path.parent.parent / "tags.yaml"
+    return Calibration(camera=camera, tags=load_tag_map(tags_path))
+
+
+def make_observation_source(cfg, frames=None, params: PipelineParams | None = None):
+    """The daemon's perception producer: a callable returning the next ``ObservationBatch``.
+
+    ``cfg`` is the robot's ``RobotConfig``; ``camera.source`` selects the frames:
+    ``realsense`` (``RealSenseSource``: serial, width, height, fps), ``oak`` (``DepthAISource``),
+    ``recorded`` (``camera.recording``: a frames folder or a RealSense recording), or
+    ``forwarded``: ingest records taken from ``frames`` (a queue with ``get(timeout_s)``; items
+    are ingest ``Record``s whose ``event`` has ``stamp_ns`` and ``payload`` = ``frame_to_bytes``
+    bytes; the record's stamp is authoritative). The callable blocks for the next frame (0.5 s
+    at most for ``forwarded``), returns None when there is nothing to hand over (no frame, or no
+    object seen), and raises ``StopIteration`` when a finite source ends. Frame errors propagate
+    (the daemon's worker counts them and continues). Runs in one thread.
+    """
+    from dran_edge.errors import ConfigError
+    from dran_edge.perception import sources
+
+    pipeline = ObservationPipeline(calibration_from_config(cfg), params)
+    cam = cfg.camera
+    if cam.source == "forwarded":
+        if frames is None:
+            raise ConfigError("camera.source forwarded needs the ingest frame queue")
+        from dran_edge.perception.frame import frame_from_bytes
+
+        def produce_forwarded():
+            item = frames.get(0.5)
+            if item is None:
+                return None
+            event = getattr(item, "event", item)
+            frame = frame_from_bytes(event.payload)
+            frame = Frame(int(event.stamp_ns), frame.colour, frame.depth, frame.camera_id)
+            batch = pipeline.process(frame)
+            return batch if batch.observations else None
+
+        return produce_forwarded
+    if cam.source == "realsense":
+        source = sources.RealSenseSource(serial=cam.serial or None, width=cam.width,
+                                         height=cam.height, fps=cam.fps)
+    elif cam.source == "oak":
+        source = sources.DepthAISource(fps=cam.fps)
+    elif cam.source == "recorded":
+        path = cfg.resolve(cam.recording)
+        if path is None:
+            raise ConfigError("camera.recording: expected a frames folder or a recording")
+        source = sources.open_source(str(path))
+    else:
+        raise ConfigError(f"camera.source: no frame source for {cam.source!r}")
+    iterator = iter(source)
+
+    def produce():
+        batch = pipeline.process(next(iterator))
+        return batch if batch.observations else None
+
+    produce.source = source  # so the caller can close() it
+    return produce

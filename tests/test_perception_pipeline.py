@@ -155,3 +155,76 @@ def test_unknown_tags_and_wrong_size_frames(calib):
     assert res.tag_poses.accepted.tolist() == [True] and res.batch.observations == ()
     with pytest.raises(InputError, match="expected 640x480"):
         sized.process(Frame(1, colour[:240], None))
+
+
+# --------------------------------------------------------------------------- daemon adapter
+def robot_config(tmp_path, source: str, recording: str = ""):
+    from dran_edge.config import load_config
+
+    text = f"""robot: {{id: 2, name: dingo2, fleet: dingo6}}
+camera:
+  source: {source}
+  calib_dir: {CALIB}/cameras/dingo2
+  tags_file: {CALIB}/tags.yaml
+  recording: "{recording}"
+"""
+    path = tmp_path / "dingo2.yaml"
+    path.write_text(text)
+    return load_config(path)
+
+
+def test_daemon_producer_forwarded_frames(tmp_path, calib):
+    from types import SimpleNamespace
+
+    from dran_edge.perception.frame import frame_to_bytes
+    from dran_edge.perception.pipeline import make_observation_source
+
+    frame, T_true, _ = view_of_box(calib, 2, 30.0, 1.2)
+    empty = Frame(5, np.full_like(frame.colour, 128), None, "cam")
+
+    class Queue:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def get(self, timeout_s):
+            return self.items.pop(0) if self.items else None
+
+    def record(f, stamp_ns):
+        return SimpleNamespace(kind=5, event=SimpleNamespace(stamp_ns=stamp_ns,
+                                                             payload=frame_to_bytes(f)))
+
+    produce = make_observation_source(robot_config(tmp_path, "forwarded"),
+                                      Queue([record(empty, 5), record(frame, 777)]))
+    assert produce() is None  # a frame without tags: nothing to hand over
+    batch = produce()
+    assert batch.stamp_ns == 777 and [o.object_id for o in batch.observations] == [2]
+    d = geo.se3_log(geo.se3_between(batch.observations[0].T_body_object, T_true))
+    assert np.linalg.norm(d[:3]) < 0.02
+    assert produce() is None  # queue empty: returns after the timeout
+
+
+def test_daemon_producer_recorded_frames_end(tmp_path, calib):
+    from dran_edge.perception.pipeline import make_observation_source
+    from dran_edge.perception.sources import write_recorded_frames
+
+    frames = [view_of_box(calib, b, 10.0 * b, 1.5, seed=b)[0] for b in (1, 5)]
+    frames = [Frame(1000 * (i + 1), f.colour, f.depth, "cam") for i, f in enumerate(frames)]
+    write_recorded_frames(tmp_path / "frames", frames)
+    produce = make_observation_source(robot_config(tmp_path, "recorded", str(tmp_path / "frames")))
+    got = [produce(), produce()]
+    assert [b.stamp_ns for b in got] == [1000, 2000]
+    assert [b.observations[0].object_id for b in got] == [1, 5]
+    with pytest.raises(StopIteration):
+        produce()
+
+
+def test_daemon_producer_rejects_size_mismatch(tmp_path):
+    from dran_edge.config import load_config
+    from dran_edge.perception.pipeline import calibration_from_config
+
+    path = tmp_path / "r.yaml"
+    path.write_text(f"""robot: {{id: 2, name: dingo2, fleet: dingo6}}
+camera: {{source: forwarded, calib_dir: {CALIB}/cameras, width: 1280, height: 720}}
+""")
+    with pytest.raises(ConfigError, match="calibrated for 640x480"):
+        calibration_from_config(load_config(path))
