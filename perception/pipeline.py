@@ -146,8 +146,9 @@ def calibration_from_config(cfg) -> Calibration:
 
     ``tags_file`` "" falls back to ``tags.yaml`` next to the ``cameras/`` directory.
     """
-    from dran_edge.errors import ConfigError
     from dran_edge.perception.calib import load_camera, load_tag_map
+
+    from dran_edge.errors import ConfigError
 
     camera_path = _camera_file(cfg)
     camera = load_camera(camera_path)
@@ -172,8 +173,9 @@ def make_observation_source(cfg, frames=None, params: PipelineParams | None = No
     object seen), and raises ``StopIteration`` when a finite source ends. Frame errors propagate
     (the daemon's worker counts them and continues). Runs in one thread.
     """
-    from dran_edge.errors import ConfigError
     from dran_edge.perception import sources
+
+    from dran_edge.errors import ConfigError
 
     pipeline = ObservationPipeline(calibration_from_config(cfg), params)
     cam = cfg.camera

@@ -219,8 +219,9 @@ def test_daemon_producer_recorded_frames_end(tmp_path, calib):
 
 
 def test_daemon_producer_rejects_size_mismatch(tmp_path):
-    from dran_edge.config import load_config
     from dran_edge.perception.pipeline import calibration_from_config
+
+    from dran_edge.config import load_config
 
     path = tmp_path / "r.yaml"
     path.write_text(f"""robot: {{id: 2, name: dingo2, fleet: dingo6}}
