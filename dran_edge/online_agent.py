@@ -9,10 +9,12 @@
   ``Agent.set_problem`` (estimates are kept by keyframe id); then the tick runs one DRAN round;
 - neighbour data goes to the agent unchanged.
 
-Frames. The local graph works in the frame of the robot's first VIO segment (its first node
-is the gauge). The fleet's common world frame is ``T_world_odom`` — the paper's protocol gives
-each robot its initial world-to-robot transform (from mocap at the start, mission.yaml
-``T_world_odom``); identity when it is not known. The problem handed to the agent is that
+Frames. The local graph works in the frame of the robot's first VIO segment. The fleet's
+common world frame is ``T_world_odom``: with the paper's protocol each robot knows its initial
+world-to-robot transform (from mocap at the start, mission.yaml ``T_world_odom``) and anchors
+its first node there. Without it (a live robot), ``T_world_odom`` is the identity and, as in the
+daemon, only the robot whose id is below all its neighbours' carries the gauge prior
+(:func:`~dran_edge.local_graph.gauge_anchor`); the others are placed by object consensus. The problem handed to the agent is that
 graph mapped into the world (``x = T_world_odom · x_graph``, priors likewise); before a rebuild
 the agent's estimates are written back into the graph, so new keyframes are chained from the
 optimised poses, not from the dead-reckoned ones.
@@ -43,6 +45,7 @@ from dran_edge.local_graph import (
     OBJ,
     LocalGraph,
     _whitening,
+    gauge_anchor,
 )
 
 INGEST_EVENTS = (OdometrySample, Keyframe, LoopClosure, VioReset, ObservationBatch)
@@ -93,9 +96,13 @@ class OnlineAgent:
 
     def __init__(self, config: AgentConfig, T_world_odom: np.ndarray | None = None):
         self.config = config
-        self.local_graph = LocalGraph(config)
         self.agent = Agent(config)
-        self.T_world_odom = np.eye(4) if T_world_odom is None else np.asarray(T_world_odom, float)
+        self.T_world_odom = np.eye(4)
+        # Without a known world frame, the daemon's rule: only the robot whose id is below all
+        # its neighbours' carries the gauge prior; the others are placed by object consensus.
+        self.local_graph = LocalGraph(config, anchor_first=gauge_anchor(config))
+        if T_world_odom is not None:
+            self.set_world_frame(T_world_odom)
         self._dirty = False
         self.rebuilds = 0
         #: node key -> (stamp_ns, T_world_body by odometry alone): the estimate before any
@@ -105,8 +112,12 @@ class OnlineAgent:
         self._dr_last: int | None = None
 
     def set_world_frame(self, T_world_odom: np.ndarray) -> None:
-        """The robot's first VIO frame in the fleet's world (before its first keyframe)."""
+        """The robot's first VIO frame in the fleet's world (the paper's protocol); every robot
+        that knows it anchors its first node there. Call it before the first keyframe."""
+        if self.local_graph.num_nodes:
+            raise ValueError("set_world_frame: the local graph already has nodes")
         self.T_world_odom = np.asarray(T_world_odom, dtype=np.float64)
+        self.local_graph = LocalGraph(self.config, anchor_first=True)
 
     def handle(self, event) -> list:
         if isinstance(event, INGEST_EVENTS):

@@ -420,13 +420,17 @@ def write_outputs(run: rd.Run, results: dict, rounds_rows: list[dict]) -> None:
     write_merged_g2o(run, results)
 
 
+#: A unary prior at most this tight (variance, m² / rad²) is a gauge: FIX in merged.g2o.
+GAUGE_VARIANCE_MAX = 1e-6
+
+
 def write_merged_g2o(run: rd.Run, results: dict) -> bool:
     """``merged.g2o`` + ``merged_vertices.csv`` from every robot's local graph (if it has one).
 
     Vertices: robot ``r``'s keyframe ``j`` is ``r * 1_000_000 + j`` (by stamp order), object
     ``k`` is ``1_000_000_000 + k`` (shared by every robot that observed it). Edges: every
     odometry, loop and observation factor with information ``Σ⁻¹``; a robot's gauge prior fixes
-    its node (FIX). Values: the final decentralized estimate (each robot's agent, world frame;
+    its node (FIX); the bounded graph's marginalisation prior is not exported. Values: the final decentralized estimate (each robot's agent, world frame;
     an object takes the copy of the lowest robot id that has one).
     """
     from dran_edge.g2o import G2oGraph, write_g2o
@@ -464,7 +468,9 @@ def write_merged_g2o(run: rd.Run, results: dict) -> bool:
         for p, q, Z, S in zip(fa["p"].tolist(), fa["q"].tolist(), fa["Z"], fa["S"]):
             vq = vertex(q)
             if p < 0:
-                if vq is not None:
+                # the gauge prior (sub-millimetre) fixes its node; weaker unary priors have no
+                # g2o form and are left out
+                if vq is not None and np.max(np.diag(S)) <= GAUGE_VARIANCE_MAX:
                     fixed_ids.add(vq)
                 continue
             vp = vertex(p)

@@ -274,8 +274,12 @@ class RobotRunner:
             if g is not None and hasattr(g, "factor_arrays"):
                 from dran_edge.local_graph import OBJ
 
-                graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(),
-                         "factors": g.factor_arrays(), "obj_base": OBJ}
+                try:  # without the marginalisation prior (it would pin old nodes in g2o)
+                    fa = g.factor_arrays(include_prior=False)
+                except TypeError:
+                    fa = g.factor_arrays()
+                graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(), "factors": fa,
+                         "obj_base": OBJ}
             initial = r.core.initial_estimate() if hasattr(r.core, "initial_estimate") else None
             out[rid] = RobotResult(rid, r.info.name, r.last, initial, r.first_seen, graph,
                                    r.health, r.rejected, r.frames, r.observations)
