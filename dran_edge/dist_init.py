@@ -245,7 +245,7 @@ def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: 
     """Iterate ``stage`` through ``exchange``; returns the iterations used."""
     part = stage.partition
     R = part.num_robots
-    last_sent: dict[tuple[int, int], np.ndarray] = {}
+    last_sent: dict[tuple[int, int], np.ndarray] = {}  # (robot, neighbour) -> values sent
     groups = [list(range(R))] if colour is None else [
         [r for r in range(R) if colour[r] == c] for c in np.unique(colour)]
     iterations = 0
@@ -262,14 +262,19 @@ def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: 
                     change = stage.update(r, params.sor)
                 max_change = max(max_change, change)
                 sends = []
+                view = stage.views[r].reshape(-1, stage.b, stage.views[r].shape[1])
                 for q in part.parts[r].neighbours:
-                    entries = []
-                    for v in part.parts[r].separators_for[q].tolist():
-                        X_v = stage.own_value(r, v)
-                        prev = last_sent.get((q, v))
-                        if prev is None or np.max(np.abs(X_v - prev)) > params.send_tol:
-                            entries.append(to_entry(r, v, X_v))
-                            last_sent[(q, v)] = X_v.copy()
+                    vs = part.parts[r].separators_for[q]
+                    X = view[vs]
+                    prev = last_sent.get((r, q))
+                    if prev is None:
+                        prev = np.full_like(X, np.nan)
+                        last_sent[(r, q)] = prev
+                    # NaN (never sent) compares False, so it is sent
+                    changed = ~(np.max(np.abs(X - prev), axis=(1, 2)) <= params.send_tol)
+                    entries = [to_entry(r, int(v), X[k]) for k, v in zip(np.flatnonzero(changed),
+                                                                         vs[changed].tolist())]
+                    prev[changed] = X[changed]
                     if entries:
                         sends.append((q, entries))
                 outgoing[r] = sends
