@@ -2,7 +2,9 @@
 
 A checkpoint is one ``.npz`` file (numpy's zip of ``.npy`` arrays, loaded with
 ``allow_pickle=False``) holding every array of the state under ``a0, a1, ...`` and the rest of
-the state as JSON under ``__meta__``, where each array is replaced by ``{"__array__": "a0"}``.
+the state as JSON under ``__meta__``, where each array is replaced by ``{"__array__": "a0"}``
+and a dict with non-string keys (ints, tuples) by ``{"__items__": [[key, value], ...]}``
+(tuple keys come back as tuples, other tuples as lists).
 A CRC32 of the JSON plus every array's bytes guards against a torn or bit-rotted file.
 
 Writing is atomic (POSIX): write a temp file in the same directory, ``fsync`` it,
@@ -38,12 +40,11 @@ def _flatten(obj: Any, arrays: dict[str, np.ndarray]) -> Any:
         arrays[key] = obj
         return {"__array__": key}
     if isinstance(obj, dict):
-        out = {}
-        for k, v in obj.items():
-            if not isinstance(k, str):
-                raise TypeError(f"checkpoint: dict keys must be str, got {type(k).__name__}")
-            out[k] = _flatten(v, arrays)
-        return out
+        if all(isinstance(k, str) for k in obj) and not set(obj) & {"__array__", "__items__"}:
+            return {k: _flatten(v, arrays) for k, v in obj.items()}
+        # int / tuple keys (JSON has only str keys): stored as [key, value] pairs; tuples come
+        # back as lists
+        return {"__items__": [[_flatten(k, arrays), _flatten(v, arrays)] for k, v in obj.items()]}
     if isinstance(obj, (list, tuple)):
         return [_flatten(v, arrays) for v in obj]
     if isinstance(obj, np.generic):
@@ -57,10 +58,17 @@ def _unflatten(obj: Any, arrays: dict[str, np.ndarray]) -> Any:
     if isinstance(obj, dict):
         if set(obj) == {"__array__"}:
             return arrays[obj["__array__"]]
+        if set(obj) == {"__items__"}:
+            return {_hashable(_unflatten(k, arrays)): _unflatten(v, arrays)
+                    for k, v in obj["__items__"]}
         return {k: _unflatten(v, arrays) for k, v in obj.items()}
     if isinstance(obj, list):
         return [_unflatten(v, arrays) for v in obj]
     return obj
+
+
+def _hashable(key: Any) -> Any:
+    return tuple(_hashable(k) for k in key) if isinstance(key, list) else key
 
 
 def _crc(meta: bytes, arrays: dict[str, np.ndarray]) -> int:
