@@ -8,7 +8,8 @@ For an accepted tag k of object o (``T_object_tag`` from calib/tags.yaml):
 frame, the object pose is re-estimated from ALL their corners at once (Gauss-Newton on the
 reprojection error of the corner points expressed in the object frame, started from the tag with
 the smallest covariance), which also removes the planar ambiguity of each single tag; the joint
-covariance is (J^T W J)^-1 over all 8k rows, W = diag(1 / sigma_tag^2). If the joint fit's RMS
+covariance is (J^T W J)^-1 over all 8k rows, W = diag(1 / sigma_tag^2), times the fit's
+reduced chi-square when above 1 (``inflate_by_residual``). If the joint fit's RMS
 error exceeds ``max_reproj_px`` (one tag is wrong), the best single tag is used.
 
 Finally ``T_body_object = T_body_camera @ T_camera_object``; a fixed left factor leaves a
@@ -46,6 +47,7 @@ def fuse_objects(
     corners_object: np.ndarray,
     max_reproj_px: float,
     iterations: int = 2,
+    inflate_by_residual: bool = True,
 ) -> ObjectPoses:
     """Objects seen in one frame from its accepted tags (``map_pos`` = tag-map position or -1).
 
@@ -94,7 +96,13 @@ def fuse_objects(
         rms = np.sqrt(np.sum(r_px * r_px, axis=(-1, -2)) / valid.sum(-1))
         ok = rms <= max_reproj_px
         T_out[multi[ok]] = T_j[ok]
-        cov_out[multi[ok]] = pose_covariance(JtJ[ok], 1.0)
+        cov_joint = pose_covariance(JtJ[ok], 1.0)
+        if inflate_by_residual:
+            # Birge ratio of the joint fit: whitened residual sum of squares / (2N - 6)
+            chi2 = np.sum(r[ok] * r[ok], axis=(-1, -2))
+            dof = 2 * valid[ok].sum(-1) - 6
+            cov_joint *= np.maximum(1.0, chi2 / dof)[:, None, None]
+        cov_out[multi[ok]] = cov_joint
         counts = counts.copy()
         counts[multi[~ok]] = 1
     return ObjectPoses(objects.astype(np.int64), T_body_camera @ T_out, cov_out,

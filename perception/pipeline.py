@@ -104,7 +104,8 @@ class ObservationPipeline:
         tp = estimate_tag_poses(det, cam.K, size, (w, h), depth, p.tag_pose)
         objs = fuse_objects(cam.K, cam.T_body_camera, corners, tp, map_pos, tags.object_id,
                             tags.T_tag_object, tags.adjoint_object_tag, tags.corners_object,
-                            p.tag_pose.max_reproj_px, p.fuse_iterations)
+                            p.tag_pose.max_reproj_px, p.fuse_iterations,
+                            p.tag_pose.inflate_by_residual)
         batch = ObservationBatch(
             stamp_ns=int(frame.stamp_ns),
             observations=tuple(

@@ -82,6 +82,10 @@ class TagPoseParams:
     ``dran-edge detect``'s summary on your camera."""
     corner_sigma_ref_edge_px: float = 50.0
     """Reference shortest-edge length in pixels for ``corner_sigma_px``."""
+    inflate_by_residual: bool = True
+    """Multiply a pose's covariance by its reduced chi-square (the Birge ratio: residual sum of
+    squares / (sigma^2 dof), dof = 2 per tag) when that exceeds 1, so poorly fitting tags
+    (blur, noise, partial occlusion) are not over-confident."""
     ambiguity_ratio: float = 1.5
     """Without depth: the tag is ambiguous when rms(alternative) / rms(best) is below this
     (both RMS floored at ``corner_sigma_px / 2``)."""
@@ -284,6 +288,10 @@ def estimate_tag_poses(
         JtJ = np.swapaxes(J, 1, 2) @ J
     sigma_m = corner_sigma(p, [edges[i] for i in idx])
     cov_m = pose_covariance(JtJ, sigma_m)
+    if p.inflate_by_residual:
+        # 4 corners: sum r^2 = 4 rms^2 over 8 - 6 = 2 degrees of freedom
+        birge = np.maximum(1.0, 2.0 * rms2[:, 0] ** 2 / sigma_m ** 2)
+        cov_m *= birge[:, None, None]
     if any(ambiguous):
         d = geo.se3_log(geo.se3_between(Tb, T2[:, 1]))  # (m, 6)
         angle = np.linalg.norm(d[:, 3:], axis=-1)

@@ -84,12 +84,14 @@ def nees_tool():
 
 def test_nees_consistent_with_six_dof(nees_tool):
     """Over ~200 rendered frames (noise 3, blur 0.8 px, 0.5-3 m, +-60 deg), with the corner
-    noise set from reprojection residuals only, the NEES of T_camera_tag is of chi2(6) order:
-    mean in [3, 9], at most 15 % above the chi2(6) 95 % quantile, no range band above 10.
-    (Exact numbers per condition: tools/bench/nees_perception.py, docs/benchmarks.md.)"""
+    noise set from reprojection residuals only (no ground truth), the NEES of T_camera_tag is of
+    chi2(6) order and not over-confident: mean in [2, 9], at most 10 % above the chi2(6) 95 %
+    quantile (5 % expected), no range band above 8; the residual inflation lowers the tail.
+    (Numbers per condition: tools/bench/nees_perception.py, docs/benchmarks.md.)"""
     r = nees_tool.run(frames=220, noise=3.0, blur=0.8, seed=5)
-    x = r["residual"]
+    x, plain = r["residual+birge"], r["residual"]
     assert r["n_test"] > 180
-    assert 3.0 <= x["mean"] <= 9.0, x
-    assert x["above_95"] <= 0.15, x
-    assert all(m <= 10.0 for _, _, m in x["bands"]), x
+    assert 2.0 <= x["mean"] <= 9.0, x
+    assert x["above_95"] <= 0.10, x
+    assert all(m <= 8.0 for _, _, m in x["bands"]), x
+    assert x["above_95"] <= plain["above_95"]
