@@ -50,7 +50,8 @@ class Notifier:
             except ValueError:
                 log.warning("ignoring WATCHDOG_USEC=%r: expected an integer", usec)
         self._library = None
-        if prefer_library and self.socket_path:
+        # libsystemd's sd_notify reads $NOTIFY_SOCKET from the process environment itself.
+        if prefer_library and self.socket_path and env is os.environ:
             try:
                 from systemd import daemon as sd_daemon
 
