@@ -22,8 +22,12 @@ from dran_edge.errors import InputError
 
 
 def _solve_spd(L: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
-    lu = spla.splu(sp.csc_matrix(L), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
+    lu = spla.splu(
+        sp.csc_matrix(L),
+        permc_spec="MMD_AT_PLUS_A",
+        diag_pivot_thresh=0.0,
+        options={"SymmetricMode": True},
+    )
     return lu.solve(rhs)
 
 
@@ -55,12 +59,14 @@ def chordal_rotations(
     cols_minus = (i[:, None, None] * d + np.arange(d)[None, None, :]).repeat(d, axis=1).ravel()
     vals_minus = (-np.swapaxes(R_meas, 1, 2) * w[:, None, None]).ravel()
     J = sp.csr_matrix(
-        (np.concatenate([vals_plus, vals_minus]),
-         (np.concatenate([rows_plus, rows_minus]), np.concatenate([cols_plus, cols_minus]))),
+        (
+            np.concatenate([vals_plus, vals_minus]),
+            (np.concatenate([rows_plus, rows_minus]), np.concatenate([cols_plus, cols_minus])),
+        ),
         shape=(m * d, n * d),
     )
     free = np.ones(n * d, dtype=bool)
-    free[anchor * d:(anchor + 1) * d] = False
+    free[anchor * d : (anchor + 1) * d] = False
     J_free, J_fix = J[:, free], J[:, ~free]
     # anchor rotation I: column a of the fixed unknowns is e_a, so J_fix @ I gives each RHS.
     rhs = -(J_free.T @ (J_fix @ np.eye(d)))
@@ -78,8 +84,10 @@ def chordal_translations(
     m = edges.shape[0]
     i, j = edges[:, 0], edges[:, 1]
     Dm = sp.csr_matrix(
-        (np.concatenate([np.ones(m), -np.ones(m)]),
-         (np.concatenate([np.arange(m), np.arange(m)]), np.concatenate([j, i]))),
+        (
+            np.concatenate([np.ones(m), -np.ones(m)]),
+            (np.concatenate([np.arange(m), np.arange(m)]), np.concatenate([j, i])),
+        ),
         shape=(m, n),
     )
     b = (R[i] @ t_meas[:, :, None])[:, :, 0]

@@ -209,8 +209,10 @@ def chordal_second_order(
     return np.einsum("...ij,abij->...ab", Mp, G2), np.einsum("...ij,abij->...ab", Mq, G2)
 
 
-_RESIDUALS = {"geodesic": (geodesic_residual, geodesic_jacobians),
-              "chordal": (chordal_residual, chordal_jacobians)}
+_RESIDUALS = {
+    "geodesic": (geodesic_residual, geodesic_jacobians),
+    "chordal": (chordal_residual, chordal_jacobians),
+}
 
 
 def residual_dim(residual: str, dim: int) -> int:
@@ -242,9 +244,15 @@ def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: 
     tau = np.asarray(tau, dtype=np.float64)
     nrot = 3 if dim == 3 else 1
     if residual == "chordal":
-        parts = [np.repeat(np.sqrt(kappa)[:, None], dim * dim, 1), np.repeat(np.sqrt(tau)[:, None], dim, 1)]
+        parts = [
+            np.repeat(np.sqrt(kappa)[:, None], dim * dim, 1),
+            np.repeat(np.sqrt(tau)[:, None], dim, 1),
+        ]
     elif residual == "geodesic":
-        parts = [np.repeat(np.sqrt(tau)[:, None], dim, 1), np.repeat(np.sqrt(2 * kappa)[:, None], nrot, 1)]
+        parts = [
+            np.repeat(np.sqrt(tau)[:, None], dim, 1),
+            np.repeat(np.sqrt(2 * kappa)[:, None], nrot, 1),
+        ]
     else:
         raise ValueError(f"residual must be 'geodesic' or 'chordal', got {residual!r}")
     return np.concatenate(parts, axis=1)
@@ -302,7 +310,11 @@ class BetweenFactors:
         p, q = self.variables[:, 0], self.variables[:, 1]
         T_p, T_q = poses[p], poses[q]
         rw = _whiten(self.whitening, chordal_residual(T_p, T_q, self.measurements))
-        S = self.whitening * rw if self.whitening.ndim == 2 else np.einsum("mji,mj->mi", self.whitening, rw)
+        S = (
+            self.whitening * rw
+            if self.whitening.ndim == 2
+            else np.einsum("mji,mj->mi", self.whitening, rw)
+        )
         H_pp, H_qq = chordal_second_order(T_p, T_q, self.measurements, S)
         dof = H_pp.shape[-1]
         out = np.zeros((p.shape[0], 2 * dof, 2 * dof))
@@ -346,7 +358,11 @@ class PriorFactors:
         T_q = poses[self.variables[:, 0]]
         I = self._identity()
         rw = _whiten(self.whitening, chordal_residual(self.measurements, T_q, I))
-        S = self.whitening * rw if self.whitening.ndim == 2 else np.einsum("mji,mj->mi", self.whitening, rw)
+        S = (
+            self.whitening * rw
+            if self.whitening.ndim == 2
+            else np.einsum("mji,mj->mi", self.whitening, rw)
+        )
         return chordal_second_order(self.measurements, T_q, I, S)[1]
 
 

@@ -76,7 +76,9 @@ def _parse_floats(tokens: list[str], path: str, lineno: int, what: str) -> list[
             ) from None
         if not math.isfinite(value):
             raise InputError(
-                f"{what}: field {k + 1} is {tok!r}, expected a finite number", path=path, line=lineno
+                f"{what}: field {k + 1} is {tok!r}, expected a finite number",
+                path=path,
+                line=lineno,
             )
         out.append(value)
     return out
@@ -123,7 +125,9 @@ def read_g2o(path: str | Path) -> G2oGraph:
     except OSError as exc:
         raise InputError(f"cannot read the file: {exc.strerror}", path=path) from None
     except UnicodeDecodeError:
-        raise InputError("the file is not UTF-8 text, expected a g2o text file", path=path) from None
+        raise InputError(
+            "the file is not UTF-8 text, expected a g2o text file", path=path
+        ) from None
 
     dim: int | None = None
     vertex_rows: dict[int, tuple[list[float], int]] = {}
@@ -179,7 +183,9 @@ def read_g2o(path: str | Path) -> G2oGraph:
             i = _parse_id(tokens[1], path, lineno, tag)
             j = _parse_id(tokens[2], path, lineno, tag)
             if i == j:
-                raise InputError(f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno)
+                raise InputError(
+                    f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno
+                )
             edge_ids.append((i, j))
             edge_nums.append(_parse_floats(tokens[3:], path, lineno, tag))
             edge_lines.append(lineno)
@@ -197,7 +203,9 @@ def read_g2o(path: str | Path) -> G2oGraph:
             )
 
     if dim is None or not edge_ids:
-        raise InputError("no edges found, expected at least one EDGE_SE2 or EDGE_SE3:QUAT line", path=path)
+        raise InputError(
+            "no edges found, expected at least one EDGE_SE2 or EDGE_SE3:QUAT line", path=path
+        )
 
     ij = np.asarray(edge_ids, dtype=np.int64)
     vertex_ids = np.union1d(np.fromiter(vertex_rows.keys(), np.int64, len(vertex_rows)), ij.ravel())
@@ -242,8 +250,11 @@ def read_g2o(path: str | Path) -> G2oGraph:
     for vid, lineno in fix_ids:
         k = int(np.searchsorted(vertex_ids, vid))
         if k >= n or vertex_ids[k] != vid:
-            raise InputError(f"FIX names vertex {vid}, which no VERTEX or EDGE line defines",
-                             path=path, line=lineno)
+            raise InputError(
+                f"FIX names vertex {vid}, which no VERTEX or EDGE line defines",
+                path=path,
+                line=lineno,
+            )
         fixed[k] = True
 
     return G2oGraph(
@@ -287,10 +298,7 @@ def write_g2o(path: str | Path, graph: G2oGraph, poses: np.ndarray | None = None
         erows = geo.se3_to_xyz_quat_xyzw(graph.measurements)
     out = [f"{vtag} {vid} {txt}" for vid, txt in zip(ids.tolist(), _fmt(vrows))]
     ei, ej = ids[graph.edges[:, 0]].tolist(), ids[graph.edges[:, 1]].tolist()
-    out += [
-        f"{etag} {i} {j} {m} {inf}"
-        for i, j, m, inf in zip(ei, ej, _fmt(erows), _fmt(upper))
-    ]
+    out += [f"{etag} {i} {j} {m} {inf}" for i, j, m, inf in zip(ei, ej, _fmt(erows), _fmt(upper))]
     out += [f"FIX {vid}" for vid in ids[graph.fixed].tolist()]
     try:
         Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")

@@ -79,7 +79,9 @@ class PoseGraph:
         return replace(self, kinds=np.asarray(kinds, dtype=np.int8))
 
 
-def kinds_array(n: int, public: np.ndarray | None = None, fixed: np.ndarray | None = None) -> np.ndarray:
+def kinds_array(
+    n: int, public: np.ndarray | None = None, fixed: np.ndarray | None = None
+) -> np.ndarray:
     """(n,) kinds: PRIVATE everywhere except the indices (or boolean masks) given."""
     kinds = np.full(n, VariableKind.PRIVATE, dtype=np.int8)
     if public is not None:

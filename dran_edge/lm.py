@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable
 
 import numpy as np
 import scipy.linalg
@@ -110,15 +110,25 @@ def _block_csc_plan(brow, bcol, base, stride, nbr: int, nbc: int, dof: int, with
     ar = np.arange(dof)
     # the scalar rows of column (bc, c): all blocks of bc in order, dof rows each (same for all c)
     col_rows = (ub_row[:, None] * dof + ar).ravel()  # per block, its dof rows
-    indices = np.concatenate([
-        col_rows[col_start[bc] * dof:col_start[bc + 1] * dof] for bc in range(nbc) for _ in range(dof)
-    ]) if uniq.size else np.zeros(0)
+    indices = (
+        np.concatenate(
+            [
+                col_rows[col_start[bc] * dof : col_start[bc + 1] * dof]
+                for bc in range(nbc)
+                for _ in range(dof)
+            ]
+        )
+        if uniq.size
+        else np.zeros(0)
+    )
     indices = indices.astype(np.int32)
     r, c = np.divmod(np.arange(dof * dof), dof)
     n_src = brow.shape[0]
     blk = inv[:n_src]
     src = (base[:, None] + r[None] * stride[:, None] + c[None]).ravel()
-    tgt = (indptr[(ub_col[blk] * dof)[:, None] + c[None]] + (rank[blk] * dof)[:, None] + r[None]).ravel()
+    tgt = (
+        indptr[(ub_col[blk] * dof)[:, None] + c[None]] + (rank[blk] * dof)[:, None] + r[None]
+    ).ravel()
     diag = np.zeros(0, dtype=np.int64)
     if with_diag:
         d = inv[n_src:]
@@ -137,13 +147,29 @@ def build_plan(graph: PoseGraph) -> StructurePlan:
     slot = np.full(graph.num_variables, -1, dtype=np.int64)
     slot[private_vars] = np.arange(private_vars.shape[0])
     slot[public_vars] = np.arange(public_vars.shape[0])
-    n_u, n_v = private_vars.shape[0] * dof, public_vars.shape[0] * dof
 
     rr, cc = np.divmod(np.arange(dof * dof), dof)
     ar = np.arange(dof)
-    parts: dict[str, list[np.ndarray]] = {key: [] for key in (
-        "A_r", "A_c", "A_s", "A_k", "C_r", "C_c", "C_s", "C_k", "B_r", "B_c", "B_s",
-        "gx_t", "gx_s", "gy_t", "gy_s")}
+    parts: dict[str, list[np.ndarray]] = {
+        key: []
+        for key in (
+            "A_r",
+            "A_c",
+            "A_s",
+            "A_k",
+            "C_r",
+            "C_c",
+            "C_s",
+            "C_k",
+            "B_r",
+            "B_c",
+            "B_s",
+            "gx_t",
+            "gx_s",
+            "gy_t",
+            "gy_s",
+        )
+    }
     H_offsets, g_offsets = [], []
     H_off = g_off = 0
     for block in graph.factors:
@@ -165,8 +191,10 @@ def build_plan(graph: PoseGraph) -> StructurePlan:
             for b in range(k):
                 # element (f, a·dof+i, b·dof+j) of the (m, kd, kd) block array
                 base = H_off + fi * kd * kd + a * dof * kd + b * dof
-                for name, ka, kb in (("A", VariableKind.PRIVATE, VariableKind.PRIVATE),
-                                     ("C", VariableKind.PRIVATE, VariableKind.PUBLIC)):
+                for name, ka, kb in (
+                    ("A", VariableKind.PRIVATE, VariableKind.PRIVATE),
+                    ("C", VariableKind.PRIVATE, VariableKind.PUBLIC),
+                ):
                     sel = (kind[:, a] == ka) & (kind[:, b] == kb)
                     parts[name + "_r"].append(sl[sel, a])
                     parts[name + "_c"].append(sl[sel, b])
@@ -179,21 +207,37 @@ def build_plan(graph: PoseGraph) -> StructurePlan:
         H_off += m * kd * kd
         g_off += m * kd
 
-    cat = {key: (np.concatenate(val) if val else np.zeros(0, np.int64)) for key, val in parts.items()}
+    cat = {
+        key: (np.concatenate(val) if val else np.zeros(0, np.int64)) for key, val in parts.items()
+    }
     n_pu, n_pv = private_vars.shape[0], public_vars.shape[0]
     A_indices, A_indptr, A_src, A_tgt, A_diag = _block_csc_plan(
-        cat["A_r"], cat["A_c"], cat["A_s"], cat["A_k"], n_pu, n_pu, dof, True)
+        cat["A_r"], cat["A_c"], cat["A_s"], cat["A_k"], n_pu, n_pu, dof, True
+    )
     C_indices, C_indptr, C_src, C_tgt, _ = _block_csc_plan(
-        cat["C_r"], cat["C_c"], cat["C_s"], cat["C_k"], n_pu, n_pv, dof, False)
+        cat["C_r"], cat["C_c"], cat["C_s"], cat["C_k"], n_pu, n_pv, dof, False
+    )
     return StructurePlan(
         dof=dof,
         private_vars=private_vars,
         public_vars=public_vars,
-        A_indices=A_indices, A_indptr=A_indptr, A_diag=A_diag, A_src=A_src, A_tgt=A_tgt,
-        C_indices=C_indices, C_indptr=C_indptr, C_src=C_src, C_tgt=C_tgt,
-        B_src=cat["B_s"], B_tgt=cat["B_r"] * n_v + cat["B_c"],
-        gx_src=cat["gx_s"], gx_tgt=cat["gx_t"], gy_src=cat["gy_s"], gy_tgt=cat["gy_t"],
-        H_offsets=tuple(H_offsets), g_offsets=tuple(g_offsets),
+        A_indices=A_indices,
+        A_indptr=A_indptr,
+        A_diag=A_diag,
+        A_src=A_src,
+        A_tgt=A_tgt,
+        C_indices=C_indices,
+        C_indptr=C_indptr,
+        C_src=C_src,
+        C_tgt=C_tgt,
+        B_src=cat["B_s"],
+        B_tgt=cat["B_r"] * public_vars.shape[0] * dof + cat["B_c"],
+        gx_src=cat["gx_s"],
+        gx_tgt=cat["gx_t"],
+        gy_src=cat["gy_s"],
+        gy_tgt=cat["gy_t"],
+        H_offsets=tuple(H_offsets),
+        g_offsets=tuple(g_offsets),
     )
 
 
@@ -447,10 +491,13 @@ def solve(
     plan = build_plan(graph) if plan is None else plan
     if params.linear_solver not in ("cholesky", "superlu", "auto"):
         raise ValueError(
-            f"linear_solver must be 'cholesky', 'superlu' or 'auto', got {params.linear_solver!r}")
+            f"linear_solver must be 'cholesky', 'superlu' or 'auto', got {params.linear_solver!r}"
+        )
     use_cholesky = params.linear_solver == "cholesky" or (
-        params.linear_solver == "auto" and plan.dof == 6
-        and plan.private_vars.shape[0] >= AUTO_CHOLESKY_MIN_POSES)
+        params.linear_solver == "auto"
+        and plan.dof == 6
+        and plan.private_vars.shape[0] >= AUTO_CHOLESKY_MIN_POSES
+    )
     if params.hessian not in ("gauss_newton", "exact"):
         raise ValueError(f"hessian must be 'gauss_newton' or 'exact', got {params.hessian!r}")
     factorize = cholesky_factorizer(plan) if use_cholesky else None
@@ -459,8 +506,15 @@ def solve(
     history = [cost]
     trials = 0
     if not math.isfinite(cost):
-        return LMResult(LMStatus.NON_FINITE, poses, cost, 0, 0, tuple(history),
-                        "cost at the initial values is not finite")
+        return LMResult(
+            LMStatus.NON_FINITE,
+            poses,
+            cost,
+            0,
+            0,
+            tuple(history),
+            "cost at the initial values is not finite",
+        )
     mu: float | None = None
     nu = 2.0
     for iteration in range(params.max_iterations):
@@ -468,11 +522,25 @@ def solve(
         lin = linearize(graph, plan, poses, exact)
         g = np.concatenate([lin.g_x, lin.g_y])
         if not np.all(np.isfinite(g)) or not np.all(np.isfinite(lin.A.data)):
-            return LMResult(LMStatus.NON_FINITE, poses, cost, iteration, trials, tuple(history),
-                            "non-finite gradient or Hessian")
+            return LMResult(
+                LMStatus.NON_FINITE,
+                poses,
+                cost,
+                iteration,
+                trials,
+                tuple(history),
+                "non-finite gradient or Hessian",
+            )
         if g.size == 0 or np.max(np.abs(g)) <= params.gradient_tol:
-            return LMResult(LMStatus.CONVERGED, poses, cost, iteration, trials, tuple(history),
-                            "gradient below gradient_tol")
+            return LMResult(
+                LMStatus.CONVERGED,
+                poses,
+                cost,
+                iteration,
+                trials,
+                tuple(history),
+                "gradient below gradient_tol",
+            )
         if mu is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
             mu = max(params.mu_init * float(np.max(diag)), params.mu_min)
@@ -508,23 +576,65 @@ def solve(
             mu, nu = mu * nu, nu * 2.0
         if not accepted:
             if not solved_any:
-                return LMResult(LMStatus.LINEAR_SOLVE_FAILED, poses, cost, iteration, trials,
-                                tuple(history), "every damped system failed to factorise")
+                return LMResult(
+                    LMStatus.LINEAR_SOLVE_FAILED,
+                    poses,
+                    cost,
+                    iteration,
+                    trials,
+                    tuple(history),
+                    "every damped system failed to factorise",
+                )
             if pred <= params.cost_tol * cost:
-                return LMResult(LMStatus.CONVERGED, poses, cost, iteration, trials, tuple(history),
-                                "no decreasing step; predicted decrease below cost_tol")
-            return LMResult(LMStatus.STALLED, poses, cost, iteration, trials, tuple(history),
-                            f"no decreasing step after {params.max_trials} damping trials")
+                return LMResult(
+                    LMStatus.CONVERGED,
+                    poses,
+                    cost,
+                    iteration,
+                    trials,
+                    tuple(history),
+                    "no decreasing step; predicted decrease below cost_tol",
+                )
+            return LMResult(
+                LMStatus.STALLED,
+                poses,
+                cost,
+                iteration,
+                trials,
+                tuple(history),
+                f"no decreasing step after {params.max_trials} damping trials",
+            )
         rel = actual / cost
         poses, cost = new_poses, new_cost
         history.append(cost)
         if callback is not None:
             callback(iteration + 1, cost, mu)
         if rel < params.cost_tol:
-            return LMResult(LMStatus.CONVERGED, poses, cost, iteration + 1, trials, tuple(history),
-                            "relative cost decrease below cost_tol")
+            return LMResult(
+                LMStatus.CONVERGED,
+                poses,
+                cost,
+                iteration + 1,
+                trials,
+                tuple(history),
+                "relative cost decrease below cost_tol",
+            )
         if float(np.linalg.norm(step)) < params.step_tol:
-            return LMResult(LMStatus.CONVERGED, poses, cost, iteration + 1, trials, tuple(history),
-                            "step norm below step_tol")
-    return LMResult(LMStatus.MAX_ITERATIONS, poses, cost, params.max_iterations, trials,
-                    tuple(history), "reached max_iterations")
+            return LMResult(
+                LMStatus.CONVERGED,
+                poses,
+                cost,
+                iteration + 1,
+                trials,
+                tuple(history),
+                "step norm below step_tol",
+            )
+    return LMResult(
+        LMStatus.MAX_ITERATIONS,
+        poses,
+        cost,
+        params.max_iterations,
+        trials,
+        tuple(history),
+        "reached max_iterations",
+    )

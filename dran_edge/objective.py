@@ -51,7 +51,9 @@ def sesync_objective(
     Rm, tm = measurements[:, :d, :d], measurements[:, :d, d]
     rot = Rj - Ri @ Rm
     trans = tj - ti - (Ri @ tm[:, :, None])[:, :, 0]
-    return float(np.sum(kappa * np.sum(rot * rot, axis=(1, 2))) + np.sum(tau * np.sum(trans * trans, axis=1)))
+    return float(
+        np.sum(kappa * np.sum(rot * rot, axis=(1, 2))) + np.sum(tau * np.sum(trans * trans, axis=1))
+    )
 
 
 def edge_factors(

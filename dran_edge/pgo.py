@@ -7,8 +7,8 @@ by FIX lines are fixed; without FIX lines the first vertex (lowest id) is fixed.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -46,7 +46,9 @@ def odometry_initialization(g: G2oGraph, anchor: int, T_anchor: np.ndarray) -> n
     done = np.zeros(n, dtype=bool)
     T[anchor], done[anchor] = T_anchor, True
     for subset in (order_edges[: int(consecutive.sum())], order_edges):
-        adj = sp.coo_matrix((np.arange(1, subset.size + 1), (i[subset], j[subset])), shape=(n, n)).tocsr()
+        adj = sp.coo_matrix(
+            (np.arange(1, subset.size + 1), (i[subset], j[subset])), shape=(n, n)
+        ).tocsr()
         adj = adj + adj.T.multiply(-1)  # sign tells the direction of the stored edge
         roots = np.flatnonzero(done)
         for root in roots:
@@ -87,7 +89,9 @@ def initial_poses(g: G2oGraph, init: str) -> np.ndarray:
         T = odometry_initialization(g, anchor, T_anchor)
     elif init == "chordal":
         kappa, tau = sesync_weights(g.dim, g.information)
-        T = T_anchor @ chordal_initialization(g.num_vertices, g.edges, g.measurements, kappa, tau, anchor)
+        T = T_anchor @ chordal_initialization(
+            g.num_vertices, g.edges, g.measurements, kappa, tau, anchor
+        )
     else:
         raise ValueError(f"init must be one of {INITS}, got {init!r}")
     T[fixed] = g.poses[fixed]  # other FIX vertices keep the file's values
@@ -97,7 +101,9 @@ def initial_poses(g: G2oGraph, init: str) -> np.ndarray:
 def pose_graph(g: G2oGraph, residual: str, weights: str) -> PoseGraph:
     """The PoseGraph of a g2o graph: every vertex private except the gauge-fixed ones."""
     block = edge_factors(g.dim, g.edges, g.measurements, g.information, residual, weights)
-    return PoseGraph(dim=g.dim, kinds=kinds_array(g.num_vertices, fixed=gauge_fixed(g)), factors=(block,))
+    return PoseGraph(
+        dim=g.dim, kinds=kinds_array(g.num_vertices, fixed=gauge_fixed(g)), factors=(block,)
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,10 +123,13 @@ def solve_g2o(
     init: str = "chordal",
     residual: str = "chordal",
     weights: str = "sesync",
-    params: LMParams = LMParams(hessian="exact", cost_tol=1e-8),
+    params: LMParams | None = None,
     callback: Callable[[int, float, float], None] | None = None,
 ) -> SolveReport:
-    """Initialise and optimise ``g``; objectives in the SE-Sync convention (see objective.py)."""
+    """Initialise and optimise ``g``; objectives in the SE-Sync convention (see objective.py).
+    ``params`` default: exact Hessian (Newton on the chordal cost), cost_tol 1e-8."""
+    if params is None:
+        params = LMParams(hessian="exact", cost_tol=1e-8)
     kappa, tau = sesync_weights(g.dim, g.information)
 
     def F(T: np.ndarray) -> float:

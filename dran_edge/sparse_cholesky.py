@@ -25,7 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.linalg.lapack import dpotrf, dtrtrs
@@ -41,8 +40,9 @@ def _block_order(nb: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         return np.arange(nb)
     pattern = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(nb, nb))
     pattern = sp.csc_matrix(pattern + sp.identity(nb) * (nb + 1.0))
-    lu = spla.splu(pattern, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
+    lu = spla.splu(
+        pattern, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+    )
     return np.argsort(lu.perm_c)
 
 
@@ -104,7 +104,7 @@ def _symbolic(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
     parent = np.full(nb, -1, dtype=np.int64)
     for k in range(nb):
         st = pending[k]
-        st.update(kr_list[starts[k]:starts[k + 1]])
+        st.update(kr_list[starts[k] : starts[k + 1]])
         st.discard(k)
         srt = sorted(st)
         struct.append(srt)
@@ -122,8 +122,16 @@ def _symbolic(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
 class SymbolicCholesky:
     """The analysis of one block-structured sparsity pattern (see the module docstring)."""
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, block: int,
-                 max_cols: int = 64, relax_zeros: float = 0.3, small_cols: int = 8):
+    def __init__(
+        self,
+        indptr: np.ndarray,
+        indices: np.ndarray,
+        n: int,
+        block: int,
+        max_cols: int = 64,
+        relax_zeros: float = 0.3,
+        small_cols: int = 8,
+    ):
         """``indptr``/``indices``: CSC pattern of a symmetric matrix stored in full, with every
         diagonal entry present; ``block``: size of the dense diagonal blocks (pose dof).
         Supernodes have at most ``max_cols`` block columns; a chain is merged while the explicit
@@ -181,15 +189,17 @@ class SymbolicCholesky:
         # supernodal structures: a supernode is a chain k → k+1 → … → b−1 of the elimination
         # tree, and struct[k] ⊂ {k+1} ∪ struct[k+1] along a chain, so its rows below are exactly
         # those of its last column
-        sn_rows_b = [s_rows[s_ptr[b - 1]:s_ptr[b]] for b in bounds_arr[1:].tolist()]
+        sn_rows_b = [s_rows[s_ptr[b - 1] : s_ptr[b]] for b in bounds_arr[1:].tolist()]
         sn_parent = np.array([owner[rb[0]] if rb.size else -1 for rb in sn_rows_b], dtype=np.int64)
         sn_children: list[list[int]] = [[] for _ in range(nsn)]
         for s_, p_ in enumerate(sn_parent.tolist()):
             if p_ >= 0:
                 sn_children[p_].append(s_)
         ar = np.arange(block)
-        fronts_b = [np.concatenate([np.arange(bounds_arr[s], bounds_arr[s + 1]), sn_rows_b[s]])
-                    for s in range(nsn)]
+        fronts_b = [
+            np.concatenate([np.arange(bounds_arr[s], bounds_arr[s + 1]), sn_rows_b[s]])
+            for s in range(nsn)
+        ]
         # where each stored entry of A goes: the front of the supernode owning its column, when
         # its row is at or below that supernode's first column (the rest is the transpose).
         # Positions inside fronts are found by one search in the sorted keys s·nb + block row.
@@ -204,8 +214,9 @@ class SymbolicCholesky:
         take = take[np.argsort(s_of[take], kind="stable")]
         s_k = s_of[take]
         sn_ptr = np.searchsorted(s_k, np.arange(nsn + 1))
-        lrow = (np.searchsorted(front_keys, s_k * nb + pr[take]) - front_start[s_k]) * block \
-            + indices[take] % block
+        lrow = (
+            np.searchsorted(front_keys, s_k * nb + pr[take]) - front_start[s_k]
+        ) * block + indices[take] % block
         lcol = (pc[take] - bounds_arr[s_k]) * block + col_of[take] % block
         a_dst = lrow * (sizes[s_k] * block) + lcol
         # where each supernode's rows sit in its parent's front
@@ -214,8 +225,10 @@ class SymbolicCholesky:
         all_rows = np.concatenate(sn_rows_b) if nsn else np.zeros(0, np.int64)
         loc_all = np.zeros(all_rows.size, dtype=np.int64)
         has_par = par_rep >= 0
-        loc_all[has_par] = (np.searchsorted(front_keys, par_rep[has_par] * nb + all_rows[has_par])
-                            - front_start[par_rep[has_par]])
+        loc_all[has_par] = (
+            np.searchsorted(front_keys, par_rep[has_par] * nb + all_rows[has_par])
+            - front_start[par_rep[has_par]]
+        )
         loc_split = np.split(loc_all, np.cumsum(lens)[:-1])
         supernodes = []
         for s in range(nsn):
@@ -228,12 +241,18 @@ class SymbolicCholesky:
                 rel = (rel_s[:, None] * (int(sizes[p]) * block) + rel_s[None, :]).ravel()
             else:
                 rel = np.zeros(0, dtype=np.int64)
-            supernodes.append(_Supernode(
-                c0=a * block, c1=b * block,
-                rows=(sn_rows_b[s][:, None] * block + ar).ravel(),
-                parent=p, rel=rel, a_src=take[sn_ptr[s]:sn_ptr[s + 1]],
-                a_dst=a_dst[sn_ptr[s]:sn_ptr[s + 1]], diag=k * f + k,
-            ))
+            supernodes.append(
+                _Supernode(
+                    c0=a * block,
+                    c1=b * block,
+                    rows=(sn_rows_b[s][:, None] * block + ar).ravel(),
+                    parent=p,
+                    rel=rel,
+                    a_src=take[sn_ptr[s] : sn_ptr[s + 1]],
+                    a_dst=a_dst[sn_ptr[s] : sn_ptr[s + 1]],
+                    diag=k * f + k,
+                )
+            )
         self._supernodes = supernodes
         self._perm = (order[:, None] * block + ar).ravel()  # permuted scalar index -> original
         self.num_supernodes = nsn
@@ -249,16 +268,19 @@ class SymbolicCholesky:
             f = k + m
             base = np.arange(len(members)) * f * f
             sns = [supernodes[s] for s in members]
-            self._leaf_groups.append(_LeafGroup(
-                k=k, m=m,
-                cols=np.stack([np.arange(sn.c0, sn.c1) for sn in sns]),
-                rows=np.stack([sn.rows for sn in sns]),
-                src=np.concatenate([sn.a_src for sn in sns]),
-                dst=np.concatenate([b + sn.a_dst for b, sn in zip(base, sns)]),
-                diag=np.concatenate([b + sn.diag for b, sn in zip(base, sns)]),
-                parents=[sn.parent for sn in sns],
-                rels=[sn.rel for sn in sns],
-            ))
+            self._leaf_groups.append(
+                _LeafGroup(
+                    k=k,
+                    m=m,
+                    cols=np.stack([np.arange(sn.c0, sn.c1) for sn in sns]),
+                    rows=np.stack([sn.rows for sn in sns]),
+                    src=np.concatenate([sn.a_src for sn in sns]),
+                    dst=np.concatenate([b + sn.a_dst for b, sn in zip(base, sns)]),
+                    diag=np.concatenate([b + sn.diag for b, sn in zip(base, sns)]),
+                    parents=[sn.parent for sn in sns],
+                    rels=[sn.rel for sn in sns],
+                )
+            )
         self._internal = [s for s in range(nsn) if sn_children[s]]
 
     def factorize(self, data: np.ndarray, shift: float = 0.0) -> NumericCholesky:
@@ -347,15 +369,15 @@ class NumericCholesky:
                 upd = (np.swapaxes(L21T, 1, 2) @ ys).reshape(-1, r)
                 np.subtract.at(y, grp.rows.ravel(), upd)
         for sn, (L11, L21) in zip(sns, self._factors):
-            ys, _ = dtrtrs(L11, y[sn.c0:sn.c1], lower=1)
-            y[sn.c0:sn.c1] = ys
+            ys, _ = dtrtrs(L11, y[sn.c0 : sn.c1], lower=1)
+            y[sn.c0 : sn.c1] = ys
             if sn.rows.size:
                 y[sn.rows] -= L21 @ ys
         for sn, (L11, L21) in zip(reversed(sns), reversed(self._factors)):
-            xs = y[sn.c0:sn.c1]
+            xs = y[sn.c0 : sn.c1]
             if sn.rows.size:
                 xs = xs - L21.T @ y[sn.rows]
-            y[sn.c0:sn.c1] = dtrtrs(L11, xs, lower=1, trans=1)[0]
+            y[sn.c0 : sn.c1] = dtrtrs(L11, xs, lower=1, trans=1)[0]
         for grp, (L11, L21T) in zip(sym._leaf_groups, self._leaf_factors):
             xs = y[grp.cols]
             if grp.m:

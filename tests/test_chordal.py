@@ -29,8 +29,11 @@ def test_chordal_anchor_and_noisy_quality(dim):
     T = initial_poses(g, "chordal")
     np.testing.assert_allclose(T[0], truth[0], atol=1e-12)  # gauge: first vertex keeps its pose
     d = T.shape[-1] - 1
-    np.testing.assert_allclose(np.swapaxes(T[:, :d, :d], 1, 2) @ T[:, :d, :d],
-                               np.broadcast_to(np.eye(d), (T.shape[0], d, d)), atol=1e-12)
+    np.testing.assert_allclose(
+        np.swapaxes(T[:, :d, :d], 1, 2) @ T[:, :d, :d],
+        np.broadcast_to(np.eye(d), (T.shape[0], d, d)),
+        atol=1e-12,
+    )
     kappa, tau = sesync_weights(dim, g.information)
     F_init = sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_odo = sesync_objective(initial_poses(g, "odometry"), g.edges, g.measurements, kappa, tau)
@@ -45,7 +48,14 @@ def test_odometry_initialization_composes_the_chain():
 
 def test_disconnected_graph_is_an_input_error():
     g, _ = synthetic_graph(2, side=3, sigma_t_m=0.0, sigma_r_rad=0.0)
-    keep = ~((g.edges[:, 0] <= 3) & (g.edges[:, 1] >= 4) | (g.edges[:, 1] <= 3) & (g.edges[:, 0] >= 4))
+    keep = ~(
+        (g.edges[:, 0] <= 3) & (g.edges[:, 1] >= 4) | (g.edges[:, 1] <= 3) & (g.edges[:, 0] >= 4)
+    )
     with pytest.raises(InputError, match="connected"):
-        chordal_initialization(g.num_vertices, g.edges[keep], g.measurements[keep],
-                               np.ones(keep.sum()), np.ones(keep.sum()))
+        chordal_initialization(
+            g.num_vertices,
+            g.edges[keep],
+            g.measurements[keep],
+            np.ones(keep.sum()),
+            np.ones(keep.sum()),
+        )

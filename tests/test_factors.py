@@ -69,12 +69,14 @@ def test_prior_block_jacobian_and_whitening(dof, residual):
     W = whitening_from_information(info)
     np.testing.assert_allclose(np.swapaxes(W, 1, 2) @ W, info, rtol=1e-10, atol=1e-10)
     block = PriorFactors(np.array([[1], [3]]), prior, W, residual)
-    r, J = block.linearize(poses)
+    _, J = block.linearize(poses)
     assert J.shape == (2, 1, r_dim, dof)
     for k in range(dof):
         d = np.zeros((4, dof))
         d[:, k] = EPS
-        num = (block.residuals(geo.retract(poses, d)) - block.residuals(geo.retract(poses, -d))) / (2 * EPS)
+        num = (block.residuals(geo.retract(poses, d)) - block.residuals(geo.retract(poses, -d))) / (
+            2 * EPS
+        )
         np.testing.assert_allclose(J[:, 0, :, k], num, atol=1e-6)
     # the residual is zero exactly at the prior
     at_prior = poses.copy()
@@ -105,8 +107,16 @@ def test_isotropic_geodesic_weights_match_chordal_cost_near_zero():
         T_m = _random_poses(rng, 6, dof)
         T_q = T_p @ T_m @ geo.exp(rng.normal(size=(6, dof)) * 1e-4)
         kappa, tau = rng.uniform(1, 10, 6), rng.uniform(1, 10, 6)
-        c_geo = np.sum((isotropic_whitening(kappa, tau, "geodesic", dim) * geodesic_residual(T_p, T_q, T_m)) ** 2, 1)
-        c_cho = np.sum((isotropic_whitening(kappa, tau, "chordal", dim) * chordal_residual(T_p, T_q, T_m)) ** 2, 1)
+        c_geo = np.sum(
+            (isotropic_whitening(kappa, tau, "geodesic", dim) * geodesic_residual(T_p, T_q, T_m))
+            ** 2,
+            1,
+        )
+        c_cho = np.sum(
+            (isotropic_whitening(kappa, tau, "chordal", dim) * chordal_residual(T_p, T_q, T_m))
+            ** 2,
+            1,
+        )
         np.testing.assert_allclose(c_geo, c_cho, rtol=1e-3)
 
 
@@ -139,12 +149,21 @@ def test_chordal_second_order_gives_the_exact_hessian(dim):
     for i in range(n):
         for j in range(n):
             ei, ej = np.eye(n)[i] * h, np.eye(n)[j] * h
-            Hn[i, j] = (cost(ei + ej) - cost(ei - ej) - cost(ej - ei) + cost(-ei - ej)) / (4 * h * h)
+            Hn[i, j] = (cost(ei + ej) - cost(ei - ej) - cost(ej - ei) + cost(-ei - ej)) / (
+                4 * h * h
+            )
     _, J = block.linearize(T)
     Jf = np.concatenate([J[0, 0], J[0, 1]], axis=1)
     H = Jf.T @ Jf + block.second_order(T)[0]
     _, Jp = prior.linearize(T)
     H[dof:, dof:] += Jp[0, 0].T @ Jp[0, 0] + prior.second_order(T)[0]
     np.testing.assert_allclose(H, Hn, atol=1e-5 * np.abs(Hn).max())
-    assert BetweenFactors(np.array([[0, 1]]), Z, isotropic_whitening(
-        np.array([3.0]), np.array([2.0]), "geodesic", dim), "geodesic").second_order(T) is None
+    assert (
+        BetweenFactors(
+            np.array([[0, 1]]),
+            Z,
+            isotropic_whitening(np.array([3.0]), np.array([2.0]), "geodesic", dim),
+            "geodesic",
+        ).second_order(T)
+        is None
+    )

@@ -13,8 +13,8 @@ from dran_edge.g2o import read_g2o, write_g2o
 from dran_edge.graphgen import synthetic_graph
 
 SE2_EDGE = "EDGE_SE2 0 1 1.0 0.0 0.1 10 0 0 10 0 20"
-SE3_EDGE = "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 " + " ".join(
-    ["10 0 0 0 0 0", "10 0 0 0 0", "10 0 0 0", "20 0 0", "20 0", "20"])
+# upper triangle of diag(10, 10, 10, 20, 20, 20), row by row
+SE3_EDGE = "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 20 0 0 20 0 20"
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -37,7 +37,9 @@ def test_round_trip_is_exact(tmp_path, dim):
 
 def test_file_without_vertices_and_sparse_ids(tmp_path):
     path = tmp_path / "novert.g2o"
-    path.write_text("# comment\n\nEDGE_SE2 10 20 1 0 0 1 0 0 1 0 1\nEDGE_SE2 20 30 1 0 0 1 0 0 1 0 1\n")
+    path.write_text(
+        "# comment\n\nEDGE_SE2 10 20 1 0 0 1 0 0 1 0 1\nEDGE_SE2 20 30 1 0 0 1 0 0 1 0 1\n"
+    )
     g = read_g2o(path)
     assert g.vertex_ids.tolist() == [10, 20, 30]
     assert not g.has_pose.any()
@@ -48,7 +50,9 @@ def test_file_without_vertices_and_sparse_ids(tmp_path):
 def test_3d_quaternion_order_is_xyzw(tmp_path):
     path = tmp_path / "q.g2o"
     # 90° about z: qz = qw = √½
-    path.write_text("VERTEX_SE3:QUAT 0 1 2 3 0 0 0.7071067811865476 0.7071067811865476\n" + SE3_EDGE + "\n")
+    path.write_text(
+        "VERTEX_SE3:QUAT 0 1 2 3 0 0 0.7071067811865476 0.7071067811865476\n" + SE3_EDGE + "\n"
+    )
     g = read_g2o(path)
     np.testing.assert_allclose(g.poses[0, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     np.testing.assert_allclose(g.poses[0, :3, 3], [1, 2, 3])
@@ -66,7 +70,11 @@ def test_3d_quaternion_order_is_xyzw(tmp_path):
         ("EDGE_SE2 1 1 1.0 0.0 0.1 10 0 0 10 0 20\n", 1, "to itself"),
         ("EDGE_SE2 0 1 1.0 0.0 0.1 10 0 0 -10 0 20\n", 1, "not positive definite"),
         ("EDGE_SE2 0 -1 1.0 0.0 0.1 10 0 0 10 0 20\n", 1, "negative"),
-        ("EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 2 " + SE3_EDGE.split(" ", 10)[10] + "\n", 1, "quaternion norm"),
+        (
+            "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 2 " + SE3_EDGE.split(" ", 10)[10] + "\n",
+            1,
+            "quaternion norm",
+        ),
         (SE2_EDGE + "\nFIX 7\n", 2, "FIX names vertex 7"),
         (SE2_EDGE + "\nFIX\n", 2, "FIX names no vertex"),
     ],
@@ -92,14 +100,22 @@ def test_empty_and_missing_files(tmp_path):
 
 
 def test_solve_cli_json_and_output(tmp_path, capsys):
-    g, truth = synthetic_graph(3, side=4, seed=2)
+    g, _ = synthetic_graph(3, side=4, seed=2)
     src, out = tmp_path / "in.g2o", tmp_path / "out.g2o"
     write_g2o(src, g)
     code = main(["solve", str(src), "--out", str(out), "--json", "--quiet"])
     assert code == 0
     report = json.loads(capsys.readouterr().out)
-    for key in ("vertices", "edges", "objective_input", "objective_init", "objective_final",
-                "iterations", "status", "wall_s"):
+    for key in (
+        "vertices",
+        "edges",
+        "objective_input",
+        "objective_init",
+        "objective_final",
+        "iterations",
+        "status",
+        "wall_s",
+    ):
         assert key in report
     assert report["vertices"] == g.num_vertices and report["edges"] == g.num_edges
     assert report["status"] == "converged"

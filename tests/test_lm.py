@@ -27,7 +27,9 @@ def _random_problem(rng, dim, residual, n_private, n_public, n_fixed, kernel=Non
     dof = 6 if dim == 3 else 3
     n = n_private + n_public + n_fixed
     kinds = rng.permutation(
-        [VariableKind.PRIVATE] * n_private + [VariableKind.PUBLIC] * n_public + [VariableKind.FIXED] * n_fixed
+        [VariableKind.PRIVATE] * n_private
+        + [VariableKind.PUBLIC] * n_public
+        + [VariableKind.FIXED] * n_fixed
     ).astype(np.int8)
     poses = geo.exp(rng.normal(size=(n, dof)))
     m = 3 * n
@@ -37,7 +39,9 @@ def _random_problem(rng, dim, residual, n_private, n_public, n_fixed, kernel=Non
     blocks = [BetweenFactors(ends, Z, W, residual, kernel)]
     rdim = W.shape[1]
     Wp = np.linalg.cholesky(np.eye(rdim) * 2 + 0.1)[None].repeat(2, 0).transpose(0, 2, 1)
-    blocks.append(PriorFactors(rng.choice(n, (2, 1)), geo.exp(rng.normal(size=(2, dof))), Wp, residual))
+    blocks.append(
+        PriorFactors(rng.choice(n, (2, 1)), geo.exp(rng.normal(size=(2, dof))), Wp, residual)
+    )
     graph = PoseGraph(dim=dim, kinds=kinds, factors=tuple(blocks))
     return graph, poses @ geo.exp(rng.normal(size=(n, dof)) * 0.1)
 
@@ -46,8 +50,12 @@ def _dense_normal_equations(graph, poses):
     """J by finite differences of the stacked whitened residual over all non-fixed variables,
     ordered private then public (the order of u, v), with IRLS weights applied."""
     dof = graph.dof
-    active = np.concatenate([np.flatnonzero(graph.kinds == VariableKind.PRIVATE),
-                             np.flatnonzero(graph.kinds == VariableKind.PUBLIC)])
+    active = np.concatenate(
+        [
+            np.flatnonzero(graph.kinds == VariableKind.PRIVATE),
+            np.flatnonzero(graph.kinds == VariableKind.PUBLIC),
+        ]
+    )
 
     def stacked(P):
         out = []
@@ -118,8 +126,12 @@ def test_retract_moves_only_non_fixed_variables():
     out = retract(plan, poses, u, v)
     fixed = graph.kinds == VariableKind.FIXED
     np.testing.assert_array_equal(out[fixed], poses[fixed])
-    np.testing.assert_allclose(out[plan.private_vars], poses[plan.private_vars] @ geo.exp(u.reshape(-1, 6)))
-    np.testing.assert_allclose(out[plan.public_vars], poses[plan.public_vars] @ geo.exp(v.reshape(-1, 6)))
+    np.testing.assert_allclose(
+        out[plan.private_vars], poses[plan.private_vars] @ geo.exp(u.reshape(-1, 6))
+    )
+    np.testing.assert_allclose(
+        out[plan.public_vars], poses[plan.public_vars] @ geo.exp(v.reshape(-1, 6))
+    )
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
+from dran_edge.graph import kinds_array
 from dran_edge.graphgen import synthetic_graph
 from dran_edge.lm import LMParams, build_plan, cholesky_factorizer, linearize, schur_step, solve
-from dran_edge.graph import kinds_array
 from dran_edge.pgo import initial_poses, pose_graph
 from dran_edge.sparse_cholesky import NotPositiveDefinite, SymbolicCholesky
 
@@ -26,7 +25,9 @@ def test_factor_solves_like_dense(dim, side, layers, residual):
         M = lin.A.toarray() + mu * np.eye(plan.n_u)
         rhs = np.random.default_rng(0).normal(size=(plan.n_u, 3))
         np.testing.assert_allclose(num.solve(rhs), np.linalg.solve(M, rhs), rtol=1e-7, atol=1e-9)
-        np.testing.assert_allclose(num.solve(rhs[:, 0]), np.linalg.solve(M, rhs[:, 0]), rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(
+            num.solve(rhs[:, 0]), np.linalg.solve(M, rhs[:, 0]), rtol=1e-7, atol=1e-9
+        )
 
 
 def test_random_block_sparse_spd_matrices():
@@ -40,7 +41,7 @@ def test_random_block_sparse_spd_matrices():
         block_pattern = np.eye(nb, dtype=bool)
         for i, j in edges:
             X = rng.normal(size=(2 * b, 2 * b))
-            idx = np.r_[i * b:(i + 1) * b, j * b:(j + 1) * b]
+            idx = np.r_[i * b : (i + 1) * b, j * b : (j + 1) * b]
             M[np.ix_(idx, idx)] += X @ X.T
             block_pattern[i, j] = block_pattern[j, i] = True
         pattern = np.kron(block_pattern, np.ones((b, b), dtype=bool))
@@ -62,9 +63,10 @@ def test_indefinite_matrix_is_reported():
 
 
 def test_schur_step_with_cholesky_matches_superlu():
-    g, truth = synthetic_graph(3, side=4, layers=2, seed=8)
+    g, _ = synthetic_graph(3, side=4, layers=2, seed=8)
     graph = pose_graph(g, "chordal", "sesync").with_kinds(
-        kinds_array(g.num_vertices, public=[3, 9, 20], fixed=[0]))
+        kinds_array(g.num_vertices, public=[3, 9, 20], fixed=[0])
+    )
     plan = build_plan(graph)
     lin = linearize(graph, plan, initial_poses(g, "odometry"))
     u1, v1 = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, 1e-2, cholesky_factorizer(plan))

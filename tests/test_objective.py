@@ -13,7 +13,9 @@ from dran_edge.pgo import pose_graph
 
 def test_two_edge_example_by_hand_2d():
     # three poses on a line; two edges with measurement "1 m forward, no turn"
-    poses = geo.se2_from_xy_theta(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.5, np.pi / 2]]))
+    poses = geo.se2_from_xy_theta(
+        np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.5, np.pi / 2]])
+    )
     edges = np.array([[0, 1], [1, 2]])
     Z = geo.se2_from_xy_theta(np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
     kappa, tau = np.array([2.0, 3.0]), np.array([5.0, 7.0])
@@ -50,7 +52,9 @@ def test_sesync_weights_from_information():
 def test_chordal_sesync_cost_is_exactly_half_of_F():
     for dim in (2, 3):
         g, truth = synthetic_graph(dim, side=4, seed=1, sigma_t_m=0.1, sigma_r_rad=0.2)
-        T = truth @ geo.exp(np.random.default_rng(0).normal(size=(truth.shape[0], 3 * dim - 3)) * 0.3)
+        T = truth @ geo.exp(
+            np.random.default_rng(0).normal(size=(truth.shape[0], 3 * dim - 3)) * 0.3
+        )
         kappa, tau = sesync_weights(dim, g.information)
         F = sesync_objective(T, g.edges, g.measurements, kappa, tau)
         assert np.isclose(2 * evaluate_cost(pose_graph(g, "chordal", "sesync"), T), F, rtol=1e-12)

@@ -20,13 +20,13 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see bench_g2o.py
 
-import numpy as np  # noqa: E402
-import scipy.sparse as sp  # noqa: E402
+import numpy as np
+import scipy.sparse as sp
 
-from dran_edge.g2o import read_g2o  # noqa: E402
-from dran_edge.lm import _factorize, build_plan, linearize  # noqa: E402
-from dran_edge.pgo import initial_poses, pose_graph  # noqa: E402
-from dran_edge.sparse_cholesky import SymbolicCholesky  # noqa: E402
+from dran_edge.g2o import read_g2o
+from dran_edge.lm import _factorize, build_plan, linearize
+from dran_edge.pgo import initial_poses, pose_graph
+from dran_edge.sparse_cholesky import SymbolicCholesky
 
 FILES = {
     "parking-garage": "parking-garage.g2o",
@@ -47,6 +47,34 @@ def _best(fn, repeat):
     return best, out
 
 
+def _one(name: str, path: Path, repeat: int) -> str:
+    g = read_g2o(path)
+    graph = pose_graph(g, "geodesic", "sesync")
+    plan = build_plan(graph)
+    lin = linearize(graph, plan, initial_poses(g, "chordal"))
+    A = lin.A
+    mu = 1e-6 * float(A.diagonal().max())
+    A_mu = sp.csc_matrix(A + mu * sp.identity(plan.n_u, format="csc"))
+    b = np.random.default_rng(0).normal(size=plan.n_u)
+    t_lu, lu = _best(lambda: _factorize(A_mu), repeat)
+    t_lus, x1 = _best(lambda: lu.solve(b), repeat)
+    t_an, sym = _best(
+        lambda: SymbolicCholesky(plan.A_indptr, plan.A_indices, plan.n_u, plan.dof),
+        max(1, repeat // 2),
+    )
+    t_ch, ch = _best(lambda: sym.factorize(A.data, mu), repeat)
+    t_chs, x2 = _best(lambda: ch.solve(b), repeat)
+
+    def res(x):
+        return np.abs(A_mu @ x - b).max() / np.abs(b).max()
+
+    return (
+        f"{name:15s} {plan.n_u:6d} {A.nnz:8d} | {1e3 * t_lu:8.1f} {1e3 * t_lus:6.1f} "
+        f"{res(x1):7.0e} | {1e3 * t_an:8.1f} {1e3 * t_ch:7.1f} {1e3 * t_chs:6.1f} "
+        f"{res(x2):7.0e} | {t_lu / t_ch:7.2f}x"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     default = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "g2o"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -56,30 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.data_dir is None:
         ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
     print(f"# best of {args.repeat}; times in ms")
-    print(f"{'dataset':15s} {'n':>6s} {'nnz(A)':>8s} | {'superlu':>8s} {'solve':>6s} {'resid':>7s} | "
-          f"{'analyse':>8s} {'chol':>7s} {'solve':>6s} {'resid':>7s} | {'speed-up':>8s}")
+    print(
+        f"{'dataset':15s} {'n':>6s} {'nnz(A)':>8s} | {'superlu':>8s} {'solve':>6s} {'resid':>7s} | "
+        f"{'analyse':>8s} {'chol':>7s} {'solve':>6s} {'resid':>7s} | {'speed-up':>8s}"
+    )
     for name, fname in FILES.items():
-        g = read_g2o(Path(args.data_dir) / fname)
-        graph = pose_graph(g, "geodesic", "sesync")
-        plan = build_plan(graph)
-        lin = linearize(graph, plan, initial_poses(g, "chordal"))
-        A = lin.A
-        mu = 1e-6 * float(A.diagonal().max())
-        A_mu = sp.csc_matrix(A + mu * sp.identity(plan.n_u, format="csc"))
-        b = np.random.default_rng(0).normal(size=plan.n_u)
-        t_lu, lu = _best(lambda: _factorize(A_mu), args.repeat)
-        t_lus, x1 = _best(lambda: lu.solve(b), args.repeat)
-        t_an, sym = _best(lambda: SymbolicCholesky(plan.A_indptr, plan.A_indices, plan.n_u, plan.dof),
-                          max(1, args.repeat // 2))
-        t_ch, ch = _best(lambda: sym.factorize(A.data, mu), args.repeat)
-        t_chs, x2 = _best(lambda: ch.solve(b), args.repeat)
-
-        def res(x):
-            return np.abs(A_mu @ x - b).max() / np.abs(b).max()
-
-        print(f"{name:15s} {plan.n_u:6d} {A.nnz:8d} | {1e3 * t_lu:8.1f} {1e3 * t_lus:6.1f} "
-              f"{res(x1):7.0e} | {1e3 * t_an:8.1f} {1e3 * t_ch:7.1f} {1e3 * t_chs:6.1f} "
-              f"{res(x2):7.0e} | {t_lu / t_ch:7.2f}x", flush=True)
+        print(_one(name, Path(args.data_dir) / fname, args.repeat), flush=True)
     print("speed-up = SuperLU factorisation time / our numeric factorisation time (same matrix)")
     return 0
 
