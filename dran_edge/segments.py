@@ -67,12 +67,13 @@ class Segmenter:
     def odometry(self, stamp_ns: int, T_odom_body: np.ndarray) -> tuple[int, str | None]:
         """Feed one odometry sample; returns (segment id, reason if a new segment started).
 
-        A sample not newer than the previous one is stale (counted, segment unchanged, and the
+        A sample not newer than the previous one (or older than the newest segment's start) is stale (counted, segment unchanged, and the
         caller should ignore it): returns (current, None).
         """
         b = self.bounds
         reason = None
-        if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
+        if ((self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns)
+                or (self.starts_ns and stamp_ns < self.starts_ns[-1])):
             self.stale_samples += 1
             return self.current, None
         if not self.ids:

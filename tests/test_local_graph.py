@@ -1,0 +1,229 @@
+"""The bounded local graph: selection, segments, attachment, bounds, marginalisation, state."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from dran_edge import geometry as geo
+from dran_edge.checkpoint import dumps, loads
+from dran_edge.config import AgentConfig, GraphBounds
+from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
+from dran_edge.local_graph import (
+    KIND_LOOP,
+    KIND_OBSERVATION,
+    KIND_ODOMETRY,
+    OBJ,
+    LocalGraph,
+    compose_cov,
+    fuse,
+    gauge_anchor,
+    invert_cov,
+)
+from dran_edge.segments import Segmenter
+from dran_edge.vio_sim import vio_mission
+
+
+def cfg(max_nodes=100_000, max_edges=400_000, **kw) -> AgentConfig:
+    return AgentConfig(graph=GraphBounds(max_nodes=max_nodes, max_edges=max_edges), **kw)
+
+
+def feed(g: LocalGraph, events) -> None:
+    for e in events:
+        g.handle(e)
+
+
+def pose(x=0.0, y=0.0, yaw=0.0) -> np.ndarray:
+    return geo.se3_from_rt(geo.so3_exp(np.array([0, 0, yaw])), np.array([x, y, 0.0]))
+
+
+# --------------------------------------------------------------------------- covariance algebra
+def test_compose_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(0)
+    Z1, Z2 = geo.se3_exp(np.array([1, 0.2, 0, 0.1, 0, 0.5])), geo.se3_exp(np.array([0.5, 1, 0, 0, 0.2, 0.3]))
+    S1, S2 = np.diag([1e-3] * 3 + [4e-4] * 3), np.diag([2e-3] * 3 + [1e-4] * 3)
+    Z, S = compose_cov(Z1, S1, Z2, S2)
+    n = 20000
+    e1 = rng.multivariate_normal(np.zeros(6), S1, n)
+    e2 = rng.multivariate_normal(np.zeros(6), S2, n)
+    samples = (Z1 @ geo.se3_exp(e1)) @ (Z2 @ geo.se3_exp(e2))
+    err = geo.se3_log(geo.se3_between(Z, samples))
+    np.testing.assert_allclose(np.cov(err.T), S, atol=3e-4 * np.abs(S).max() + 5e-5)
+
+
+def test_invert_and_fuse():
+    Z = geo.se3_exp(np.array([1, 2, 3, 0.1, 0.2, 0.3]))
+    S = np.diag([1.0, 2, 3, 0.1, 0.2, 0.3]) * 1e-3
+    Zi, Si = invert_cov(*invert_cov(Z, S))
+    np.testing.assert_allclose(Zi, Z, atol=1e-12)
+    np.testing.assert_allclose(Si, S, atol=1e-12)
+    Zf, Sf = fuse(Z, S, Z, S)
+    np.testing.assert_allclose(Zf, Z, atol=1e-12)
+    np.testing.assert_allclose(Sf, S / 2, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- selection, segments
+def test_keyframe_selection_by_distance_angle_time():
+    g = LocalGraph(cfg())
+    b = g.bounds
+    t = 1_000_000_000
+    g.handle(Keyframe(t, pose()))
+    g.handle(Keyframe(t + 10**8, pose(0.5 * b.keyframe_min_distance_m)))  # too close
+    assert g.num_nodes == 1
+    g.handle(Keyframe(t + 2 * 10**8, pose(1.1 * b.keyframe_min_distance_m)))  # far enough
+    g.handle(Keyframe(t + 3 * 10**8, pose(1.1 * b.keyframe_min_distance_m,
+                                          yaw=1.1 * b.keyframe_min_angle_rad)))  # turned
+    g.handle(Keyframe(t + 3 * 10**8 + int(1.1e9 * b.keyframe_max_interval_s),
+                      pose(1.1 * b.keyframe_min_distance_m, yaw=1.1 * b.keyframe_min_angle_rad)))
+    assert g.num_nodes == 4
+    assert g.counters["keyframes_skipped"] == 1
+    fa = g.factor_arrays()
+    assert np.sum(fa["kind"] == KIND_ODOMETRY) == 3
+
+
+def test_segments_from_reset_gap_and_jump():
+    s = Segmenter(GraphBounds())
+    t = 10**9
+    assert s.odometry(t, pose())[1] == "first odometry"
+    assert s.odometry(t + 10**8, pose(0.05))[1] is None
+    assert "gap" in s.odometry(t + 3 * 10**9, pose(0.1))[1]
+    assert "jump" in s.odometry(t + 3 * 10**9 + 10**8, pose(4.0))[1]
+    sid = s.reset(t + 4 * 10**9, "feature_tracker_restart")
+    assert s.current == sid == 3
+    assert s.segment_at(t + 5 * 10**8) == 0 and s.segment_at(t + 10**10) == 3
+    assert s.odometry(t, pose())[1] is None and s.stale_samples == 1
+
+
+def test_no_odometry_edge_across_a_reset():
+    m = vio_mission(120, seed=3, reset_at=(60,))
+    g = LocalGraph(cfg())
+    feed(g, m.events)
+    fa = g.factor_arrays()
+    odo = fa["kind"] == KIND_ODOMETRY
+    seg = {k: g.node_segment[k] for k in g.node_keys().tolist()}
+    assert all(seg[int(p)] == seg[int(q)] for p, q in zip(fa["p"][odo], fa["q"][odo]))
+    assert len(set(seg.values())) == 2
+    assert g.counters["resets"] == 1
+
+
+def test_loop_and_observation_measurements_match_truth():
+    m = vio_mission(200, seed=4, drift_t=1e-6, drift_r=1e-7, loop_sigma=(1e-6, 1e-7),
+                    obs_sigma=(1e-6, 1e-7))
+    g = LocalGraph(cfg())
+    feed(g, m.events)
+    fa = g.factor_arrays()
+    stamps = dict(zip(g.node_keys().tolist(), g.node_stamps_ns().tolist()))
+    true = dict(zip(m.keyframe_stamps_ns.tolist(), m.T_world_body_true))
+    loops = np.flatnonzero(fa["kind"] == KIND_LOOP)
+    obs = np.flatnonzero(fa["kind"] == KIND_OBSERVATION)
+    assert len(loops) > 5 and len(obs) > 20
+    for i in loops:
+        T = geo.se3_between(true[stamps[int(fa["p"][i])]], true[stamps[int(fa["q"][i])]])
+        assert geo.se3_geodesic_distance(T, fa["Z"][i]) < 1e-3
+    for i in obs:  # observation frames lie between keyframes: attached by interpolation
+        T = geo.se3_between(true[stamps[int(fa["p"][i])]], m.T_world_object_true[fa["q"][i] - OBJ])
+        assert geo.se3_geodesic_distance(T, fa["Z"][i]) < 1e-3
+
+
+def test_observation_before_its_odometry_waits_for_it():
+    g = LocalGraph(cfg())
+    t = 10**9
+    g.handle(OdometrySample(t, pose()))
+    g.handle(Keyframe(t, pose()))
+    obs = ObservationBatch(t + 5 * 10**7, (
+        __import__("dran_edge.events", fromlist=["ObjectObservation"]).ObjectObservation(
+            t + 5 * 10**7, 4, pose(2.0), np.eye(6) * 1e-3),))
+    assert not g.handle(obs)  # odometry has not reached the frame yet
+    assert g.handle(OdometrySample(t + 10**8, pose(0.1)))
+    assert g.object_ids().tolist() == [4]
+
+
+# --------------------------------------------------------------------------- bounds
+def test_hard_caps_hold_over_a_long_mission():
+    m = vio_mission(500, seed=6, reset_at=(250,))
+    g = LocalGraph(cfg(max_nodes=80, max_edges=320))
+    peak_nodes = peak_edges = 0
+    for e in m.events:
+        g.handle(e)
+        peak_nodes = max(peak_nodes, g.num_nodes)
+        peak_edges = max(peak_edges, g.num_factors)
+    assert peak_nodes <= 80 and peak_edges <= 320
+    assert g.counters["nodes_removed"] > 300
+    assert g.prior is not None and len(g.prior["keys"]) <= 9 + 4  # objects + a few nodes
+
+
+def test_marginalisation_is_exact_for_a_linearised_graph():
+    """Removing nodes after the optimum leaves the optimum of the kept nodes unchanged."""
+    m = vio_mission(250, seed=7)
+    evs = [e for e in m.events if not isinstance(e, LoopClosure)]
+    g = LocalGraph(cfg(robust_kernel="none"))
+    feed(g, evs)
+    for _ in range(3):
+        g.solve()
+    full = dict(zip(g.node_keys().tolist(), g.T_world_body()))
+    objects = g.T_world_object().copy()
+    g.bounds = dataclasses.replace(g.bounds, max_nodes=60, max_edges=240)
+    g._enforce_bounds()
+    assert g.num_nodes == 60
+    for _ in range(3):
+        g.solve()
+    for k, T in zip(g.node_keys().tolist(), g.T_world_body()):
+        assert geo.se3_geodesic_distance(full[k], T) < 1e-4
+    np.testing.assert_allclose(g.T_world_object(), objects, atol=1e-4)
+
+
+def test_protected_nodes_leave_last():
+    m = vio_mission(100, seed=8)
+    g = LocalGraph(cfg(max_nodes=40, max_edges=400))
+    feed(g, m.events[: len(m.events) // 3])
+    keep = g.node_keys()[:3]
+    g.protect(keep)
+    feed(g, m.events[len(m.events) // 3:])
+    assert set(keep.tolist()) <= set(g.node_keys().tolist())
+
+
+# --------------------------------------------------------------------------- state, solver view
+def test_state_round_trip_through_a_checkpoint():
+    m = vio_mission(300, seed=9, reset_at=(150,))
+    c = cfg(max_nodes=60, max_edges=240)
+    a = LocalGraph(c)
+    half = len(m.events) // 2
+    feed(a, m.events[:half])
+    b = LocalGraph.from_state(c, loads(dumps(a.to_state())))
+    feed(a, m.events[half:])
+    feed(b, m.events[half:])
+    assert a.counters == b.counters
+    np.testing.assert_allclose(a.T_world_body(), b.T_world_body())
+    fa, fb = a.factor_arrays(), b.factor_arrays()
+    for k in fa:
+        np.testing.assert_allclose(fa[k], fb[k])
+
+
+def test_problem_and_sparsified_prior():
+    m = vio_mission(300, seed=10)
+    g = LocalGraph(cfg(max_nodes=60, max_edges=240))
+    feed(g, m.events)
+    graph, poses, keys = g.problem()
+    assert poses.shape == (len(keys), 4, 4)
+    labels = [b.label for b in graph.factors]
+    assert "marginal" in labels and "odometry" in labels
+    dense = g.factor_arrays(include_prior=False)
+    sparse = g.factor_arrays()
+    assert len(sparse["p"]) == len(dense["p"]) + len(g.prior["keys"])  # unary + root edges
+    res = g.solve()
+    assert res is not None and np.isfinite(res.cost)
+
+
+def test_gauge_anchor_rule():
+    assert gauge_anchor(AgentConfig(robot_id=1, neighbours=(2, 6)))
+    assert not gauge_anchor(AgentConfig(robot_id=3, neighbours=(2, 4)))
+    assert gauge_anchor(AgentConfig(robot_id=7))
+
+
+def test_reset_event_alone_changes_nothing_structural():
+    g = LocalGraph(cfg())
+    assert not g.handle(VioReset(5, "x"))
+    with pytest.raises(ValueError):
+        LocalGraph(AgentConfig(dim=2))
