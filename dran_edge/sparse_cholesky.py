@@ -142,10 +142,15 @@ class SymbolicCholesky:
         nb = n // block
         indptr = np.asarray(indptr, dtype=np.int64)
         indices = np.asarray(indices, dtype=np.int64)
-        col_of = np.repeat(np.arange(n), np.diff(indptr))
-        # the block pattern, from one representative (top-left) entry per stored block
-        rep = (indices % block == 0) & (col_of % block == 0)
-        brow, bcol = indices[rep] // block, col_of[rep] // block
+        # the block pattern, from one representative (top-left) entry per stored block: the
+        # entries of each block column's first scalar column whose row starts a block
+        first = np.arange(nb, dtype=np.int64) * block
+        lens = indptr[first + 1] - indptr[first]
+        rep_pos = np.repeat(indptr[first] - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
+        rep_pos += np.arange(int(lens.sum()))
+        rep_pos = rep_pos[indices[rep_pos] % block == 0]
+        brow = indices[rep_pos] // block
+        bcol = np.searchsorted(indptr[first], rep_pos, side="right") - 1
         order = _block_order(nb, brow, bcol)
         # elimination tree, then a postorder of it (same fill; every chain of the tree becomes
         # contiguous, so that it can form a supernode)
@@ -208,17 +213,27 @@ class SymbolicCholesky:
         sizes = np.array([fb.size for fb in fronts_b], dtype=np.int64)
         front_start = np.concatenate([[0], np.cumsum(sizes)])
         front_keys = np.repeat(np.arange(nsn), sizes) * nb + np.concatenate(fronts_b)
-        pr, pc = pos[indices // block], pos[col_of // block]
-        s_of = owner[pc]
-        take = np.flatnonzero(pr >= bounds_arr[s_of])
-        take = take[np.argsort(s_of[take], kind="stable")]
-        s_k = s_of[take]
-        sn_ptr = np.searchsorted(s_k, np.arange(nsn + 1))
-        lrow = (
-            np.searchsorted(front_keys, s_k * nb + pr[take]) - front_start[s_k]
-        ) * block + indices[take] % block
-        lcol = (pc[take] - bounds_arr[s_k]) * block + col_of[take] % block
-        a_dst = lrow * (sizes[s_k] * block) + lcol
+        prb, pcb = pos[brow], pos[bcol]
+        s_of = owner[pcb]
+        sel = np.flatnonzero(prb >= bounds_arr[s_of])
+        sel = sel[np.argsort(s_of[sel], kind="stable")]
+        s_b = s_of[sel]
+        lrow_b = np.searchsorted(front_keys, s_b * nb + prb[sel]) - front_start[s_b]
+        lcol_b = pcb[sel] - bounds_arr[s_b]
+        # every stored block is dense and the scalar columns of a block column share their rows,
+        # so element (r, c) of the block whose top-left entry is at p0 sits at
+        # indptr[col0 + c] + (p0 − indptr[col0]) + r
+        rr, cc = np.divmod(np.arange(block * block), block)
+        col0 = bcol[sel] * block
+        src = indptr[col0[:, None] + cc] + (rep_pos[sel] - indptr[col0])[:, None] + rr
+        if rep_pos.size * block * block != indices.size or not np.array_equal(
+            indices[src], (brow[sel] * block)[:, None] + rr
+        ):
+            raise ValueError("the pattern is not made of dense block×block blocks")
+        f_b = (sizes[s_b] * block)[:, None]
+        a_dst = ((lrow_b[:, None] * block + rr) * f_b + lcol_b[:, None] * block + cc).ravel()
+        take = src.ravel()
+        sn_ptr = np.searchsorted(s_b, np.arange(nsn + 1)) * (block * block)
         # where each supernode's rows sit in its parent's front
         lens = np.array([rb.size for rb in sn_rows_b], dtype=np.int64)
         par_rep = np.repeat(sn_parent, lens)
@@ -229,28 +244,30 @@ class SymbolicCholesky:
             np.searchsorted(front_keys, par_rep[has_par] * nb + all_rows[has_par])
             - front_start[par_rep[has_par]]
         )
-        loc_split = np.split(loc_all, np.cumsum(lens)[:-1])
+        cuts = np.cumsum(lens * block)[:-1]
+        rel_split = np.split((loc_all[:, None] * block + ar).ravel(), cuts)
+        rows_split = np.split((all_rows[:, None] * block + ar).ravel(), cuts)
+        # diagonal of each pivot block in its front: k·(f + 1) for k < its number of columns
+        ncols = np.diff(bounds_arr) * block
+        kk = np.arange(int(ncols.sum())) - np.repeat(np.cumsum(ncols) - ncols, ncols)
+        diag_split = np.split(kk * np.repeat(sizes * block + 1, ncols), np.cumsum(ncols)[:-1])
+        fp = np.where(sn_parent >= 0, sizes[sn_parent] * block, 0).tolist()
+        empty = np.zeros(0, dtype=np.int64)
         supernodes = []
-        for s in range(nsn):
-            a, b = int(bounds_arr[s]), int(bounds_arr[s + 1])
-            f = int(sizes[s]) * block
-            k = np.arange((b - a) * block)
-            p = int(sn_parent[s])
-            if p >= 0:
-                rel_s = (loc_split[s][:, None] * block + ar).ravel()
-                rel = (rel_s[:, None] * (int(sizes[p]) * block) + rel_s[None, :]).ravel()
-            else:
-                rel = np.zeros(0, dtype=np.int64)
+        for s_, (a_, b_, p_) in enumerate(
+            zip(bounds_arr[:-1].tolist(), bounds_arr[1:].tolist(), sn_parent.tolist())
+        ):
+            rel_s = rel_split[s_]
             supernodes.append(
                 _Supernode(
-                    c0=a * block,
-                    c1=b * block,
-                    rows=(sn_rows_b[s][:, None] * block + ar).ravel(),
-                    parent=p,
-                    rel=rel,
-                    a_src=take[sn_ptr[s] : sn_ptr[s + 1]],
-                    a_dst=a_dst[sn_ptr[s] : sn_ptr[s + 1]],
-                    diag=k * f + k,
+                    c0=a_ * block,
+                    c1=b_ * block,
+                    rows=rows_split[s_],
+                    parent=p_,
+                    rel=(rel_s[:, None] * fp[s_] + rel_s).ravel() if p_ >= 0 else empty,
+                    a_src=take[sn_ptr[s_] : sn_ptr[s_ + 1]],
+                    a_dst=a_dst[sn_ptr[s_] : sn_ptr[s_ + 1]],
+                    diag=diag_split[s_],
                 )
             )
         self._supernodes = supernodes
