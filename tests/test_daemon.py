@@ -1,0 +1,116 @@
+"""The daemon in process with the real agent: tick loop, watchdog only after a good tick, queues."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+from daemon_helpers import write_config
+
+from dran_edge.comms.ingest import encode_event
+from dran_edge.config import load_config
+from dran_edge.daemon import Daemon, DropOldestQueue
+from dran_edge.notify import Notifier
+from dran_edge.vio_sim import vio_mission
+
+
+class RecordingNotifier(Notifier):
+    def __init__(self, watchdog_usec: int = 400_000):
+        super().__init__({})
+        self.watchdog_usec = watchdog_usec
+        self.socket_path = "test"
+        self.backend = "test"
+        self.log: list[str] = []
+
+    def notify(self, message: str) -> bool:
+        self.log.append(message)
+        return True
+
+
+def make(tmp_path, **kw):
+    cfg = load_config(write_config(tmp_path, comms={"period_s": 0.05}, **kw))
+    return Daemon(cfg, notifier=RecordingNotifier(), environ={})
+
+
+def test_ticks_feed_the_real_agent_and_report(tmp_path):
+    d = make(tmp_path)
+    d.start()
+    m = vio_mission(60, seed=1)
+    with socket.socket(socket.AF_UNIX) as s:
+        s.connect(str(d.ingest.path))
+        s.sendall(b"".join(encode_event(e) for e in m.events))
+    for _ in range(200):
+        d.tick()
+        if d.ingest.counters["records"] == len(m.events) and d.journal.pending_count == 0:
+            break
+    for _ in range(5):
+        d.tick()
+    d.shutdown()
+    assert d.ingest.counters["records"] == len(m.events)
+    assert d.last_estimate is not None and len(d.last_estimate.keyframe_stamps_ns) > 20
+    log = d.notifier.log
+    assert log[0].startswith("READY=1") and log[-1] == "STOPPING=1"
+    assert "WATCHDOG=1" in log
+    assert d.graph.counters["nodes_added"] > 20
+
+
+def test_no_watchdog_after_a_failed_tick(tmp_path):
+    d = make(tmp_path)
+    d.start()
+    d.tick()
+    n_ok = d.notifier.log.count("WATCHDOG=1")
+    assert n_ok == 1
+
+    def broken(event):
+        raise RuntimeError("agent bug")
+
+    d.agent.handle = broken
+    d._last_watchdog = float("-inf")
+    for _ in range(3):
+        d.tick()
+    assert d.notifier.log.count("WATCHDOG=1") == n_ok
+    assert d.stats.agent_errors == 3
+    d.shutdown()
+
+
+def test_run_keeps_absolute_deadlines(tmp_path):
+    d = make(tmp_path)
+    d.start()
+    d.run(max_ticks=10)
+    assert d.stats.ticks == 10
+    assert d.stats.missed == 0
+
+
+def test_drop_oldest_queue_counts():
+    q = DropOldestQueue(3)
+    for i in range(10):
+        q.put(i)
+    assert q.dropped == 7 and q.drain() == [7, 8, 9]
+    assert q.get(0.01) is None
+
+
+def test_perception_batches_are_journalled_and_applied(tmp_path):
+    d = make(tmp_path)
+    d.start()
+    m = vio_mission(30, seed=2)
+    from dran_edge.events import ObservationBatch
+
+    batches = [e for e in m.events if isinstance(e, ObservationBatch)]
+    rest = [e for e in m.events if not isinstance(e, ObservationBatch)]
+    with socket.socket(socket.AF_UNIX) as s:
+        s.connect(str(d.ingest.path))
+        s.sendall(b"".join(encode_event(e) for e in rest))
+    for _ in range(100):
+        d.tick()
+        if d.ingest.counters["records"] == len(rest):
+            break
+    for b in batches:  # as the perception worker would hand them over
+        d.observations.put(b)
+    d.tick()
+    d.shutdown()
+    qsize = d.cfg.camera.queue_size
+    assert len(batches) > qsize  # more than the queue holds: the oldest are dropped, counted
+    assert d.observations.dropped == len(batches) - qsize
+    assert d.counters["applied_ObservationBatch"] == qsize
+    assert d.graph.counters.get("observations_added", 0) > 0
+    assert np.isfinite(d.last_estimate.cost)
