@@ -430,8 +430,9 @@ def write_merged_g2o(run: rd.Run, results: dict) -> bool:
     Vertices: robot ``r``'s keyframe ``j`` is ``r * 1_000_000 + j`` (by stamp order), object
     ``k`` is ``1_000_000_000 + k`` (shared by every robot that observed it). Edges: every
     odometry, loop and observation factor with information ``Σ⁻¹``; a robot's gauge prior fixes
-    its node (FIX); the bounded graph's marginalisation prior is not exported. Values: the final decentralized estimate (each robot's agent, world frame;
-    an object takes the copy of the lowest robot id that has one).
+    its node (FIX); the bounded graph's marginalisation prior is not exported. Values: the
+    final decentralized estimate (each robot's agent, world frame; an object takes the chordal
+    mean of the robots' copies).
     """
     from dran_edge.g2o import G2oGraph, write_g2o
 
@@ -458,7 +459,7 @@ def write_merged_g2o(run: rd.Run, results: dict) -> bool:
             poses.append(final[int(stamps[i])])
             rows.append((v, "pose", r.name, int(stamps[i])))
         for oid, T in zip(r.last.object_ids, r.last.T_world_object):
-            obj_vertex.setdefault(int(oid), T)
+            obj_vertex.setdefault(int(oid), []).append(T)
 
         def vertex(key: int, OBJ=OBJ, key_vid=key_vid) -> int | None:
             if key >= OBJ:
@@ -487,7 +488,9 @@ def write_merged_g2o(run: rd.Run, results: dict) -> bool:
     for oid in sorted(obj_vertex):
         v = 1_000_000_000 + oid
         vid.append(v)
-        poses.append(obj_vertex[oid])
+        copies = np.stack(obj_vertex[oid])  # the robots' copies: their chordal mean
+        poses.append(geo.se3_from_rt(geo.so3_project(copies[:, :3, :3].mean(axis=0)),
+                                     copies[:, :3, 3].mean(axis=0)))
         rows.append((v, "object", str(oid), 0))
     vid_arr = np.asarray(vid, np.int64)
     order = np.argsort(vid_arr)
