@@ -518,7 +518,10 @@ def solve(
     mu: float | None = None
     nu = 2.0
     for iteration in range(params.max_iterations):
-        exact = params.hessian == "exact"
+        # The first iteration uses Gauss–Newton even in 'exact' mode: far from a minimum the
+        # Gauss–Newton model of the chordal cost predicts better (sphere2500 from the chordal
+        # initialisation: F 1687.86 after a Gauss–Newton step, 1707.8 after an exact one).
+        exact = params.hessian == "exact" and iteration > 0
         lin = linearize(graph, plan, poses, exact)
         g = np.concatenate([lin.g_x, lin.g_y])
         if not np.all(np.isfinite(g)) or not np.all(np.isfinite(lin.A.data)):
