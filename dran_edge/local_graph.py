@@ -66,6 +66,7 @@ GAUGE_SIGMA = (1e-4, 1e-4)  # metres, radians: the first node's prior (local gau
 ODOMETRY_BUFFER = 4096  # recent odometry samples kept for interpolation
 KEYFRAME_BUFFER = 20000  # recent VIO keyframe poses kept for late loops
 PENDING_OBSERVATIONS = 256
+KEYFRAME_MATCH_NS = 1_000_000  # a loop's keyframe stamp matches a buffered keyframe within 1 ms
 
 
 def gauge_anchor(config: AgentConfig) -> bool:
@@ -382,6 +383,13 @@ class LocalGraph:
     def _keyframe_pose(self, stamp_ns: int):
         """(segment, T_odom_body, (path_m, turn_rad) or None) of a VIO keyframe stamp."""
         hit = self.kf_buffer.get(stamp_ns)
+        if hit is None and self.kf_order:
+            # VINS-Mono keeps stamps as double seconds: a loop's stamp may differ from the
+            # keyframe's header stamp by a few ns after conversions; match within 1 ms.
+            stamps = np.fromiter(self.kf_order, dtype=np.int64, count=len(self.kf_order))
+            i = int(np.argmin(np.abs(stamps - stamp_ns)))
+            if abs(int(stamps[i]) - stamp_ns) <= KEYFRAME_MATCH_NS:
+                hit = self.kf_buffer[int(stamps[i])]
         if hit is not None:
             return hit[0], hit[1], (hit[2], hit[3])
         T = self._interpolate(stamp_ns)
