@@ -1,4 +1,4 @@
-r"""Levenberg–Marquardt with the Schur complement of the paper (Sec. 4, eqs. 7–12).
+r"""Levenberg–Marquardt with the Schur complement of the paper (Sec. 4, eqs. 7–11).
 
 The tangent of all non-fixed variables is split into private ``u`` (eliminated) and public ``v``.
 At a linearisation point with whitened Jacobian ``J`` and residual ``r`` the gradient is
@@ -10,15 +10,18 @@ The quadratic model ``m(u, v) = cost + ⟨g, (u, v)⟩ + ½⟨(u, v), M (u, v)�
 eliminating ``u`` for fixed ``v``:
 
     u*(v) = −(A + μI)⁻¹ (C v + g_x)                                    (eq. 8)
-    ĝ = g_y − Cᵀ (A + μI)⁻¹ g_x                                         (eq. 11)
-    Ĥ = (B + μI) − Cᵀ (A + μI)⁻¹ C                                      (eq. 12)
+    h(v) = m(u*(v), v) = const + ⟨ĝ, v⟩ + ½⟨v, Ĥ v⟩                      (eq. 9)
+    ĝ = g_y − Cᵀ (A + μI)⁻¹ g_x                                         (eq. 10)
+    Ĥ = (B + μI) − Cᵀ (A + μI)⁻¹ C                                      (eq. 11)
     v = −Ĥ⁻¹ ĝ,   then u = u*(v),   x ← x ⊕ u,  y ← y ⊕ v.
 
 Signs: (u, v) returned by :func:`schur_step` are the model's minimiser ``−M⁻¹ g`` (a descent
 step, applied with ``+``). ``A`` is large and sparse: it is factorised once per damping trial
 (supernodal multifrontal Cholesky, :mod:`dran_edge.sparse_cholesky`, analysed once per topology;
-or SuperLU in symmetric mode) and the factor is reused for the right-hand sides ``[g_x, C]``; ``Ĥ`` is small and dense (Cholesky). With no public variables
-this is plain sparse LM; with no private ones it is dense LM on ``v``.
+or SuperLU in symmetric mode) and the factor is reused for the right-hand sides ``[g_x, C]``;
+``Ĥ`` is small and dense (Cholesky). With no public variables this is plain sparse LM; with no
+private ones it is dense LM on ``v``. Optionally (``LMParams.hessian='exact'``) the blocks add the
+second-order terms of the chordal residual, making the model the exact Hessian (damped Newton).
 
 Three tiers, each a pure function: :func:`build_plan` (index maps and sparsity pattern, once per
 topology), :func:`linearize` (residuals, Jacobians, ``A, B, C, g_x, g_y``, once per iteration) and
@@ -376,7 +379,7 @@ def schur_step(
     mu: float,
     factorize: Callable[[sp.csc_matrix, float], object] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Tier 3: the minimiser (u, v) = −M⁻¹ g of the damped model (eqs. 8, 11, 12).
+    """Tier 3: the minimiser (u, v) = −M⁻¹ g of the damped model (eqs. 8, 10, 11).
 
     One sparse factorisation of ``A + μI`` serves both right-hand sides ``[g_x, C]``: by
     ``factorize(A, mu)`` when given (an object with ``solve(rhs)``, e.g. from
@@ -398,8 +401,8 @@ def schur_step(
     if n_v == 0:
         return -Ainv_g, np.zeros(0)
     C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
-    H_hat = B + mu * np.eye(n_v) - C_dense.T @ Ainv_C  # eq. 12
-    g_hat = g_y - C_dense.T @ Ainv_g  # eq. 11
+    H_hat = B + mu * np.eye(n_v) - C_dense.T @ Ainv_C  # eq. 11
+    g_hat = g_y - C_dense.T @ Ainv_g  # eq. 10
     try:
         v = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
     except np.linalg.LinAlgError as exc:
