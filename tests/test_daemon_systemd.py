@@ -133,3 +133,22 @@ def test_under_systemd_run(tmp_path):
         assert "rounds=" in show.stdout
     finally:
         subprocess.run(["systemctl", *user, "stop", unit], capture_output=True)
+
+
+@pytest.mark.parametrize("name, instance", [("dran-edge.service", "dran-edge.service"),
+                                            ("dran-edge@.service", "dran-edge@dingo1.service")])
+def test_unit_files_verify_and_keep_the_camera_reachable(tmp_path, name, instance):
+    text = (REPO / "systemd" / name).read_text()
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=",
+                 "RuntimeDirectory=", "SupplementaryGroups=video plugdev",
+                 "DeviceAllow=char-usb_device rw", "DeviceAllow=char-video4linux rw"):
+        assert line in text, line
+    assert "PrivateDevices=yes" not in text
+    if not shutil.which("systemd-analyze"):
+        pytest.skip("systemd-analyze not installed")
+    exe = Path(sys.executable).parent / "dran-edge"
+    unit = tmp_path / instance
+    unit.write_text(text.replace("/opt/dran-edge/.venv/bin/dran-edge", str(exe)))
+    res = subprocess.run(["systemd-analyze", "verify", "--man=no", str(unit)],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stdout + res.stderr
