@@ -5,6 +5,10 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
+# One BLAS thread: the solver's small dense blocks get slower, not faster, with more
+# (measured 50-100x slower sparse Cholesky on an oversubscribed 2-core box).
+export OPENBLAS_NUM_THREADS ?= 1
+export OMP_NUM_THREADS ?= 1
 STAMP  := $(VENV)/.dran-edge-installed
 EXTRAS := perception,realsense,comms,systemd,eval,test
 DEMO_DIR ?= demo-run

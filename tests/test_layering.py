@@ -33,6 +33,7 @@ SHELL_MODULES = {
     "sim_writer",  # writes simulated runs (renders frames, encodes ingest bytes)
     "dgs",  # DGS baseline driven over the in-process bus (experiment driver)
     "objects_sim",  # the Ego-like object experiment driver
+    "replay_robots",  # replay's per-robot drivers (daemon code, transports)
 }
 SHELL_PACKAGES = {"commands"}
 CORE_THIRD_PARTY = {"numpy", "scipy", "yaml"}
