@@ -1,0 +1,167 @@
+#!/usr/bin/env python3
+"""Bounded vs unbounded local graph on a long VIO mission (issue 5 benchmark).
+
+One simulated robot (``dran_edge.vio_sim``: laps among 9 AprilTag objects, 10 Hz odometry with
+drift, DBoW2-like loops, tag observations, two VIO resets) streams N keyframes into
+
+- the bounded :class:`LocalGraph` (``max_nodes``/``max_edges`` caps, composition and Schur
+  marginalisation), solved every ``--round-every`` keyframes (a "round", 3 warm-started LM
+  iterations), and
+- the same graph without caps (the baseline), solved with the same settings at every report
+  point only (its rounds get too slow to run them all),
+
+side by side in this process, and prints per window: graph size, per-round solve time of both
+and their ratio, and the process RSS. At the end both are solved to convergence and compared
+with the ground truth on the nodes the bounded graph still holds (plus the object map), also
+for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=True)``).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/bench/bench_bounded_graph.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from dran_edge import lm  # noqa: E402
+from dran_edge.config import AgentConfig, GraphBounds  # noqa: E402
+from dran_edge.events import Keyframe  # noqa: E402
+from dran_edge.graph import PoseGraph  # noqa: E402
+from dran_edge.local_graph import LocalGraph  # noqa: E402
+from dran_edge.vio_sim import vio_mission  # noqa: E402
+
+
+def rss_mb(field: str = "VmRSS") -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def round_solve(g: LocalGraph, iterations: int) -> float:
+    t = time.perf_counter()
+    g.solve(lm.LMParams(max_iterations=iterations))
+    return time.perf_counter() - t
+
+
+def errors(g: LocalGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
+           ) -> tuple[float, float]:
+    i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
+    ate = float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2,
+                                       axis=1))))
+    oid = g.object_ids()
+    obj = float(np.sqrt(np.mean(np.sum((objects[:, :3, 3]
+                                        - mission.T_world_object_true[oid, :3, 3]) ** 2, axis=1))))
+    return ate, obj
+
+
+def solve_sparsified(g: LocalGraph) -> tuple[np.ndarray, np.ndarray]:
+    """The bounded graph as the agent sees it: sparsified prior instead of the dense one."""
+    graph, poses, keys = g.problem()
+    blocks = g._blocks(g.factor_arrays(include_prior=True), keys, g.config.residual)
+    res = lm.solve(PoseGraph(3, graph.kinds, tuple(blocks)), poses,
+                   lm.LMParams(max_iterations=50))
+    n = g.num_nodes
+    return res.poses[:n], res.poses[n:]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--keyframes", type=int, default=10_000)
+    ap.add_argument("--max-nodes", type=int, default=400)
+    ap.add_argument("--max-edges", type=int, default=1600)
+    ap.add_argument("--round-every", type=int, default=10, help="keyframes per round")
+    ap.add_argument("--iterations", type=int, default=3, help="LM iterations per round")
+    ap.add_argument("--report-every", type=int, default=1000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
+    args = ap.parse_args(argv)
+
+    t0 = time.perf_counter()
+    n = args.keyframes
+    mission = vio_mission(n, seed=args.seed, reset_at=(n // 3, 2 * n // 3))
+    gen_s = time.perf_counter() - t0
+    kinds = {}
+    for e in mission.events:
+        kinds[type(e).__name__] = kinds.get(type(e).__name__, 0) + 1
+    print(f"mission: {n} keyframes, {len(mission.events)} events {kinds}, generated in "
+          f"{gen_s:.1f} s; RSS {rss_mb():.0f} MB")
+    base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
+    bounded = LocalGraph(base)
+    unbounded = None if args.no_baseline else LocalGraph(
+        AgentConfig(graph=GraphBounds(max_nodes=1_000_000, max_edges=10_000_000)))
+
+    print(f"\n| keyframes | bounded nodes / factors / prior vars | bounded round solve ms "
+          f"(mean / max) | unbounded nodes / factors | unbounded round solve ms | ratio "
+          f"unbounded / bounded | handle µs/event bounded | RSS MB |")
+    print("|---|---|---|---|---|---|---|---|")
+    kf = 0
+    window: list[float] = []
+    handle_s = 0.0
+    handled = 0
+    peak_nodes = peak_edges = 0
+    for ev in mission.events:
+        t = time.perf_counter()
+        bounded.handle(ev)
+        handle_s += time.perf_counter() - t
+        handled += 1
+        if unbounded is not None:
+            unbounded.handle(ev)
+        peak_nodes = max(peak_nodes, bounded.num_nodes)
+        peak_edges = max(peak_edges, bounded.num_factors)
+        if not isinstance(ev, Keyframe):
+            continue
+        kf += 1
+        if kf % args.round_every == 0:
+            window.append(round_solve(bounded, args.iterations))
+        if kf % args.report_every == 0:
+            ub = "—"
+            ub_ms = float("nan")
+            if unbounded is not None:
+                ub_ms = 1e3 * round_solve(unbounded, args.iterations)
+                ub = f"{unbounded.num_nodes} / {unbounded.num_factors}"
+            mean_ms = 1e3 * float(np.mean(window)) if window else float("nan")
+            prior = 0 if bounded.prior is None else len(bounded.prior["keys"])
+            print(f"| {kf} | {bounded.num_nodes} / {bounded.num_factors} / {prior} | "
+                  f"{mean_ms:.1f} / {1e3 * max(window):.1f} | {ub} | {ub_ms:.0f} | "
+                  f"{ub_ms / mean_ms:.1f} | {1e6 * handle_s / max(handled, 1):.0f} | "
+                  f"{rss_mb():.0f} |", flush=True)
+            window, handle_s, handled = [], 0.0, 0
+    print(f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
+          f"{args.max_nodes} / {args.max_edges}); counters {bounded.counters}")
+
+    # final accuracy on the nodes the bounded graph holds
+    bounded.solve(lm.LMParams(max_iterations=50))
+    stamps = bounded.node_stamps_ns()
+    b_ate, b_obj = errors(bounded, mission, stamps, bounded.T_world_body(),
+                          bounded.T_world_object())
+    s_T, s_O = solve_sparsified(bounded)
+    s_ate, s_obj = errors(bounded, mission, stamps, s_T, s_O)
+    print("\n| graph | ATE on the bounded graph's nodes (m, RMSE) | object map error (m, RMSE) |")
+    print("|---|---|---|")
+    if unbounded is not None:
+        t = time.perf_counter()
+        unbounded.solve(lm.LMParams(max_iterations=50))
+        u_s = time.perf_counter() - t
+        idx = np.searchsorted(unbounded.node_stamps_ns(), stamps)
+        u_ate, u_obj = errors(unbounded, mission, stamps, unbounded.T_world_body()[idx],
+                              unbounded.T_world_object())
+        print(f"| unbounded ({unbounded.num_nodes} nodes, final solve {u_s:.1f} s) | "
+              f"{u_ate:.3f} | {u_obj:.3f} |")
+    print(f"| bounded, dense marginal prior | {b_ate:.3f} | {b_obj:.3f} |")
+    print(f"| bounded, sparsified prior (agent view) | {s_ate:.3f} | {s_obj:.3f} |")
+    print(f"\npeak RSS of the process (VmHWM): {rss_mb('VmHWM'):.0f} MB; total "
+          f"{time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
