@@ -275,9 +275,9 @@ class CommsSection(_Checked):
     port: int = _f(5600, lo=1, hi=65535)
     """UDP port the DISH binds to."""
     key_file: str = _f("")
-    """Per-fleet HMAC key file (must not be world-readable); relative to the config file."""
-    datagram_max_bytes: int = _f(1200, lo=256, hi=7000)
-    """Largest datagram we send, bytes (libzmq UDP breaks above ~8 KB)."""
+    """Per-fleet HMAC key file (mode 0600, owned by the daemon's user); relative to the config."""
+    datagram_max_bytes: int = _f(1200, lo=256, hi=4096)
+    """Largest datagram we send, bytes (the codec's hard cap is 4096; libzmq UDP breaks ~8 KB)."""
     period_s: float = _f(0.5, lo=0.01, hi=60.0)
     """Round period: one DRAN round and one exchange per period, seconds (2 Hz default)."""
     allow_relay_from: tuple[int, ...] = _f((), lo=0, hi=65535)

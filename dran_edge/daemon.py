@@ -30,6 +30,7 @@ import os
 import socket
 import threading
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
@@ -38,9 +39,9 @@ import numpy as np
 
 from dran_edge.checkpoint import CheckpointStore, next_boot_epoch
 from dran_edge.comms.ingest import KIND_OBSERVATIONS, Record, encode_event
-from dran_edge.config import RobotConfig, config_to_dict
+from dran_edge.config import RobotConfig, config_to_dict, parse_address
 from dran_edge.errors import DependencyError, DranError
-from dran_edge.events import EstimateUpdate, Health, ObservationBatch, Outgoing, Tick
+from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
 from dran_edge.journal import IngestJournal
 from dran_edge.local_graph import OBJ, LocalGraph, gauge_anchor
 from dran_edge.online_agent import problem_from_graph
@@ -249,16 +250,73 @@ def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
     return Agent(cfg.agent)
 
 
+class LinkTransport:
+    """The daemon's neighbour link: comms' authenticated ``NeighbourLink`` over RADIO/DISH."""
+
+    def __init__(self, link: Any):
+        self.link = link
+
+    def send(self, message: Any, to: tuple[int, ...]) -> None:
+        self.link.send_message(message, to)
+
+    def receive(self) -> list:
+        now = time.time_ns()
+        return [NeighbourData(now, m) for m in self.link.poll(now)]
+
+    def stats(self) -> dict:
+        snap = self.link.counters.snapshot()
+        now = time.time_ns()
+        neighbours = {}
+        for peer, c in snap["peers"].items():
+            heard = c.get("last_heard_ns")
+            neighbours[peer] = {
+                "bytes_sent": c.get("bytes_sent", 0), "bytes_received": c.get("bytes_received", 0),
+                "datagrams_rejected": c.get("datagrams_rejected", 0),
+                "last_heard_s_ago": None if not heard else round((now - heard) * 1e-9, 1),
+            }
+        return {**snap["totals"], "neighbours": neighbours,
+                "next_sequence": self.link.next_sequence}
+
+    def to_state(self) -> dict:
+        return {"next_sequence": self.link.next_sequence}
+
+    def close(self) -> None:
+        self.link.transport.close()
+
+
+def fleet_id(fleet: str) -> int:
+    """16-bit fleet id of the datagram header (CRC-32 of the name; as the replay computes it)."""
+    return zlib.crc32(fleet.encode("utf-8")) & 0xFFFF
+
+
 def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | None:
+    """RADIO/DISH to the configured neighbours, authenticated with the fleet key (issue 4)."""
     if cfg.comms.transport == "none":
         return None
-    try:
-        from dran_edge.comms.transport import make_udp_transport  # issue 4
-    except ImportError as exc:
-        raise DependencyError(
-            "comms.transport is 'udp' but the UDP RADIO/DISH transport is not available "
-            f"({exc}); set comms.transport: none to run without neighbours") from None
-    return make_udp_transport(cfg, boot_epoch=boot_epoch)
+    from dran_edge.comms.auth import AuthPolicy, load_fleet_key
+    from dran_edge.comms.link import NeighbourLink
+    from dran_edge.comms.radio import RadioParams, RadioTransport
+
+    key_path = cfg.resolve(cfg.comms.key_file)
+    if key_path is None:
+        raise DranError("comms.transport is 'udp' but comms.key_file is not set")
+    key = load_fleet_key(key_path)
+    neighbours = {}
+    for n in cfg.neighbours:
+        host, port = parse_address(n.address, "address")
+        neighbours[n.id] = f"udp://{host}:{port}" if ":" not in host else f"udp://[{host}]:{port}"
+    bind = cfg.comms.bind_address
+    bind = f"[{bind}]" if ":" in bind else bind
+    params = RadioParams(group=cfg.robot.fleet, bind=f"udp://{bind}:{cfg.comms.port}",
+                         neighbours=neighbours, max_datagram_bytes=cfg.comms.datagram_max_bytes)
+    ids = {n.id for n in cfg.neighbours}
+    policy = AuthPolicy(fleet_id=fleet_id(cfg.robot.fleet), self_id=cfg.robot.id,
+                        fleet_robots=frozenset(ids | set(cfg.comms.allow_relay_from)
+                                               | {cfg.robot.id}),
+                        neighbours=frozenset(ids), relay_from=frozenset(cfg.comms.allow_relay_from))
+    link = NeighbourLink(RadioTransport(params), key=key, policy=policy, boot_epoch=boot_epoch,
+                         max_datagram_bytes=cfg.comms.datagram_max_bytes)
+    return LinkTransport(link)
 
 
 def default_perception_factory(cfg: RobotConfig, frames: DropOldestQueue

@@ -152,3 +152,64 @@ def test_unit_files_verify_and_keep_the_camera_reachable(tmp_path, name, instanc
     res = subprocess.run(["systemd-analyze", "verify", "--man=no", str(unit)],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_two_daemons_exchange_over_loopback_udp(tmp_path):
+    """Two robot processes, RADIO/DISH on 127.0.0.1, authenticated with a fleet key."""
+    from dran_edge.comms.auth import write_fleet_key
+    from dran_edge.comms.ingest import encode_event
+    from dran_edge.vio_sim import vio_mission
+
+    try:
+        from dran_edge.comms.radio import hardened_libzmq_stamp, require_draft_zmq
+
+        require_draft_zmq()
+        if hardened_libzmq_stamp() is None:
+            raise RuntimeError("libzmq not hardened")
+    except Exception as exc:
+        pytest.skip(f"no draft/hardened ZeroMQ here: {exc}")
+    key = tmp_path / "fleet.key"
+    write_fleet_key(key)
+    ports = []
+    for _ in range(2):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    procs, dirs = [], []
+    try:
+        for me, other in ((0, 1), (1, 0)):
+            d = tmp_path / f"r{me + 1}"
+            d.mkdir()
+            dirs.append(d)
+            cfg = write_config(
+                d, robot={"id": me + 1, "name": f"r{me + 1}"},
+                comms={"transport": "udp", "bind_address": "127.0.0.1", "port": ports[me],
+                       "key_file": str(key)})
+            text = cfg.read_text() + (f"neighbours:\n- {{id: {other + 1}, name: r{other + 1}, "
+                                      f"address: '127.0.0.1:{ports[other]}'}}\n")
+            cfg.write_text(text)
+            procs.append(start_daemon(cfg, {}))
+        for i, d in enumerate(dirs):
+            wait_status(d / "run" / "status.sock", lambda s: s["state"] == "running",
+                        proc=procs[i])
+            m = vio_mission(40, seed=11 + i)
+            with socket.socket(socket.AF_UNIX) as s:
+                s.connect(str(d / "run" / "ingest.sock"))
+                s.sendall(b"".join(encode_event(e) for e in m.events))
+        for i, d in enumerate(dirs):
+            peer = str(2 - i)
+            st = wait_status(d / "run" / "status.sock",
+                             lambda s, p=peer: s["neighbours"].get(p, {}).get("bytes_received", 0)
+                             > 0, proc=procs[i])
+            assert st["transport"]["datagrams_rejected"] == 0
+    finally:
+        outs = [stop(p) for p in procs]
+    assert all(rc == 0 for rc, _ in outs), outs
+
+
+def test_udp_without_key_fails_with_one_clear_line(tmp_path):
+    cfg = write_config(tmp_path, comms={"transport": "udp", "key_file": str(tmp_path / "nokey")})
+    res = subprocess.run([sys.executable, "-m", "dran_edge.cli", "run", "--config", str(cfg)],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode in (2, 3), res.stderr
+    assert "dran-edge run: error:" in res.stderr and "Traceback" not in res.stderr
