@@ -16,6 +16,11 @@ with the ground truth on the nodes the bounded graph still holds (plus the objec
 for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=True)``).
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/bench/bench_bounded_graph.py
+    .venv/bin/python tools/bench/bench_bounded_graph.py --no-baseline   # RSS of the bounded graph
+
+The mission is generated in a child process and written as ingest records (docs/ingest.md);
+this process streams it back through the ingest decoder in 1 MiB chunks, as the daemon would,
+so its RSS holds the graph, not the whole mission.
 """
 
 from __future__ import annotations
@@ -30,7 +35,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+import subprocess  # noqa: E402
+import tempfile  # noqa: E402
+
 from dran_edge import lm  # noqa: E402
+from dran_edge.comms.ingest import IngestDecodeError, StreamDecoder, encode_event  # noqa: E402
 from dran_edge.config import AgentConfig, GraphBounds  # noqa: E402
 from dran_edge.events import Keyframe  # noqa: E402
 from dran_edge.graph import PoseGraph  # noqa: E402
@@ -73,6 +82,37 @@ def solve_sparsified(g: LocalGraph) -> tuple[np.ndarray, np.ndarray]:
     return res.poses[:n], res.poses[n:]
 
 
+def write_mission(path: str, n: int, seed: int) -> None:
+    """Child process: generate the mission, write its ingest records and its ground truth."""
+    mission = vio_mission(n, seed=seed, reset_at=(n // 3, 2 * n // 3))
+    with open(path, "wb") as f:
+        for e in mission.events:
+            f.write(encode_event(e))
+    np.savez(path + ".truth.npz", stamps=mission.keyframe_stamps_ns,
+             T=mission.T_world_body_true, objects=mission.T_world_object_true)
+
+
+class Truth:
+    def __init__(self, path: str):
+        z = np.load(path + ".truth.npz")
+        self.keyframe_stamps_ns = z["stamps"]
+        self.T_world_body_true = z["T"]
+        self.T_world_object_true = z["objects"]
+
+
+def stream_events(path: str, chunk: int = 1 << 20):
+    dec = StreamDecoder()
+    with open(path, "rb") as f:
+        while True:
+            data = f.read(chunk)
+            if not data:
+                break
+            for item in dec.feed(data):
+                if isinstance(item, IngestDecodeError):
+                    raise item
+                yield item.event
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--keyframes", type=int, default=10_000)
@@ -83,17 +123,22 @@ def main(argv=None) -> int:
     ap.add_argument("--report-every", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
+    ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    n = args.keyframes
+    if args.write_mission:
+        write_mission(args.write_mission, n, args.seed)
+        return 0
 
     t0 = time.perf_counter()
-    n = args.keyframes
-    mission = vio_mission(n, seed=args.seed, reset_at=(n // 3, 2 * n // 3))
+    tmp = tempfile.mkdtemp(prefix="bench_bounded_")
+    path = os.path.join(tmp, "ingest.bin")
+    subprocess.run([sys.executable, __file__, "--keyframes", str(n), "--seed", str(args.seed),
+                    "--write-mission", path], check=True)
+    mission = Truth(path)
     gen_s = time.perf_counter() - t0
-    kinds = {}
-    for e in mission.events:
-        kinds[type(e).__name__] = kinds.get(type(e).__name__, 0) + 1
-    print(f"mission: {n} keyframes, {len(mission.events)} events {kinds}, generated in "
-          f"{gen_s:.1f} s; RSS {rss_mb():.0f} MB")
+    print(f"mission: {n} keyframes, {os.path.getsize(path) / 1e6:.1f} MB of ingest records, "
+          f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB")
     base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
     bounded = LocalGraph(base)
     unbounded = None if args.no_baseline else LocalGraph(
@@ -108,7 +153,7 @@ def main(argv=None) -> int:
     handle_s = 0.0
     handled = 0
     peak_nodes = peak_edges = 0
-    for ev in mission.events:
+    for ev in stream_events(path):
         t = time.perf_counter()
         bounded.handle(ev)
         handle_s += time.perf_counter() - t
@@ -158,6 +203,9 @@ def main(argv=None) -> int:
               f"{u_ate:.3f} | {u_obj:.3f} |")
     print(f"| bounded, dense marginal prior | {b_ate:.3f} | {b_obj:.3f} |")
     print(f"| bounded, sparsified prior (agent view) | {s_ate:.3f} | {s_obj:.3f} |")
+    os.remove(path)
+    os.remove(path + ".truth.npz")
+    os.rmdir(tmp)
     print(f"\npeak RSS of the process (VmHWM): {rss_mb('VmHWM'):.0f} MB; total "
           f"{time.perf_counter() - t0:.0f} s")
     return 0
