@@ -177,3 +177,16 @@ def test_shipped_fleet_is_six_robots_plus_laptop():
             assert c.robot.id in by_id[n.id].agent.neighbours
     laptop = by_id[[c.robot.id for c in cfgs if c.robot.name == "laptop"][0]]
     assert laptop.camera.source == "none" and not laptop.ingest.enabled
+
+
+def test_every_config_key_is_documented():
+    import dataclasses as dc
+
+    from dran_edge import config as C
+
+    text = (REPO / "docs" / "config.md").read_text()
+    for cls in (C.RobotSection, C.Neighbour, C.CommsSection, C.IngestSection, C.CameraSection,
+                C.DaemonSection, C.AgentConfig, C.OdometryNoise, C.NoiseModel, C.GraphBounds):
+        for f in dc.fields(cls):
+            if f.name != "source_path":
+                assert f"| `{f.name}` |" in text, f"{cls.__name__}.{f.name} missing in docs/config.md"
