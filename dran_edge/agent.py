@@ -217,7 +217,8 @@ class Agent:
         self.lam: dict[tuple[int, int], np.ndarray] = {}
         self.last_sent: dict[tuple[int, str, int], tuple[np.ndarray, int]] = {}
         self.counters = {"rounds": 0, "accepted": 0, "rejected": 0, "linear_fail": 0,
-                         "stale_dropped": 0, "objects_adopted": 0, "unhandled_events": 0}
+                         "stale_dropped": 0, "objects_adopted": 0, "unhandled_events": 0,
+                         "obs_gated": 0}
         self.converged = False
         self.last_norms = (math.inf, math.inf, math.inf)
         self.last_cost = math.nan
@@ -264,14 +265,31 @@ class Agent:
             self.nbr_obj[key] = (np.asarray(e.T_world_object, np.float64), int(e.hop_count), rnd)
 
     def _init_objects_from_observations(self) -> None:
-        """Own observations initialise unknown objects: y = x_p T̃_body_object."""
+        """Gate the own observations, then initialise unknown objects from them.
+
+        Consistency gating (wrong tag associations): every observation predicts the object's
+        position ``x_p T̃`` from the current trajectory; per object, observations farther than
+        ``object_gate_m`` from the medoid prediction are dropped (counted, ``obs_gated``).
+        An unknown object starts at its medoid observation's prediction (Alg. 1 uses the first).
+        """
         p = self.problem
-        for k in range(p.obs_object.size):
-            oid = int(p.obs_object[k])
+        gate = self.config.object_gate_m
+        self.obs_ok = np.ones(p.obs_object.size, bool)
+        if p.obs_object.size == 0:
+            return
+        pred = self.x[p.obs_own] @ p.obs_T
+        for oid in np.unique(p.obs_object).tolist():
+            idx = np.flatnonzero(p.obs_object == oid)
+            pos = pred[idx, :-1, -1]
+            dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+            med = int(np.argmin(dist.sum(axis=1)))
+            if gate > 0 and idx.size > 2:
+                self.obs_ok[idx[dist[med] > gate]] = False
             if oid not in self.y:
-                self.y[oid] = self.x[p.obs_own[k]] @ p.obs_T[k]
+                self.y[oid] = pred[idx[med]].copy()
             self.hops[oid] = 0
             self.origin[oid] = self.id
+        self.counters["obs_gated"] = int((~self.obs_ok).sum())
 
     # ----------------------------------------------------------------- one round
     def _adopt_unknown_objects(self) -> None:
@@ -329,9 +347,10 @@ class Agent:
                                                      p.inter_W[keep][mask], p.residual, ker, "inter"))
         if p.prior_own.size:
             blocks.append(PriorFactors(p.prior_own[:, None], p.prior_T, p.prior_W, p.residual, None))
-        if p.obs_own.size:
-            var = np.stack([p.obs_own, np.array([obj_slot[int(o)] for o in p.obs_object])], axis=1)
-            blocks.append(BetweenFactors(var, p.obs_T, p.obs_W, p.residual, kernel, "object"))
+        ok = self.obs_ok
+        if ok.any():
+            var = np.stack([p.obs_own[ok], np.array([obj_slot[int(o)] for o in p.obs_object[ok]])], axis=1)
+            blocks.append(BetweenFactors(var, p.obs_T[ok], p.obs_W[ok], p.residual, kernel, "object"))
         graph = PoseGraph(dim=p.dim, kinds=kinds, factors=tuple(blocks))
         plan = build_plan(graph.with_factors(*self._consensus_blocks(obj_slot, c_base, pair_keys)))
         self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys)
@@ -344,7 +363,9 @@ class Agent:
         r = phi_dim(self.config.residual, self.config.dim)
         lam = np.stack([self.lam.get(k, np.zeros(r)) for k in pair_keys])
         w = np.array([self.w[j] for j, _ in pair_keys])
-        return (ConsensusFactors(var, w, lam, self.config.beta, self.config.residual),)
+        # The robust kernel also bounds the pull of a neighbour's copy: a copy built from a wrong
+        # tag association is far away, and without a kernel it would drag every copy to it.
+        return (ConsensusFactors(var, w, lam, self.config.beta, self.config.residual, self._kernel()),)
 
     def _kernel(self):
         c = self.config

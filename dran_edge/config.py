@@ -181,6 +181,9 @@ class AgentConfig(_Checked):
     """Robust kernel on loop and object residuals (whitened)."""
     robust_threshold: float = _f(1.345, lo=0.0, lo_open=True)
     """Kernel width on the whitened residual norm (1.345: 95 % efficiency for Huber)."""
+    object_gate_m: float = _f(2.0, lo=0.0)
+    """Consistency gate: an object observation whose predicted object position is farther than
+    this from the medoid of the robot's predictions of that object is dropped (0: off), metres."""
     send_threshold: float = _f(1e-4, lo=0.0)
     """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
     moved by more than this since it was last sent to that neighbour (metres / unitless)."""

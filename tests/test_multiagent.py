@@ -21,7 +21,7 @@ def test_three_robot_toy_reaches_consensus_and_the_centralized_answer(toy):
     A = adjacency_from_pairs(3, [(0, 1), (1, 2), (0, 2)])
     out = run_objects(toy, CFG, A, max_rounds=80, history_every=20)
     ces = [h["CE"] for h in out["history"]]
-    assert ces[-1] < 1e-4 and ces[-1] < ces[0] / 3  # consensus error goes to zero
+    assert ces[-1] < 1e-4 and all(b < a for a, b in zip(ces, ces[1:]))  # CE goes to zero
     assert out["SR_cost"] > 99.0  # percent
     # the trajectories match the centralized LM's up to a small fraction of the initial error
     assert abs(out["ATE"] - out["ATE_star"]) < 0.1 * out["ATE_init"]
