@@ -55,55 +55,62 @@ def fuse_objects(
     (k, 4, 3), the tag corners in the object frame, are precomputed by ``calib.TagMap`` and
     indexed by tag-map position.
     """
-    use = np.flatnonzero(tag_poses.accepted & (map_pos >= 0))
-    if use.size == 0:
+    # index bookkeeping in plain Python: a frame has a handful of tags, and a dozen numpy calls
+    # on 1-3 element arrays would cost more than the maths below
+    mp = map_pos.tolist()
+    use_l = [i for i, ok in enumerate(tag_poses.accepted.tolist()) if ok and mp[i] >= 0]
+    if not use_l:
         return ObjectPoses(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)),
                            np.zeros(0, np.int64))
-    pos = map_pos[use]
-    # group the (few) accepted tags by object in plain Python: cheaper than np.unique here
+    pos_l = [mp[i] for i in use_l]
     groups: dict[int, list[int]] = {}
-    for k, o in enumerate(object_id_of_pos[pos].tolist()):
+    for k, o in enumerate(object_id_of_pos[pos_l].tolist()):
         groups.setdefault(o, []).append(k)
-    objects = sorted(groups)
-    counts = np.array([len(groups[o]) for o in objects], np.int64)
-    if counts.max() == 1:
-        best = np.array([groups[o][0] for o in objects])
+    object_list = sorted(groups)
+    count_list = [len(groups[o]) for o in object_list]
+    if max(count_list) == 1:
+        best_l = [groups[o][0] for o in object_list]
     else:
         # the tag with the smallest covariance trace represents (and starts) each object
-        trace = np.trace(tag_poses.covariance[use], axis1=1, axis2=2).tolist()
-        best = np.array([min(groups[o], key=trace.__getitem__) for o in objects])
-    objects = np.array(objects, np.int64)
-    pb = pos[best]
-    T_out = tag_poses.T_camera_tag[use[best]] @ T_tag_object[pb]
+        trace = np.trace(tag_poses.covariance[use_l], axis1=1, axis2=2).tolist()
+        best_l = [min(groups[o], key=trace.__getitem__) for o in object_list]
+    sel = [use_l[k] for k in best_l]
+    pb = [pos_l[k] for k in best_l]
+    objects = np.array(object_list, np.int64)
+    counts = np.array(count_list, np.int64)
+    T_out = tag_poses.T_camera_tag[sel] @ T_tag_object[pb]
     A = adjoint_object_tag[pb]  # = transform_covariance(cov, T_tag_object), precomputed
-    cov_out = A @ tag_poses.covariance[use[best]] @ np.swapaxes(A, -1, -2)
-    multi = np.flatnonzero(counts > 1)
-    if multi.size:
-        n_pts = 4 * counts[multi].max()
-        P = np.zeros((multi.size, n_pts, 3))
-        uv = np.zeros((multi.size, n_pts, 2))
-        weight = np.zeros((multi.size, n_pts))
-        for row, j in enumerate(multi):
-            members = np.asarray(groups[int(objects[j])])
-            k4 = 4 * members.size
-            P[row, :k4] = corners_object[pos[members]].reshape(-1, 3)
-            uv[row, :k4] = (corners[use[members]] + CORNER_TO_OPENCV_PX).reshape(-1, 2)
-            weight[row, :k4] = np.repeat(1.0 / tag_poses.corner_sigma_px[use[members]], 4)
-        # whitened least squares: residual / sigma per corner, so the covariance is (J^T J)^-1
-        T_j, JtJ, r = gauss_newton(K, T_out[multi], P, uv, weight, iterations)
-        valid = weight > 0
-        r_px = r / np.where(valid, weight, 1.0)[..., None]
-        rms = np.sqrt(np.sum(r_px * r_px, axis=(-1, -2)) / valid.sum(-1))
-        ok = rms <= max_reproj_px
-        T_out[multi[ok]] = T_j[ok]
-        cov_joint = pose_covariance(JtJ[ok], 1.0)
-        if inflate_by_residual:
-            # Birge ratio of the joint fit: whitened residual sum of squares / (2N - 6)
-            chi2 = np.sum(r[ok] * r[ok], axis=(-1, -2))
-            dof = 2 * valid[ok].sum(-1) - 6
-            cov_joint *= np.maximum(1.0, chi2 / dof)[:, None, None]
-        cov_out[multi[ok]] = cov_joint
-        counts = counts.copy()
-        counts[multi[~ok]] = 1
-    return ObjectPoses(objects.astype(np.int64), T_body_camera @ T_out, cov_out,
-                       counts.astype(np.int64))
+    cov_out = A @ tag_poses.covariance[sel] @ A.transpose(0, 2, 1)
+    if max(count_list) == 1:
+        return ObjectPoses(objects, T_body_camera @ T_out, cov_out, counts)
+    multi = [j for j, c in enumerate(count_list) if c > 1]
+    n_pts = 4 * max(count_list)
+    P = np.zeros((len(multi), n_pts, 3))
+    uv = np.zeros((len(multi), n_pts, 2))
+    weight = np.zeros((len(multi), n_pts))
+    sigma = tag_poses.corner_sigma_px
+    for row, j in enumerate(multi):
+        members = groups[object_list[j]]
+        m_use = [use_l[k] for k in members]
+        k4 = 4 * len(members)
+        P[row, :k4] = corners_object[[pos_l[k] for k in members]].reshape(-1, 3)
+        uv[row, :k4] = corners[m_use].reshape(-1, 2) + CORNER_TO_OPENCV_PX
+        weight[row, :k4] = np.repeat(1.0 / sigma[m_use], 4)
+    # whitened least squares: residual / sigma per corner, so the covariance is (J^T J)^-1
+    T_j, JtJ, r = gauss_newton(K, T_out[multi], P, uv, weight, iterations)
+    valid = weight > 0
+    n_valid = valid.sum(-1)
+    r_px = r / np.where(valid, weight, 1.0)[..., None]
+    rms = np.sqrt(np.sum(r_px * r_px, axis=(-1, -2)) / n_valid)
+    cov_joint = pose_covariance(JtJ, 1.0)
+    if inflate_by_residual:
+        # Birge ratio of the joint fit: whitened residual sum of squares / (2N - 6)
+        chi2 = np.sum(r * r, axis=(-1, -2))
+        cov_joint *= np.maximum(1.0, chi2 / (2 * n_valid - 6))[:, None, None]
+    for row, j in enumerate(multi):
+        if rms[row] <= max_reproj_px:
+            T_out[j] = T_j[row]
+            cov_out[j] = cov_joint[row]
+        else:  # one of its tags is wrong: keep the best single tag
+            counts[j] = 1
+    return ObjectPoses(objects, T_body_camera @ T_out, cov_out, counts)
