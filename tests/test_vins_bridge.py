@@ -59,13 +59,40 @@ def test_bridge_encoder_is_byte_identical(s, s2, xyz, q, cov, inliers, code):
 def test_bridge_is_python38_and_imports_only_stdlib_and_ros():
     tree = ast.parse(BRIDGE.read_text(), feature_version=(3, 8))
     allowed = {"collections", "socket", "struct", "threading", "time", "zlib", "rospy",
-               "nav_msgs.msg", "std_msgs.msg"}
+               "nav_msgs.msg", "std_msgs.msg", "sensor_msgs.msg"}
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             assert {a.name for a in node.names} <= allowed
         elif isinstance(node, ast.ImportFrom):
             assert node.module in allowed
         assert not isinstance(node, ast.NamedExpr)  # 3.8 has it, but keep the file plain
+
+
+def test_bridge_frame_bytes_decode_in_perception():
+    pytest.importorskip("cv2")
+    from types import SimpleNamespace
+
+    from dran_edge.perception.frame import frame_from_bytes
+
+    rng = np.random.default_rng(0)
+    colour = rng.integers(0, 256, (6, 5, 3), dtype=np.uint8)
+    depth = rng.integers(0, 4000, (6, 5), dtype=np.uint16)
+    header = SimpleNamespace(stamp=SimpleNamespace(secs=12, nsecs=34), frame_id="cam0")
+    padded = np.zeros((6, 16), np.uint8)
+    padded[:, :15] = colour.reshape(6, 15)  # ROS images may pad rows (step > width * 3)
+    cmsg = SimpleNamespace(header=header, width=5, height=6, step=16, encoding="bgr8",
+                           is_bigendian=0, data=padded.tobytes())
+    dmsg = SimpleNamespace(header=header, width=5, height=6, step=10, encoding="16UC1",
+                           is_bigendian=0, data=depth.astype("<u2").tobytes())
+    rec = bridge.frame_record(cmsg, dmsg)
+    ev = I.decode_record(rec)
+    assert ev.stamp_ns == 12_000_000_034
+    f = frame_from_bytes(ev.payload)
+    np.testing.assert_array_equal(f.colour, colour)
+    np.testing.assert_array_equal(f.depth, depth)
+    assert f.camera_id == "cam0" and f.stamp_ns == 12_000_000_034
+    assert bridge.frame_record(SimpleNamespace(**{**vars(cmsg), "encoding": "mono8"})) is None
+    assert bridge.pack_frame(5, b"abc") == I.pack_frame(5, b"abc")
 
 
 def _ros_available() -> str | None:
@@ -80,13 +107,16 @@ PUBLISHER = textwrap.dedent("""
     import sys, time, rospy
     from nav_msgs.msg import Odometry
     from std_msgs.msg import Bool
+    from sensor_msgs.msg import Image
     rospy.init_node("fake_vins")
+    img = rospy.Publisher("/camera/color/image_raw", Image, queue_size=2)
     odo = rospy.Publisher("/vins_estimator/odometry", Odometry, queue_size=100)
     kf = rospy.Publisher("/vins_estimator/keyframe_pose", Odometry, queue_size=100)
     rst = rospy.Publisher("/feature_tracker/restart", Bool, queue_size=10)
     loop = rospy.Publisher("/pose_graph/loop_edge", Odometry, queue_size=10)
     end = time.time() + 30
-    while time.time() < end and min(p.get_num_connections() for p in (odo, kf, rst, loop)) < 1:
+    while time.time() < end and min(p.get_num_connections()
+                                    for p in (odo, kf, rst, loop, img)) < 1:
         time.sleep(0.1)
     def msg(t, x, q=(0.0, 0.0, 0.0, 1.0)):
         m = Odometry()
@@ -109,6 +139,9 @@ PUBLISHER = textwrap.dedent("""
     lp.twist.twist.linear.y = 73.74          # relative yaw, degrees
     lp.twist.twist.angular.x = 41            # PnP inliers
     loop.publish(lp)
+    im = Image(height=3, width=4, encoding="bgr8", step=12, data=bytes(range(36)))
+    im.header.stamp = rospy.Time(1700000000.35)
+    img.publish(im)
     time.sleep(1.0)
 """)
 
@@ -131,7 +164,8 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
         with lock:
             got.append(r)
 
-    server = IngestServer(tmp_path / "ingest.sock", on_record)
+    frames: list = []
+    server = IngestServer(tmp_path / "ingest.sock", on_record, frames.append)
     server.start()
     core = subprocess.Popen(["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -144,13 +178,14 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
             time.sleep(0.3)
         else:
             pytest.skip("roscore did not come up")
-        procs.append(subprocess.Popen([SYSTEM_PYTHON, str(BRIDGE), f"_socket:={server.path}"],
+        procs.append(subprocess.Popen([SYSTEM_PYTHON, str(BRIDGE), f"_socket:={server.path}",
+                                       "_image_topic:=/camera/color/image_raw"],
                                       env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
         pub = subprocess.run([SYSTEM_PYTHON, "-c", PUBLISHER], env=env, capture_output=True,
                              text=True, timeout=90)
         assert pub.returncode == 0, pub.stderr
         end = time.monotonic() + 15
-        while time.monotonic() < end and len(got) < 9:
+        while time.monotonic() < end and (len(got) < 9 or not frames):
             time.sleep(0.1)
     finally:
         for p in reversed(procs):
@@ -176,5 +211,7 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
     assert abs(lp.stamp_old_ns - kfs[0].stamp_ns) < 1000
     assert abs(lp.stamp_cur_ns - kfs[1].stamp_ns) < 1000
     assert lp.inliers == 41
+    assert len(frames) == 1 and abs(frames[0].event.stamp_ns - 1_700_000_000_350_000_000) < 1000
+    assert frames[0].event.payload[29:] == bytes(range(36))  # raw bgr8 after the frame header
     yaw = geo.so3_log(lp.T_old_cur[:3, :3])[2]
     assert np.degrees(yaw) == pytest.approx(73.74, abs=0.01)

@@ -9,7 +9,8 @@ set -euo pipefail
 # wheel links it (ImportError "libusb-1.0.so.0" without it).
 want=(python3-venv python3-dev build-essential cmake pkg-config libsystemd-dev dpkg-dev iproute2 libusb-1.0-0)
 # ROS Noetic from Debian, only for the vins_bridge test (skipped cleanly when absent).
-optional=(ros-core python3-rospy python3-nav-msgs python3-std-msgs python3-geometry-msgs)
+optional=(ros-core python3-rospy python3-nav-msgs python3-std-msgs python3-geometry-msgs
+          python3-sensor-msgs)
 
 missing=()
 for p in "${want[@]}" "${optional[@]}"; do

@@ -13,6 +13,11 @@ import dran_edge (the daemon has its own venv). It subscribes to
   time (seconds, as VINS stores it), twist.linear.y = relative yaw (degrees, unused: the
   quaternion carries it), twist.angular.x = PnP inlier count -> LOOP
 
+and, when ``~image_topic`` is set (ROS owns the camera, ``camera.source: forwarded``), camera
+frames: ``sensor_msgs/Image`` colour (``bgr8``/``rgb8``) paired by stamp with the aligned depth
+of ``~depth_topic`` (``16UC1``, optional) -> FRAME, in perception's raw frame layout
+(docs/perception.md "Frame byte layout"; no numpy or OpenCV needed), at most ``~frame_hz``;
+
 and writes framed records (docs/ingest.md) to the Unix stream socket ``~socket`` (default
 ``/run/dran-edge/ingest.sock``), reconnecting with back-off when the daemon restarts. While
 disconnected, records wait in a bounded queue (oldest dropped and counted).
@@ -37,7 +42,10 @@ VERSION = 1
 HEADER = struct.Struct("<4sBBHII")
 KIND_ODOMETRY, KIND_KEYFRAME, KIND_LOOP, KIND_RESET = 1, 2, 3, 4
 FLAG_COVARIANCE = 0x0001
+KIND_FRAME = 5
 RESET_FEATURE_TRACKER_RESTART = 1
+FRAME_MAGIC = b"DRFR"
+FRAME_HEADER = struct.Struct("<4sBBBBqHHIIB")
 _POSE = struct.Struct("<q3d4d")
 _COV = struct.Struct("<36d")
 _LOOP = struct.Struct("<qq3d4dI")
@@ -80,6 +88,24 @@ def pack_reset(stamp_ns, reason_code, reason=""):
     return _frame(KIND_RESET, _RESET.pack(int(stamp_ns), int(reason_code)) + text)
 
 
+def pack_frame(stamp_ns, frame_bytes):
+    return _frame(KIND_FRAME, struct.pack("<q", int(stamp_ns)) + bytes(frame_bytes))
+
+
+def frame_bytes(stamp_ns, width, height, colour, depth=None, rgb=False, camera_id=""):
+    """Perception's frame layout v1 with raw codecs: colour H*W*3 bytes, depth H*W*2 (LE)."""
+    cam = camera_id.encode("utf-8")[:64]
+    if len(colour) != width * height * 3:
+        raise ValueError("colour: expected %d bytes, got %d" % (width * height * 3, len(colour)))
+    if depth is not None and len(depth) != width * height * 2:
+        raise ValueError("depth: expected %d bytes, got %d" % (width * height * 2, len(depth)))
+    flags = (1 if depth is not None else 0) | (2 if rgb else 0)
+    depth = b"" if depth is None else bytes(depth)
+    header = FRAME_HEADER.pack(FRAME_MAGIC, 1, flags, 0, 0, int(stamp_ns), width, height,
+                               len(colour), len(depth), len(cam))
+    return b"".join((header, cam, bytes(colour), depth))
+
+
 # --------------------------------------------------------------------------- message mapping
 def stamp_ns_of(header):
     return int(header.stamp.secs) * 1000000000 + int(header.stamp.nsecs)
@@ -110,6 +136,36 @@ def loop_record(msg):
     xyz, q = _pose_parts(msg.pose.pose)
     return pack_loop(seconds_to_ns(msg.twist.twist.linear.x), stamp_ns_of(msg.header), xyz, q,
                      max(0, int(round(msg.twist.twist.angular.x))))
+
+
+def _packed_rows(msg, bytes_per_px):
+    """Image data without row padding; None for big-endian 16-bit data."""
+    row = msg.width * bytes_per_px
+    data = bytes(msg.data)
+    if bytes_per_px == 2 and msg.is_bigendian:
+        return None
+    if msg.step == row:
+        return data[: row * msg.height]
+    return b"".join(data[r * msg.step:r * msg.step + row] for r in range(msg.height))
+
+
+def frame_record(colour_msg, depth_msg=None):
+    """A FRAME record of a colour image (+ aligned depth), or None for unsupported encodings."""
+    if colour_msg.encoding not in ("bgr8", "rgb8"):
+        return None
+    colour = _packed_rows(colour_msg, 3)
+    depth = None
+    if depth_msg is not None:
+        if (depth_msg.encoding not in ("16UC1", "mono16")
+                or (depth_msg.width, depth_msg.height) != (colour_msg.width, colour_msg.height)):
+            return None
+        depth = _packed_rows(depth_msg, 2)
+        if depth is None:
+            return None
+    stamp = stamp_ns_of(colour_msg.header)
+    return pack_frame(stamp, frame_bytes(stamp, colour_msg.width, colour_msg.height, colour,
+                                         depth, colour_msg.encoding == "rgb8",
+                                         colour_msg.header.frame_id))
 
 
 # --------------------------------------------------------------------------- socket client
@@ -229,6 +285,38 @@ def main():
     rospy.Subscriber("/vins_estimator/keyframe_pose", Odometry, on_keyframe, queue_size=100)
     rospy.Subscriber("/feature_tracker/restart", Bool, on_restart, queue_size=10)
     rospy.Subscriber(loop_topic, Odometry, on_loop, queue_size=100)
+    image_topic = rospy.get_param("~image_topic", "")
+    if image_topic:
+        from sensor_msgs.msg import Image
+
+        depth_topic = rospy.get_param("~depth_topic", "")
+        min_gap_ns = int(1e9 / float(rospy.get_param("~frame_hz", 5.0)))
+        pending = collections.OrderedDict()  # stamp -> [colour, depth]
+        sent_at = {"stamp_ns": 0}
+
+        def offer(stamp, colour=None, depth=None):
+            slot = pending.setdefault(stamp, [None, None])
+            if colour is not None:
+                slot[0] = colour
+            if depth is not None:
+                slot[1] = depth
+            while len(pending) > 10:
+                pending.popitem(last=False)
+            if slot[0] is None or (depth_topic and slot[1] is None):
+                return
+            del pending[stamp]
+            if stamp - sent_at["stamp_ns"] < min_gap_ns:
+                return
+            rec = frame_record(slot[0], slot[1])
+            if rec is not None:
+                sent_at["stamp_ns"] = stamp
+                client.put(rec)
+
+        rospy.Subscriber(image_topic, Image, lambda m: offer(stamp_ns_of(m.header), colour=m),
+                         queue_size=2, buff_size=2 ** 24)
+        if depth_topic:
+            rospy.Subscriber(depth_topic, Image, lambda m: offer(stamp_ns_of(m.header), depth=m),
+                             queue_size=2, buff_size=2 ** 24)
     rospy.loginfo("vins_bridge: forwarding VINS-Mono to %s (loops from %s)", path, loop_topic)
 
     def report(_event):
