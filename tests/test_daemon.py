@@ -114,3 +114,30 @@ def test_perception_batches_are_journalled_and_applied(tmp_path):
     assert d.counters["applied_ObservationBatch"] == qsize
     assert d.graph.counters.get("observations_added", 0) > 0
     assert np.isfinite(d.last_estimate.cost)
+
+
+def test_record_writes_the_consumed_bytes(tmp_path):
+    import yaml
+
+    from dran_edge.comms.ingest import iter_records
+    from dran_edge.config import config_from_dict
+
+    cfg = load_config(write_config(tmp_path, comms={"period_s": 0.05}))
+    rec = tmp_path / "rec"
+    d = Daemon(cfg, notifier=RecordingNotifier(), environ={}, record_dir=rec)
+    d.start()
+    m = vio_mission(20, seed=4)
+    data = b"".join(encode_event(e) for e in m.events)
+    with socket.socket(socket.AF_UNIX) as s:
+        s.connect(str(d.ingest.path))
+        s.sendall(b"garbage" + data)
+    for _ in range(200):
+        d.tick()
+        if d.ingest.counters["records"] == len(m.events) and d.journal.pending_count == 0:
+            break
+    d.shutdown()
+    robot = rec / "robots" / "testbot"
+    assert (robot / "ingest.bin").read_bytes() == data  # exactly the accepted records
+    assert all(not isinstance(r, Exception) for r in iter_records(data))
+    again = config_from_dict(yaml.safe_load((robot / "robot.yaml").read_text()))
+    assert again.agent == cfg.agent and again.robot == cfg.robot
