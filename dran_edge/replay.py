@@ -128,7 +128,10 @@ def _perceive_robot(args: tuple[str, str, str]) -> tuple[str, list[bytes], int, 
     from dran_edge.perception.pipeline import ObservationPipeline
     from dran_edge.perception.sources import RecordedFramesSource
 
+    from dran_edge.replay_robots import set_blas_threads
+
     t0 = time.perf_counter()
+    set_blas_threads(1)  # one perception process per core already
     cfg = load_config(config_path)
     pipeline = ObservationPipeline(load_calibration(calib_dir, name))
     records, frames = [], 0
@@ -187,6 +190,17 @@ def _run_perception(run: rd.Run, opt: ReplayOptions,
 def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
                progress: Callable[[str, int, int], None] | None = None) -> ReplayResult:
     """Replay the run at ``run_dir`` and write ``run_dir/out`` (see the module docstring)."""
+    from dran_edge.replay_robots import restore_blas_threads, set_blas_threads
+
+    blas = set_blas_threads(1)
+    try:
+        return _replay(run_dir, opt, progress)
+    finally:
+        restore_blas_threads(blas)
+
+
+def _replay(run_dir: str | Path, opt: ReplayOptions,
+            progress: Callable[[str, int, int], None] | None) -> ReplayResult:
     from dran_edge.replay_robots import RobotRunner, RobotSpec, WorkerPool
 
     wall0 = time.perf_counter()
