@@ -363,9 +363,14 @@ class Agent:
         r = phi_dim(self.config.residual, self.config.dim)
         lam = np.stack([self.lam.get(k, np.zeros(r)) for k in pair_keys])
         w = np.array([self.w[j] for j, _ in pair_keys])
-        # The robust kernel also bounds the pull of a neighbour's copy: a copy built from a wrong
-        # tag association is far away, and without a kernel it would drag every copy to it.
-        return (ConsensusFactors(var, w, lam, self.config.beta, self.config.residual, self._kernel()),)
+        # With a robust kernel configured, a Cauchy kernel also bounds the pull of a neighbour's
+        # copy: a copy built from a wrong tag association is far away and would otherwise drag
+        # every copy to it. Its scale puts the half-weight point at φ = object_gate_m, so copies
+        # that differ by ordinary drift still pull almost fully.
+        kernel = None
+        if self.config.robust_kernel != "none" and self.config.object_gate_m > 0:
+            kernel = Cauchy(float(np.sqrt(self.config.beta) * np.mean(w) * self.config.object_gate_m))
+        return (ConsensusFactors(var, w, lam, self.config.beta, self.config.residual, kernel),)
 
     def _kernel(self):
         c = self.config
