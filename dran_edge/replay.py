@@ -55,7 +55,8 @@ log = logging.getLogger(__name__)
 
 REPORT_FORMAT = "dran-edge-replay/1"
 #: Fields of report.json that depend on the machine's speed (golden comparisons ignore them).
-WALL_CLOCK_FIELDS = ("replay_wall_s", "realtime_factor", "perception_wall_s", "rounds_wall_s")
+WALL_CLOCK_FIELDS = ("replay_wall_s", "realtime_factor", "perception_wall_s", "rounds_wall_s",
+                     "cpu_s")
 
 
 @dataclass(frozen=True)
@@ -193,10 +194,26 @@ def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
     from dran_edge.replay_robots import restore_blas_threads, set_blas_threads
 
     blas = set_blas_threads(1)
+    cpu0 = _cpu_s()
     try:
-        return _replay(run_dir, opt, progress)
+        result = _replay(run_dir, opt, progress)
     finally:
         restore_blas_threads(blas)
+    # CPU time of this process and every worker it reaped: with the replay's cores to itself,
+    # the wall time would be about cpu_s / cores (the machine may be shared).
+    result.report["cpu_s"] = round(_cpu_s() - cpu0, 3)
+    _write_report(result.out_dir, result.report)
+    return result
+
+
+def _cpu_s() -> float:
+    import resource
+
+    total = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        ru = resource.getrusage(who)
+        total += ru.ru_utime + ru.ru_stime
+    return total
 
 
 def _replay(run_dir: str | Path, opt: ReplayOptions,
