@@ -8,14 +8,25 @@ Davis, "Direct Methods for Sparse Linear Systems", ch. 4 and 9):
 
 - analysis (once per sparsity pattern): a minimum-degree ordering of the *block* graph (one node
   per pose variable; SuperLU's MMD on AᵀA+A), the elimination tree and column structures by
-  symbolic factorisation, a postorder, and relaxed supernodes (chains of the tree merged while the
-  explicit zeros they add stay small); then, per supernode, index maps for assembling A's entries
-  and for the extend-add of its update matrix into its parent's front;
+  symbolic factorisation, a postorder with leaf children last, and relaxed supernodes
+  (amalgamation, Ashcraft & Grimes, "The influence of relaxed supernode partitions on the
+  multifrontal method", ACM TOMS 1989: chains of the tree, and leaf siblings together with
+  their parent, merged while the explicit zeros they add stay small); then, per supernode, index
+  maps for assembling A's entries and for the extend-add of its update matrix into its parent's
+  front;
 - numeric factorisation (once per μ): per supernode in postorder, assemble the front
   ``F = [[F11, ·], [F21, F22]]``, ``L11 = chol(F11 + μI)``, ``L21 = F21 L11⁻ᵀ``, and add
-  ``F22 − L21 L21ᵀ`` into the parent's front;
+  ``F22 − L21 L21ᵀ`` into the parent's front. Fronts hold only lower triangles, in three
+  segments that LAPACK/BLAS (potrf, trtrs, syrk) overwrite in place (:func:`_front_pos`); the
+  extend-add moves lower triangles only, with ``np.add.at``;
 - solves with any number of right-hand sides by forward and backward substitution over the
   supernodes.
+
+Measured alternatives that lost (tools/bench/bench_cholesky.py, docs/benchmarks.md): nested
+dissection (George, "Nested dissection of a regular finite element mesh", SIAM J. Numer. Anal.
+1973) with BFS level-set or Fiedler-vector separators gave 19–44 % more fill and 16–79 % more
+flops than the minimum degree order on sphere2500 and torus3D; COLAMD and MMD on AᵀA more than
+twice the flops.
 
 Python loops run over supernodes (hundreds), never over entries or poses.
 """
@@ -23,15 +34,51 @@ Python loops run over supernodes (hundreds), never over entries or poses.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.linalg.blas import dsyrk
 from scipy.linalg.lapack import dpotrf, dtrtrs
 
 
 class NotPositiveDefinite(ArithmeticError):
     """A frontal pivot block was not positive definite."""
+
+
+@lru_cache(maxsize=256)
+def _tril_flat(m: int) -> np.ndarray:
+    """C-order flat positions of the lower triangle (i ≥ j, diagonal included, row by row) of
+    an m×m matrix."""
+    i, j = np.tril_indices(m)
+    return i * m + j
+
+
+def _front_pos(r: np.ndarray, c: np.ndarray, k, f) -> np.ndarray:
+    """Flat position of entry (r, c), r ≥ c, of an f×f front with k pivot columns, stored as
+    three C-order segments ``[F11 (k×k) | F21 (m×k) | F22 (m×m)]`` (m = f − k). Each segment
+    read as a column-major array is the transpose of its block, whose upper triangle (lower
+    triangle of the block) LAPACK/BLAS factorise and update in place, without copies."""
+    m = f - k
+    return np.where(
+        r < k,
+        r * k + c,
+        np.where(c < k, k * k + (r - k) * k + c, k * k + m * k + (r - k) * m + (c - k)),
+    )
+
+
+def _update_positions(loc: np.ndarray, k: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """:func:`_front_pos` of the lower triangles (order of :func:`_tril_flat`) of N update
+    matrices at once: ``loc`` (N, m) ascending local rows in the parents' fronts, ``k``/``f``
+    (N, 1) the parents' pivot columns and sizes. Uses that the position is separable:
+    r·k + c for c < k, (k·k − k + r·m) + c for c ≥ k (then r ≥ c ≥ k)."""
+    n, m = loc.shape
+    full = np.where(
+        (loc < k)[:, None, :], (loc * k)[:, :, None], (loc * (f - k) + (k * k - k))[:, :, None]
+    )
+    full += loc[:, None, :]
+    return full.reshape(n, m * m)[:, _tril_flat(m)]
 
 
 def _block_order(nb: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -77,11 +124,14 @@ class _Supernode:
     parent: int
     """Index of the parent supernode, −1 for a root."""
     rel: np.ndarray
-    """Flat positions in the parent's front of this supernode's update matrix entries."""
+    """Flat positions in the parent's front of the lower triangle of this supernode's update
+    matrix (in the order of :func:`_tril_flat`). Only lower triangles are ever read: the fronts'
+    row orders are ascending, so a child's lower triangle lands in its parent's."""
     a_src: np.ndarray
     """Positions in A's CSC data of the entries assembled into this front."""
     a_dst: np.ndarray
-    """Their flat positions in the f×f front."""
+    """Their flat positions in the front: a plain C-order f×f square for a leaf (batched, see
+    _LeafGroup), the segmented layout of :func:`_front_pos` otherwise."""
     diag: np.ndarray
     """Flat positions of the pivot block's diagonal in the front (for the shift μ)."""
 
@@ -168,26 +218,50 @@ class SymbolicCholesky:
                     post.append(node)
                     continue
                 stack.append((node, True))
-                stack.extend((c, False) for c in reversed(children[node]))
+                # leaf children last, right before their parent, so that they can join it
+                kids = sorted(children[node], key=lambda c: not children[c])
+                stack.extend((c, False) for c in reversed(kids))
         order = order[np.asarray(post, dtype=np.int64)]
         s_rows, s_ptr, parent = _symbolic(nb, brow, bcol, order)
         counts = np.diff(s_ptr)
-        # relaxed supernodes: merge k into the supernode ending at k−1 when k is its parent
+        # relaxed supernodes (amalgamation, Ashcraft & Grimes 1989): merge k into the current
+        # supernode [a, k) when k is the parent of each of its roots (the columns whose parent
+        # lies outside it) and the explicit zeros stay few; leaf siblings of the tree gather
+        # while they wait for their parent, and are split again if it does not join them
+        is_leaf_col = np.ones(nb, dtype=bool)
+        is_leaf_col[parent[parent >= 0]] = False
+        parent_l = parent.tolist()
         bounds = [0]
         actual = 0
+        roots: list[int] = []
+
+        def close(a: int, k: int) -> None:
+            if len(roots) > 1:  # leaf siblings without their parent: singletons
+                bounds.extend(range(a + 1, k))
+            bounds.append(k)
+
         for k in range(nb):
             a = bounds[-1]
-            if k > a and parent[k - 1] == k and k - a + 1 <= max_cols:
+            if k > a and k - a + 1 <= max_cols:
                 cols = k - a + 1
-                new_ideal = cols * (cols - 1) // 2 + cols * int(counts[k])
-                new_actual = actual + int(counts[k])
-                if new_ideal - new_actual <= relax_zeros * new_ideal or cols <= small_cols:
-                    actual = new_actual
+                if all(parent_l[r] == k for r in roots):
+                    new_ideal = cols * (cols - 1) // 2 + cols * int(counts[k])
+                    new_actual = actual + int(counts[k])
+                    if new_ideal - new_actual <= relax_zeros * new_ideal or cols <= small_cols:
+                        actual, roots = new_actual, [k]
+                        continue
+                elif (
+                    is_leaf_col[k]
+                    and parent_l[k] == parent_l[roots[0]]
+                    and all(is_leaf_col[r] for r in roots)
+                ):
+                    actual += int(counts[k])
+                    roots.append(k)
                     continue
             if k > a:
-                bounds.append(k)
-            actual = int(counts[k])
-        bounds.append(nb)
+                close(a, k)
+            actual, roots = int(counts[k]), [k]
+        close(bounds[-1], nb)
         bounds_arr = np.unique(np.asarray(bounds, dtype=np.int64))
         nsn = bounds_arr.size - 1
         owner = np.repeat(np.arange(nsn), np.diff(bounds_arr))
@@ -211,6 +285,8 @@ class SymbolicCholesky:
         pos = np.empty(nb, dtype=np.int64)
         pos[order] = np.arange(nb)
         sizes = np.array([fb.size for fb in fronts_b], dtype=np.int64)
+        ncols = np.diff(bounds_arr) * block
+        is_leaf = np.array([not c for c in sn_children], dtype=bool)
         front_start = np.concatenate([[0], np.cumsum(sizes)])
         front_keys = np.repeat(np.arange(nsn), sizes) * nb + np.concatenate(fronts_b)
         prb, pcb = pos[brow], pos[bcol]
@@ -231,7 +307,9 @@ class SymbolicCholesky:
         ):
             raise ValueError("the pattern is not made of dense block×block blocks")
         f_b = (sizes[s_b] * block)[:, None]
-        a_dst = ((lrow_b[:, None] * block + rr) * f_b + lcol_b[:, None] * block + cc).ravel()
+        # A's entries lie in the pivot columns (c < k), where _front_pos is r·k + c
+        row_len = np.where(is_leaf[s_b][:, None], f_b, ncols[s_b][:, None])
+        a_dst = ((lrow_b[:, None] * block + rr) * row_len + lcol_b[:, None] * block + cc).ravel()
         take = src.ravel()
         sn_ptr = np.searchsorted(s_b, np.arange(nsn + 1)) * (block * block)
         # where each supernode's rows sit in its parent's front
@@ -245,26 +323,36 @@ class SymbolicCholesky:
             - front_start[par_rep[has_par]]
         )
         cuts = np.cumsum(lens * block)[:-1]
-        rel_split = np.split((loc_all[:, None] * block + ar).ravel(), cuts)
         rows_split = np.split((all_rows[:, None] * block + ar).ravel(), cuts)
-        # diagonal of each pivot block in its front: k·(f + 1) for k < its number of columns
-        ncols = np.diff(bounds_arr) * block
+        # the parent-front positions of each update matrix's lower triangle, vectorised over the
+        # supernodes with the same number of rows
+        loc_sc = (loc_all[:, None] * block + ar).ravel()
+        loc_start = np.concatenate([[0], np.cumsum(lens * block)])
+        m_s = lens * block
+        rel_of: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * nsn
+        for m in np.unique(m_s[sn_parent >= 0]).tolist():
+            members = np.flatnonzero((m_s == m) & (sn_parent >= 0))
+            loc = loc_sc[loc_start[members][:, None] + np.arange(m)]
+            par = sn_parent[members][:, None]
+            rel = _update_positions(loc, ncols[par], sizes[par] * block)
+            for i, s_ in enumerate(members.tolist()):
+                rel_of[s_] = rel[i]
+        # diagonal of each pivot block in its front: i·(f + 1) in a leaf's square front,
+        # i·(k + 1) in the F11 segment of the others, for i < k
         kk = np.arange(int(ncols.sum())) - np.repeat(np.cumsum(ncols) - ncols, ncols)
-        diag_split = np.split(kk * np.repeat(sizes * block + 1, ncols), np.cumsum(ncols)[:-1])
-        fp = np.where(sn_parent >= 0, sizes[sn_parent] * block, 0).tolist()
-        empty = np.zeros(0, dtype=np.int64)
+        stride = np.where(is_leaf, sizes * block, ncols) + 1
+        diag_split = np.split(kk * np.repeat(stride, ncols), np.cumsum(ncols)[:-1])
         supernodes = []
         for s_, (a_, b_, p_) in enumerate(
             zip(bounds_arr[:-1].tolist(), bounds_arr[1:].tolist(), sn_parent.tolist())
         ):
-            rel_s = rel_split[s_]
             supernodes.append(
                 _Supernode(
                     c0=a_ * block,
                     c1=b_ * block,
                     rows=rows_split[s_],
                     parent=p_,
-                    rel=(rel_s[:, None] * fp[s_] + rel_s).ravel() if p_ >= 0 else empty,
+                    rel=rel_of[s_],
                     a_src=take[sn_ptr[s_] : sn_ptr[s_ + 1]],
                     a_dst=a_dst[sn_ptr[s_] : sn_ptr[s_ + 1]],
                     diag=diag_split[s_],
@@ -321,6 +409,7 @@ class SymbolicCholesky:
             L21T = np.linalg.solve(L11, np.swapaxes(F[:, k:, :k], 1, 2)) if m else None
             if m:
                 U = (F[:, k:, k:] - np.swapaxes(L21T, 1, 2) @ L21T).reshape(N, m * m)
+                U = U[:, _tril_flat(m)]
                 for i, p in enumerate(grp.parents):
                     pending[p].append((grp.rels[i], U[i]))
             leaf_factors.append((L11, L21T))
@@ -328,24 +417,38 @@ class SymbolicCholesky:
         for s in self._internal:
             sn = self._supernodes[s]
             k = sn.c1 - sn.c0
-            f = k + sn.rows.size
-            F = np.zeros(f * f)
+            m = sn.rows.size
+            # the front in the segmented layout of _front_pos; only lower triangles are valid
+            # (see _Supernode.rel), i.e. the upper ones of the column-major views below
+            F = np.zeros(k * k + m * k + m * m)
             F[sn.a_dst] = data[sn.a_src]
             F[sn.diag] += shift
-            for rel, U in pending[s]:
-                F[rel] += U
+            for rel, U in pending[s]:  # extend-add; ufunc.at is ~2x faster than F[rel] += U
+                np.add.at(F, rel, U)
             pending[s] = []
-            F = F.reshape(f, f)
-            L11, info = dpotrf(F[:k, :k], lower=1, clean=1, overwrite_a=0)
+            # R = L11ᵀ (upper, column-major) in place of F11: F11 = R^T R
+            R, info = dpotrf(F[: k * k].reshape(k, k).T, lower=0, clean=0, overwrite_a=1)
             if info != 0:
                 raise NotPositiveDefinite(f"pivot block of columns {sn.c0}..{sn.c1} (info {info})")
-            if f > k:
-                L21T, info = dtrtrs(L11, F[k:, :k].T, lower=1)
-                L21 = L21T.T
-                pending[sn.parent].append((sn.rel, (F[k:, k:] - L21 @ L21.T).ravel()))
+            if m:
+                # X = L21ᵀ = R⁻ᵀ F21ᵀ in place of F21, then F22 − XᵀX (rank-k update of the
+                # triangle only) in place of F22: the update matrix passed to the parent
+                X, info = dtrtrs(
+                    R, F[k * k : k * k + m * k].reshape(m, k).T, lower=0, trans=1, overwrite_b=1
+                )
+                S = dsyrk(
+                    -1.0,
+                    X,
+                    beta=1.0,
+                    c=F[k * k + m * k :].reshape(m, m).T,
+                    trans=1,
+                    lower=0,
+                    overwrite_c=1,
+                )
+                pending[sn.parent].append((sn.rel, S.T.reshape(-1)[_tril_flat(m)]))
             else:
-                L21 = np.zeros((0, k))
-            factors.append((L11, L21))
+                X = np.zeros((k, 0), order="F")
+            factors.append((R, X))
         return NumericCholesky(self, leaf_factors, factors)
 
 
@@ -385,16 +488,16 @@ class NumericCholesky:
             if grp.m:
                 upd = (np.swapaxes(L21T, 1, 2) @ ys).reshape(-1, r)
                 np.subtract.at(y, grp.rows.ravel(), upd)
-        for sn, (L11, L21) in zip(sns, self._factors):
-            ys, _ = dtrtrs(L11, y[sn.c0 : sn.c1], lower=1)
+        for sn, (R, X) in zip(sns, self._factors):  # R = L11ᵀ, X = L21ᵀ
+            ys, _ = dtrtrs(R, y[sn.c0 : sn.c1], lower=0, trans=1)
             y[sn.c0 : sn.c1] = ys
             if sn.rows.size:
-                y[sn.rows] -= L21 @ ys
-        for sn, (L11, L21) in zip(reversed(sns), reversed(self._factors)):
+                y[sn.rows] -= X.T @ ys
+        for sn, (R, X) in zip(reversed(sns), reversed(self._factors)):
             xs = y[sn.c0 : sn.c1]
             if sn.rows.size:
-                xs = xs - L21.T @ y[sn.rows]
-            y[sn.c0 : sn.c1] = dtrtrs(L11, xs, lower=1, trans=1)[0]
+                xs = xs - X @ y[sn.rows]
+            y[sn.c0 : sn.c1] = dtrtrs(R, xs, lower=0)[0]
         for grp, (L11, L21T) in zip(sym._leaf_groups, self._leaf_factors):
             xs = y[grp.cols]
             if grp.m:
