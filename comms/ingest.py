@@ -145,7 +145,8 @@ def pack_odometry(stamp_ns: int, xyz, quat_xyzw, covariance=None) -> bytes:
 
 def pack_keyframe(stamp_ns: int, xyz, quat_xyzw) -> bytes:
     return _frame(KIND_KEYFRAME,
-                  _POSE.pack(int(stamp_ns), *_floats(xyz, 3, "xyz"), *_floats(quat_xyzw, 4, "quat")))
+                  _POSE.pack(int(stamp_ns), *_floats(xyz, 3, "xyz"),
+                             *_floats(quat_xyzw, 4, "quat")))
 
 
 def pack_loop(stamp_old_ns: int, stamp_cur_ns: int, xyz, quat_xyzw, inliers: int) -> bytes:
@@ -286,7 +287,8 @@ def decode_payload(kind: int, flags: int, payload: bytes):
         obs = []
         for i in range(count):
             v = _OBS.unpack_from(payload, _OBS_HEAD.size + i * _OBS.size)
-            obs.append(ObjectObservation(stamp, int(v[0]), _pose(v[1:4], v[4:8], f"observation {i}"),
+            obs.append(ObjectObservation(stamp, int(v[0]),
+                                         _pose(v[1:4], v[4:8], f"observation {i}"),
                                          _covariance(v[8:44], f"observation {i}")))
         return ObservationBatch(stamp, tuple(obs))
     raise IngestDecodeError("unknown_kind", f"expected a kind in 1..6, got {kind}")
@@ -397,7 +399,7 @@ def _length_problem(kind: int, length: int) -> str:
 
 
 def iter_records(data: bytes) -> Iterator:
-    """Records and errors of a complete byte string (an ``ingest.bin``); a truncated tail is an error."""
+    """Records and errors of a complete byte string (an ``ingest.bin``); a torn tail is an error."""
     dec = StreamDecoder()
     yield from dec.feed(data)
     if dec.pending_bytes:

@@ -104,7 +104,8 @@ class NoiseModel(_Checked):
 class OdometryNoise(_Checked):
     """Noise of an odometry edge between two kept keyframes, growing with the motion between them.
 
-    sigma_t = sigma_translation_m + per_metre * |dt|; sigma_r = sigma_rotation_rad + per_radian * |dr|.
+    sigma_t = sigma_translation_m + per_metre * |dt|;
+    sigma_r = sigma_rotation_rad + per_radian * |dr|.
     """
 
     sigma_translation_m: float = _f(0.01, lo=0.0, lo_open=True)
@@ -181,6 +182,9 @@ class AgentConfig(_Checked):
     """Robust kernel on loop and object residuals (whitened)."""
     robust_threshold: float = _f(1.345, lo=0.0, lo_open=True)
     """Kernel width on the whitened residual norm (1.345: 95 % efficiency for Huber)."""
+    dual_max_phi2: float = _f(0.1, lo=0.0)
+    """Anti-windup of eq. 5b: a dual λ_ij is updated only while φ²(y_i, y_j) is at most this
+    (squared geodesic distance, same units as eps_phi; default = the paper's eps_phi)."""
     object_gate_m: float = _f(2.0, lo=0.0)
     """Consistency gate: an object observation whose predicted object position is farther than
     this from the medoid of the robot's predictions of that object is dropped (0: off), metres."""
@@ -454,7 +458,8 @@ def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
     if not isinstance(data, dict):
         raise _err(f"{where}: expected a mapping of keys, got {_describe(data)}", prefix, lines)
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if (cls.__name__, f.name) not in _SKIP_ON_LOAD}
+    fields = {f.name: f for f in dataclasses.fields(cls)
+              if (cls.__name__, f.name) not in _SKIP_ON_LOAD}
     settable = {n for n in fields if (cls.__name__, n) not in _DERIVED}
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
@@ -471,7 +476,8 @@ def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
                 if dataclasses.is_dataclass(item):
                     continue
                 try:
-                    _check_value(item, dict(f.metadata), path if items is not converted else f"{path}[{i}]")
+                    item_path = path if items is not converted else f"{path}[{i}]"
+                    _check_value(item, dict(f.metadata), item_path)
                 except ConfigError as exc:
                     raise _err(str(exc), path, lines) from None
         kwargs[key] = converted

@@ -44,8 +44,8 @@ from dran_edge.errors import DependencyError, DranError
 from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
 from dran_edge.journal import IngestJournal
 from dran_edge.local_graph import OBJ, LocalGraph, gauge_anchor
-from dran_edge.online_agent import problem_from_graph
 from dran_edge.notify import Notifier
+from dran_edge.online_agent import problem_from_graph
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ class DropOldestQueue:
 
 
 class PerceptionWorker:
-    """Runs ``produce()`` (frame -> ObservationBatch or None) in a thread, into a drop-oldest queue."""
+    """Runs ``produce()`` (frame -> ObservationBatch or None) in a thread into a drop-oldest queue."""
 
     def __init__(self, produce: Callable[[], ObservationBatch | None], out: DropOldestQueue):
         self.produce = produce
@@ -397,8 +397,8 @@ class Daemon:
         anchor = gauge_anchor(cfg.agent)
         try:
             self.agent = self.agent_factory(cfg, agent_state)
-            self.graph = (LocalGraph.from_state(cfg.agent, graph_state, anchor_first=anchor)
-                          if graph_state is not None else LocalGraph(cfg.agent, anchor_first=anchor))
+            self.graph = (LocalGraph(cfg.agent, anchor_first=anchor) if graph_state is None
+                          else LocalGraph.from_state(cfg.agent, graph_state, anchor_first=anchor))
         except DranError:
             raise
         except Exception:

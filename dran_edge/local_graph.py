@@ -52,7 +52,13 @@ import numpy as np
 from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig, NoiseModel
 from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
-from dran_edge.factors import BetweenFactors, Cauchy, Huber, PriorFactors, whitening_from_information
+from dran_edge.factors import (
+    BetweenFactors,
+    Cauchy,
+    Huber,
+    PriorFactors,
+    whitening_from_information,
+)
 from dran_edge.graph import PoseGraph, VariableKind
 from dran_edge.segments import Segmenter
 
@@ -122,8 +128,7 @@ def fuse(Z1: np.ndarray, S1: np.ndarray, Z2: np.ndarray, S2: np.ndarray
          ) -> tuple[np.ndarray, np.ndarray]:
     """Information-weighted fusion of two measurements of the same relative pose."""
     O1, O2 = np.linalg.inv(S1), np.linalg.inv(S2)
-    O = O1 + O2
-    S = np.linalg.inv(O)
+    S = np.linalg.inv(O1 + O2)
     delta = S @ O2 @ geo.se3_log(geo.se3_between(Z1, Z2))
     return Z1 @ geo.se3_exp(delta), 0.5 * (S + S.T)
 
@@ -834,7 +839,8 @@ class LocalGraph:
         g.segmenter = Segmenter.from_state(config.graph, state["segmenter"])
         g.counters = {str(k): int(v) for k, v in state["counters"].items()}
         pr = state.get("prior")
-        g.prior = None if pr is None else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")}
+        g.prior = (None if pr is None
+                   else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")})
         return g
 
 

@@ -67,7 +67,8 @@ class Segmenter:
     def odometry(self, stamp_ns: int, T_odom_body: np.ndarray) -> tuple[int, str | None]:
         """Feed one odometry sample; returns (segment id, reason if a new segment started).
 
-        A sample not newer than the previous one (or older than the newest segment's start) is stale (counted, segment unchanged, and the
+        A sample not newer than the previous one (or older than the newest segment's start) is
+        stale (counted, segment unchanged, and the
         caller should ignore it): returns (current, None).
         """
         b = self.bounds
@@ -121,6 +122,7 @@ class Segmenter:
         s.reasons = [str(v) for v in state["reasons"]]
         s.next_id = int(state["next_id"])
         s.last_stamp_ns = None if state["last_stamp_ns"] is None else int(state["last_stamp_ns"])
-        s.last_T = None if state["last_T"] is None else np.asarray(state["last_T"], dtype=np.float64)
+        last_T = state["last_T"]
+        s.last_T = None if last_T is None else np.asarray(last_T, dtype=np.float64)
         s.stale_samples = int(state["stale_samples"])
         return s

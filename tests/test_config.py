@@ -189,4 +189,4 @@ def test_every_config_key_is_documented():
                 C.DaemonSection, C.AgentConfig, C.OdometryNoise, C.NoiseModel, C.GraphBounds):
         for f in dc.fields(cls):
             if f.name != "source_path":
-                assert f"| `{f.name}` |" in text, f"{cls.__name__}.{f.name} missing in docs/config.md"
+                assert f"| `{f.name}` |" in text, f"{cls.__name__}.{f.name} not in docs/config.md"

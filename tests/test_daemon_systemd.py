@@ -1,4 +1,4 @@
-"""The systemd protocol for real: the daemon as a process, NOTIFY_SOCKET on a socket we listen on."""
+"""The systemd protocol for real: the daemon as a process, NOTIFY_SOCKET on our own socket."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import uuid
 from pathlib import Path
 
 import pytest
+from daemon_helpers import NotifyListener, start_daemon, stop, wait_status, write_config
 
 from dran_edge.comms import ingest as I
 from dran_edge.commands.status import query_status
-from daemon_helpers import NotifyListener, start_daemon, stop, wait_status, write_config
 
 REPO = Path(__file__).resolve().parents[1]
 WATCHDOG_USEC = 2_000_000  # systemd would kill us after 2 s without a ping
@@ -57,7 +57,8 @@ def test_ready_watchdog_status_stopping(tmp_path):
     assert min(gaps) >= 0.2 * 0.9
     assert max(gaps) < WATCHDOG_USEC / 1e6
     statuses = [m for _, m in listener.messages if m.startswith("STATUS=")]
-    assert any("rounds=" in m and "records=2" in m and "rejected=1" in m for m in statuses), statuses
+    assert any("rounds=" in m and "records=2" in m and "rejected=1" in m
+               for m in statuses), statuses
     assert listener.times("STOPPING=1"), "no STOPPING=1 on SIGTERM"
     assert "not started by systemd" not in out
 
@@ -158,6 +159,7 @@ def test_two_daemons_exchange_over_loopback_udp(tmp_path):
     """Two robot processes, RADIO/DISH on 127.0.0.1, authenticated with a fleet key."""
     from dran_edge.comms.auth import write_fleet_key
     from dran_edge.comms.ingest import encode_event
+
     from dran_edge.vio_sim import vio_mission
 
     try:

@@ -42,7 +42,8 @@ def pose(x=0.0, y=0.0, yaw=0.0) -> np.ndarray:
 # --------------------------------------------------------------------------- covariance algebra
 def test_compose_covariance_matches_monte_carlo():
     rng = np.random.default_rng(0)
-    Z1, Z2 = geo.se3_exp(np.array([1, 0.2, 0, 0.1, 0, 0.5])), geo.se3_exp(np.array([0.5, 1, 0, 0, 0.2, 0.3]))
+    Z1 = geo.se3_exp(np.array([1, 0.2, 0, 0.1, 0, 0.5]))
+    Z2 = geo.se3_exp(np.array([0.5, 1, 0, 0, 0.2, 0.3]))
     S1, S2 = np.diag([1e-3] * 3 + [4e-4] * 3), np.diag([2e-3] * 3 + [1e-4] * 3)
     Z, S = compose_cov(Z1, S1, Z2, S2)
     n = 20000

@@ -33,10 +33,10 @@ import time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
-
 import subprocess  # noqa: E402
 import tempfile  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 from dran_edge import lm  # noqa: E402
 from dran_edge.comms.ingest import IngestDecodeError, StreamDecoder, encode_event  # noqa: E402
@@ -144,9 +144,9 @@ def main(argv=None) -> int:
     unbounded = None if args.no_baseline else LocalGraph(
         AgentConfig(graph=GraphBounds(max_nodes=1_000_000, max_edges=10_000_000)))
 
-    print(f"\n| keyframes | bounded nodes / factors / prior vars | bounded round solve ms "
-          f"(mean / max) | unbounded nodes / factors | unbounded round solve ms | ratio "
-          f"unbounded / bounded | handle µs/event bounded | RSS MB |")
+    print("\n| keyframes | bounded nodes / factors / prior vars | bounded round solve ms "
+          "(mean / max) | unbounded nodes / factors | unbounded round solve ms | ratio "
+          "unbounded / bounded | handle µs/event bounded | RSS MB |")
     print("|---|---|---|---|---|---|---|---|")
     kf = 0
     window: list[float] = []
