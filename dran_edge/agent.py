@@ -405,7 +405,11 @@ class Agent:
             r = phi_dim(c.residual, c.dim)
             lam = np.stack([self.lam.get(k, np.zeros(r)) for k in s.pair_keys])
             w = np.array([self.w[j] for j, _ in s.pair_keys])
-            lam = dual_update(lam, phi(y_i, y_j, c.residual), w, c.beta, c.eta)
+            p_ij = phi(y_i, y_j, c.residual)
+            # Anti-windup: integrate only pairs already near consensus (docs/dran.md); far apart
+            # copies (first rounds, sparse graphs) made the duals overshoot and diverge.
+            near = consensus_error(y_i, y_j) <= c.dual_max_phi2
+            lam = np.where(near[:, None], dual_update(lam, p_ij, w, c.beta, c.eta), lam)
             for key, value in zip(s.pair_keys, lam):
                 self.lam[key] = value
         n = self.problem.n
