@@ -83,3 +83,18 @@ def test_checkpoint_round_trip_gives_the_same_next_round(scenario):
     eb = [o for o in b.handle(Tick(10)) if isinstance(o, EstimateUpdate)][0]
     assert np.array_equal(ea.T_world_body, eb.T_world_body)
     assert np.array_equal(ea.T_world_object, eb.T_world_object)
+
+
+def test_duals_integrate_only_near_consensus(scenario):
+    a = _agent(scenario)
+    oid = sorted(a.y)[0]
+    far = a.y[oid].copy()
+    far[0, 3] += 3.0  # φ² = 9 > dual_max_phi2
+    a.handle(_obj_msg(1, 1, oid, far))
+    a.handle(Tick(1))
+    assert np.all(a.lam[(1, oid)] == 0.0)
+    near = a.y[oid].copy()
+    near[0, 3] += 0.05
+    a.handle(_obj_msg(1, 2, oid, near))
+    a.handle(Tick(2))
+    assert np.linalg.norm(a.lam[(1, oid)]) > 0.0
