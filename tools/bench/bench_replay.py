@@ -1,6 +1,7 @@
 """Replay speed: mission time vs wall time of `dran-edge replay` on the default simulated mission.
 
     .venv/bin/python tools/bench/bench_replay.py [--robots 6] [--duration-s 180] [--workdir DIR]
+    .venv/bin/python tools/bench/bench_replay.py --blas-ablation
 
 Simulates the mission twice with the same seed into ``--workdir`` (kept between runs; the
 simulation itself is not timed): once with rendered camera frames (the replay runs the AprilTag
@@ -51,6 +52,41 @@ def _replay(run: Path, workers: int | None) -> dict:
     return rep
 
 
+def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
+    """One robot's DRAN rounds alone, OpenBLAS threads as loaded vs 1, interleaved per round."""
+    import bisect
+
+    import numpy as np
+
+    from dran_edge import run_dir as rd
+    from dran_edge.events import Tick
+    from dran_edge.replay_robots import RobotRunner, RobotSpec, restore_blas_threads, set_blas_threads
+
+    mission = rd.open_run(run).mission
+    cpu = {"default": [], "1 thread": []}
+    runners = {k: RobotRunner([RobotSpec(str(run), robot)]) for k in cpu}
+    rounds = int(math.ceil(mission.duration_s / 0.5))
+    default = set_blas_threads(None)
+    for k in range(rounds):
+        t_k = mission.start_ns + (k + 1) * 500_000_000
+        for arm, runner in runners.items():
+            r = next(iter(runner.robots.values()))
+            end = bisect.bisect_right(r.events, (t_k, math.inf), lo=r.next_event)
+            for _, _, ev in r.events[r.next_event:end]:
+                r.core.handle(ev)
+            r.next_event = end
+            prev = set_blas_threads(1) if arm == "1 thread" else None
+            c0 = time.process_time()
+            r.core.handle(Tick(t_k))
+            cpu[arm].append(time.process_time() - c0)
+            if prev:
+                restore_blas_threads(prev)
+    n_default = sorted(set(default.values()))
+    a, b = (1e3 * np.mean(cpu[k][-last:]) for k in ("default", "1 thread"))
+    print(f"{robot} alone, last {last} of {rounds} rounds, CPU per round: OpenBLAS threads "
+          f"{n_default} {a:.1f} ms vs 1 thread {b:.1f} ms (ratio {a / b:.2f})")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--robots", type=int, default=6)
@@ -59,9 +95,14 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="perception processes")
     ap.add_argument("--workdir", default="/tmp/dran-edge-bench-replay")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--blas-ablation", action="store_true",
+                    help="only time one robot's rounds with OpenBLAS's default threads vs 1")
     args = ap.parse_args(argv)
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
+    if args.blas_ablation:
+        _blas_ablation(_simulate(workdir, "none", args))
+        return 0
     runs = {"full (frames -> perception -> agents)": _simulate(workdir, "render", args),
             "back-end only (observations in ingest.bin)": _simulate(workdir, "none", args)}
     results = {name: _replay(run, args.workers) for name, run in runs.items()}
