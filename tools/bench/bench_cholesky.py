@@ -1,13 +1,21 @@
 """Benchmark: our supernodal Cholesky vs SuperLU on the damped normal matrices A + μI of the six
 g2o graphs (the tier-3 cost of one LM trial).
 
-    .venv/bin/python tools/bench/bench_cholesky.py [DATA_DIR] [--repeat N]
+    .venv/bin/python tools/bench/bench_cholesky.py [DATA_DIR] [--repeat N] [--baseline FILE]
 
 For each graph: A = JᵀJ of the geodesic residual with SE-Sync weights at the chordal
 initialisation (vertex 0 fixed), μ = 1e-6·max diag(A). Times (best of --repeat) of
 SuperLU (``splu``, MMD on AᵀA+A, symmetric mode, as lm.py's 'superlu' option) and of our
 numeric factorisation, plus our one-off analysis and one solve with 1 right-hand side each;
 the relative residual ‖(A+μI)x − b‖∞/‖b‖∞ checks both.
+
+``--baseline FILE`` (another version of dran_edge/sparse_cholesky.py, e.g. from
+``git show REV:dran_edge/sparse_cholesky.py > /tmp/base.py``) adds an A/B table on the SE(3)
+graphs: analysis, factorisation and solve of both versions on the same matrix, and whole LM solves
+(lm.solve with linear_solver='cholesky': chordal residual with the exact Hessian to 1e-8 as the
+CLI, and geodesic Gauss–Newton to 1e-5) with each version swapped into dran_edge.lm, interleaved,
+best of --repeat. These times are CPU seconds of this process (time.process_time), which a
+shared, oversubscribed machine disturbs far less than wall time; F of both results is compared.
 """
 
 from __future__ import annotations
@@ -20,11 +28,16 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see bench_g2o.py
 
+import importlib.util
+
 import numpy as np
 import scipy.sparse as sp
 
+import dran_edge.sparse_cholesky as ours
+from dran_edge import lm
 from dran_edge.g2o import read_g2o
-from dran_edge.lm import _factorize, build_plan, linearize
+from dran_edge.lm import LMParams, _factorize, build_plan, linearize
+from dran_edge.objective import sesync_objective, sesync_weights
 from dran_edge.pgo import initial_poses, pose_graph
 from dran_edge.sparse_cholesky import SymbolicCholesky
 
@@ -75,11 +88,83 @@ def _one(name: str, path: Path, repeat: int) -> str:
     )
 
 
+def _cpu_best(fn, repeat):
+    best, out = float("inf"), None
+    for _ in range(repeat):
+        t = time.process_time()
+        out = fn()
+        best = min(best, time.process_time() - t)
+    return best, out
+
+
+def _load_baseline(path: str):
+    spec = importlib.util.spec_from_file_location("sparse_cholesky_baseline", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _ab(name: str, path: Path, base, repeat: int) -> list[str]:
+    """A/B of our module against ``base`` on one graph (CPU ms / s, best of ``repeat``)."""
+    g = read_g2o(path)
+    T0 = initial_poses(g, "chordal")
+    graph = pose_graph(g, "geodesic", "sesync")
+    plan = build_plan(graph)
+    A = linearize(graph, plan, T0).A
+    mu = 1e-6 * float(A.diagonal().max())
+    b = np.random.default_rng(0).normal(size=plan.n_u)
+    row = {}
+    args = (plan.A_indptr, plan.A_indices, plan.n_u, plan.dof)
+    for label, mod in (("base", base), ("ours", ours)):
+        t_an, sym = _cpu_best(lambda mod=mod: mod.SymbolicCholesky(*args), repeat)
+        t_ch, ch = _cpu_best(lambda sym=sym: sym.factorize(A.data, mu), repeat)
+        t_s, x = _cpu_best(lambda ch=ch: ch.solve(b), repeat)
+        row[label] = (t_an, t_ch, t_s, x, sym.num_supernodes)
+    dx = np.abs(row["ours"][3] - row["base"][3]).max() / np.abs(row["base"][3]).max()
+    kappa, tau = sesync_weights(g.dim, g.information)
+    runs = {}
+    cases = (("chordal", 1e-8, "exact"), ("geodesic", 1e-5, "gauss_newton"))
+    saved = lm.SymbolicCholesky, lm.NotPositiveDefinite
+    try:
+        for _ in range(repeat):
+            for label, mod in (("base", base), ("ours", ours)):
+                lm.SymbolicCholesky, lm.NotPositiveDefinite = (
+                    mod.SymbolicCholesky,
+                    mod.NotPositiveDefinite,
+                )
+                for residual, tol, hessian in cases:
+                    gr = pose_graph(g, residual, "sesync")
+                    params = LMParams(cost_tol=tol, linear_solver="cholesky", hessian=hessian)
+                    t = time.process_time()
+                    res = lm.solve(gr, T0, params)
+                    dt = time.process_time() - t
+                    F = sesync_objective(res.poses, g.edges, g.measurements, kappa, tau)
+                    prev = runs.get((label, residual), (float("inf"), F))
+                    runs[(label, residual)] = (min(prev[0], dt), F)
+    finally:
+        lm.SymbolicCholesky, lm.NotPositiveDefinite = saved
+    out = []
+    (ba, bc, bs, _, bn), (oa, oc, os_, _, on) = row["base"], row["ours"]
+    out.append(
+        f"{name:15s} {bn:5d} {on:5d} | {1e3 * ba:6.1f} {1e3 * oa:6.1f} | {1e3 * bc:6.1f} "
+        f"{1e3 * oc:6.1f} {bc / oc:5.2f}x | {1e3 * bs:5.1f} {1e3 * os_:5.1f} | {dx:7.0e}"
+    )
+    for residual, _, _ in cases:
+        (tb, Fb), (to, Fo) = runs[("base", residual)], runs[("ours", residual)]
+        out.append(
+            f"{'':15s} LM {residual:8s}: base {tb:6.3f} s, ours {to:6.3f} s, ours/base "
+            f"{to / tb:5.3f}; F {Fo:.10g}, |ΔF|/F {abs(Fo - Fb) / Fb:.0e}"
+        )
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     default = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "g2o"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_dir", nargs="?", default=str(default) if default.exists() else None)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--baseline", help="another sparse_cholesky.py to compare against (A/B)")
     args = ap.parse_args(argv)
     if args.data_dir is None:
         ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
@@ -91,6 +176,16 @@ def main(argv: list[str] | None = None) -> int:
     for name, fname in FILES.items():
         print(_one(name, Path(args.data_dir) / fname, args.repeat), flush=True)
     print("speed-up = SuperLU factorisation time / our numeric factorisation time (same matrix)")
+    if args.baseline:
+        base = _load_baseline(args.baseline)
+        print(f"\n# A/B against {args.baseline}: CPU time (process_time), best of {args.repeat}")
+        print(
+            f"{'dataset':15s} {'sn b':>5s} {'sn o':>5s} | {'analyse b/o ms':>13s} | "
+            f"{'factor b/o ms':>13s} {'b/o':>6s} | {'solve b/o':>11s} | {'Δx':>7s}"
+        )
+        for name in ("parking-garage", "sphere2500", "torus3D"):
+            for line in _ab(name, Path(args.data_dir) / FILES[name], base, args.repeat):
+                print(line, flush=True)
     return 0
 
 
