@@ -48,7 +48,6 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig
 from dran_edge.consensus import ConsensusFactors, consensus_error, dual_update, phi, phi_dim
 from dran_edge.events import (

@@ -77,8 +77,8 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
         H = lin.A.tocsr()
         lu = spla.splu(sp.csc_matrix(H[ro][:, ro]), permc_spec="MMD_AT_PLUS_A",
                        diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        blocks.append(dict(own=own, known=known[known != gauge], lu=lu, H_rk=H[ro][:, rk].tocsr(),
-                           g=lin.g_x[ro], delta=np.zeros(ro.size)))
+        blocks.append({"own": own, "known": known[known != gauge], "lu": lu, "H_rk": H[ro][:, rk].tocsr(),
+                           "g": lin.g_x[ro], "delta": np.zeros(ro.size)})
     last_sent: dict = {}
     sweeps = 0
     for it in range(params.max_iterations):

@@ -31,8 +31,8 @@ identity; robots without it are anchored through their neighbours.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -177,11 +177,11 @@ class LinearStage:
             self.blocks.append(_Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], view[ro].copy()))
             ex = edges[part.inter_edges]
             mine_j = partition.owner[ex[:, 1]] == part.robot_id
-            self.frames.append(dict(
-                fixed=bool(np.any(part.vertices == gauge)), X_hat=X_hat[_expand(part.vertices, b)]
-                .reshape(part.vertices.size, b, -1), verts=part.vertices, mine_j=mine_j,
-                own=np.where(mine_j, ex[:, 1], ex[:, 0]), other=np.where(mine_j, ex[:, 0], ex[:, 1]),
-                M=M[part.inter_edges], c=c_of(part.robot_id)[part.inter_edges], w=w[part.inter_edges]))
+            self.frames.append({
+                "fixed": bool(np.any(part.vertices == gauge)), "X_hat": X_hat[_expand(part.vertices, b)]
+                .reshape(part.vertices.size, b, -1), "verts": part.vertices, "mine_j": mine_j,
+                "own": np.where(mine_j, ex[:, 1], ex[:, 0]), "other": np.where(mine_j, ex[:, 0], ex[:, 1]),
+                "M": M[part.inter_edges], "c": c_of(part.robot_id)[part.inter_edges], "w": w[part.inter_edges]})
         self.heard = [np.zeros(n, bool) for _ in partition.parts]
         self.multiplicative = b > 1
 
@@ -358,7 +358,7 @@ def _so2_project(M: np.ndarray) -> np.ndarray:
 def direct_exchange(stage: InitStage, iteration: int, outgoing: dict) -> dict:
     """Lossless in-memory exchange (tests, centralized checks); counts nothing."""
     incoming: dict[int, list] = {}
-    for _r, sends in outgoing.items():
+    for sends in outgoing.values():
         for q, entries in sends:
             incoming.setdefault(q, []).extend(entries)
     return incoming

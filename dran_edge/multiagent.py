@@ -230,9 +230,9 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     converged (or K_max). Returns the merged poses and the numbers the bench reports."""
     import dataclasses
 
+    from dran_edge.agent import LocalProblem
     from dran_edge.dist_init import InitParams, distributed_chordal_init
     from dran_edge.objective import sesync_objective, sesync_weights
-    from dran_edge.agent import LocalProblem
     from dran_edge.partition import partition_contiguous
 
     t_start = time.perf_counter()
@@ -244,7 +244,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                     part, fleet.init_exchange, init_params or InitParams(gauss_seidel=True))
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
-    F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)  # noqa: E731
+    F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)
     agents = []
     for r in range(num_robots):

@@ -27,6 +27,7 @@ between copies costs).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,7 +106,7 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         goals = obj_t[rng.choice(M, params.goals_per_robot, replace=False)] + rng.normal(0, 1.0, (params.goals_per_robot, 3))
         way = np.vstack([start, goals])
         pts = []
-        for a, b in zip(way[:-1], way[1:]):
+        for a, b in itertools.pairwise(way):
             k = max(int(np.linalg.norm(b - a) / params.step_m), 1)
             pts.append(a + (b - a) * (np.arange(k) / k)[:, None])
         pts.append(way[-1:])
@@ -128,7 +129,7 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         if params.outlier_ratio > 0:
             wrong = rng.random(pi.size) < params.outlier_ratio
             obs_obj[wrong] = (oi[wrong] + rng.integers(1, M, wrong.sum())) % M
-            n_loops = int(round(params.outlier_ratio * max(pi.size, 1)))
+            n_loops = round(params.outlier_ratio * max(pi.size, 1))
             if n_loops and n > 3:
                 a = rng.integers(0, n, n_loops)
                 b = (a + rng.integers(2, n, n_loops)) % n

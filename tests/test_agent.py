@@ -1,6 +1,7 @@
 """One robot's DRAN agent (dran_edge.agent): descent, asynchrony, checkpoints."""
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -38,7 +39,7 @@ def test_local_cost_decreases_with_the_descent_step(scenario):
         a.handle(Tick(k))
         costs.append(_local_cost(a))
     assert costs[1] < costs[0]
-    assert all(c1 <= c0 for c0, c1 in zip(costs, costs[1:]))
+    assert all(c1 <= c0 for c0, c1 in itertools.pairwise(costs))
 
 
 def _obj_msg(sender, rnd, oid, T):
@@ -47,7 +48,7 @@ def _obj_msg(sender, rnd, oid, T):
 
 def test_missing_duplicate_and_reordered_messages_are_tolerated(scenario):
     a = _agent(scenario)
-    oid = sorted(a.y)[0]
+    oid = min(a.y)
     T_new, T_old = a.y[oid].copy(), a.y[oid].copy()
     T_new[0, 3] += 0.2
     T_old[0, 3] -= 0.2
@@ -58,7 +59,7 @@ def test_missing_duplicate_and_reordered_messages_are_tolerated(scenario):
     assert np.allclose(a.nbr_obj[(1, oid)][0], T_new)
     assert a.counters["stale_dropped"] == 1
     outs = a.handle(Tick(2))
-    est = [o for o in outs if isinstance(o, EstimateUpdate)][0]
+    est = next(o for o in outs if isinstance(o, EstimateUpdate))
     assert np.all(np.isfinite(est.T_world_body)) and est.consensus_error > 0
     # the neighbour's copy pulls ours towards it (consensus), never away
     assert a.y[oid][0, 3] > T_new[0, 3] - 0.2 + 1e-6
@@ -79,15 +80,15 @@ def test_checkpoint_round_trip_gives_the_same_next_round(scenario):
     for k in range(3):
         a.handle(Tick(k))
     b = Agent.from_state(a.config, a.to_state())
-    ea = [o for o in a.handle(Tick(10)) if isinstance(o, EstimateUpdate)][0]
-    eb = [o for o in b.handle(Tick(10)) if isinstance(o, EstimateUpdate)][0]
+    ea = next(o for o in a.handle(Tick(10)) if isinstance(o, EstimateUpdate))
+    eb = next(o for o in b.handle(Tick(10)) if isinstance(o, EstimateUpdate))
     assert np.array_equal(ea.T_world_body, eb.T_world_body)
     assert np.array_equal(ea.T_world_object, eb.T_world_object)
 
 
 def test_duals_integrate_only_near_consensus(scenario):
     a = _agent(scenario)
-    oid = sorted(a.y)[0]
+    oid = min(a.y)
     far = a.y[oid].copy()
     far[0, 3] += 3.0  # φ² = 9 > dual_max_phi2
     a.handle(_obj_msg(1, 1, oid, far))

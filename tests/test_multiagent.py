@@ -1,10 +1,12 @@
 """DRAN agents in one process over encoded datagrams (dran_edge.multiagent, objects_sim)."""
 
+import itertools
+
 import numpy as np
 import pytest
 
 from dran_edge.config import AgentConfig
-from dran_edge.multiagent import LinkModel, adjacency_from_pairs, random_connected, is_connected
+from dran_edge.multiagent import LinkModel, adjacency_from_pairs, is_connected, random_connected
 from dran_edge.objects_sim import SimParams, make_scenario, run_objects
 
 CFG = AgentConfig(robust_kernel="none", eps_phi=1e-6)
@@ -21,7 +23,7 @@ def test_three_robot_toy_reaches_consensus_and_the_centralized_answer(toy):
     A = adjacency_from_pairs(3, [(0, 1), (1, 2), (0, 2)])
     out = run_objects(toy, CFG, A, max_rounds=80, history_every=20)
     ces = [h["CE"] for h in out["history"]]
-    assert ces[-1] < 1e-4 and all(b < a for a, b in zip(ces, ces[1:]))  # CE goes to zero
+    assert ces[-1] < 1e-4 and all(b < a for a, b in itertools.pairwise(ces))  # CE goes to zero
     assert out["SR_cost"] > 99.0  # percent
     # the trajectories match the centralized LM's up to a small fraction of the initial error
     assert abs(out["ATE"] - out["ATE_star"]) < 0.1 * out["ATE_init"]
@@ -30,9 +32,10 @@ def test_three_robot_toy_reaches_consensus_and_the_centralized_answer(toy):
 def test_relay_reaches_a_robot_two_hops_away():
     sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
                                  goals_per_robot=2, seed=3))
+    import dataclasses
+
     from dran_edge.agent import Agent
     from dran_edge.multiagent import Fleet, metropolis_weights
-    import dataclasses
 
     A = adjacency_from_pairs(3, [(0, 1), (1, 2)])
     W = metropolis_weights(A)

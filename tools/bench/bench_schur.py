@@ -26,7 +26,6 @@ import time
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse as sp
 
 from dran_edge import geometry as geo
 from dran_edge.consensus import ConsensusFactors
@@ -44,7 +43,7 @@ def problem(seed: int = 0):
     obj = geo.se3_from_rt(geo.so3_exp(rng.normal(0, 1, (n_obj, 3))),
                           np.column_stack([3.0 * np.cos(np.arange(n_obj)), 3.0 * np.sin(np.arange(n_obj)),
                                            rng.normal(0, 0.2, n_obj)]))
-    noise = lambda m, s: geo.se3_exp(rng.normal(0, s, (m, 6)))  # noqa: E731
+    noise = lambda m, s: geo.se3_exp(rng.normal(0, s, (m, 6)))
     odo = geo.se3_between(T_gt[:-1], T_gt[1:]) @ noise(n - 1, 0.01)
     pi = np.sort(rng.choice(n, n_obs, replace=False))
     oi = rng.integers(0, n_obj, n_obs)
