@@ -121,6 +121,22 @@ def test_gathered_leaf_siblings_are_split_when_their_parent_cannot_join(monkeypa
         np.testing.assert_allclose(x, np.linalg.solve(M, rhs), rtol=1e-6, atol=1e-8)
 
 
+def test_extend_add_fallback_for_old_numpy_gives_the_same_solution(monkeypatch):
+    import dran_edge.sparse_cholesky as sc
+
+    g, truth = synthetic_graph(3, side=4, layers=2, seed=5)
+    plan = build_plan(pose_graph(g, "chordal", "sesync"))
+    lin = linearize(pose_graph(g, "chordal", "sesync"), plan, truth)
+    sym = SymbolicCholesky(plan.A_indptr, plan.A_indices, plan.n_u, plan.dof)
+    rhs = np.random.default_rng(1).normal(size=plan.n_u)
+    x_at = sym.factorize(lin.A.data, 1e-3).solve(rhs)
+    monkeypatch.setattr(sc, "_scatter_add", sc._add_at_fancy)
+    x_fancy = sym.factorize(lin.A.data, 1e-3).solve(rhs)
+    np.testing.assert_allclose(x_fancy, x_at, rtol=1e-10, atol=1e-12)
+    M = lin.A.toarray() + 1e-3 * np.eye(plan.n_u)
+    np.testing.assert_allclose(x_fancy, np.linalg.solve(M, rhs), rtol=1e-7, atol=1e-9)
+
+
 def test_update_positions_are_the_front_layout():
     rng = np.random.default_rng(3)
     for _ in range(20):
