@@ -58,6 +58,9 @@ class SimParams:
     sigma_rot_rad: float = float(np.deg2rad(1.0))
     sigma_trans_m: float = 0.005
     outlier_ratio: float = 0.0
+    outlier_kinds: str = "both"
+    """Which outliers ``outlier_ratio`` injects: 'ids' (wrong object ids), 'loops' (false loop
+    closures) or 'both'."""
     weights: str = "unit"
     seed: int = 0
 
@@ -128,8 +131,12 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         between_T, robust = Z_odo, np.zeros(n - 1, bool)
         if params.outlier_ratio > 0:
             wrong = rng.random(pi.size) < params.outlier_ratio
-            obs_obj[wrong] = (oi[wrong] + rng.integers(1, M, wrong.sum())) % M
+            shift = rng.integers(1, M, wrong.sum())
+            if params.outlier_kinds in ("ids", "both"):
+                obs_obj[wrong] = (oi[wrong] + shift) % M
             n_loops = round(params.outlier_ratio * max(pi.size, 1))
+            if params.outlier_kinds == "ids":
+                n_loops = 0
             if n_loops and n > 3:
                 a = rng.integers(0, n, n_loops)
                 b = (a + rng.integers(2, n, n_loops)) % n
