@@ -7,8 +7,10 @@
    decode is counted by reason and skipped, like on the robot. Recorded frames go through the
    perception pipeline (detector -> tag poses -> objects), and each observation batch crosses the
    same boundary the daemon's journal does: encoded as an ingest record and decoded again.
-   Perception depends only on the frames, so it runs first, one worker process per robot
-   (``workers``), and its output does not depend on the number of workers.
+   Perception depends only on the frames, so it runs in worker processes, window by window of
+   mission time (``PERCEPTION_WINDOW_S``), ahead of the rounds: a window's observations are
+   handed to the robots just before the rounds reach its start, in the same order whatever the
+   timing, so the output does not depend on the number of workers.
 2. **Rounds.** Time advances in rounds of the robots' ``comms.period_s`` (2 Hz) from the mission
    start. In round k (stamp ``t_k = start + (k+1)·period``) each robot, in id order, gets: every
    input whose stamp is ≤ t_k (ingest records in file order), then the neighbour messages that
@@ -56,7 +58,7 @@ log = logging.getLogger(__name__)
 REPORT_FORMAT = "dran-edge-replay/1"
 #: Fields of report.json that depend on the machine's speed (golden comparisons ignore them).
 WALL_CLOCK_FIELDS = ("replay_wall_s", "realtime_factor", "perception_wall_s", "rounds_wall_s",
-                     "cpu_s")
+                     "cpu_s", "perception_wait_s")
 
 
 @dataclass(frozen=True)
@@ -120,23 +122,27 @@ class ReplayOptions:
 
 
 # ---------------------------------------------------------------------------------- perception
-def _perceive_robot(args: tuple[str, str, str]) -> tuple[str, list[bytes], int, float]:
-    """One robot's frames -> observation batches as ingest records (runs in a worker)."""
-    config_path, calib_dir, name = args
+#: Perception runs in windows of this much mission time, so the rounds can start before all
+#: frames are processed (the window's results are needed only once the rounds reach it).
+PERCEPTION_WINDOW_S = 15.0
+
+
+def _perceive_window(args: tuple[str, str, str, int, int]) -> tuple[str, int, list[bytes], int]:
+    """One robot's frames with stamps in [lo, hi) -> observation batches as ingest records."""
+    config_path, calib_dir, name, lo, hi = args
     from dran_edge.comms.ingest import encode_event
     from dran_edge.config import load_config
     from dran_edge.perception.calib import load_calibration
     from dran_edge.perception.pipeline import ObservationPipeline
     from dran_edge.perception.sources import RecordedFramesSource
-
     from dran_edge.replay_robots import set_blas_threads
 
-    t0 = time.perf_counter()
     set_blas_threads(1)  # one perception process per core already
     cfg = load_config(config_path)
     pipeline = ObservationPipeline(load_calibration(calib_dir, name))
     records, frames = [], 0
     source = RecordedFramesSource(cfg.resolve(cfg.camera.recording))
+    source.rows = [row for row in source.rows if lo <= row[0] < hi]
     try:
         for frame in source:
             frames += 1
@@ -145,7 +151,59 @@ def _perceive_robot(args: tuple[str, str, str]) -> tuple[str, list[bytes], int, 
                 records.append(encode_event(batch))
     finally:
         source.close()
-    return name, records, frames, time.perf_counter() - t0
+    return name, lo, records, frames
+
+
+class _Perception:
+    """Recorded frames through the pipeline in worker processes, window by window, ahead of
+    the rounds; ``ready_until(t)`` hands over every window that starts at or before ``t``."""
+
+    def __init__(self, run: rd.Run, opt: ReplayOptions, start_ns: int, end_ns: int):
+        self.jobs: list[tuple] = []
+        self.frames: dict[str, int] = {}
+        step = int(PERCEPTION_WINDOW_S * 1e9)
+        robots = []
+        for info in run.mission.robots:
+            cfg = run.load_config(info.name)
+            if cfg.camera.source != "recorded" or run.frames_dir(info.name) is None:
+                continue
+            calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
+            robots.append((str(run.config_path(info.name)), str(calib), info.name))
+            self.frames[info.name] = 0
+        # windows cover every possible stamp: (-inf, start + step), ..., [.., +inf)
+        edges = list(range(start_ns + step, end_ns, step))
+        bounds = list(zip([0] + edges, edges + [2**63 - 1]))
+        for lo, hi in bounds:
+            for r in robots:
+                self.jobs.append((*r, lo, hi))
+        self.pool = None
+        self.futures: list = []
+        self.next = 0
+        self.t0 = time.perf_counter()
+        self.done_s = 0.0
+        self.wait_s = 0.0
+        if self.jobs:
+            workers = max(1, min(len(robots), opt.workers or os.cpu_count() or 1))
+            self.pool = ProcessPoolExecutor(max_workers=workers)
+            self.futures = [self.pool.submit(_perceive_window, job) for job in self.jobs]
+
+    def ready_until(self, t_ns: int) -> dict[str, bytes]:
+        """Records of the windows starting at or before ``t_ns`` not handed over yet."""
+        out: dict[str, list[bytes]] = {}
+        while self.next < len(self.jobs) and self.jobs[self.next][3] <= t_ns:
+            w0 = time.perf_counter()
+            name, _lo, records, frames = self.futures[self.next].result()
+            self.wait_s += time.perf_counter() - w0
+            self.frames[name] += frames
+            out.setdefault(name, []).extend(records)
+            self.next += 1
+            if self.next == len(self.jobs):
+                self.done_s = time.perf_counter() - self.t0
+        return {name: b"".join(recs) for name, recs in out.items()}
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 # ---------------------------------------------------------------------------------- the replay
@@ -153,39 +211,6 @@ def _perceive_robot(args: tuple[str, str, str]) -> tuple[str, list[bytes], int, 
 class ReplayResult:
     report: dict
     out_dir: Path
-
-
-def _run_perception(run: rd.Run, opt: ReplayOptions,
-                    progress: Callable[[str, int, int], None] | None
-                    ) -> tuple[dict[str, tuple[bytes, int]], float]:
-    """{robot name: (observation records, frames)} for robots with recorded frames."""
-    jobs = []
-    for info in run.mission.robots:
-        cfg = run.load_config(info.name)
-        if cfg.camera.source != "recorded" or run.frames_dir(info.name) is None:
-            continue
-        calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
-        jobs.append((str(run.config_path(info.name)), str(calib), info.name))
-    if not jobs:
-        return {}, 0.0
-    t0 = time.perf_counter()
-    workers = max(1, min(len(jobs), opt.workers or os.cpu_count() or 1))
-    if progress:
-        progress("perception", 0, len(jobs))
-    results = []
-    if workers <= 1:
-        for k, job in enumerate(jobs):
-            results.append(_perceive_robot(job))
-            if progress:
-                progress("perception", k + 1, len(jobs))
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for k, res in enumerate(pool.map(_perceive_robot, jobs)):
-                results.append(res)
-                if progress:
-                    progress("perception", k + 1, len(jobs))
-    out = {name: (b"".join(records), frames) for name, records, frames, _ in results}
-    return out, time.perf_counter() - t0
 
 
 def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
@@ -231,10 +256,9 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
                          path=str(run.root))
     period_s = periods.pop()
     period_ns = int(round(period_s * 1e9))
-    perceived, perception_wall = _run_perception(run, opt, progress)
     by_id = {r.id: r for r in mission.robots}
-    specs = [RobotSpec(str(run.root), by_id[i].name, *perceived.get(by_id[i].name, (b"", 0)))
-             for i in ids]
+    name_of = {r.name: r.id for r in mission.robots}
+    specs = [RobotSpec(str(run.root), by_id[i].name) for i in ids]
     workers = 1 if opt.transport == "udp" else max(1, min(len(ids), opt.workers or
                                                          os.cpu_count() or 1))
     if workers > 1:
@@ -254,6 +278,8 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
     last_stamp = max(mission.start_ns + int(mission.duration_s * 1e9), robots.last_stamp())
     mission_rounds = max(1, int(math.ceil((last_stamp - mission.start_ns) / period_ns)))
     total_rounds = mission_rounds + opt.settle_rounds
+    perception = _Perception(run, opt, mission.start_ns,
+                             mission.start_ns + mission_rounds * period_ns)
     rounds_rows = []
     bytes_total = 0
     expected: Counter = Counter()
@@ -265,6 +291,9 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
                 delay = t_rounds + (k + 1) * period_s / opt.speed - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
+            new_obs = perception.ready_until(t_k)
+            if new_obs:
+                robots.add_records({name_of[n]: data for n, data in new_obs.items()})
             if bus is not None:
                 inboxes = {i: [d for _, d in bus.endpoint(i).receive()] for i in ids}
             else:
@@ -297,6 +326,7 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
         results = robots.results()
     finally:
         robots.close()
+        perception.close()
     rounds_wall = time.perf_counter() - t_rounds
     out_dir = run.out_dir
     out_dir.mkdir(exist_ok=True)
@@ -309,7 +339,8 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
         "robots": len(ids),
         "mission_s": float(mission.duration_s),
         "replay_wall_s": round(wall, 3),
-        "perception_wall_s": round(perception_wall, 3),
+        "perception_wall_s": round(perception.done_s, 3),
+        "perception_wait_s": round(perception.wait_s, 3),
         "rounds_wall_s": round(rounds_wall, 3),
         "realtime_factor": round(mission.duration_s / wall, 3) if wall > 0 else None,
         "round_workers": workers,
@@ -318,7 +349,7 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
         "bytes_total": int(bytes_total),
         "transport": opt.transport,
         "options": {k: v for k, v in asdict(opt).items() if k not in ("workers",)},
-        "frames_processed": sum(r.frames for r in res),
+        "frames_processed": sum(perception.frames.values()),
         "observations": sum(r.observations for r in res),
         "ingest_rejected": dict(sum((r.rejected for r in res), Counter())),
         "converged_robots": rounds_rows[-1]["converged_robots"] if rounds_rows else 0,

@@ -236,6 +236,7 @@ class _Robot:
     rejected: Counter = field(default_factory=Counter)
     frames: int = 0
     observations: int = 0
+    next_order: int = 0
 
 
 class RobotRunner:
@@ -275,10 +276,34 @@ class RobotRunner:
             link = NeighbourLink(tr, key=REPLAY_KEY, policy=policy, boot_epoch=1,
                                  max_datagram_bytes=cfg.comms.datagram_max_bytes)
             self.robots[info.id] = _Robot(info, cfg, core, link, tr, timeline, rejected=rejected,
-                                          frames=spec.frames, observations=n_obs)
+                                          frames=spec.frames, observations=n_obs,
+                                          next_order=len(timeline))
 
     def last_stamp(self) -> int:
         return max([r.events[-1][0] for r in self.robots.values() if r.events], default=0)
+
+    def add_records(self, records: dict[int, bytes]) -> None:
+        """More ingest records for some robots (perception's observation batches of a window).
+
+        They take order numbers after the robot's ingest.bin records, in the order given, so
+        the timeline (sorted by stamp, then order) does not depend on when they arrive — only
+        that every record of a window arrives before the rounds reach the window's start.
+        """
+        for rid, data in records.items():
+            r = self.robots.get(rid)
+            if r is None or not data:
+                continue
+            events, rejected = decode_ingest(data, f"{r.info.name} observations")
+            r.rejected.update(rejected)
+            new = []
+            for ev in events:
+                new.append((event_stamp(ev), r.next_order, ev))
+                r.next_order += 1
+                if isinstance(ev, ObservationBatch):
+                    r.observations += len(ev.observations)
+            rest = r.events[r.next_event:] + new
+            rest.sort(key=lambda x: (x[0], x[1]))
+            r.events[r.next_event:] = rest
 
     def step(self, t_k: int, inboxes: dict[int, list[bytes]] | None) -> dict[int, dict]:
         """One round for every robot held; returns per robot its outbox and estimate summary."""
@@ -352,6 +377,8 @@ def _worker_main(conn, specs: list[RobotSpec]) -> None:
             cmd, arg = conn.recv()
             if cmd == "step":
                 conn.send(("ok", runner.step(*arg)))
+            elif cmd == "add":
+                runner.add_records(arg)
             elif cmd == "finish":
                 conn.send(("ok", runner.results()))
                 return
@@ -392,6 +419,12 @@ class WorkerPool:
 
     def last_stamp(self) -> int:
         return self._last
+
+    def add_records(self, records: dict[int, bytes]) -> None:
+        for conn, ids in zip(self._conns, self._ids_of):
+            mine = {i: records[i] for i in ids if i in records}
+            if mine:
+                conn.send(("add", mine))
 
     def step(self, t_k: int, inboxes: dict[int, list[bytes]]) -> dict[int, dict]:
         for conn, ids in zip(self._conns, self._ids_of):
