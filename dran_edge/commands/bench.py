@@ -45,6 +45,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="noise multipliers of (1 deg, 0.005 m) (default 1)")
     o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
     o.add_argument("--outliers", type=float, default=0.0, help="fraction of wrong object ids / loops")
+    o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
+                   help="what --outliers injects: wrong object ids, false loops, or both")
     o.add_argument("--rounds", type=int, default=150, help="DRAN rounds per run (default 150)")
     o.add_argument("--robots", type=int, default=21)
     o.add_argument("--objects", type=int, default=60)
@@ -103,7 +105,7 @@ def run_objects_cmd(args) -> int:
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
-                         outlier_ratio=args.outliers)
+                         outlier_ratio=args.outliers, outlier_kinds=args.outlier_kinds)
         params = dataclasses.replace(base, sigma_rot_rad=base.sigma_rot_rad * noise,
                                      sigma_trans_m=base.sigma_trans_m * noise)
         sc = make_scenario(params)
