@@ -217,7 +217,7 @@ class Agent:
         self.last_sent: dict[tuple[int, str, int], tuple[np.ndarray, int]] = {}
         self.counters = {"rounds": 0, "accepted": 0, "rejected": 0, "linear_fail": 0,
                          "stale_dropped": 0, "objects_adopted": 0, "unhandled_events": 0,
-                         "obs_gated": 0}
+                         "obs_gated": 0, "obs_rejected": 0}
         self.converged = False
         self.last_norms = (math.inf, math.inf, math.inf)
         self.last_cost = math.nan
@@ -274,6 +274,7 @@ class Agent:
         p = self.problem
         gate = self.config.object_gate_m
         self.obs_ok = np.ones(p.obs_object.size, bool)
+        self.obs_ok_gate = self.obs_ok.copy()
         if p.obs_object.size == 0:
             return
         pred = self.x[p.obs_own] @ p.obs_T
@@ -289,6 +290,7 @@ class Agent:
             self.hops[oid] = 0
             self.origin[oid] = self.id
         self.counters["obs_gated"] = int((~self.obs_ok).sum())
+        self.obs_ok_gate = self.obs_ok.copy()
 
     # ----------------------------------------------------------------- one round
     def _adopt_unknown_objects(self) -> None:
@@ -310,13 +312,44 @@ class Agent:
                 if hs:
                     self.hops[oid] = min(self.hops[oid], min(hs) + 1)
 
+    def _check_associations(self) -> None:
+        """Cross-robot association check: an own observation whose predicted object position is
+        farther than ``association_gate_m`` from the median of the neighbours' copies of that
+        object (at least two copies) is treated as a wrong tag association and dropped
+        (``obs_rejected``); the object's copy restarts from the neighbours' median when none of
+        its own observations remain. Re-evaluated every round, so a dropped observation comes
+        back once the estimates agree with it."""
+        gate = self.config.association_gate_m
+        p = self.problem
+        if gate <= 0 or p.obs_object.size == 0:
+            return
+        by_obj: dict[int, list[np.ndarray]] = {}
+        for (j, oid), (T, _hop, _rnd) in self.nbr_obj.items():
+            by_obj.setdefault(oid, []).append(T[:-1, -1])
+        pred = (self.x[p.obs_own] @ p.obs_T)[:, :-1, -1]
+        rejected = np.zeros(p.obs_object.size, bool)
+        for oid, positions in by_obj.items():
+            if len(positions) < 2:
+                continue
+            idx = np.flatnonzero(p.obs_object == oid)
+            if idx.size == 0:
+                continue
+            centre = np.median(np.stack(positions), axis=0)
+            rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
+            if rejected[idx].all() and oid in self.y:
+                y = self.y[oid].copy()
+                y[:-1, -1] = centre
+                self.y[oid] = y
+        self.obs_ok = self.obs_ok_gate & ~rejected
+        self.counters["obs_rejected"] = int(rejected.sum())
+
     def _structure_for(self) -> _Structure:
         p = self.problem
         obj_ids = tuple(sorted(self.y))
         anchor_keys = tuple(sorted({(int(o), int(a)) for o, a in zip(p.inter_owner, p.inter_anchor_id)
                                     if (int(o), int(a)) in self.anchors}))
         pair_keys = tuple(sorted(k for k in self.nbr_obj if k[1] in self.y and k[0] in self.w))
-        key = (obj_ids, anchor_keys, pair_keys)
+        key = (obj_ids, anchor_keys, pair_keys, self.obs_ok.tobytes())
         if self._structure is not None and self._structure.key == key:
             return self._structure
         n, n_o, n_a, n_c = p.n, len(obj_ids), len(anchor_keys), len(pair_keys)
@@ -396,6 +429,7 @@ class Agent:
         self.k += 1
         self.counters["rounds"] += 1
         self._adopt_unknown_objects()
+        self._check_associations()
         s = self._structure_for()
         # Dual update, eq. 5b, with the newest copies of both ends.
         if s.pair_keys:

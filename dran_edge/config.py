@@ -188,6 +188,10 @@ class AgentConfig(_Checked):
     object_gate_m: float = _f(2.0, lo=0.0)
     """Consistency gate: an object observation whose predicted object position is farther than
     this from the medoid of the robot's predictions of that object is dropped (0: off), metres."""
+    association_gate_m: float = _f(8.0, lo=0.0)
+    """Cross-robot association check: an own object observation predicting the object farther
+    than this from the median of >= 2 neighbours' copies is dropped as a wrong association
+    (0: off), metres."""
     send_threshold: float = _f(1e-4, lo=0.0)
     """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
     moved by more than this since it was last sent to that neighbour (metres / unitless)."""

@@ -99,3 +99,24 @@ def test_duals_integrate_only_near_consensus(scenario):
     a.handle(_obj_msg(1, 2, oid, near))
     a.handle(Tick(2))
     assert np.linalg.norm(a.lam[(1, oid)]) > 0.0
+
+
+def test_observation_contradicted_by_two_neighbours_is_dropped(scenario):
+    a = _agent(scenario, neighbours=(1, 2))
+    oid = sorted(a.y)[0]
+    far = a.y[oid].copy()
+    far[:3, 3] += 20.0
+    a.handle(_obj_msg(1, 1, oid, far))
+    a.handle(_obj_msg(2, 1, oid, far))
+    a.handle(Tick(1))
+    own = a.problem.obs_object == oid
+    assert a.counters["obs_rejected"] == int(own.sum()) > 0
+    assert not a.obs_ok[own].any()
+    assert np.allclose(a.y[oid][:3, 3], far[:3, 3])  # restarted from the neighbours' median
+    b = _agent(scenario, neighbours=(1, 2))
+    near = b.y[oid].copy()
+    near[:3, 3] += 0.5
+    b.handle(_obj_msg(1, 1, oid, near))
+    b.handle(_obj_msg(2, 1, oid, near))
+    b.handle(Tick(1))
+    assert b.counters["obs_rejected"] == 0
