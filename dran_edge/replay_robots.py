@@ -198,9 +198,6 @@ class RobotSpec:
 
     run_dir: str
     name: str
-    observation_records: bytes = b""
-    """Perception's observation batches as ingest records (replayed frames)."""
-    frames: int = 0
 
 
 @dataclass
@@ -217,7 +214,6 @@ class RobotResult:
     """keys, stamps, factor arrays of the robot's local graph, when the core has one."""
     health: dict
     rejected: Counter
-    frames: int
     observations: int
 
 
@@ -234,7 +230,6 @@ class _Robot:
     first_seen: dict = field(default_factory=dict)
     health: dict = field(default_factory=dict)
     rejected: Counter = field(default_factory=Counter)
-    frames: int = 0
     observations: int = 0
     next_order: int = 0
 
@@ -258,15 +253,10 @@ class RobotRunner:
             core = make_core(cfg, info)
             events, rejected = decode_ingest(run.read_ingest(info.name),
                                              str(run.ingest_path(info.name)))
-            timeline, release, n_obs = [], 0, 0
+            timeline, release = [], 0
             for order, ev in enumerate(events):
                 release = max(release, event_stamp(ev))
                 timeline.append((release, order, ev))
-            extra, rej2 = decode_ingest(spec.observation_records, f"{info.name} observations")
-            rejected.update(rej2)
-            base = len(timeline)
-            timeline += [(event_stamp(ev), base + k, ev) for k, ev in enumerate(extra)]
-            timeline.sort(key=lambda x: (x[0], x[1]))
             n_obs = sum(len(ev.observations) for _, _, ev in timeline
                         if isinstance(ev, ObservationBatch))
             tr = Mailbox() if transport == "mailbox" else _udp_transport(cfg, mission.fleet)
@@ -276,7 +266,7 @@ class RobotRunner:
             link = NeighbourLink(tr, key=REPLAY_KEY, policy=policy, boot_epoch=1,
                                  max_datagram_bytes=cfg.comms.datagram_max_bytes)
             self.robots[info.id] = _Robot(info, cfg, core, link, tr, timeline, rejected=rejected,
-                                          frames=spec.frames, observations=n_obs,
+                                          observations=n_obs,
                                           next_order=len(timeline))
 
     def last_stamp(self) -> int:
@@ -359,7 +349,7 @@ class RobotRunner:
                          "obj_base": OBJ}
             initial = r.core.initial_estimate() if hasattr(r.core, "initial_estimate") else None
             out[rid] = RobotResult(rid, r.info.name, r.last, initial, r.first_seen, graph,
-                                   r.health, r.rejected, r.frames, r.observations)
+                                   r.health, r.rejected, r.observations)
         return out
 
     def close(self) -> None:
