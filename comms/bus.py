@@ -34,6 +34,9 @@ Model (all deterministic for a fixed ``BusParams.seed`` and the same call sequen
   ``k + latency_rounds + U{0..max_extra_latency_rounds}`` (extra latency reorders), and
   duplicated with ``duplicate_probability``. Each directed link draws from its own seeded
   generator, so one robot's traffic never changes another link's fate.
+  ``BusEndpoint.send(to, data, latency_rounds=0)`` overrides the base latency for one
+  datagram (synchronous exchanges such as the distributed initialisation: receivable in the
+  round it was sent).
 - ``send`` returns False (and counts the reason) only for local refusals: a datagram over
   ``max_datagram_bytes``, an unknown robot, or itself. Link-down and random losses count as
   lost in ``Bus.stats()`` after the sender counted the bytes as sent — as on a real radio.
@@ -241,7 +244,7 @@ class Bus:
             rng = self._rngs[(a, b)] = random.Random(f"dran-bus:{self.params.seed}:{a}:{b}")
         return rng
 
-    def _transmit(self, a: int, b: int, data: bytes) -> None:
+    def _transmit(self, a: int, b: int, data: bytes, latency_rounds: int | None = None) -> None:
         p = self.params
         self.datagrams_sent += 1
         for kind, n in self.classify(data).items():
@@ -256,7 +259,8 @@ class Bus:
         if u_loss < p.link_loss.get((a, b), p.loss_probability):
             self.lost["loss"] += 1
             return
-        due = self.round + p.latency_rounds + extra
+        base = p.latency_rounds if latency_rounds is None else latency_rounds
+        due = self.round + base + extra
         copies = 2 if u_dup < p.duplicate_probability else 1
         for _ in range(copies):
             heapq.heappush(self._queues[b], (due, next(self._order), a, data))
@@ -304,7 +308,13 @@ class BusEndpoint:
         self.counters = CommCounters()
         self._closed = False
 
-    def send(self, to: int, data: bytes) -> bool:
+    def send(self, to: int, data: bytes, latency_rounds: int | None = None) -> bool:
+        """``Transport.send``; ``latency_rounds`` overrides ``BusParams.latency_rounds`` for this
+        datagram (loss, extra latency and duplication still apply). Synchronous exchanges in
+        simulation use 0: sent in round k, receivable in round k (``multiagent.Fleet``'s
+        initialisation rounds)."""
+        if latency_rounds is not None and latency_rounds < 0:
+            raise ConfigError(f"latency_rounds must be >= 0, got {latency_rounds}")
         data = bytes(data)
         n = len(data)
         if self._closed:
@@ -317,7 +327,7 @@ class BusEndpoint:
             self.counters.dropped(to, n, "unknown_peer")
             return False
         self.counters.sent(to, n)
-        self.bus._transmit(self.robot, to, data)
+        self.bus._transmit(self.robot, to, data, latency_rounds)
         return True
 
     def receive(self, max_datagrams: int | None = None) -> list[tuple[int | None, bytes]]:

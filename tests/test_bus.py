@@ -207,3 +207,22 @@ def test_links_over_the_bus_count_every_byte_by_kind():
     # Byte totals agree between the bus (what went on the wire) and the links' counters.
     assert sum(links[i].counters.totals()["bytes_sent"] for i in ids) == sent_bytes
     assert list(itertools.chain.from_iterable(m.separators for m in received[0]))
+
+
+def test_per_datagram_latency_override_delivers_in_the_same_round():
+    bus = Bus([0, 1, 2], graph=[(0, 1), (1, 2)], params=BusParams(latency_rounds=2, seed=3))
+    e0, e1 = bus.endpoint(0), bus.endpoint(1)
+    bus.advance()
+    assert e0.send(1, b"now", latency_rounds=0)
+    assert e0.send(1, b"later")
+    assert e0.send(1, b"next", latency_rounds=1)
+    assert e1.receive() == [(0, b"now")]
+    bus.advance()
+    assert e1.receive() == [(0, b"next")]
+    bus.advance()
+    assert e1.receive() == [(0, b"later")]
+    # The override is still subject to the link model: no link, no delivery, bytes counted.
+    assert e0.send(2, b"x", latency_rounds=0) and bus.endpoint(2).receive() == []
+    assert bus.lost["no_link"] == 1 and bus.stats()["bytes_total"] == 3 + 5 + 4 + 1
+    with pytest.raises(ConfigError):
+        e0.send(1, b"y", latency_rounds=-1)
