@@ -19,7 +19,9 @@ SR_ATE needs the centralized solution: ``out/centralized/<robot>/trajectory.tum`
 otherwise ``merged.g2o`` (decentralized final estimate as vertices) is solved with our centralized
 Schur-LM (dran_edge.pgo) and mapped back to robots and stamps by ``merged_vertices.csv``.
 SR_cost uses the SE-Sync objective of ``merged.g2o``: F_k at the file's vertices, F_init at the
-chordal initialisation (shared by all methods, paper Sec. 6.1) and F* at the centralized optimum;
+robots' initial estimate (``trajectory_init.tum`` at the vertex stamps; each object placed by its
+first observation from that trajectory — where the decentralized method starts, paper Sec. 6.2)
+and F* at the centralized optimum (the chordal start's value is kept as ``F_chordal``);
 without merged.g2o, ``cost_init / cost_final / cost_centralized`` of out/report.json. Per round,
 SR_cost needs the latter (the convention of rounds.csv's cost column).
 """
@@ -158,13 +160,53 @@ def _find_mocap(run_dir: Path, mission, opt: EvalOptions) -> Path | None:
     return p if p.exists() else None
 
 
+def _initial_objective(g, vmap: dict, inits: dict[str, tuple[np.ndarray, np.ndarray]]
+                       ) -> float | None:
+    """F (SE-Sync) of merged.g2o at the robots' initial estimate, or None if one is missing.
+
+    Pose vertices take ``trajectory_init.tum`` interpolated at their stamps; an object vertex
+    is placed by its first observation edge (earliest stamp) from that initial trajectory,
+    as a robot initialises an object it has not seen before.
+    """
+    from dran_edge.objective import sesync_objective, sesync_weights
+
+    P0 = g.poses.copy()
+    ids = [int(v) for v in g.vertex_ids]
+    kind = [vmap.get(v, ("", "", 0)) for v in ids]
+    for name, (s_init, T_init) in inits.items():
+        sel = np.array([k for k, kd in enumerate(kind) if kd[:2] == ("pose", name)], np.int64)
+        if len(sel) == 0:
+            continue
+        stamps_ns = np.array([kind[k][2] for k in sel], np.int64)
+        P0[sel], _ = geo.se3_interpolate(np.round(s_init * 1e9).astype(np.int64), T_init,
+                                         stamps_ns)
+    if any(kd[0] == "pose" and kd[1] not in inits for kd in kind):
+        return None
+    is_obj = np.array([kd[0] == "object" for kd in kind])
+    stamp = np.array([kd[2] if kd[0] == "pose" else np.iinfo(np.int64).max for kd in kind],
+                     np.int64)
+    placed = np.zeros(len(ids), bool)
+    obs = [k for k, (a, b) in enumerate(g.edges.tolist()) if is_obj[b] and not is_obj[a]]
+    for k in sorted(obs, key=lambda k: stamp[g.edges[k, 0]]):
+        a, b = g.edges[k]
+        if not placed[b]:
+            P0[b] = P0[a] @ g.measurements[k]
+            placed[b] = True
+    if (is_obj & ~placed).any():
+        return None
+    kappa, tau = sesync_weights(g.dim, g.information)
+    return sesync_objective(P0, g.edges, g.measurements, kappa, tau)
+
+
 def _centralized_from_g2o(run_dir: Path, finals: dict[str, tuple[np.ndarray, np.ndarray]],
-                          notes: list[str]
+                          notes: list[str],
+                          inits: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
                           ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, Any]]:
     """Centralized trajectories {robot: (stamps_s, T)} and costs from merged.g2o.
 
     ``finals`` are the robots' exported final estimates: merged.g2o's vertex values must be
-    the same poses (F_k is evaluated there); the largest difference is reported.
+    the same poses (F_k is evaluated there); the largest difference is reported. ``inits``
+    are the robots' initial estimates (F_init is evaluated there, see ``_initial_objective``).
     """
     names = list(finals)
     g2o_path = run_dir / "out" / "merged.g2o"
@@ -199,13 +241,19 @@ def _centralized_from_g2o(run_dir: Path, finals: dict[str, tuple[np.ndarray, np.
         "centralized_iterations": int(getattr(rep.result, "iterations", -1)),
     }
     if chordal:
-        cost["F_init"] = rep.objective_init
+        cost["F_chordal"] = rep.objective_init
     vmap_path = run_dir / "out" / "merged_vertices.csv"
     if not vmap_path.exists():
-        notes.append("SR_ATE: out/merged_vertices.csv absent, cannot map merged.g2o vertices "
-                     "to robots and stamps")
+        notes.append("SR_ATE / SR_cost: out/merged_vertices.csv absent, cannot map merged.g2o "
+                     "vertices to robots and stamps")
         return {}, cost
     vmap = read_vertex_map(vmap_path)
+    F_init = _initial_objective(g, vmap, inits or {})
+    if F_init is None:
+        notes.append("SR_cost: some robot has no out/<robot>/trajectory_init.tum (or an object "
+                     "no observation), so F_init at the initial estimate is unknown")
+    else:
+        cost["F_init"] = F_init
     out = {}
     ids = g.vertex_ids
     for name in names:
@@ -273,7 +321,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         notes.append("centralized trajectories read from out/centralized/")
     elif opt.centralized:
         central, cost = _centralized_from_g2o(
-            run_dir, {n: rb.est["final"] for n, rb in robots.items()}, notes)
+            run_dir, {n: rb.est["final"] for n, rb in robots.items()}, notes,
+            {n: rb.est["init"] for n, rb in robots.items() if "init" in rb.est})
         for name, est in central.items():
             robots[name].est["centralized"] = est
     report_json = out_dir / "report.json"
