@@ -122,17 +122,20 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
 
 
 def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params=None,
-                links=None, seed: int = 0) -> dict:
-    """DGS on a g2o graph split like Table 1; same byte accounting as ``run_g2o_dran``."""
-    from dran_edge.multiagent import Fleet, LinkModel, adjacency_from_pairs
+                links=None, partitions=()) -> dict:
+    """DGS on a g2o graph split like Table 1; same bus and byte accounting as ``run_g2o_dran``
+    (``links``: the bus's ``BusParams``, default lossless)."""
+    from dran_edge.comms.bus import Bus, BusParams
+    from dran_edge.multiagent import Fleet
     from dran_edge.objective import sesync_objective, sesync_weights
     from dran_edge.partition import partition_contiguous
 
     t0 = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
     part = partition_contiguous(g.edges, g.num_vertices, num_robots)
-    A = adjacency_from_pairs(num_robots, part.neighbour_pairs())
-    fleet = Fleet([], A, links or LinkModel(), seed=seed)
+    bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
+              partitions=partitions)
+    fleet = Fleet([], bus)
     init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                     part, fleet.init_exchange,
                                     init_params or InitParams(gauss_seidel=True))

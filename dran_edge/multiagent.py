@@ -1,18 +1,22 @@
-"""N DRAN agents in one process, talking through encoded datagrams (simulation and benchmarks).
+"""N DRAN agents in one process, talking through encoded datagrams over the in-process bus.
 
 Every message an agent emits is encoded by the wire codec (``dran_edge.comms.codec``) into
-self-contained datagrams; each datagram to each recipient is counted (every byte: header,
-entries and the 16-byte tag slot), may be dropped (per-datagram loss probability), is delayed by
-``latency_rounds`` and is decoded again before the receiving agent sees it, so the agents face
-exactly what the radio would give them. Rounds are synchronous: in round k every agent first
-absorbs the datagrams due, then runs its round (``Tick``).
+self-contained datagrams and sent through the robot's endpoint of a ``dran_edge.comms.bus.Bus``
+— the same bus replay uses — so the graph, partitions, loss, latency and the byte counters
+(every byte of every datagram: header, entries and the 16-byte tag slot, per sender, receiver
+and kind) are the bus's. Datagrams are decoded again before the receiving agent sees them, so
+the agents face exactly what the radio would give them.
 
-Communication graphs: explicit pairs, random connected with edge probability ρ (the paper's
-Sec. 6.2), time-varying (a per-round random subset of a base graph) and partitions (rounds during
-which links between groups are cut). Everything random draws from one seeded generator, so the
-same seed gives the same run.
+Rounds are synchronous and are the bus's rounds: in round k every agent first absorbs the
+datagrams due by round k, then runs its round (``Tick``); its messages go to the neighbours
+whose link is up in round k (``Bus.neighbours``) and, with ``BusParams.latency_rounds = 1``
+(the default), are receivable in round k + 1. Initialisation rounds (``init_exchange``) are
+synchronous exchanges: sent and received in the same round (per-datagram latency 0), loss
+still applies. Everything random is the bus's (seeded per directed link by
+``BusParams.seed``), so the same seed gives the same run.
 
-This module is a shell around the pure core (it imports the codec); the agents stay pure.
+This module is a shell around the pure core (it imports the codec and the bus); the agents stay
+pure.
 """
 
 from __future__ import annotations
@@ -20,12 +24,14 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from dran_edge.agent import Agent
 from dran_edge.comms import codec
+from dran_edge.comms.bus import Bus, BusParams
+from dran_edge.consensus import metropolis_hastings_matrix
 from dran_edge.errors import DecodeError
 from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
 from dran_edge.messages import InitStage, NeighbourMessage
@@ -35,152 +41,97 @@ log = logging.getLogger(__name__)
 ROUND_PERIOD_NS = 500_000_000  # 2 Hz, the robots' round rate (stamps only; nothing sleeps)
 
 
-# --------------------------------------------------------------------------- topologies
-def adjacency_from_pairs(n: int, pairs) -> np.ndarray:
-    A = np.zeros((n, n), dtype=bool)
-    for i, j in pairs:
-        if i != j:
-            A[i, j] = A[j, i] = True
-    return A
-
-
-def is_connected(A: np.ndarray) -> bool:
-    n = A.shape[0]
-    seen = np.zeros(n, bool)
-    seen[0] = True
-    frontier = [0]
-    while frontier:
-        i = frontier.pop()
-        for j in np.flatnonzero(A[i] & ~seen):
-            seen[j] = True
-            frontier.append(int(j))
-    return bool(seen.all())
-
-
-def random_connected(n: int, rho: float, rng: np.random.Generator, max_tries: int = 1000) -> np.ndarray:
-    """Erdős–Rényi graph G(n, ρ) redrawn until connected; after ``max_tries`` a random spanning
-    tree is added (so very small ρ still gives a connected, sparse graph)."""
-    for _ in range(max_tries):
-        U = np.triu(rng.random((n, n)) < rho, 1)
-        A = U | U.T
-        if is_connected(A):
-            return A
-    order = rng.permutation(n)
-    for k in range(1, n):
-        i, j = order[k], order[rng.integers(0, k)]
-        A[i, j] = A[j, i] = True
-    return A
-
-
-def metropolis_weights(A: np.ndarray) -> list[dict]:
-    """Per robot: neighbour -> MH weight 1 / (1 + max(deg_i, deg_j))."""
-    deg = A.sum(axis=1)
-    return [{int(j): 1.0 / (1.0 + max(deg[i], deg[j])) for j in np.flatnonzero(A[i])}
-            for i in range(A.shape[0])]
+def neighbour_weights(bus: Bus, round_: int = 0) -> list[dict]:
+    """Per robot (index into ``bus.robot_ids``): neighbour -> Metropolis–Hastings weight
+    (``consensus.metropolis_hastings_matrix``) on the bus's graph in ``round_``."""
+    ids = bus.robot_ids
+    index = {r: k for k, r in enumerate(ids)}
+    A = np.zeros((len(ids), len(ids)), dtype=bool)
+    for a, b in bus.edges(round_):
+        A[index[a], index[b]] = A[index[b], index[a]] = True
+    W = metropolis_hastings_matrix(A)
+    return [{ids[j]: W[i, j] for j in np.flatnonzero(A[i])} for i in range(len(ids))]
 
 
 @dataclass(frozen=True)
-class LinkModel:
-    """Per-datagram behaviour of every link."""
-
-    loss: float = 0.0
-    """Probability that one datagram to one recipient is lost."""
-    latency_rounds: int = 0
-    """Extra rounds before delivery (0: available at the start of the next round)."""
-    keep_probability: float = 1.0
-    """Time-varying graph: each round each link of the base graph is up with this probability."""
-    partitions: tuple = ()
-    """(first_round, last_round, groups): during those rounds only links within a group work."""
-
-
-@dataclass
 class Traffic:
-    """What crossed the simulated radio."""
+    """What crossed the bus so far (a view of ``Bus.stats()`` plus the decode failures)."""
 
-    datagrams: int = 0
-    bytes_total: int = 0
-    dropped: int = 0
-    decode_errors: int = 0
-    by_kind: dict = field(default_factory=lambda: defaultdict(int))
-    by_robot: dict = field(default_factory=lambda: defaultdict(int))
+    datagrams: int
+    """Datagrams handed to the bus (each recipient counts once)."""
+    bytes_total: int
+    """Every byte of those datagrams, including the ones the link model then lost."""
+    dropped: int
+    """Datagrams the link model lost (all reasons of ``Bus.lost``)."""
+    decode_errors: int
+    """Delivered datagrams the codec rejected."""
+    bytes_by_kind: dict
+    bytes_by_robot: dict
+    """Bytes sent per sender (string keys, as in ``Bus.stats()``)."""
 
 
 class Fleet:
-    """Agents, a communication graph and the encoded-datagram exchange between them."""
+    """Agents (agent i is robot ``bus.robot_ids[i]``) and the datagram exchange between them."""
 
-    def __init__(self, agents: list[Agent], adjacency: np.ndarray, links: LinkModel = LinkModel(),
-                 seed: int = 0, max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES,
-                 fleet_id: int = 1):
+    def __init__(self, agents: list[Agent], bus: Bus,
+                 max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES, fleet_id: int = 1):
         self.agents = agents
-        self.A = np.asarray(adjacency, dtype=bool)
-        self.links = links
-        self.rng = np.random.default_rng(seed)
+        self.bus = bus
+        self.ids = bus.robot_ids
+        self.endpoints = [bus.endpoint(r) for r in self.ids]
         self.max_datagram_bytes = max_datagram_bytes
         self.fleet_id = fleet_id
-        self.sequence = [0] * self.A.shape[0]
-        self.queue: dict[int, list] = defaultdict(list)  # round due -> (to, bytes)
-        self.traffic = Traffic()
-        self.round = 0
+        self.sequence = [0] * len(self.ids)
+        self.decode_errors = 0
         self.estimates: list[EstimateUpdate | None] = [None] * len(agents)
         self.step_ms: list[float] = []
 
-    # ----------------------------------------------------------------- links
-    def link_up(self, i: int, j: int, rnd: int) -> bool:
-        if not self.A[i, j]:
-            return False
-        for first, last, groups in self.links.partitions:
-            if first <= rnd <= last and not any(i in g and j in g for g in groups):
-                return False
-        return True
+    @property
+    def round(self) -> int:
+        return self.bus.round
 
-    def _round_up(self, rnd: int) -> np.ndarray:
-        """Links up this round (time-varying draw is symmetric and made once per round)."""
-        up = self.A.copy()
-        if self.links.keep_probability < 1.0:
-            U = np.triu(self.rng.random(self.A.shape) < self.links.keep_probability, 1)
-            up &= U | U.T
-        return up
+    @property
+    def traffic(self) -> Traffic:
+        st = self.bus.stats()
+        return Traffic(st["datagrams_sent"], st["bytes_total"], int(sum(st["lost"].values())),
+                       self.decode_errors, st["bytes_by_kind"], st["bytes_by_sender"])
 
-    def send(self, sender: int, message: NeighbourMessage, to, rnd: int, up: np.ndarray) -> None:
-        """Encode once, then count, drop or queue every datagram for every recipient."""
+    def send(self, sender: int, message: NeighbourMessage, to, latency_rounds: int | None = None
+             ) -> None:
+        """Encode once, then hand every datagram to the bus for every recipient in ``to`` whose
+        link is up this round (agent indices)."""
         grams = codec.encode_datagrams(message, fleet_id=self.fleet_id, boot_epoch=1,
                                        first_sequence=self.sequence[sender],
                                        max_datagram_bytes=self.max_datagram_bytes)
         self.sequence[sender] += len(grams)
+        up = set(self.bus.neighbours(self.ids[sender]))
+        ep = self.endpoints[sender]
         for q in to:
-            if not (up[sender, q] and self.link_up(sender, q, rnd)):
+            if self.ids[q] not in up:
                 continue
             for g in grams:
-                self.traffic.datagrams += 1
-                self.traffic.bytes_total += len(g.data)
-                self.traffic.by_robot[sender] += len(g.data)
-                for k, v in g.bytes_by_kind.items():
-                    self.traffic.by_kind[k] += v
-                if self.links.loss > 0.0 and self.rng.random() < self.links.loss:
-                    self.traffic.dropped += 1
-                    continue
-                self.queue[rnd + 1 + self.links.latency_rounds].append((q, g.data))
+                ep.send(self.ids[q], g.data, latency_rounds)
 
-    def _deliver(self, rnd: int) -> dict[int, list[NeighbourMessage]]:
-        inbox: dict[int, list[NeighbourMessage]] = defaultdict(list)
-        for q, data in self.queue.pop(rnd, []):
-            try:
-                inbox[q].append(codec.decode_datagram(data))
-            except DecodeError:
-                self.traffic.decode_errors += 1
+    def _receive(self) -> list[list[NeighbourMessage]]:
+        inbox: list[list[NeighbourMessage]] = [[] for _ in self.ids]
+        for i, ep in enumerate(self.endpoints):
+            for _sender, data in ep.receive():
+                try:
+                    inbox[i].append(codec.decode_datagram(data))
+                except DecodeError:
+                    self.decode_errors += 1
         return inbox
 
     # ----------------------------------------------------------------- DRAN rounds
     def step(self) -> bool:
         """One synchronous round; returns True when every agent reports convergence."""
-        self.round += 1
-        rnd = self.round
-        inbox = self._deliver(rnd)
-        up = self._round_up(rnd)
+        self.bus.advance()
+        rnd = self.bus.round
+        inbox = self._receive()
         stamp = rnd * ROUND_PERIOD_NS
         outgoing = []
         for i, agent in enumerate(self.agents):
-            for msg in inbox.get(i, []):
+            for msg in inbox[i]:
                 agent.handle(NeighbourData(stamp, msg))
             t0 = time.perf_counter()
             outs = agent.handle(Tick(stamp))
@@ -191,21 +142,20 @@ class Fleet:
                 elif isinstance(o, EstimateUpdate):
                     self.estimates[i] = o
         for i, o in outgoing:
-            self.send(i, o.message, o.to, rnd, up)
+            self.send(i, o.message, o.to)
         return all(e is not None and e.converged for e in self.estimates)
 
     # ----------------------------------------------------------------- initialisation rounds
     def init_exchange(self, stage: InitStage, iteration: int, outgoing: dict) -> dict:
-        """``dist_init.Exchange`` over encoded datagrams (same loss model, no latency)."""
-        self.round += 1
-        rnd = self.round
-        up = self._round_up(rnd)
+        """``dist_init.Exchange`` over encoded datagrams: one bus round, delivered in it."""
+        self.bus.advance()
+        rnd = self.bus.round
         for r, sends in outgoing.items():
             for q, entries in sends:
                 msg = NeighbourMessage(r, rnd, rnd * ROUND_PERIOD_NS, init=tuple(entries))
-                self.send(r, msg, (q,), rnd - 1 - self.links.latency_rounds, up)
+                self.send(r, msg, (q,), latency_rounds=0)
         incoming: dict[int, list] = defaultdict(list)
-        for q, msgs in self._deliver(rnd).items():
+        for q, msgs in enumerate(self._receive()):
             for m in msgs:
                 incoming[q].extend(m.init)
         return incoming
@@ -225,9 +175,11 @@ class Fleet:
 
 # --------------------------------------------------------------------------- Table 1 driver
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
-                 links: LinkModel = LinkModel(), seed: int = 0, callback=None) -> dict:
+                 links: BusParams | None = None, partitions=(), callback=None) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
-    converged (or K_max). Returns the merged poses and the numbers the bench reports."""
+    converged (or K_max), over a bus on the split's neighbour graph with network model
+    ``links`` (default lossless) and ``partitions``. Returns the merged poses and the numbers
+    the bench reports."""
     import dataclasses
 
     from dran_edge.agent import LocalProblem
@@ -238,9 +190,10 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     t_start = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
     part = partition_contiguous(g.edges, g.num_vertices, num_robots)
-    A = adjacency_from_pairs(num_robots, part.neighbour_pairs())
-    W = metropolis_weights(A)
-    fleet = Fleet([], A, links, seed=seed)
+    bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
+              partitions=partitions)
+    W = neighbour_weights(bus)
+    fleet = Fleet([], bus)
     init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                     part, fleet.init_exchange, init_params or InitParams(gauss_seidel=True))
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total

@@ -187,10 +187,16 @@ def centralized(sc: Scenario, kernel=None) -> tuple[PoseGraph, np.ndarray, np.nd
     return graph, np.concatenate(x0 + [y0]), off
 
 
-def run_objects(sc: Scenario, config: AgentConfig, adjacency: np.ndarray, links=None,
+def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
                 max_rounds: int = 200, seed: int = 0, history_every: int = 0) -> dict:
-    """DRAN on the scenario over the given communication graph, with the paper's metrics."""
-    from dran_edge.multiagent import Fleet, LinkModel, metropolis_weights
+    """DRAN on the scenario over the in-process bus, with the paper's metrics.
+
+    ``comm_graph``: the communication graph as ``comms.bus.Bus`` takes it (undirected robot
+    pairs or a ``round -> edges`` callable such as ``bus.random_connected_graph``); ``links``:
+    the bus's ``BusParams`` (default lossless, next-round delivery); ``seed`` replaces
+    ``links.seed``."""
+    from dran_edge.comms.bus import Bus, BusParams
+    from dran_edge.multiagent import Fleet, neighbour_weights
 
     kernel = {"huber": Huber(config.robust_threshold), "cauchy": Cauchy(config.robust_threshold)
               }.get(config.robust_kernel)
@@ -202,12 +208,14 @@ def run_objects(sc: Scenario, config: AgentConfig, adjacency: np.ndarray, links=
     F_init, F_star = evaluate_cost(graph, init), ref.cost
     ate0 = metrics.ate_log_rmse(init[:n_x], gt_x)
     ate_star = metrics.ate_log_rmse(ref.poses[:n_x], gt_x)
-    W = metropolis_weights(adjacency)
+    bus = Bus(range(len(sc.problems)), graph=comm_graph,
+              params=dataclasses.replace(links or BusParams(), seed=seed))
+    W = neighbour_weights(bus)
     agents = []
     for r, p in enumerate(sc.problems):
         cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3)
         agents.append(Agent(cfg, p, weights=W[r]))
-    fleet = Fleet(agents, adjacency, links or LinkModel(), seed=seed)
+    fleet = Fleet(agents, bus)
     history = []
 
     def snapshot() -> dict:

@@ -95,10 +95,8 @@ def run_g2o(args) -> int:
 
 
 def run_objects_cmd(args) -> int:
-    import numpy as np
-
+    from dran_edge.comms.bus import BusParams, random_connected_graph
     from dran_edge.config import AgentConfig
-    from dran_edge.multiagent import LinkModel, random_connected
     from dran_edge.objects_sim import SimParams, make_scenario, run_objects
 
     cfg = AgentConfig(robust_kernel="cauchy" if args.outliers > 0 else "none", robust_threshold=0.1)
@@ -110,9 +108,9 @@ def run_objects_cmd(args) -> int:
                                      sigma_trans_m=base.sigma_trans_m * noise)
         sc = make_scenario(params)
         for rho in args.rho:
-            A = random_connected(args.robots, rho, np.random.default_rng(args.seed + 1))
-            out = run_objects(sc, cfg, A, LinkModel(loss=args.loss), max_rounds=args.rounds,
-                              seed=args.seed)
+            graph = random_connected_graph(range(args.robots), rho, seed=args.seed + 1)
+            out = run_objects(sc, cfg, graph, BusParams(loss_probability=args.loss),
+                              max_rounds=args.rounds, seed=args.seed)
             row = {"rho": rho, "noise": noise, "loss": args.loss, "outliers": args.outliers}
             row.update({k: v for k, v in out.items() if k != "history"})
             rows.append(row)
