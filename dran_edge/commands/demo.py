@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"  SR_ATE  {f(s.get('sr_ate_pct'), '7.1f')} %   (share of the centralized solution's "
           f"ATE improvement reached)")
     c = report.get("cost") or {}
-    print(f"  SR_cost {f(s.get('sr_cost_pct'), '7.1f')} %   (SE-Sync cost: chordal init "
+    print(f"  SR_cost {f(s.get('sr_cost_pct'), '7.1f')} %   (SE-Sync cost: initial estimate "
           f"{f(c.get('F_init'), '.4g')}, ours {f(c.get('F_k'), '.4g')}, centralized "
           f"{f(c.get('F_star'), '.4g')})")
     print(f"  ATE     {f(s.get('ate_m'), '7.3f')} m   (keyframe positions vs OptiTrack)")
