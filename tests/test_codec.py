@@ -341,10 +341,16 @@ def test_encode_rejects_bad_input():
 @settings(max_examples=2000, deadline=None)
 @given(st.binary(max_size=600))
 def test_fuzz_random_bytes_only_decode_error(data):
+    """Random bytes either decode into a well-formed message or raise DecodeError, nothing else."""
     try:
-        codec.decode_datagram(data)
+        m = codec.decode_datagram(data)
     except DecodeError:
-        pass
+        return
+    assert m.extra["datagram_bytes"] == len(data)
+    for e in m.separators + m.objects:
+        T = getattr(e, "T_world_body", None)
+        T = e.T_world_object if T is None else T
+        assert np.all(np.isfinite(T))
 
 
 @settings(max_examples=2000, deadline=None)
