@@ -508,16 +508,13 @@ def solve(
     cost = evaluate_cost(graph, poses)
     history = [cost]
     trials = 0
+
+    def stop(status: LMStatus, iterations: int, reason: str) -> LMResult:
+        """The result at the current (best) iterate."""
+        return LMResult(status, poses, cost, iterations, trials, tuple(history), reason)
+
     if not math.isfinite(cost):
-        return LMResult(
-            LMStatus.NON_FINITE,
-            poses,
-            cost,
-            0,
-            0,
-            tuple(history),
-            "cost at the initial values is not finite",
-        )
+        return stop(LMStatus.NON_FINITE, 0, "cost at the initial values is not finite")
     mu: float | None = None
     nu = 2.0
     for iteration in range(params.max_iterations):
@@ -528,25 +525,9 @@ def solve(
         lin = linearize(graph, plan, poses, exact)
         g = np.concatenate([lin.g_x, lin.g_y])
         if not np.all(np.isfinite(g)) or not np.all(np.isfinite(lin.A.data)):
-            return LMResult(
-                LMStatus.NON_FINITE,
-                poses,
-                cost,
-                iteration,
-                trials,
-                tuple(history),
-                "non-finite gradient or Hessian",
-            )
+            return stop(LMStatus.NON_FINITE, iteration, "non-finite gradient or Hessian")
         if g.size == 0 or np.max(np.abs(g)) <= params.gradient_tol:
-            return LMResult(
-                LMStatus.CONVERGED,
-                poses,
-                cost,
-                iteration,
-                trials,
-                tuple(history),
-                "gradient below gradient_tol",
-            )
+            return stop(LMStatus.CONVERGED, iteration, "gradient below gradient_tol")
         if mu is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
             mu = max(params.mu_init * float(np.max(diag)), params.mu_min)
@@ -582,32 +563,20 @@ def solve(
             mu, nu = mu * nu, nu * 2.0
         if not accepted:
             if not solved_any:
-                return LMResult(
+                return stop(
                     LMStatus.LINEAR_SOLVE_FAILED,
-                    poses,
-                    cost,
                     iteration,
-                    trials,
-                    tuple(history),
                     "every damped system failed to factorise",
                 )
             if pred <= params.cost_tol * cost:
-                return LMResult(
+                return stop(
                     LMStatus.CONVERGED,
-                    poses,
-                    cost,
                     iteration,
-                    trials,
-                    tuple(history),
                     "no decreasing step; predicted decrease below cost_tol",
                 )
-            return LMResult(
+            return stop(
                 LMStatus.STALLED,
-                poses,
-                cost,
                 iteration,
-                trials,
-                tuple(history),
                 f"no decreasing step after {params.max_trials} damping trials",
             )
         rel = actual / cost
@@ -616,31 +585,7 @@ def solve(
         if callback is not None:
             callback(iteration + 1, cost, mu)
         if rel < params.cost_tol:
-            return LMResult(
-                LMStatus.CONVERGED,
-                poses,
-                cost,
-                iteration + 1,
-                trials,
-                tuple(history),
-                "relative cost decrease below cost_tol",
-            )
+            return stop(LMStatus.CONVERGED, iteration + 1, "relative cost decrease below cost_tol")
         if float(np.linalg.norm(step)) < params.step_tol:
-            return LMResult(
-                LMStatus.CONVERGED,
-                poses,
-                cost,
-                iteration + 1,
-                trials,
-                tuple(history),
-                "step norm below step_tol",
-            )
-    return LMResult(
-        LMStatus.MAX_ITERATIONS,
-        poses,
-        cost,
-        params.max_iterations,
-        trials,
-        tuple(history),
-        "reached max_iterations",
-    )
+            return stop(LMStatus.CONVERGED, iteration + 1, "step norm below step_tol")
+    return stop(LMStatus.MAX_ITERATIONS, params.max_iterations, "reached max_iterations")
