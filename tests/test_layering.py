@@ -34,6 +34,7 @@ SHELL_MODULES = {
     "dgs",  # DGS baseline driven over the in-process bus (experiment driver)
     "objects_sim",  # the Ego-like object experiment driver
     "replay_robots",  # replay's per-robot drivers (daemon code, transports)
+    "dran_node",  # a DRAN agent as a comms.loopback node (simulation scenario inside)
 }
 SHELL_PACKAGES = {"commands"}
 CORE_THIRD_PARTY = {"numpy", "scipy", "yaml"}

@@ -147,6 +147,40 @@ def test_four_processes_over_radio_dish_match_the_in_process_bus():
         assert all(objects[str(j)]["hop"] == abs(i - j) for j in range(4))
 
 
+@needs_draft
+def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run():
+    """Issue 4: three DRAN agents (objects toy), one process each with its own DISH on
+    loopback, end bit-identical to the same three agents in one process on the bus."""
+    edges = ((0, 1), (1, 2))
+    spec = FleetSpec(
+        robot_ids=(0, 1, 2),
+        edges=edges,
+        rounds=12,
+        period_s=0.4,
+        base_port=_consecutive_free_ports(3),
+        node_factory="dran_edge.dran_node:DranNode",
+        node_config={
+            "sim": {"num_robots": 3, "num_objects": 6, "box_m": [12.0, 12.0, 3.0],
+                    "goals_per_robot": 2, "step_m": 1.5, "seed": 3},
+            "edges": [list(e) for e in edges],
+            "agent": {"robust_kernel": "none"},
+        },
+        fleet_id=5,
+    )
+    on_bus = run_bus_fleet(spec)
+    on_udp = run_loopback_fleet(spec, timeout_s=120.0)
+    for i in spec.robot_ids:
+        assert on_udp[i]["late_rounds"] == []
+        assert on_udp[i]["result"] == on_bus[i]["result"]  # every bit of every estimate
+        assert on_udp[i]["accepted_sha256"] == on_bus[i]["accepted_sha256"]
+        assert on_udp[i]["result"]["rounds"] == spec.rounds
+        assert on_udp[i]["counters"]["totals"] == on_bus[i]["counters"]["totals"]
+        assert on_udp[i]["counters"]["totals"]["datagrams_received"] > 0
+    # Object maps are shared (and relayed over robot 1): all end with the same objects.
+    known = [set(on_udp[i]["result"]["objects"]) for i in spec.robot_ids]
+    assert known[0] == known[1] == known[2] and len(known[0]) > 0
+
+
 def _can_netns() -> bool:
     if shutil.which("ip") is None or os.geteuid() != 0:
         return False
