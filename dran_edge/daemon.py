@@ -2,13 +2,16 @@
 
 Threads and what they own:
 
-- **main / tick thread** (:meth:`Daemon.run`): owns the agent. A tick every ``comms.period_s``
-  (2 Hz) on absolute deadlines ``t0 + k * period`` (no drift); a tick that starts later than its
-  deadline counts lag, and whole periods missed are skipped and counted. Each tick: move queued
-  observation batches into the journal, apply every journalled record to the agent in journal
-  order, hand it the neighbour messages received, run the round (``Tick``), send its outgoing
-  messages, fsync the journal, checkpoint when due, ping the systemd watchdog (only now, after a
-  fully handled tick), publish status.
+- **main / tick thread** (:meth:`Daemon.run`): owns the robot's core, the
+  :class:`~dran_edge.online_agent.OnlineAgent` (bounded local graph + DRAN agent; the same object
+  replay and the tests drive). A tick every ``comms.period_s`` (2 Hz) on absolute deadlines
+  ``t0 + k * period`` (no drift); a tick that starts later than its deadline counts lag, and
+  whole periods missed are skipped and counted. Each tick: move queued observation batches into
+  the journal, apply every journalled record to the core in journal order (a record the core
+  raises on is counted, logged and dropped: the daemon never dies of its input), hand it the
+  neighbour messages received, run the round (``Tick``), send its outgoing messages, fsync the
+  journal, checkpoint when due, ping the systemd watchdog (only now, after a fully handled
+  tick), publish status.
 - **ingest** (:class:`~dran_edge.ingest_server.IngestServer`): decodes bridge records and
   appends them to the journal (accepted = journalled); forwarded frames go to the perception
   queue.
@@ -17,8 +20,9 @@ Threads and what they own:
 - **status** (:class:`StatusServer`): answers ``dran-edge status`` with the latest snapshot.
 
 Crash safety: :mod:`dran_edge.journal` + :mod:`dran_edge.checkpoint`. On start the daemon loads
-the newest checkpoint (agent state, journal position, counters), re-applies the journal after
-that position, and bumps the boot epoch (neighbours then accept our restarted sequence numbers).
+the newest checkpoint (the core's state, journal position, counters), re-applies the journal
+after that position, and bumps the boot epoch (neighbours then accept our restarted sequence
+numbers).
 """
 
 from __future__ import annotations
@@ -43,17 +47,21 @@ from dran_edge.config import RobotConfig, config_to_dict, parse_address
 from dran_edge.errors import DependencyError, DranError
 from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
 from dran_edge.journal import IngestJournal
-from dran_edge.local_graph import OBJ, LocalGraph, gauge_anchor
 from dran_edge.notify import Notifier
-from dran_edge.online_agent import problem_from_graph
 
 log = logging.getLogger(__name__)
 
-STATE_FORMAT = 1
+#: 2: the core is an OnlineAgent; its state's keys ("agent", "graph", "online") sit at the top
+#: level of the checkpoint next to the daemon's own.
+STATE_FORMAT = 2
 
 
 # --------------------------------------------------------------------------- plumbing
 class AgentLike(Protocol):
+    """What the daemon needs of the robot's core (:class:`~dran_edge.online_agent.OnlineAgent`)."""
+
+    local_graph: Any
+
     def handle(self, event: Any) -> list: ...
 
     def to_state(self) -> dict: ...
@@ -241,13 +249,16 @@ def resolve_dirs(cfg: RobotConfig, environ: dict | None = None) -> tuple[Path, P
 
 
 def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
+    """The robot's core: an :class:`~dran_edge.online_agent.OnlineAgent`, from ``state`` (its
+    :meth:`~dran_edge.online_agent.OnlineAgent.to_state`) when given."""
     try:
-        from dran_edge.agent import Agent
+        from dran_edge.online_agent import OnlineAgent
     except ImportError as exc:
-        raise DependencyError(f"the DRAN agent (dran_edge.agent) is not available: {exc}") from None
+        raise DependencyError(f"the DRAN agent (dran_edge.online_agent) is not available: {exc}"
+                              ) from None
     if state is not None:
-        return Agent.from_state(cfg.agent, state)
-    return Agent(cfg.agent)
+        return OnlineAgent.from_state(cfg.agent, state)
+    return OnlineAgent(cfg.agent)
 
 
 class LinkTransport:
@@ -381,32 +392,28 @@ class Daemon:
         self.boot_epoch = next_boot_epoch(self.state_dir)
         self.checkpoints = CheckpointStore(self.state_dir)
         saved = self.checkpoints.load()
-        agent_state = None
         if saved is not None and saved.get("robot_id") != cfg.robot.id:
             log.error("checkpoint in %s belongs to robot %s, not %s: ignoring it",
                       self.state_dir, saved.get("robot_id"), cfg.robot.id)
             saved = None
-        graph_state = None
+        if saved is not None and saved.get("format") != STATE_FORMAT:
+            log.error("checkpoint in %s has state format %s, this daemon writes %s: ignoring it",
+                      self.state_dir, saved.get("format"), STATE_FORMAT)
+            saved = None
         if saved is not None:
-            agent_state = saved["agent"]
-            graph_state = saved.get("graph")
             pos = saved.get("journal_position")
             self.applied_position = (int(pos[0]), int(pos[1])) if pos else None
             self.counters.update(saved.get("counters", {}))
             log.info("resuming from checkpoint (journal position %s)", self.applied_position)
-        anchor = gauge_anchor(cfg.agent)
         try:
-            self.agent = self.agent_factory(cfg, agent_state)
-            self.graph = (LocalGraph(cfg.agent, anchor_first=anchor) if graph_state is None
-                          else LocalGraph.from_state(cfg.agent, graph_state, anchor_first=anchor))
+            self.agent = self.agent_factory(cfg, saved)
         except DranError:
             raise
         except Exception:
-            if agent_state is None:
+            if saved is None:
                 raise
             log.exception("the checkpointed state does not load; starting afresh from the journal")
             self.agent = self.agent_factory(cfg, None)
-            self.graph = LocalGraph(cfg.agent, anchor_first=anchor)
             self.applied_position = None
         self.journal = IngestJournal(self.state_dir)
         recovered = self.journal.read_after(self.applied_position)
@@ -489,10 +496,9 @@ class Daemon:
                 self.counters["observations_unencodable"] += 1
                 log.warning("dropping an observation batch that does not encode: %s", exc)
         outputs: list = []
-        changed = False
         for record, pos in self.journal.take_pending():
             try:
-                changed |= bool(self.graph.handle(record.event))
+                outputs.extend(self.agent.handle(record.event) or ())
             except Exception:
                 self.stats.agent_errors += 1
                 ok = False
@@ -511,15 +517,8 @@ class Daemon:
             for data in incoming:
                 ok &= self._handle(data, outputs)
         t = time.perf_counter()
-        if changed:
-            try:
-                self.agent.set_problem(problem_from_graph(self.graph, self.cfg.agent.residual))
-            except Exception:
-                ok = False
-                self.stats.agent_errors += 1
-                log.exception("could not hand the new local problem to the agent")
+        # The core rebuilds the agent's problem when the graph changed, then runs the round.
         ok &= self._handle(Tick(time.time_ns()), outputs)
-        self._write_back()
         dt = time.perf_counter() - t
         self.stats.ticks += 1
         self.stats.round_last_s = dt
@@ -541,17 +540,10 @@ class Daemon:
             self.notifier.status(line)
             log.info("status: %s", line)
 
-    def _write_back(self) -> None:
-        """Agent estimates -> local graph (new nodes start from them; marginalisation
-        linearises at them)."""
-        problem = getattr(self.agent, "problem", None)
-        if problem is None:
-            return
-        self.graph.set_estimates(problem.pose_ids, self.agent.x)
-        objs = self.agent.local_objects()
-        if objs:
-            keys = np.array([OBJ + int(k) for k in objs], np.int64)
-            self.graph.set_estimates(keys, np.stack(list(objs.values())))
+    @property
+    def graph(self) -> Any:
+        """The core's bounded local graph (status and tests read it; only the core writes it)."""
+        return self.agent.local_graph
 
     def _handle(self, event: Any, outputs: list) -> bool:
         try:
@@ -591,19 +583,24 @@ class Daemon:
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
-        return {
+        """The checkpoint: the daemon's own fields plus the core's state (whose ``to_state``
+        writes the agent's estimates back into the graph first)."""
+        core = self.agent.to_state()
+        own = {
             "format": STATE_FORMAT,
             "robot_id": self.cfg.robot.id,
             "boot_epoch": self.boot_epoch,
             "journal_position": list(self.applied_position) if self.applied_position else None,
             "counters": dict(self.counters),
             "ticks": self.stats.ticks,
-            "agent": self.agent.to_state(),
-            "graph": self.graph.to_state(),
             "transport": (self.transport.to_state()  # type: ignore[attr-defined]
                           if self.transport is not None and hasattr(self.transport, "to_state")
                           else None),
         }
+        clash = own.keys() & core.keys()
+        if clash:
+            raise ValueError(f"the core's state uses the daemon's checkpoint keys {sorted(clash)}")
+        return {**own, **core}
 
     def checkpoint(self) -> None:
         t = time.perf_counter()

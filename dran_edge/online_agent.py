@@ -15,11 +15,16 @@ world-to-robot transform (from mocap at the start, mission.yaml ``T_world_odom``
 its first node there. Without it (a live robot), ``T_world_odom`` is the identity and, as in the
 daemon, only the robot whose id is below all its neighbours' carries the gauge prior
 (:func:`~dran_edge.local_graph.gauge_anchor`); the others are placed by object consensus. The problem handed to the agent is that
-graph mapped into the world (``x = T_world_odom · x_graph``, priors likewise); before a rebuild
-the agent's estimates are written back into the graph, so new keyframes are chained from the
-optimised poses, not from the dead-reckoned ones.
+graph mapped into the world (``x = T_world_odom · x_graph``, priors likewise).
 
-Pure core: numpy only, no clock, no I/O. ``to_state``/``from_state`` for checkpoints.
+Write-back. After every round the agent's estimates are written back into the graph (mapped
+back by ``T_world_odom⁻¹``) before the graph is touched again: before the next ingest event,
+before a rebuild and before :meth:`OnlineAgent.to_state`. New keyframes are thus chained from
+the optimised poses, marginalisation linearises at them, and a checkpoint holds them.
+
+Pure core: numpy only, no clock, no I/O. ``to_state``/``from_state`` for checkpoints (the robot
+daemon's checkpoint is this state plus its own journal position and counters). Ingest events
+that make the local graph raise propagate to the caller; the daemon counts, logs and drops them.
 """
 
 from __future__ import annotations
@@ -49,6 +54,9 @@ from dran_edge.local_graph import (
 )
 
 INGEST_EVENTS = (OdometrySample, Keyframe, LoopClosure, VioReset, ObservationBatch)
+
+#: version of :meth:`OnlineAgent.to_state`'s layout
+STATE_FORMAT = 1
 
 
 def problem_from_graph(graph: LocalGraph, residual: str,
@@ -104,9 +112,12 @@ class OnlineAgent:
         if T_world_odom is not None:
             self.set_world_frame(T_world_odom)
         self._dirty = False
+        #: the agent ran a round since its estimates were last written into the graph
+        self._estimates_stale = False
         self.rebuilds = 0
-        #: node key -> (stamp_ns, T_world_body by odometry alone): the estimate before any
-        #: optimisation (SR_ATE's ATE^0), chained like the local graph initialises nodes.
+        #: node key -> (stamp_ns, T_world_body by odometry alone, T_odom_body): the estimate
+        #: before any optimisation (SR_ATE's ATE^0), chained like the local graph initialises
+        #: nodes; kept for the graph's current nodes and the last node of each segment.
         self.dead_reckoning: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self._dr_last_of_segment: dict[int, int] = {}
         self._dr_last: int | None = None
@@ -120,12 +131,32 @@ class OnlineAgent:
         self.local_graph = LocalGraph(self.config, anchor_first=True)
 
     def handle(self, event) -> list:
+        """One event in, the outputs it causes out (ingest events cause none)."""
         if isinstance(event, INGEST_EVENTS):
+            self.write_back()
             self._dirty |= bool(self.local_graph.handle(event))
             return []
-        if isinstance(event, Tick) and self._dirty:
-            self._rebuild()
+        if isinstance(event, Tick):
+            if self._dirty:
+                # Cleared first: a rebuild that raises is not retried on every later tick.
+                self._dirty = False
+                self._rebuild()
+            self._estimates_stale = True
         return self.agent.handle(event)
+
+    def write_back(self) -> None:
+        """The agent's pose and object estimates -> the local graph, if a round ran since the
+        last write-back (new nodes are chained from them; marginalisation linearises at them)."""
+        if not self._estimates_stale:
+            return
+        a, g = self.agent, self.local_graph
+        G_inv = geo.se3_inverse(self.T_world_odom)
+        if a.problem.n:
+            g.set_estimates(a.problem.pose_ids, G_inv @ a.x)
+        if a.y:
+            oids = np.array(sorted(a.y), dtype=np.int64)
+            g.set_estimates(OBJ + oids, G_inv @ np.stack([a.y[int(o)] for o in oids]))
+        self._estimates_stale = False
 
     def _track_dead_reckoning(self) -> None:
         g = self.local_graph
@@ -144,6 +175,10 @@ class OnlineAgent:
             self.dead_reckoning[key] = (int(g.node_stamp[key]), T, T_odom)
             self._dr_last_of_segment[seg] = key
             self._dr_last = key
+        # Bounded like the graph: the current nodes and what new nodes are chained from.
+        keep = set(g.node_keys().tolist()) | set(self._dr_last_of_segment.values())
+        if len(keep) < len(self.dead_reckoning):
+            self.dead_reckoning = {k: v for k, v in self.dead_reckoning.items() if k in keep}
 
     def initial_estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, T_world_body) of the current nodes by odometry alone (no optimisation)."""
@@ -154,14 +189,59 @@ class OnlineAgent:
                 np.stack([self.dead_reckoning[k][1] for k in keys]))
 
     def _rebuild(self) -> None:
-        a, g = self.agent, self.local_graph
         self._track_dead_reckoning()
-        G_inv = geo.se3_inverse(self.T_world_odom)
-        if a.problem.n:
-            g.set_estimates(a.problem.pose_ids, G_inv @ a.x)
-        if a.y:
-            oids = np.array(sorted(a.y), dtype=np.int64)
-            g.set_estimates(OBJ + oids, G_inv @ np.stack([a.y[int(o)] for o in oids]))
-        a.set_problem(problem_from_graph(g, self.config.residual, self.T_world_odom))
+        self.write_back()
+        self.agent.set_problem(problem_from_graph(self.local_graph, self.config.residual,
+                                                  self.T_world_odom))
         self._dirty = False
         self.rebuilds += 1
+
+    # ------------------------------------------------------------------ checkpoints
+    def to_state(self) -> dict:
+        """Everything needed to resume: ``{"agent", "graph", "online"}`` (plain dicts, lists and
+        numpy arrays, as :mod:`dran_edge.checkpoint` stores them). Writes the agent's estimates
+        back into the graph first, so the graph's state holds the optimised poses."""
+        self.write_back()
+        dr = sorted(self.dead_reckoning)
+        return {
+            "agent": self.agent.to_state(),
+            "graph": self.local_graph.to_state(),
+            "online": {
+                "format": STATE_FORMAT,
+                "T_world_odom": self.T_world_odom.copy(),
+                "anchor_first": bool(self.local_graph.anchor_first),
+                "dirty": bool(self._dirty),
+                "rebuilds": int(self.rebuilds),
+                "dr_keys": np.array(dr, np.int64),
+                "dr_stamps_ns": np.array([self.dead_reckoning[k][0] for k in dr], np.int64),
+                "dr_T_world_body": (np.stack([self.dead_reckoning[k][1] for k in dr]) if dr
+                                    else np.zeros((0, 4, 4))),
+                "dr_T_odom_body": (np.stack([self.dead_reckoning[k][2] for k in dr]) if dr
+                                   else np.zeros((0, 4, 4))),
+                "dr_last_of_segment": [[int(sg), int(k)]
+                                       for sg, k in self._dr_last_of_segment.items()],
+                "dr_last": None if self._dr_last is None else int(self._dr_last),
+            },
+        }
+
+    @classmethod
+    def from_state(cls, config: AgentConfig, state: dict) -> OnlineAgent:
+        """The core :meth:`to_state` saved (``config`` as when it was saved)."""
+        on = state["online"]
+        if on.get("format") != STATE_FORMAT:
+            raise ValueError(f"OnlineAgent.from_state: expected state format {STATE_FORMAT}, "
+                             f"got {on.get('format')!r}")
+        core = cls(config)
+        core.T_world_odom = np.asarray(on["T_world_odom"], dtype=np.float64).copy()
+        core.agent = Agent.from_state(config, state["agent"])
+        core.local_graph = LocalGraph.from_state(config, state["graph"],
+                                                 anchor_first=bool(on["anchor_first"]))
+        core._dirty = bool(on["dirty"])
+        core.rebuilds = int(on["rebuilds"])
+        for i, k in enumerate(np.asarray(on["dr_keys"]).tolist()):
+            core.dead_reckoning[int(k)] = (int(on["dr_stamps_ns"][i]),
+                                           np.array(on["dr_T_world_body"][i], np.float64),
+                                           np.array(on["dr_T_odom_body"][i], np.float64))
+        core._dr_last_of_segment = {int(sg): int(k) for sg, k in on["dr_last_of_segment"]}
+        core._dr_last = None if on["dr_last"] is None else int(on["dr_last"])
+        return core
