@@ -102,13 +102,7 @@ def make_core(cfg, robot: rd.RunRobot):
     """
     from dran_edge.daemon import default_agent_factory
 
-    core = default_agent_factory(cfg, None)
-    if not hasattr(core, "set_world_frame"):
-        # The daemon's factory returned the bare agent, which ignores ingest events: put the
-        # online core (bounded local graph + agent) around it, as the robot needs.
-        from dran_edge.online_agent import OnlineAgent
-
-        core = OnlineAgent(cfg.agent)
+    core = default_agent_factory(cfg, None)  # an OnlineAgent: bounded local graph + agent
     if robot.T_world_odom is not None:
         core.set_world_frame(robot.T_world_odom)
     return core
