@@ -211,7 +211,21 @@ class _RealSensePairer:
             yield Frame(int(round(stamp_ms * 1e6)), colour, depth, self.camera_id)
 
 
-class RealSenseSource(FrameSource):
+class _RealSensePipelineSource(FrameSource):
+    """A source owning a started ``rs.pipeline`` in ``self._pipe`` (None when stopped)."""
+
+    _pipe = None
+
+    def close(self) -> None:
+        if self._pipe is not None:
+            try:
+                self._pipe.stop()
+            except RuntimeError:
+                pass
+            self._pipe = None
+
+
+class RealSenseSource(_RealSensePipelineSource):
     """A live RealSense (D435i): colour BGR + depth aligned to colour, global-time stamps.
 
     ``global_time_enabled`` makes librealsense map the camera's hardware clock onto the host
@@ -270,16 +284,9 @@ class RealSenseSource(FrameSource):
                                           f"reconnects ({exc})") from exc
                 time.sleep(self.reconnect_s)
 
-    def close(self) -> None:
-        if self._pipe is not None:
-            try:
-                self._pipe.stop()
-            except RuntimeError:
-                pass
-            self._pipe = None
 
 
-class RealSenseRecordingSource(FrameSource):
+class RealSenseRecordingSource(_RealSensePipelineSource):
     """A RealSense recording played back by pyrealsense2 (``enable_device_from_file``) with
     ``set_real_time(False)``: every frame is delivered, paced by the consumer."""
 
@@ -317,13 +324,6 @@ class RealSenseRecordingSource(FrameSource):
         finally:
             self.close()
 
-    def close(self) -> None:
-        if self._pipe is not None:
-            try:
-                self._pipe.stop()
-            except RuntimeError:
-                pass
-            self._pipe = None
 
 
 # --------------------------------------------------------------------------- OAK
