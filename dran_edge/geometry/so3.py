@@ -98,8 +98,20 @@ def rotmat_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Log: rotation matrix ``(..., 3, 3)`` -> rotation vector ``(..., 3)`` with ‖φ‖ ≤ π."""
-    q = quat_wxyz_from_rotmat(R)
-    w, v = q[..., 0], q[..., 1:]
+    R = np.asarray(R, dtype=np.float64)
+    one_plus_tr = 1.0 + R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]  # 4 w²
+    if np.all(one_plus_tr > 0.2):
+        # Fast path (every θ below ~2.6 rad, the usual case in a solver): Shepperd's first
+        # candidate alone, well conditioned there since w ≥ 0.22.
+        w = 0.5 * np.sqrt(one_plus_tr)
+        f = (0.25 / w)[..., None]
+        v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                      R[..., 1, 0] - R[..., 0, 1]], axis=-1) * f
+        norm = np.sqrt(w * w + np.sum(v * v, axis=-1))
+        w, v = w / norm, v / norm[..., None]
+    else:
+        q = quat_wxyz_from_rotmat(R)
+        w, v = q[..., 0], q[..., 1:]
     n_sq = np.sum(v * v, axis=-1)
     small = n_sq < 1e-12
     n = np.sqrt(np.where(small, 1.0, n_sq))
