@@ -30,6 +30,7 @@ from typing import Iterable
 import numpy as np
 
 from dran_edge import geometry as geo
+from dran_edge.comms import delta as dl
 from dran_edge.errors import DecodeError, DranError
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, ObjectEntry, SeparatorEntry
 
@@ -47,7 +48,12 @@ _FIXED = struct.Struct("<2sBB")
 HEADER_FIXED_BYTES = _FIXED.size  # 4
 _HEADER_MIN_BYTES = HEADER_FIXED_BYTES + 9
 _FLAG_DIM3 = 0x01
-_FLAGS_KNOWN = _FLAG_DIM3
+#: Delta layout (docs/wire-format.md, ``dran_edge.comms.delta``): separator and init entries may
+#: carry a quantised change instead of a value; separator stamps chain from entry to entry.
+_FLAG_DELTA = 0x02
+_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA
+_INIT_DELTA_BIT = 0x80
+_STAGES = frozenset(int(s) for s in InitStage)
 
 #: Byte-accounting kinds (``bytes_by_kind``): header + tag, and one per entry type.
 KIND_HEADER = "header"
@@ -264,6 +270,8 @@ class Header:
     n_init: int
     #: Offset of the id section (= header length in bytes).
     body_offset: int
+    #: Delta layout (flag 0x02).
+    delta: bool = False
 
 
 def decode_header(data: bytes) -> Header:
@@ -306,8 +314,10 @@ def decode_header(data: bytes) -> Header:
     n_obj, pos = _read_varint(data, pos, end)
     n_init, pos = _read_varint(data, pos, end)
     dim = 3 if flags & _FLAG_DIM3 else 2
-    # Every entry takes at least 2 id bytes and a pose; counts beyond that are lies.
-    if (n_sep + n_obj + n_init) * (2 + pose_bytes(dim)) > end - pos:
+    # Every entry takes at least 2 id bytes and a pose (a delta value in the delta layout);
+    # counts beyond that are lies.
+    least = dl.value_bytes(geo.dof(dim)) if flags & _FLAG_DELTA else pose_bytes(dim)
+    if (n_sep + n_obj + n_init) * (2 + least) > end - pos:
         raise DecodeError(
             f"entry counts {n_sep}/{n_obj}/{n_init} do not fit in the {end - pos} bytes left"
         )
@@ -324,6 +334,7 @@ def decode_header(data: bytes) -> Header:
         n_obj,
         n_init,
         pos,
+        bool(flags & _FLAG_DELTA),
     )
 
 
@@ -337,6 +348,10 @@ class _Ids:
     obj_end: int
     end: int
     init_value_bytes: int
+    sep_value_bytes: int = -1
+    #: per separator / init entry: round of the delta's base (None: absolute value)
+    sep_base: tuple = ()
+    init_base: tuple = ()
 
 
 def _walk_ids(data: bytes, h: Header) -> _Ids:
@@ -344,14 +359,31 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
     end = len(data) - TAG_BYTES
     pos = h.body_offset
     P = pose_bytes(h.dim)
+    DP = dl.value_bytes(geo.dof(h.dim))
     sep_ids = []
+    sep_base: list = []
+    sep_bytes = 0
     for _ in range(h.n_separators):
         owner, pos = _read_varint(data, pos, end)
         kf, pos = _read_varint(data, pos, end)
-        dstamp, pos = _read_varint(data, pos, end)
-        stamp = h.stamp_ns + _unzigzag(dstamp)
-        if stamp < 0:
-            raise DecodeError(f"separator stamp {stamp} ns is negative")
+        is_delta = False
+        if h.delta:
+            owner, is_delta = owner >> 1, bool(owner & 1)
+        stamp = -1  # a delta entry's stamp is the one its key was first sent with
+        if not is_delta:
+            dstamp, pos = _read_varint(data, pos, end)
+            stamp = h.stamp_ns + _unzigzag(dstamp)
+            if stamp < 0:
+                raise DecodeError(f"separator stamp {stamp} ns is negative")
+        if is_delta:
+            back, pos = _read_varint(data, pos, end)
+            if back == 0 or back > h.round:
+                raise DecodeError(f"delta base {back} rounds back from round {h.round}")
+            sep_base.append(h.round - back)
+            sep_bytes += DP
+        else:
+            sep_base.append(None)
+            sep_bytes += P
         sep_ids.append((owner, kf, stamp))
     sep_id_end = pos
     obj_ids = []
@@ -362,74 +394,143 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         obj_ids.append((oid, origin, hops))
     obj_id_end = pos
     init_ids = []
+    init_base: list = []
     init_bytes = 0
     for _ in range(h.n_init):
         if pos >= end:
             raise DecodeError(f"truncated init entry at byte {pos}")
         stage = data[pos]
         pos += 1
-        if stage not in (InitStage.ROTATION, InitStage.TRANSLATION):
+        is_delta = h.delta and bool(stage & _INIT_DELTA_BIT)
+        if h.delta:
+            stage &= ~_INIT_DELTA_BIT
+        if stage not in _STAGES:
             raise DecodeError(f"unknown init stage {stage}")
+        stage = InitStage(stage)
         owner, pos = _read_varint(data, pos, end)
         kf, pos = _read_varint(data, pos, end)
         init_ids.append((InitStage(stage), owner, kf))
-        init_bytes += _rotation_value_bytes(h.dim) if stage == InitStage.ROTATION else P
-    sep_obj_bytes = (h.n_separators + h.n_objects) * P
+        if is_delta:
+            back, pos = _read_varint(data, pos, end)
+            if back == 0 or back > h.round:
+                raise DecodeError(f"delta base {back} rounds back from round {h.round}")
+            init_base.append(h.round - back)
+            n = h.dim * h.dim if stage.matrix_valued else geo.dof(h.dim)
+            init_bytes += dl.value_bytes(n)
+        else:
+            init_base.append(None)
+            init_bytes += _rotation_value_bytes(h.dim) if stage.matrix_valued else P
+    sep_obj_bytes = sep_bytes + h.n_objects * P
     if end - pos != sep_obj_bytes + init_bytes:
         raise DecodeError(
             f"value block is {end - pos} bytes, counts "
             f"{h.n_separators}/{h.n_objects}/{h.n_init} need {sep_obj_bytes + init_bytes}"
         )
-    return _Ids(sep_ids, obj_ids, init_ids, sep_id_end, obj_id_end, pos, init_bytes)
+    return _Ids(sep_ids, obj_ids, init_ids, sep_id_end, obj_id_end, pos, init_bytes, sep_bytes,
+                tuple(sep_base), tuple(init_base))
 
 
 def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
     P = pose_bytes(h.dim)
     return {
         KIND_HEADER: h.body_offset + TAG_BYTES,
-        KIND_SEPARATOR: ids.sep_end - h.body_offset + h.n_separators * P,
+        KIND_SEPARATOR: ids.sep_end - h.body_offset + ids.sep_value_bytes,
         KIND_OBJECT: ids.obj_end - ids.sep_end + h.n_objects * P,
         KIND_INIT: ids.end - ids.obj_end + ids.init_value_bytes,
     }
 
 
-def decode_datagram(data: bytes) -> NeighbourMessage:
+def _read_delta(data: bytes, pos: int, n: int) -> tuple[int, np.ndarray]:
+    e = struct.unpack_from("<b", data, pos)[0]
+    q = np.frombuffer(data, dtype=np.int8, count=n, offset=pos + 1)
+    if e > 0:  # an encoder sends changes up to dl.MAX_DELTA = 1, so e <= -6
+        raise DecodeError(f"delta exponent {e} is out of range")
+    if np.any(q == -128):
+        raise DecodeError("delta component -128 is outside the symmetric int8 range")
+    return e, q
+
+
+def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> NeighbourMessage:
     """Decode one datagram alone into a ``NeighbourMessage`` carrying its entries.
 
     ``fleet_id``, ``boot_epoch`` and ``sequence`` are filled; ``extra`` holds
-    ``datagram_bytes`` and ``bytes_by_kind``. The tag is not checked here (see auth).
+    ``datagram_bytes``, ``bytes_by_kind`` and ``delta_unresolved``. The tag is not checked here
+    (see auth). Delta entries (flag 0x02) are rebuilt with ``delta``, the receiving side of
+    this link; one whose base is not held (or any, without ``delta``) is left out and counted.
     """
     h = decode_header(data)
     data = bytes(data)
     dim = h.dim
     P = pose_bytes(dim)
+    dof = geo.dof(dim)
     ids = _walk_ids(data, h)
-    sep_ids, obj_ids, init_ids, id_end = ids.sep, ids.obj, ids.init, ids.end
-    sep_obj_bytes = (h.n_separators + h.n_objects) * P
-    pos = id_end
-    both_T = _decode_poses(data[pos : pos + sep_obj_bytes], dim)
-    sep_T, obj_T = both_T[: h.n_separators], both_T[h.n_separators :]
-    pos += sep_obj_bytes
-    init_values: list[np.ndarray] = []
-    for stage, _, _ in init_ids:
-        if stage == InitStage.ROTATION:
+    pos = ids.end
+    unresolved = 0
+
+    def delta_value(key, kind, base_round, n):
+        nonlocal pos, unresolved
+        e, q = _read_delta(data, pos, n)
+        pos += dl.value_bytes(n)
+        if delta is None:
+            unresolved += 1
+            return None
+        before = delta.unresolved
+        value = delta.resolve(key, kind, base_round, e, q, h.round)
+        unresolved += delta.unresolved - before
+        return value
+
+    # separators (absolute ones decoded in one batch), then objects
+    sep_T: list = []
+    if not h.delta:
+        sep_T = list(_decode_poses(data[pos : pos + h.n_separators * P], dim))
+        pos += h.n_separators * P
+    else:
+        for k, ((owner, kf, stamp), base) in enumerate(zip(ids.sep, ids.sep_base)):
+            key = ("s", owner, kf)
+            if base is None:
+                T = _decode_poses(data[pos : pos + P], dim)[0]
+                pos += P
+                if delta is not None:
+                    delta.absolute(key, T, h.round, stamp)
+            else:
+                T = delta_value(key, dl.POSE, base, dof)
+                if T is not None:
+                    ids.sep[k] = (owner, kf, delta.stamp(key))
+            sep_T.append(T)
+    obj_T = _decode_poses(data[pos : pos + h.n_objects * P], dim)
+    pos += h.n_objects * P
+    init_values: list = []
+    bases = ids.init_base if h.delta else (None,) * len(ids.init)
+    for (stage, owner, kf), base in zip(ids.init, bases):
+        key = ("i", int(stage), owner, kf)
+        rotation = stage.matrix_valued
+        if base is not None:
+            kind, n = (dl.LINEAR, dim * dim) if rotation else (dl.POSE, dof)
+            init_values.append(delta_value(key, kind, base, n))
+            continue
+        if rotation:
             nb = _rotation_value_bytes(dim)
             v = np.frombuffer(data, dtype="<f4", count=dim * dim, offset=pos).astype(np.float64)
             if not np.all(np.isfinite(v)):
                 raise DecodeError("init rotation value is NaN or inf")
-            init_values.append(v.reshape(dim, dim))
+            v = v.reshape(dim, dim)
         else:
             nb = P
-            init_values.append(_decode_poses(data[pos : pos + P], dim)[0])
+            v = _decode_poses(data[pos : pos + P], dim)[0]
         pos += nb
+        if h.delta and delta is not None:
+            delta.absolute(key, v, h.round)
+        init_values.append(v)
     separators = tuple(
-        SeparatorEntry(owner, kf, stamp, sep_T[i]) for i, (owner, kf, stamp) in enumerate(sep_ids)
+        SeparatorEntry(owner, kf, stamp, sep_T[i])
+        for i, (owner, kf, stamp) in enumerate(ids.sep) if sep_T[i] is not None
     )
     objects = tuple(
-        ObjectEntry(oid, obj_T[i], origin, hops) for i, (oid, origin, hops) in enumerate(obj_ids)
+        ObjectEntry(oid, obj_T[i], origin, hops) for i, (oid, origin, hops) in enumerate(ids.obj)
     )
     init = tuple(
-        InitEntry(stage, owner, kf, init_values[i]) for i, (stage, owner, kf) in enumerate(init_ids)
+        InitEntry(stage, owner, kf, init_values[i])
+        for i, (stage, owner, kf) in enumerate(ids.init) if init_values[i] is not None
     )
     by_kind = _kind_split(h, ids)
     return NeighbourMessage(
@@ -442,7 +543,8 @@ def decode_datagram(data: bytes) -> NeighbourMessage:
         fleet_id=h.fleet_id,
         boot_epoch=h.boot_epoch,
         sequence=h.sequence,
-        extra={"datagram_bytes": len(data), "bytes_by_kind": by_kind, "dim": dim},
+        extra={"datagram_bytes": len(data), "bytes_by_kind": by_kind, "dim": dim,
+               "delta_unresolved": unresolved},
     )
 
 
@@ -466,13 +568,19 @@ class EncodedDatagram:
     bytes_by_kind: dict
 
 
-def _entry_records(message: NeighbourMessage, dim: int):
-    """Per entry: kind, id bytes, value bytes (values encoded in batches)."""
+def _delta_bytes(e: int, q: np.ndarray) -> bytes:
+    return struct.pack("<b", e) + q.astype(np.int8).tobytes()
+
+
+def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder | None = None):
+    """Per entry: kind, id bytes, value bytes (values encoded in batches). With ``delta`` (the
+    sending side of this link) the delta layout is used and ``delta`` is updated."""
     kinds: list[str] = []
     ids: list[bytes] = []
     P = pose_bytes(dim)
     values: list[bytes] = []
     stamp = message.stamp_ns
+    rnd = int(message.round)
     n_sep = len(message.separators)
     poses = [e.T_world_body for e in message.separators] + [
         e.T_world_object for e in message.objects
@@ -482,15 +590,31 @@ def _entry_records(message: NeighbourMessage, dim: int):
         _check_poses(T, dim, "separator/object")
         block = _encode_poses(T, dim)
         values.extend(block[i * P : (i + 1) * P] for i in range(len(poses)))
-    for e in message.separators:
+        if delta is not None and n_sep:
+            decoded = _decode_poses(block[: n_sep * P], dim)
+    for k, e in enumerate(message.separators):
         if e.stamp_ns < 0:
             raise EncodeError(f"separator stamp_ns must be >= 0, got {e.stamp_ns}")
         kinds.append(KIND_SEPARATOR)
-        ids.append(
-            _varint(int(e.owner_robot))
-            + _varint(int(e.keyframe_id))
-            + _varint(_zigzag(int(e.stamp_ns) - stamp))
-        )
+        if delta is None:
+            ids.append(
+                _varint(int(e.owner_robot))
+                + _varint(int(e.keyframe_id))
+                + _varint(_zigzag(int(e.stamp_ns) - stamp))
+            )
+            continue
+        key = ("s", int(e.owner_robot), int(e.keyframe_id))
+        plan = delta.plan(key, dl.POSE, np.asarray(e.T_world_body, np.float64), rnd)
+        kf = _varint(int(e.keyframe_id))
+        if plan is None:
+            ids.append(_varint(int(e.owner_robot) << 1) + kf
+                       + _varint(_zigzag(int(e.stamp_ns) - stamp)))
+            delta.sent_absolute(key, decoded[k], rnd)
+        else:
+            base_round, ex, q, rebuilt = plan
+            ids.append(_varint((int(e.owner_robot) << 1) | 1) + kf + _varint(rnd - base_round))
+            values[k] = _delta_bytes(ex, q)
+            delta.sent_delta(key, rebuilt, rnd)
     for e in message.objects:
         kinds.append(KIND_OBJECT)
         ids.append(
@@ -500,7 +624,8 @@ def _entry_records(message: NeighbourMessage, dim: int):
     for e in message.init:
         stage = InitStage(e.stage)
         v = np.asarray(e.value, dtype=np.float64)
-        if stage == InitStage.ROTATION:
+        rotation = stage.matrix_valued
+        if rotation:
             if v.shape != (dim, dim):
                 raise EncodeError(f"init rotation value: expected ({dim}, {dim}), got {v.shape}")
             if not np.all(np.isfinite(v)) or np.abs(v).max(initial=0.0) > 3.0e38:
@@ -510,8 +635,25 @@ def _entry_records(message: NeighbourMessage, dim: int):
             _check_poses(v[None], dim, "init translation")
             value = _encode_poses(v[None], dim)
         kinds.append(KIND_INIT)
-        ids.append(bytes([int(stage)]) + _varint(int(e.owner_robot)) + _varint(int(e.keyframe_id)))
-        values.append(value)
+        who = _varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
+        if delta is None:
+            ids.append(bytes([int(stage)]) + who)
+            values.append(value)
+            continue
+        key = ("i", int(stage), int(e.owner_robot), int(e.keyframe_id))
+        kind = dl.LINEAR if rotation else dl.POSE
+        plan = delta.plan(key, kind, v, rnd)
+        if plan is None:
+            ids.append(bytes([int(stage)]) + who)
+            values.append(value)
+            held = (np.frombuffer(value, "<f4").astype(np.float64).reshape(dim, dim) if rotation
+                    else _decode_poses(value, dim)[0])
+            delta.sent_absolute(key, held, rnd)
+        else:
+            base_round, ex, q, rebuilt = plan
+            ids.append(bytes([int(stage) | _INIT_DELTA_BIT]) + who + _varint(rnd - base_round))
+            values.append(_delta_bytes(ex, q))
+            delta.sent_delta(key, rebuilt, rnd)
     return kinds, ids, values
 
 
@@ -520,7 +662,7 @@ def _message_dim(message: NeighbourMessage) -> int:
     if dim is None:
         for e in message.init:
             v = np.asarray(e.value)
-            return v.shape[-1] if InitStage(e.stage) == InitStage.ROTATION else v.shape[-1] - 1
+            return v.shape[-1] if InitStage(e.stage).matrix_valued else v.shape[-1] - 1
         return 3
     if dim not in (2, 3):
         raise EncodeError(f"poses must be SE(2) or SE(3), got dimension {dim}")
@@ -534,12 +676,15 @@ def encode_datagrams(
     boot_epoch: int,
     first_sequence: int,
     max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
+    delta: dl.DeltaEncoder | None = None,
 ) -> list[EncodedDatagram]:
     """Encode ``message`` into datagrams of at most ``max_datagram_bytes`` each.
 
     Entries keep their order (separators, objects, init) and fill datagrams greedily; datagram
     k gets sequence ``first_sequence + k``. An entry-less message gives one header-only
-    datagram (a heartbeat). The tag slot is zero; sign with ``auth.Signer``.
+    datagram (a heartbeat). The tag slot is zero; sign with ``auth.Signer``. With ``delta``
+    (the sending side of the one link this message goes over) the delta layout (flag 0x02) is
+    used: separator and init entries become quantised changes where ``delta`` allows.
     """
     if not MIN_DATAGRAM_BYTES <= max_datagram_bytes <= HARD_CAP_BYTES:
         raise EncodeError(
@@ -558,9 +703,9 @@ def encode_datagrams(
             f"round and stamp_ns must be >= 0, got {message.round}, {message.stamp_ns}"
         )
     dim = _message_dim(message)
-    kinds, ids, values = _entry_records(message, dim)
+    kinds, ids, values = _entry_records(message, dim, delta)
     n = len(kinds)
-    flags = _FLAG_DIM3 if dim == 3 else 0
+    flags = (_FLAG_DIM3 if dim == 3 else 0) | (_FLAG_DELTA if delta is not None else 0)
     ident = (
         _FIXED.pack(MAGIC, SCHEMA_VERSION, flags)
         + _varint(fleet_id)
