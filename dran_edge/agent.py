@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig
 from dran_edge.consensus import ConsensusFactors, consensus_error, dual_update, phi, phi_dim
 from dran_edge.events import (
@@ -60,7 +61,15 @@ from dran_edge.events import (
 )
 from dran_edge.factors import BetweenFactors, Cauchy, Huber, PriorFactors, isotropic_whitening
 from dran_edge.graph import PoseGraph, kinds_array
-from dran_edge.lm import LinearSolveError, build_plan, evaluate_cost, linearize, retract, schur_step
+from dran_edge.lm import (
+    LinearSolveError,
+    build_plan,
+    cholesky_factorizer,
+    evaluate_cost,
+    linearize,
+    retract,
+    schur_step,
+)
 from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 
 log = logging.getLogger(__name__)
@@ -189,6 +198,7 @@ class _Structure:
     obj_ids: tuple
     anchor_keys: tuple
     pair_keys: tuple  # (neighbour, object id) for each consensus factor
+    factorize: object  # supernodal Cholesky of A + μI, analysed once for this structure
 
 
 class Agent:
@@ -221,6 +231,7 @@ class Agent:
         self.converged = False
         self.last_norms = (math.inf, math.inf, math.inf)
         self.last_cost = math.nan
+        self.last_decrease = math.inf  # decrease of L̂_i by the last local step
         self.step_times: list = []
         self._structure: _Structure | None = None
         self._init_objects_from_observations()
@@ -267,13 +278,19 @@ class Agent:
         """Gate the own observations, then initialise unknown objects from them.
 
         Consistency gating (wrong tag associations): every observation predicts the object's
-        position ``x_p T̃`` from the current trajectory; per object, observations farther than
-        ``object_gate_m`` from the medoid prediction are dropped (counted, ``obs_gated``).
-        An unknown object starts at its medoid observation's prediction (Alg. 1 uses the first).
+        position ``x_p T̃`` from the current trajectory. Per object, with three or more
+        observations, those farther than ``object_gate_m`` from the medoid prediction are
+        dropped (``obs_gated``). With ``object_min_views`` = k > 1, an observation is also used
+        only when at least k own observations of the object (itself included) predict it
+        within the gate (a tag is seen from several keyframes in a row; a wrong id is usually
+        a lone observation); lone ones wait (``obs_pending``) until a neighbour's copy
+        corroborates them (``_check_associations``). An unknown object starts at the medoid of
+        its usable observations (Alg. 1 uses the first).
         """
         p = self.problem
         gate = self.config.object_gate_m
         self.obs_ok = np.ones(p.obs_object.size, bool)
+        self.obs_pending = np.zeros(p.obs_object.size, bool)
         self.obs_ok_gate = self.obs_ok.copy()
         if p.obs_object.size == 0:
             return
@@ -283,13 +300,21 @@ class Agent:
             pos = pred[idx, :-1, -1]
             dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
             med = int(np.argmin(dist.sum(axis=1)))
-            if gate > 0 and idx.size > 2:
-                self.obs_ok[idx[dist[med] > gate]] = False
-            if oid not in self.y:
-                self.y[oid] = pred[idx[med]].copy()
-            self.hops[oid] = 0
-            self.origin[oid] = self.id
-        self.counters["obs_gated"] = int((~self.obs_ok).sum())
+            ok = np.ones(idx.size, bool)
+            if gate > 0:
+                lone = (dist <= gate).sum(axis=1) < self.config.object_min_views
+                ok = ~lone & ((dist[med] <= gate) if idx.size > 2 else True)
+                self.obs_pending[idx[lone]] = True
+                self.obs_ok[idx[~ok]] = False
+            if ok.any():
+                if oid not in self.y:
+                    usable = np.flatnonzero(ok)
+                    m = usable[int(np.argmin(dist[np.ix_(usable, usable)].sum(axis=1)))]
+                    self.y[oid] = pred[idx[m]].copy()
+                self.hops[oid] = 0
+                self.origin[oid] = self.id
+        self.counters["obs_gated"] = int((~self.obs_ok & ~self.obs_pending).sum())
+        self.counters["obs_pending"] = int(self.obs_pending.sum())
         self.obs_ok_gate = self.obs_ok.copy()
 
     # ----------------------------------------------------------------- one round
@@ -328,20 +353,26 @@ class Agent:
             by_obj.setdefault(oid, []).append(T[:-1, -1])
         pred = (self.x[p.obs_own] @ p.obs_T)[:, :-1, -1]
         rejected = np.zeros(p.obs_object.size, bool)
+        corroborated = np.zeros(p.obs_object.size, bool)
         for oid, positions in by_obj.items():
-            if len(positions) < 2:
-                continue
             idx = np.flatnonzero(p.obs_object == oid)
             if idx.size == 0:
                 continue
-            centre = np.median(np.stack(positions), axis=0)
+            P = np.stack(positions)
+            # a lone observation is used once some neighbour's copy is within the object gate
+            near = np.linalg.norm(pred[idx][:, None] - P[None], axis=-1).min(axis=1)
+            corroborated[idx] = self.obs_pending[idx] & (near <= self.config.object_gate_m)
+            if len(positions) < 2:
+                continue
+            centre = np.median(P, axis=0)
             rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
             if rejected[idx].all() and oid in self.y:
                 y = self.y[oid].copy()
                 y[:-1, -1] = centre
                 self.y[oid] = y
-        self.obs_ok = self.obs_ok_gate & ~rejected
+        self.obs_ok = (self.obs_ok_gate | corroborated) & ~rejected
         self.counters["obs_rejected"] = int(rejected.sum())
+        self.counters["obs_corroborated"] = int(corroborated.sum())
 
     def _structure_for(self) -> _Structure:
         p = self.problem
@@ -385,7 +416,8 @@ class Agent:
             blocks.append(BetweenFactors(var, p.obs_T[ok], p.obs_W[ok], p.residual, kernel, "object"))
         graph = PoseGraph(dim=p.dim, kinds=kinds, factors=tuple(blocks))
         plan = build_plan(graph.with_factors(*self._consensus_blocks(obj_slot, c_base, pair_keys)))
-        self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys)
+        self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys,
+                                     cholesky_factorizer(plan))
         return self._structure
 
     def _consensus_blocks(self, obj_slot: dict, c_base: int, pair_keys: tuple) -> tuple:
@@ -428,6 +460,10 @@ class Agent:
         c = self.config
         self.k += 1
         self.counters["rounds"] += 1
+        if (self.k - 1) % c.colours != c.colour:
+            # not this robot's turn in the colour schedule: keep absorbing, send nothing
+            self.counters["idle_rounds"] = self.counters.get("idle_rounds", 0) + 1
+            return [self._estimate(stamp_ns, self.last_norms[2])]
         self._adopt_unknown_objects()
         self._check_associations()
         s = self._structure_for()
@@ -450,21 +486,39 @@ class Agent:
         c_base = n + len(s.obj_ids) + len(s.anchor_keys)
         graph = s.graph.with_factors(*self._consensus_blocks(obj_slot, c_base, s.pair_keys))
         poses = self._poses(s)
-        norm_u, norm_v = self._local_step(graph, s.plan, poses)
+        x_k = self.x.copy()
+        first = self.counters["accepted"] == 0
+        norm_u, norm_v = self._local_step(graph, s, poses)
+        for _ in range(c.local_iterations - 1):
+            self._local_step(graph, s, self._poses(s))
+        if c.sor_omega != 1.0 and not first:
+            # block SOR on the trajectory: x_k ⊕ ω (z ⊖ x_k), z the round's local solution;
+            # kept only while it does not raise L̂_i above its value at x_k (nonlinear safeguard)
+            z = self.x
+            self.x = geo.retract(x_k, c.sor_omega * geo.log(geo.between(x_k, z)))
+            if evaluate_cost(graph, self._poses(s)) > evaluate_cost(graph, poses):
+                self.x = z
+                self.counters["sor_rejected"] = self.counters.get("sor_rejected", 0) + 1
         phi2 = 0.0
         if s.pair_keys:
             y_i = np.stack([self.y[o] for _, o in s.pair_keys])
             y_j = np.stack([self.nbr_obj[k][0] for k in s.pair_keys])
             phi2 = float(np.max(consensus_error(y_i, y_j)))
         self.last_norms = (norm_u, norm_v, phi2)
-        self.converged = (norm_u <= c.eps_u and norm_v <= c.eps_v and phi2 <= c.eps_phi) or self.k >= c.k_max
+        optimal = norm_u <= c.eps_u and norm_v <= c.eps_v
+        if c.eps_cost_rel > 0 and self.last_decrease <= c.eps_cost_rel * max(self.last_cost, 1e-300):
+            optimal = True  # the local step no longer pays (docs/dran.md, termination)
+        iterations = self.counters["rounds"] - self.counters.get("idle_rounds", 0)
+        self.converged = (optimal and phi2 <= c.eps_phi) or iterations >= c.k_max
         return self._outputs(stamp_ns, s, phi2)
 
-    def _local_step(self, graph: PoseGraph, plan, poses: np.ndarray) -> tuple[float, float]:
+    def _local_step(self, graph: PoseGraph, s: _Structure, poses: np.ndarray) -> tuple[float, float]:
         """One damped LM step with the Schur complement (eqs. 7–12); keeps x, y on rejection."""
         c = self.config
+        plan = s.plan
         lin = linearize(graph, plan, poses)
         cost = lin.cost
+        self.last_decrease = 0.0
         if self.mu is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
             # relative to the median curvature: a stiff gauge prior must not inflate μ
@@ -472,7 +526,7 @@ class Agent:
         g = np.concatenate([lin.g_x, lin.g_y])
         for _ in range(_MAX_TRIALS):
             try:
-                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, self.mu)
+                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, self.mu, s.factorize)
             except LinearSolveError:
                 self.counters["linear_fail"] += 1
                 self.mu *= 4.0
@@ -485,10 +539,12 @@ class Agent:
                 rho = (cost - new_cost) / pred if pred > 0 else 0.0
                 self.mu = max(self.mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), _MU_MIN)
                 self.counters["accepted"] += 1
+                self.last_decrease += cost - new_cost
                 self.last_cost = new_cost
                 self._store(plan, new)
                 return float(np.linalg.norm(c.gamma * u)), float(np.linalg.norm(c.alpha * v))
             self.mu *= 4.0
+        self.last_decrease = math.inf  # no step taken: not evidence of convergence
         self.counters["rejected"] += 1
         self.last_cost = cost
         return 0.0, 0.0
@@ -531,14 +587,19 @@ class Agent:
             if seps or objs:
                 msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs))
                 out.append(Outgoing(msg, (q,)))
+        out.append(self._estimate(stamp_ns, phi2))
+        return out
+
+    def _estimate(self, stamp_ns: int, phi2: float) -> EstimateUpdate:
+        p = self.problem
         D = p.dim + 1
-        out.append(EstimateUpdate(
+        objects = sorted(self.y.items())
+        return EstimateUpdate(
             stamp_ns=stamp_ns, round=self.k, keyframe_stamps_ns=p.pose_stamps_ns.copy(),
             T_world_body=self.x.copy(), object_ids=tuple(o for o, _ in objects),
             T_world_object=(np.stack([T for _, T in objects]) if objects else np.zeros((0, D, D))),
             cost=float(self.last_cost), step_norm_u=self.last_norms[0],
-            step_norm_v=self.last_norms[1], consensus_error=phi2, converged=self.converged))
-        return out
+            step_norm_v=self.last_norms[1], consensus_error=phi2, converged=self.converged)
 
     # ----------------------------------------------------------------- checkpoints
     def to_state(self) -> dict:

@@ -168,14 +168,32 @@ class AgentConfig(_Checked):
     """Step size on the public variables v (objects): y <- Retr_y(alpha v) (Alg. 1 line 13)."""
     gamma: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0)
     """Step size on the private variables u (trajectory): x <- Retr_x(gamma u) (Alg. 1 line 13)."""
+    sor_omega: float = _f(1.0, lo=0.0, lo_open=True, hi=1.99)
+    """Over-relaxation omega of the inter-robot iteration on the trajectory: after the accepted
+    local step x <- Retr_x(gamma u) the robot keeps Retr_x(omega gamma u) instead (1: plain
+    Alg. 1). With a colour schedule this is block SOR (docs/dran.md); the robot's first local
+    step is always plain."""
+    local_iterations: int = _f(1, lo=1, hi=100)
+    """LM steps on the local problem per round (anchors fixed); 1 is Alg. 1. More cost only
+    computation and make each round's block solve closer to exact."""
+    colours: int = _f(1, lo=1, hi=256)
+    """Update schedule: the robot runs its local step only in rounds k with
+    (k - 1) mod colours == colour; 1 is the paper's every-round (parallel) schedule, more give a
+    Gauss-Seidel-like order when neighbours have different colours (docs/dran.md)."""
+    colour: int = _f(0, lo=0, hi=255)
+    """This robot's colour in the schedule (0 <= colour < colours)."""
     eps_u: float = _f(1e-2, lo=0.0)
     """Terminate when the private step norm |u| < eps_u."""
     eps_v: float = _f(1e-1, lo=0.0)
     """... and the public step norm |v| < eps_v."""
     eps_phi: float = _f(1e-1, lo=0.0)
     """... and the consensus error |phi| < eps_phi."""
+    eps_cost_rel: float = _f(0.0, lo=0.0)
+    """Also optimal when the round's local step lowered L̂_i by at most this fraction of it
+    (0: off, the paper's ε_u/ε_v rule alone). Steps that no longer pay stop the traffic of a
+    slowly converging tail (docs/dran.md)."""
     k_max: int = _f(500, lo=1, hi=1_000_000)
-    """Maximum number of DRAN rounds of one optimisation."""
+    """Maximum number of local steps (DRAN iterations) of one optimisation."""
     mu_init: float = _f(1e-4, lo=0.0, lo_open=True)
     """Initial Levenberg-Marquardt damping mu of M = J^T J + mu I (eq. 7)."""
     robust_kernel: str = _f("huber", choices=("none", "huber", "cauchy"))
@@ -188,6 +206,10 @@ class AgentConfig(_Checked):
     object_gate_m: float = _f(2.0, lo=0.0)
     """Consistency gate: an object observation whose predicted object position is farther than
     this from the medoid of the robot's predictions of that object is dropped (0: off), metres."""
+    object_min_views: int = _f(1, lo=1, hi=100)
+    """An own object observation is used only when at least this many own observations of that
+    object (itself included) agree within object_gate_m, or a neighbour's copy lies within
+    object_gate_m of it (1: every observation that passes the gate; 2 rejects lone wrong ids)."""
     association_gate_m: float = _f(8.0, lo=0.0)
     """Cross-robot association check: an own object observation predicting the object farther
     than this from the median of >= 2 neighbours' copies is dropped as a wrong association
@@ -219,6 +241,8 @@ class AgentConfig(_Checked):
             raise ConfigError(f"neighbours: a robot cannot neighbour itself (id {self.robot_id})")
         if len(set(self.neighbours)) != len(self.neighbours):
             raise ConfigError(f"neighbours: expected distinct ids, got {list(self.neighbours)}")
+        if self.colour >= self.colours:
+            raise ConfigError(f"colour: expected a value < colours ({self.colours}), got {self.colour}")
 
 
 # --------------------------------------------------------------------------- shell sections

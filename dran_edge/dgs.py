@@ -122,9 +122,10 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
 
 
 def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params=None,
-                links=None, partitions=()) -> dict:
+                links=None, partitions=(), delta_every: int = 0) -> dict:
     """DGS on a g2o graph split like Table 1; same bus and byte accounting as ``run_g2o_dran``
-    (``links``: the bus's ``BusParams``, default lossless)."""
+    (``links``: the bus's ``BusParams``, default lossless; ``delta_every``: the delta layout,
+    see ``Fleet``)."""
     from dran_edge.comms.bus import Bus, BusParams
     from dran_edge.multiagent import Fleet
     from dran_edge.objective import sesync_objective, sesync_weights
@@ -135,7 +136,7 @@ def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params
     part = partition_contiguous(g.edges, g.num_vertices, num_robots)
     bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
               partitions=partitions)
-    fleet = Fleet([], bus)
+    fleet = Fleet([], bus, delta_every=delta_every)
     init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                     part, fleet.init_exchange,
                                     init_params or InitParams(gauss_seidel=True))

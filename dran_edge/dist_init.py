@@ -87,6 +87,11 @@ class InitParams:
     frame_iterations: int = 20
     """Of the ``max_iterations`` of a stage, at most this many align whole segments first
     (warm start, see ``LinearStage.frame_update``); 0 disables it."""
+    translation_max_iterations: int | None = None
+    """Cap of the translation stage (None: ``max_iterations``)."""
+    frame_entries: bool = True
+    """During the frame phase send one frame entry (G or s) per neighbour instead of every
+    separator (the neighbour rebuilds them from the solo values X̂ it received once)."""
     gauss_seidel: bool = False
     """True: robots of one colour update per sub-step using the newest values (DGS);
     False: all robots update in parallel from last round's values (Jacobi)."""
@@ -206,6 +211,11 @@ class LinearStage:
                 "M": M[part.inter_edges], "c": c_of(part.robot_id)[part.inter_edges], "w": w[part.inter_edges]})
         self.heard = [np.zeros(n, bool) for _ in partition.parts]
         self.multiplicative = b > 1
+        #: per robot: the neighbours' separator values as last received (the solo-segment
+        #: values X̂ during the frame phase), the base that a frame entry transforms
+        self.base: list[dict] = [{} for _ in partition.parts]
+        #: per robot: its last frame (G, or the offset s) from ``frame_update``
+        self.frame: list[np.ndarray | None] = [None for _ in partition.parts]
 
     def update(self, r: int, sor: float) -> float:
         """Robot r's block update from its current view; returns the max abs change.
@@ -248,11 +258,13 @@ class LinearStage:
             lhs = np.einsum("e,eab,eac->bc", w, P, P)
             G = np.linalg.solve(lhs, np.einsum("e,eab,eac->bc", w, P, Qm))
             X_new = f["X_hat"] @ G
+            self.frame[r] = G
         else:
             # own j: X̂_j + s − X_i − c;  own i: s − (X_j − X̂_i − c)
             Qm = np.where(mj[:, None, None], Xo + c - Xh, Xo - Xh - c)
             s_off = np.einsum("e,eab->ab", w, Qm) / w.sum()
             X_new = f["X_hat"] + s_off
+            self.frame[r] = s_off
         idx = _expand(f["verts"], b)
         change = float(np.max(np.abs(X_new.reshape(-1, view.shape[1]) - view[idx])))
         view[idx] = X_new.reshape(-1, view.shape[1])
@@ -263,30 +275,55 @@ class LinearStage:
     def own_value(self, r: int, v: int) -> np.ndarray:
         return self.views[r][v * self.b:(v + 1) * self.b]
 
+    def solo_values(self, r: int, vs: np.ndarray) -> np.ndarray:
+        """Robot r's solo-segment values X̂ at its vertices ``vs`` (what its frames transform)."""
+        f = self.frames[r]
+        order = np.argsort(f["verts"])
+        return f["X_hat"][order[np.searchsorted(f["verts"], vs, sorter=order)]]
+
     def receive(self, r: int, v: int, X_v: np.ndarray) -> None:
         self.views[r][v * self.b:(v + 1) * self.b] = X_v
         self.heard[r][v] = True
+        self.base[r][v] = np.array(X_v, dtype=float)
+
+    def receive_frame(self, r: int, owner: int, F: np.ndarray) -> None:
+        """A neighbour's frame: every separator of ``owner`` that robot r holds a base for
+        becomes ``X̂_v G`` (rotation stage) or ``X̂_v + s`` (translation stage)."""
+        owners = self.partition.owner
+        for v, X in self.base[r].items():
+            if owners[v] == owner:
+                self.views[r][v * self.b:(v + 1) * self.b] = X @ F if self.multiplicative else X + F
 
 
 def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: InitParams,
                tol: float, sor: float, send_tol: float, colour: np.ndarray | None,
                to_entry: Callable, from_entry: Callable,
-               history: list) -> int:
-    """Iterate ``stage`` through ``exchange``; returns the iterations used."""
+               history: list, max_iterations: int, frame_kind: InitStage | None = None,
+               frame_to_entry: Callable | None = None,
+               frame_from_entry: Callable | None = None) -> int:
+    """Iterate ``stage`` through ``exchange``; returns the iterations used.
+
+    During the frame phase a robot sends each neighbour its solo-segment separator values X̂
+    once, then only its frame (one ``frame_kind`` entry: G or s) whenever the frame changed;
+    the neighbour rebuilds the separators as X̂ G or X̂ + s (``LinearStage.receive_frame``).
+    Without ``frame_kind`` the separators themselves are sent as in the block phase."""
     part = stage.partition
     R = part.num_robots
     last_sent: dict[tuple[int, int], np.ndarray] = {}  # (robot, neighbour) -> values sent
+    base_sent: set[tuple[int, int]] = set()  # (robot, neighbour): X̂ sent for the frames
+    last_frame: dict[tuple[int, int], np.ndarray] = {}
     groups = [list(range(R))] if colour is None else [
         [r for r in range(R) if colour[r] == c] for c in np.unique(colour)]
     iterations = 0
     frames_done = params.frame_iterations == 0
-    for it in range(params.max_iterations):
+    for it in range(max_iterations):
         iterations = it + 1
         max_change = 0.0
         for group in groups:
             outgoing: dict[int, list] = {}
             for r in group:
-                if it < params.frame_iterations and not frames_done:
+                in_frames = it < params.frame_iterations and not frames_done
+                if in_frames:
                     change = stage.frame_update(r)
                 else:
                     change = stage.update(r, sor)
@@ -296,6 +333,20 @@ def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: 
                 for q in part.parts[r].neighbours:
                     vs = part.parts[r].separators_for[q]
                     X = view[vs]
+                    if in_frames and frame_kind is not None:
+                        entries = []
+                        if (r, q) not in base_sent:
+                            Xh = stage.solo_values(r, vs)
+                            entries = [to_entry(r, int(v), Xh[k]) for k, v in enumerate(vs.tolist())]
+                            base_sent.add((r, q))
+                        F, F_prev = stage.frame[r], last_frame.get((r, q))
+                        if F is not None and (F_prev is None or np.max(np.abs(F - F_prev)) > send_tol):
+                            entries.append(frame_to_entry(r, F))
+                            last_frame[(r, q)] = F.copy()
+                        last_sent[(r, q)] = X.copy()  # what q rebuilds from X̂ and the frame
+                        if entries:
+                            sends.append((q, entries))
+                        continue
                     prev = last_sent.get((r, q))
                     if prev is None:
                         prev = np.full_like(X, np.nan)
@@ -313,6 +364,8 @@ def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: 
                 for e in entries:
                     if InitStage(e.stage) == kind:
                         stage.receive(r, int(e.keyframe_id), from_entry(e))
+                    elif frame_kind is not None and InitStage(e.stage) == frame_kind:
+                        stage.receive_frame(r, int(e.owner_robot), frame_from_entry(e))
         history.append((kind.name, it, max_change))
         if it < params.frame_iterations and not frames_done:
             if it > 0 and max_change < tol:
@@ -352,9 +405,13 @@ def distributed_chordal_init(
     def rot_entry(r: int, v: int, X_v: np.ndarray) -> InitEntry:
         return InitEntry(InitStage.ROTATION, r, v, X_v.T.copy())
 
+    frames = params.frame_entries
     it_rot = _run_stage(rot, InitStage.ROTATION, exchange, params, params.rotation_tol, sor_rot,
                         params.send_tol, colour, rot_entry,
-                        lambda e: np.asarray(e.value, float).T, history)
+                        lambda e: np.asarray(e.value, float).T, history, params.max_iterations,
+                        InitStage.ROTATION_FRAME if frames else None,
+                        lambda r, G: InitEntry(InitStage.ROTATION_FRAME, r, 0, G.copy()),
+                        lambda e: np.asarray(e.value, float))
 
     # Each robot projects what it knows (own values and the neighbours' last relaxed values).
     R_views = [geo.so3_project(v.reshape(n, d, d).swapaxes(1, 2)) if d == 3 else
@@ -372,9 +429,18 @@ def distributed_chordal_init(
         T[:d, :d], T[:d, d] = R_views[r][v], X_v[0]
         return InitEntry(InitStage.TRANSLATION, r, v, T)
 
+    def offset_entry(r: int, s_off: np.ndarray) -> InitEntry:
+        T = np.eye(D)
+        T[:d, d] = s_off[0]
+        return InitEntry(InitStage.TRANSLATION_FRAME, r, 0, T)
+
     it_tr = _run_stage(trans, InitStage.TRANSLATION, exchange, params, params.translation_tol,
                        sor_tr, params.translation_send_tol, colour, trans_entry,
-                       lambda e: np.asarray(e.value, float)[:d, d][None], history)
+                       lambda e: np.asarray(e.value, float)[:d, d][None], history,
+                       params.max_iterations if params.translation_max_iterations is None
+                       else params.translation_max_iterations,
+                       InitStage.TRANSLATION_FRAME if frames else None,
+                       offset_entry, lambda e: np.asarray(e.value, float)[:d, d][None])
 
     poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
     for part in partition.parts:

@@ -31,6 +31,7 @@ import numpy as np
 from dran_edge.agent import Agent
 from dran_edge.comms import codec
 from dran_edge.comms.bus import Bus, BusParams
+from dran_edge.comms.delta import DeltaDecoder, DeltaEncoder
 from dran_edge.consensus import metropolis_hastings_matrix
 from dran_edge.errors import DecodeError
 from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
@@ -74,7 +75,10 @@ class Fleet:
     """Agents (agent i is robot ``bus.robot_ids[i]``) and the datagram exchange between them."""
 
     def __init__(self, agents: list[Agent], bus: Bus,
-                 max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES, fleet_id: int = 1):
+                 max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES, fleet_id: int = 1,
+                 delta_every: int = 0):
+        """``delta_every > 0``: delta layout on every link (``dran_edge.comms.delta``), each key
+        sent absolute again after that many rounds; 0: absolute values only."""
         self.agents = agents
         self.bus = bus
         self.ids = bus.robot_ids
@@ -85,6 +89,9 @@ class Fleet:
         self.decode_errors = 0
         self.estimates: list[EstimateUpdate | None] = [None] * len(agents)
         self.step_ms: list[float] = []
+        self.delta_every = int(delta_every)
+        self._enc: dict = {}  # (sender index, receiver index) -> DeltaEncoder
+        self._dec: dict = {}  # (receiver index, sender id) -> DeltaDecoder
 
     @property
     def round(self) -> int:
@@ -98,26 +105,34 @@ class Fleet:
 
     def send(self, sender: int, message: NeighbourMessage, to, latency_rounds: int | None = None
              ) -> None:
-        """Encode once, then hand every datagram to the bus for every recipient in ``to`` whose
-        link is up this round (agent indices)."""
-        grams = codec.encode_datagrams(message, fleet_id=self.fleet_id, boot_epoch=1,
-                                       first_sequence=self.sequence[sender],
-                                       max_datagram_bytes=self.max_datagram_bytes)
-        self.sequence[sender] += len(grams)
+        """Encode (once, or once per link with deltas), then hand every datagram to the bus for
+        every recipient in ``to`` whose link is up this round (agent indices)."""
         up = set(self.bus.neighbours(self.ids[sender]))
         ep = self.endpoints[sender]
+
+        def encode(enc=None):
+            grams = codec.encode_datagrams(message, fleet_id=self.fleet_id, boot_epoch=1,
+                                           first_sequence=self.sequence[sender],
+                                           max_datagram_bytes=self.max_datagram_bytes, delta=enc)
+            self.sequence[sender] += len(grams)
+            return grams
+
+        grams = None if self.delta_every else encode()
         for q in to:
             if self.ids[q] not in up:
                 continue
+            if self.delta_every:  # one encoding per link: each link has its own delta state
+                grams = encode(self._enc.setdefault((sender, q), DeltaEncoder(self.delta_every)))
             for g in grams:
                 ep.send(self.ids[q], g.data, latency_rounds)
 
     def _receive(self) -> list[list[NeighbourMessage]]:
         inbox: list[list[NeighbourMessage]] = [[] for _ in self.ids]
         for i, ep in enumerate(self.endpoints):
-            for _sender, data in ep.receive():
+            for sender, data in ep.receive():
+                dec = self._dec.setdefault((i, sender), DeltaDecoder()) if self.delta_every else None
                 try:
-                    inbox[i].append(codec.decode_datagram(data))
+                    inbox[i].append(codec.decode_datagram(data, dec))
                 except DecodeError:
                     self.decode_errors += 1
         return inbox
@@ -133,9 +148,11 @@ class Fleet:
         for i, agent in enumerate(self.agents):
             for msg in inbox[i]:
                 agent.handle(NeighbourData(stamp, msg))
+            idle = agent.counters.get("idle_rounds", 0)
             t0 = time.perf_counter()
             outs = agent.handle(Tick(stamp))
-            self.step_ms.append(1e3 * (time.perf_counter() - t0))
+            if agent.counters.get("idle_rounds", 0) == idle:  # not an idle turn of a schedule
+                self.step_ms.append(1e3 * (time.perf_counter() - t0))
             for o in outs:
                 if isinstance(o, Outgoing):
                     outgoing.append((i, o))
@@ -174,16 +191,40 @@ class Fleet:
 
 
 # --------------------------------------------------------------------------- Table 1 driver
+#: Table 1 defaults (docs/dran.md, "Inter-robot schedule"): robots of one colour of a greedy
+#: colouring update together (block Gauss–Seidel), block SOR ω on the trajectory, delta entries
+#: on the wire (absolute again every 20 rounds), and the cost-decrease stop.
+TABLE1_SOR_OMEGA = 1.9
+TABLE1_EPS_COST_REL = 1e-6
+TABLE1_DELTA_EVERY = 20
+
+
+def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
+    """``(AgentConfig, run_g2o_dran keyword arguments)`` of the Table 1 runs. ``plain``: Alg. 1
+    as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone."""
+    from dran_edge.config import AgentConfig
+
+    if plain:
+        return (AgentConfig(dim=dim, residual=residual, robust_kernel="none"),
+                {"schedule": "parallel", "delta_every": 0})
+    cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
+                      sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
+    return cfg, {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
+
+
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
-                 links: BusParams | None = None, partitions=(), callback=None) -> dict:
+                 links: BusParams | None = None, partitions=(), callback=None,
+                 schedule: str = "parallel", delta_every: int = 0) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
-    converged (or K_max), over a bus on the split's neighbour graph with network model
-    ``links`` (default lossless) and ``partitions``. Returns the merged poses and the numbers
-    the bench reports."""
+    converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
+    network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
+    (every robot every round) or "colour" (the robots of one colour of a greedy colouring per
+    round); ``delta_every``: see ``Fleet``. Returns the merged poses and the numbers the bench
+    reports."""
     import dataclasses
 
     from dran_edge.agent import LocalProblem
-    from dran_edge.dist_init import InitParams, distributed_chordal_init
+    from dran_edge.dist_init import InitParams, distributed_chordal_init, greedy_colouring
     from dran_edge.objective import sesync_objective, sesync_weights
     from dran_edge.partition import partition_contiguous
 
@@ -193,15 +234,17 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
               partitions=partitions)
     W = neighbour_weights(bus)
-    fleet = Fleet([], bus)
+    fleet = Fleet([], bus, delta_every=delta_every)
     init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                     part, fleet.init_exchange, init_params or InitParams(gauss_seidel=True))
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)
     agents = []
+    colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
     for r in range(num_robots):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim)
+        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
+                                  colour=int(colour[r]), colours=int(colour.max()) + 1)
         prob = LocalProblem.from_partition(g, part, r, init.poses, kappa, tau, cfg.residual)
         agent = Agent(cfg, prob, weights=W[r])
         # the init's last exchange left every robot with its neighbours' separators
@@ -213,7 +256,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         agents.append(agent)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
-    rounds = fleet.run(max_rounds or config.k_max, callback=callback)
+    rounds = fleet.run(max_rounds or config.k_max * (int(colour.max()) + 1), callback=callback)
     merged = init.poses.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
@@ -228,5 +271,8 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         "objective_init": F_init,
         "objective_final": F(merged),
         "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
+        "schedule": schedule,
+        "colours": int(colour.max()) + 1,
+        "delta_every": delta_every,
         "wall_s": time.perf_counter() - t_start,
     }

@@ -120,3 +120,57 @@ def test_observation_contradicted_by_two_neighbours_is_dropped(scenario):
     b.handle(_obj_msg(2, 1, oid, near))
     b.handle(Tick(1))
     assert b.counters["obs_rejected"] == 0
+
+
+def test_colour_schedule_steps_only_on_the_robots_turn(scenario):
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), colours=2, colour=1)
+    agent = Agent(cfg, scenario.problems[0], weights={1: 0.5})
+    x0 = agent.x.copy()
+    outs = agent.handle(Tick(500_000_000))  # round 1 is colour 0's turn: idle, nothing sent
+    assert not any(isinstance(o, Outgoing) for o in outs)
+    assert isinstance(outs[-1], EstimateUpdate) and np.array_equal(agent.x, x0)
+    outs = agent.handle(Tick(1_000_000_000))  # round 2: its turn
+    assert any(isinstance(o, Outgoing) for o in outs) and not np.array_equal(agent.x, x0)
+    assert agent.counters["idle_rounds"] == 1 and agent.counters["accepted"] == 1
+    with pytest.raises(Exception, match="colour"):
+        dataclasses.replace(cfg, colour=2)
+
+
+def test_over_relaxation_never_raises_the_local_cost(scenario):
+    """Block SOR moves x past the round's local solution but keeps the result only when L̂_i is
+    not above its value before the round (the nonlinear safeguard)."""
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), sor_omega=1.9)
+    agent = Agent(cfg, scenario.problems[0], weights={1: 0.5})
+    before = []
+    for k in range(1, 8):
+        before.append(_local_cost(agent))
+        agent.handle(Tick(k * 500_000_000))
+        assert _local_cost(agent) <= before[-1] * (1 + 1e-12)
+    plain = Agent(dataclasses.replace(cfg, sor_omega=1.0), scenario.problems[0], weights={1: 0.5})
+    plain.handle(Tick(1))
+    plain.handle(Tick(2))
+    assert not np.allclose(plain.x, agent.x)  # ω is applied (from the second step on)
+
+
+def test_lone_wrong_tag_id_waits_for_a_neighbour_to_corroborate_it(scenario):
+    """object_min_views = 2: an observation no other own observation of that object agrees
+    with (a wrong tag id, typically) is not used, and creates no object, until a neighbour's
+    copy lies within the gate."""
+    p = scenario.problems[0]
+    k = int(np.flatnonzero(p.obs_object == p.obs_object[0])[0])
+    new_id = 1000  # relabel one observation: a lone, wrong id
+    obs_object = p.obs_object.copy()
+    obs_object[k] = new_id
+    prob = dataclasses.replace(p, obs_object=obs_object)
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
+    a = Agent(cfg, prob, weights={1: 0.5})
+    assert a.obs_pending[k] and not a.obs_ok[k] and new_id not in a.y
+    assert a.counters["obs_pending"] >= 1
+    a.handle(Tick(1))
+    assert not a.obs_ok[k] and new_id not in a.y
+    T_pred = a.x[p.obs_own[k]] @ p.obs_T[k]
+    a.handle(_obj_msg(1, 1, new_id, T_pred))  # a neighbour's copy where this one predicts it
+    a.handle(Tick(2))
+    assert a.obs_ok[k] and new_id in a.y and a.counters["obs_corroborated"] == 1
+    plain = Agent(dataclasses.replace(cfg, object_min_views=1), prob, weights={1: 0.5})
+    assert plain.obs_ok[k] and new_id in plain.y  # the default keeps it

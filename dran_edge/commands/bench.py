@@ -33,7 +33,13 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     g.add_argument("dataset", help="a g2o file (VERTEX_SE2/SE3:QUAT, EDGE_SE2/SE3:QUAT)")
     g.add_argument("--robots", type=int, default=5, help="number of robots (default 5)")
     g.add_argument("--method", choices=("dran", "dgs"), default="dran")
-    g.add_argument("--max-rounds", type=int, default=None, help="cap on DRAN rounds (default K_max=500)")
+    g.add_argument("--max-rounds", type=int, default=None,
+                   help="cap on DRAN rounds (default: K_max=500 local steps per robot, i.e. 500 x "
+                        "the number of colours in the colour schedule)")
+    g.add_argument("--plain", action="store_true",
+                   help="Alg. 1 as printed: every robot every round, no over-relaxation, absolute "
+                        "values on the wire (default: colour schedule, SOR, delta entries; "
+                        "docs/dran.md)")
     g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
                    help="residual of the local problems (chordal optimises the reported F exactly)")
     g.add_argument("--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
@@ -47,6 +53,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     o.add_argument("--outliers", type=float, default=0.0, help="fraction of wrong object ids / loops")
     o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
                    help="what --outliers injects: wrong object ids, false loops, or both")
+    o.add_argument("--min-views", type=int, default=1,
+                   help="AgentConfig.object_min_views: own observations that must agree before an "
+                        "object observation is used unless a neighbour's copy corroborates it "
+                        "(default 1; 2 rejects lone wrong tag ids)")
     o.add_argument("--rounds", type=int, default=150, help="DRAN rounds per run (default 150)")
     o.add_argument("--robots", type=int, default=21)
     o.add_argument("--objects", type=int, default=60)
@@ -63,25 +73,24 @@ def _progress(msg: str) -> None:
 def run_g2o(args) -> int:
     from pathlib import Path
 
-    from dran_edge.config import AgentConfig
     from dran_edge.dgs import run_g2o_dgs
     from dran_edge.errors import InputError
     from dran_edge.g2o import read_g2o, write_g2o
-    from dran_edge.multiagent import run_g2o_dran
+    from dran_edge.multiagent import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 
     g = read_g2o(args.dataset)
     if args.robots < 1 or args.robots > g.num_vertices:
         raise InputError(f"--robots must be in 1..{g.num_vertices}, got {args.robots}")
     if args.method == "dran":
-        cfg = AgentConfig(dim=g.dim, residual=args.residual, robust_kernel="none")
+        cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain)
 
         def cb(k, fleet):
             if not args.json and k % 50 == 0:
                 _progress(f"round {k}: {fleet.traffic.bytes_total} bytes")
 
-        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb)
+        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb, **run_kw)
     else:
-        res = run_g2o_dgs(g, args.robots)
+        res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY)
     if args.out:
         write_g2o(args.out, g, res["poses"])
     report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots}
@@ -99,7 +108,8 @@ def run_objects_cmd(args) -> int:
     from dran_edge.config import AgentConfig
     from dran_edge.objects_sim import SimParams, make_scenario, run_objects
 
-    cfg = AgentConfig(robust_kernel="cauchy" if args.outliers > 0 else "none", robust_threshold=0.1)
+    cfg = AgentConfig(robust_kernel="cauchy" if args.outliers > 0 else "none", robust_threshold=0.1,
+                      object_min_views=args.min_views)
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
