@@ -195,7 +195,7 @@ class Fleet:
 #: colouring update together (block Gauss–Seidel), block SOR ω on the trajectory, delta entries
 #: on the wire (absolute again every 20 rounds), and the cost-decrease stop.
 TABLE1_SOR_OMEGA = 1.9
-TABLE1_EPS_COST_REL = 1e-6
+TABLE1_EPS_COST_REL = 1e-4
 TABLE1_DELTA_EVERY = 20
 
 
