@@ -292,11 +292,15 @@ class Agent:
         self.obs_ok = np.ones(p.obs_object.size, bool)
         self.obs_pending = np.zeros(p.obs_object.size, bool)
         self.obs_ok_gate = self.obs_ok.copy()
+        self._obs_groups: dict[int, np.ndarray] = {}
         if p.obs_object.size == 0:
             return
         pred = self.x[p.obs_own] @ p.obs_T
-        for oid in np.unique(p.obs_object).tolist():
-            idx = np.flatnonzero(p.obs_object == oid)
+        order = np.argsort(p.obs_object, kind="stable")
+        ids, starts = np.unique(p.obs_object[order], return_index=True)
+        #: object id -> indices of its own observations (fixed for this problem)
+        self._obs_groups = {int(o): g for o, g in zip(ids.tolist(), np.split(order, starts[1:]))}
+        for oid, idx in self._obs_groups.items():
             pos = pred[idx, :-1, -1]
             dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
             med = int(np.argmin(dist.sum(axis=1)))
@@ -350,18 +354,26 @@ class Agent:
             return
         by_obj: dict[int, list[np.ndarray]] = {}
         for (j, oid), (T, _hop, _rnd) in self.nbr_obj.items():
-            by_obj.setdefault(oid, []).append(T[:-1, -1])
-        pred = (self.x[p.obs_own] @ p.obs_T)[:, :-1, -1]
+            if oid in self._obs_groups:
+                by_obj.setdefault(oid, []).append(T[:-1, -1])
+        if not by_obj:
+            self.obs_ok = self.obs_ok_gate
+            self.counters["obs_rejected"] = self.counters["obs_corroborated"] = 0
+            return
+        # predicted object positions x_p t̃ (rotation times translation, no 4x4 products)
+        x = self.x[p.obs_own]
+        pred = (x[:, :-1, :-1] @ p.obs_T[:, :-1, -1:])[..., 0] + x[:, :-1, -1]
         rejected = np.zeros(p.obs_object.size, bool)
         corroborated = np.zeros(p.obs_object.size, bool)
+        gate_obj = self.config.object_gate_m
         for oid, positions in by_obj.items():
-            idx = np.flatnonzero(p.obs_object == oid)
-            if idx.size == 0:
-                continue
-            P = np.stack(positions)
+            idx = self._obs_groups[oid]
+            P = np.array(positions)
             # a lone observation is used once some neighbour's copy is within the object gate
-            near = np.linalg.norm(pred[idx][:, None] - P[None], axis=-1).min(axis=1)
-            corroborated[idx] = self.obs_pending[idx] & (near <= self.config.object_gate_m)
+            pending = self.obs_pending[idx]
+            if pending.any():
+                near = np.sqrt(((pred[idx][:, None] - P[None]) ** 2).sum(-1)).min(axis=1)
+                corroborated[idx] = pending & (near <= gate_obj)
             if len(positions) < 2:
                 continue
             centre = np.median(P, axis=0)

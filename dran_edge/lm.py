@@ -396,6 +396,19 @@ def schur_step(
         else:
             lu = _factorize(sp.csc_matrix(A + mu * sp.identity(n_u, format="csc")))
         C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
+        if n_v and hasattr(lu, "forward"):
+            # Cholesky: with Y = L⁻¹P[g_x, C], CᵀA⁻¹C = Y_Cᵀ Y_C and CᵀA⁻¹g_x = Y_Cᵀ y_g, and
+            # u needs one back substitution of y_g + Y_C v (half the solves of A⁻¹[g_x, C])
+            Y = lu.forward(np.column_stack([g_x, C_dense]))
+            y_g, Y_C = Y[:, 0], Y[:, 1:]
+            H_hat = B + mu * np.eye(n_v) - Y_C.T @ Y_C  # eq. 11
+            g_hat = g_y - Y_C.T @ y_g  # eq. 10
+            try:
+                v = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
+            except np.linalg.LinAlgError as exc:
+                raise LinearSolveError(f"reduced Hessian is not positive definite: {exc}") from None
+            u = -lu.backward(y_g + Y_C @ v)[:, 0]  # eq. 8
+            return u, v
         X = lu.solve(np.column_stack([g_x, C_dense]) if n_v else g_x[:, None])
         Ainv_g, Ainv_C = X[:, 0], X[:, 1:]
     if n_v == 0:

@@ -488,6 +488,12 @@ class NumericCholesky:
         self._factors = factors
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
+        rhs = np.asarray(rhs, dtype=np.float64)
+        return self.backward(self.forward(rhs)).reshape(rhs.shape)
+
+    def forward(self, rhs: np.ndarray) -> np.ndarray:
+        """``L⁻¹ P rhs`` as (n, r) (in the factor's permuted order): ``A⁻¹ = Pᵀ L⁻ᵀ L⁻¹ P``, so
+        ``bᵀ A⁻¹ c = forward(b)ᵀ forward(c)`` needs no back substitution."""
         sym = self._sym
         rhs = np.asarray(rhs, dtype=np.float64)
         y = np.array(rhs[sym._perm]).reshape(sym.n, -1)
@@ -504,6 +510,14 @@ class NumericCholesky:
             y[sn.c0 : sn.c1] = ys
             if sn.rows.size:
                 y[sn.rows] -= X.T @ ys
+        return y
+
+    def backward(self, y: np.ndarray) -> np.ndarray:
+        """``Pᵀ L⁻ᵀ y`` for ``y`` from :meth:`forward` (or a combination of its columns);
+        returns (n, r) in the original order."""
+        sym = self._sym
+        y = np.array(y, dtype=np.float64).reshape(sym.n, -1)
+        sns = [sym._supernodes[s] for s in sym._internal]
         for sn, (R, X) in zip(reversed(sns), reversed(self._factors)):
             xs = y[sn.c0 : sn.c1]
             if sn.rows.size:
@@ -516,4 +530,4 @@ class NumericCholesky:
             y[grp.cols] = np.linalg.solve(np.swapaxes(L11, 1, 2), xs)
         out = np.empty_like(y)
         out[sym._perm] = y
-        return out.reshape(rhs.shape)
+        return out

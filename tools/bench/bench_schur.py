@@ -34,7 +34,8 @@ from dran_edge.graph import PoseGraph, kinds_array
 from dran_edge.lm import build_plan, cholesky_factorizer, evaluate_cost, linearize, retract, schur_step
 
 
-def problem(seed: int = 0):
+def _raw(seed: int = 0) -> dict:
+    """The measurements of the benchmark robot (shared by the factor-level and agent variants)."""
     rng = np.random.default_rng(seed)
     n, n_obj, n_obs, n_nbr = 112, 9, 54, 2
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False) * 1.5
@@ -49,6 +50,14 @@ def problem(seed: int = 0):
     oi = rng.integers(0, n_obj, n_obs)
     obs = geo.se3_between(T_gt[pi], obj[oi]) @ noise(n_obs, 0.01)
     nbr = obj[np.repeat(np.arange(n_obj), n_nbr)] @ noise(n_obj * n_nbr, 0.02)
+    return dict(n=n, n_obj=n_obj, n_obs=n_obs, n_nbr=n_nbr, T_gt=T_gt, odo=odo, pi=pi, oi=oi,
+                obs=obs, nbr=nbr)
+
+
+def problem(seed: int = 0):
+    d = _raw(seed)
+    n, n_obj, n_obs, n_nbr = d["n"], d["n_obj"], d["n_obs"], d["n_nbr"]
+    T_gt, odo, pi, oi, obs, nbr = d["T_gt"], d["odo"], d["pi"], d["oi"], d["obs"], d["nbr"]
     N = n + n_obj + n_obj * n_nbr
     o_base, c_base = n, n + n_obj
     W = np.ones(6)
@@ -68,6 +77,45 @@ def problem(seed: int = 0):
     kinds = kinds_array(N, public=np.arange(o_base, c_base), fixed=np.arange(c_base, N))
     kinds_flat = kinds_array(N, fixed=np.arange(c_base, N))
     return PoseGraph(3, kinds, blocks), PoseGraph(3, kinds_flat, blocks), poses
+
+
+def agent_round_ms(seed: int, rounds: int) -> tuple[float, float]:
+    """The same robot as a real ``Agent`` (paper defaults, no robust kernel): its 9 objects'
+    copies from 2 neighbours arrive as ``NeighbourData``; one ``Tick`` = one DRAN round (dual
+    update, the local step with its acceptance test, outputs). Returns (median ms, p90 ms)."""
+    from dran_edge.agent import Agent, LocalProblem
+    from dran_edge.config import AgentConfig
+    from dran_edge.events import NeighbourData, Tick
+    from dran_edge.messages import NeighbourMessage, ObjectEntry
+
+    d = _raw(seed)
+    n, n_obj, n_nbr = d["n"], d["n_obj"], d["n_nbr"]
+    z = np.zeros(0, np.int64)
+    x0 = [d["T_gt"][0]]
+    for Z in d["odo"]:
+        x0.append(x0[-1] @ Z)
+    W = np.ones(6)
+    prob = LocalProblem(
+        dim=3, residual="geodesic", pose_ids=np.arange(n), pose_stamps_ns=np.arange(n), x0=np.stack(x0),
+        between=np.column_stack([np.arange(n - 1), np.arange(1, n)]), between_T=d["odo"],
+        between_W=np.tile(W, (n - 1, 1)), between_robust=np.zeros(n - 1, bool),
+        inter_own=z, inter_owner=z, inter_anchor_id=z, inter_own_is_p=np.zeros(0, bool),
+        inter_T=np.zeros((0, 4, 4)), inter_W=np.zeros((0, 6)), inter_robust=np.zeros(0, bool),
+        prior_own=np.array([0]), prior_T=d["T_gt"][:1], prior_W=np.full((1, 6), 100.0),
+        obs_own=d["pi"], obs_object=d["oi"], obs_T=d["obs"], obs_W=np.tile(W, (d["pi"].size, 1)))
+    nbrs = tuple(range(1, n_nbr + 1))
+    agent = Agent(AgentConfig(robust_kernel="none", neighbours=nbrs, eps_u=0.0), prob,
+                  weights={q: 1 / 3 for q in nbrs})
+    times = []
+    for k in range(1, rounds + 1):
+        for j, q in enumerate(nbrs):
+            entries = tuple(ObjectEntry(o, d["nbr"][o * n_nbr + j], q, 0) for o in range(n_obj))
+            agent.handle(NeighbourData(0, NeighbourMessage(q, k, 0, objects=entries)))
+        t0 = time.perf_counter()
+        agent.handle(Tick(k))
+        times.append(1e3 * (time.perf_counter() - t0))
+    times = times[5:]  # the first rounds build the structure plan and the Cholesky analysis
+    return float(np.median(times)), float(np.percentile(times, 90))
 
 
 def full_dense_step(lin, mu):
@@ -118,6 +166,16 @@ def main(argv=None) -> int:
     for name, ts in times.items():
         print(f"{name:<12} local step median {np.median(ts):7.3f} ms  (p90 {np.percentile(ts, 90):7.3f})"
               f"  ratio to schur {np.median(ts) / base:5.2f}")
+    ts = []
+    for _ in range(args.steps):
+        t0 = time.perf_counter()
+        evaluate_cost(g_red, poses)
+        ts.append(1e3 * (time.perf_counter() - t0))
+    print(f"{'acceptance':<12} the LM step's cost evaluation at the new poses: median "
+          f"{np.median(ts):7.3f} ms (add it to a local step)")
+    med, p90 = agent_round_ms(args.seed, args.steps)
+    print(f"{'agent round':<12} one Tick of a real Agent (local step + acceptance + duals + outputs) "
+          f"median {med:7.3f} ms  (p90 {p90:7.3f})")
     for name, graph, plan, fac in (("schur", g_red, p_red, f_red), ("full-dense", g_red, p_red, None),
                                    ("full-sparse", g_flat, p_flat, f_flat)):
         P = poses.copy()
