@@ -50,13 +50,15 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     o.add_argument("--noise", type=float, nargs="+", default=[1.0],
                    help="noise multipliers of (1 deg, 0.005 m) (default 1)")
     o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
-    o.add_argument("--outliers", type=float, default=0.0, help="fraction of wrong object ids / loops")
+    o.add_argument("--outliers", type=float, default=0.0,
+                   help="fraction of wrong object ids / loops; also turns on the Cauchy kernel "
+                        "(scale 0.1) and --min-views 2")
     o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
                    help="what --outliers injects: wrong object ids, false loops, or both")
-    o.add_argument("--min-views", type=int, default=1,
+    o.add_argument("--min-views", type=int, default=None,
                    help="AgentConfig.object_min_views: own observations that must agree before an "
                         "object observation is used unless a neighbour's copy corroborates it "
-                        "(default 1; 2 rejects lone wrong tag ids)")
+                        "(default: 2 with --outliers, which rejects lone wrong tag ids; else 1)")
     o.add_argument("--rounds", type=int, default=150, help="DRAN rounds per run (default 150)")
     o.add_argument("--robots", type=int, default=21)
     o.add_argument("--objects", type=int, default=60)
@@ -109,7 +111,8 @@ def run_objects_cmd(args) -> int:
     from dran_edge.objects_sim import SimParams, make_scenario, run_objects
 
     cfg = AgentConfig(robust_kernel="cauchy" if args.outliers > 0 else "none", robust_threshold=0.1,
-                      object_min_views=args.min_views)
+                      object_min_views=(args.min_views if args.min_views is not None
+                                        else 2 if args.outliers > 0 else 1))
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
