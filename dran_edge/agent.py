@@ -312,8 +312,10 @@ class Agent:
                 self.obs_ok[idx[~ok]] = False
             if ok.any():
                 if oid not in self.y:
-                    usable = np.flatnonzero(ok)
-                    m = usable[int(np.argmin(dist[np.ix_(usable, usable)].sum(axis=1)))]
+                    m = med
+                    if not ok[med]:  # the medoid is a lone observation: medoid of the usable
+                        usable = np.flatnonzero(ok)
+                        m = usable[int(np.argmin(dist[np.ix_(usable, usable)].sum(axis=1)))]
                     self.y[oid] = pred[idx[m]].copy()
                 self.hops[oid] = 0
                 self.origin[oid] = self.id
@@ -501,8 +503,6 @@ class Agent:
         x_k = self.x.copy()
         first = self.counters["accepted"] == 0
         norm_u, norm_v = self._local_step(graph, s, poses)
-        for _ in range(c.local_iterations - 1):
-            self._local_step(graph, s, self._poses(s))
         if c.sor_omega != 1.0 and not first:
             # block SOR on the trajectory: x_k ⊕ ω (z ⊖ x_k), z the round's local solution;
             # kept only while it does not raise L̂_i above its value at x_k (nonlinear safeguard)
@@ -530,7 +530,6 @@ class Agent:
         plan = s.plan
         lin = linearize(graph, plan, poses)
         cost = lin.cost
-        self.last_decrease = 0.0
         if self.mu is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
             # relative to the median curvature: a stiff gauge prior must not inflate μ
@@ -551,7 +550,7 @@ class Agent:
                 rho = (cost - new_cost) / pred if pred > 0 else 0.0
                 self.mu = max(self.mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), _MU_MIN)
                 self.counters["accepted"] += 1
-                self.last_decrease += cost - new_cost
+                self.last_decrease = cost - new_cost
                 self.last_cost = new_cost
                 self._store(plan, new)
                 return float(np.linalg.norm(c.gamma * u)), float(np.linalg.norm(c.alpha * v))

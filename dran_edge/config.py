@@ -173,9 +173,6 @@ class AgentConfig(_Checked):
     local step x <- Retr_x(gamma u) the robot keeps Retr_x(omega gamma u) instead (1: plain
     Alg. 1). With a colour schedule this is block SOR (docs/dran.md); the robot's first local
     step is always plain."""
-    local_iterations: int = _f(1, lo=1, hi=100)
-    """LM steps on the local problem per round (anchors fixed); 1 is Alg. 1. More cost only
-    computation and make each round's block solve closer to exact."""
     colours: int = _f(1, lo=1, hi=256)
     """Update schedule: the robot runs its local step only in rounds k with
     (k - 1) mod colours == colour; 1 is the paper's every-round (parallel) schedule, more give a

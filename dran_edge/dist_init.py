@@ -87,8 +87,6 @@ class InitParams:
     frame_iterations: int = 20
     """Of the ``max_iterations`` of a stage, at most this many align whole segments first
     (warm start, see ``LinearStage.frame_update``); 0 disables it."""
-    translation_max_iterations: int | None = None
-    """Cap of the translation stage (None: ``max_iterations``)."""
     frame_entries: bool = True
     """During the frame phase send one frame entry (G or s) per neighbour instead of every
     separator (the neighbour rebuilds them from the solo values X̂ it received once)."""
@@ -213,7 +211,7 @@ class LinearStage:
         self.multiplicative = b > 1
         #: per robot: the neighbours' separator values as last received (the solo-segment
         #: values X̂ during the frame phase), the base that a frame entry transforms
-        self.base: list[dict] = [{} for _ in partition.parts]
+        self.base = [np.zeros((n, b, X0.shape[1])) for _ in partition.parts]
         #: per robot: its last frame (G, or the offset s) from ``frame_update``
         self.frame: list[np.ndarray | None] = [None for _ in partition.parts]
 
@@ -284,15 +282,15 @@ class LinearStage:
     def receive(self, r: int, v: int, X_v: np.ndarray) -> None:
         self.views[r][v * self.b:(v + 1) * self.b] = X_v
         self.heard[r][v] = True
-        self.base[r][v] = np.array(X_v, dtype=float)
+        self.base[r][v] = X_v
 
     def receive_frame(self, r: int, owner: int, F: np.ndarray) -> None:
         """A neighbour's frame: every separator of ``owner`` that robot r holds a base for
         becomes ``X̂_v G`` (rotation stage) or ``X̂_v + s`` (translation stage)."""
-        owners = self.partition.owner
-        for v, X in self.base[r].items():
-            if owners[v] == owner:
-                self.views[r][v * self.b:(v + 1) * self.b] = X @ F if self.multiplicative else X + F
+        sel = self.heard[r] & (self.partition.owner == owner)
+        X = self.base[r][sel]
+        view = self.views[r].reshape(self.base[r].shape)
+        view[sel] = X @ F if self.multiplicative else X + F
 
 
 def _run_stage(stage: LinearStage, kind: InitStage, exchange: Exchange, params: InitParams,
@@ -437,9 +435,7 @@ def distributed_chordal_init(
     it_tr = _run_stage(trans, InitStage.TRANSLATION, exchange, params, params.translation_tol,
                        sor_tr, params.translation_send_tol, colour, trans_entry,
                        lambda e: np.asarray(e.value, float)[:d, d][None], history,
-                       params.max_iterations if params.translation_max_iterations is None
-                       else params.translation_max_iterations,
-                       InitStage.TRANSLATION_FRAME if frames else None,
+                       params.max_iterations, InitStage.TRANSLATION_FRAME if frames else None,
                        offset_entry, lambda e: np.asarray(e.value, float)[:d, d][None])
 
     poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
