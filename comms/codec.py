@@ -28,9 +28,9 @@ from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
+from dran_edge.comms import delta as dl
 
 from dran_edge import geometry as geo
-from dran_edge.comms import delta as dl
 from dran_edge.errors import DecodeError, DranError
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, ObjectEntry, SeparatorEntry
 

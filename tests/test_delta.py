@@ -4,10 +4,10 @@ import struct
 
 import numpy as np
 import pytest
-
-from dran_edge import geometry as geo
 from dran_edge.comms import codec
 from dran_edge.comms import delta as dl
+
+from dran_edge import geometry as geo
 from dran_edge.errors import DecodeError
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, SeparatorEntry
 

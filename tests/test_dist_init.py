@@ -1,6 +1,7 @@
 """Distributed chordal initialisation, the DGS baseline and object-free DRAN on a synthetic graph."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -136,3 +137,28 @@ def test_table1_setup_reaches_the_optimum_with_fewer_bytes_than_plain_alg1(graph
     assert fast["objective_final"] <= star * 1.0005
     assert fast["objective_final"] - star < 0.5 * (slow["objective_final"] - star)
     assert fast["bytes_total"] < 0.6 * slow["bytes_total"]
+
+
+def test_bench_g2o_cli_runs_the_table1_setup_plain_and_dgs(graph, tmp_path, capsys):
+    """``dran-edge bench g2o`` end to end on a small graph: the default is the Table 1 setup
+    (colour schedule, deltas), ``--plain`` Alg. 1 as printed; ``--out`` writes the estimate."""
+    from dran_edge.cli import main
+    from dran_edge.g2o import read_g2o, write_g2o
+
+    path = tmp_path / "lawnmower.g2o"
+    write_g2o(path, graph)
+    reports = {}
+    for extra in ([], ["--plain"], ["--method", "dgs"]):
+        out = tmp_path / f"merged{len(reports)}.g2o"
+        rc = main(["bench", "g2o", str(path), "--robots", "3", "--json", "--out", str(out), *extra])
+        captured = capsys.readouterr()
+        assert rc == 0, captured.err
+        reports[" ".join(extra)] = json.loads(captured.out)
+        assert read_g2o(out).num_vertices == graph.num_vertices
+    fast, plain, dgs = reports[""], reports["--plain"], reports["--method dgs"]
+    assert (fast["schedule"], fast["delta_every"]) == ("colour", 20) and fast["colours"] > 1
+    assert (plain["schedule"], plain["delta_every"], plain["colours"]) == ("parallel", 0, 1)
+    for r in reports.values():
+        assert r["objective_final"] < r["objective_init"] and r["bytes_total"] > r["bytes_init"] > 0
+    assert dgs["bytes_init"] == fast["bytes_init"]  # same init over the same wire layout
+    assert fast["bytes_total"] < plain["bytes_total"]

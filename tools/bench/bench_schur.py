@@ -31,7 +31,14 @@ from dran_edge import geometry as geo
 from dran_edge.consensus import ConsensusFactors
 from dran_edge.factors import BetweenFactors, PriorFactors
 from dran_edge.graph import PoseGraph, kinds_array
-from dran_edge.lm import build_plan, cholesky_factorizer, evaluate_cost, linearize, retract, schur_step
+from dran_edge.lm import (
+    build_plan,
+    cholesky_factorizer,
+    evaluate_cost,
+    linearize,
+    retract,
+    schur_step,
+)
 
 
 def _raw(seed: int = 0) -> dict:
@@ -50,8 +57,8 @@ def _raw(seed: int = 0) -> dict:
     oi = rng.integers(0, n_obj, n_obs)
     obs = geo.se3_between(T_gt[pi], obj[oi]) @ noise(n_obs, 0.01)
     nbr = obj[np.repeat(np.arange(n_obj), n_nbr)] @ noise(n_obj * n_nbr, 0.02)
-    return dict(n=n, n_obj=n_obj, n_obs=n_obs, n_nbr=n_nbr, T_gt=T_gt, odo=odo, pi=pi, oi=oi,
-                obs=obs, nbr=nbr)
+    return {"n": n, "n_obj": n_obj, "n_obs": n_obs, "n_nbr": n_nbr, "T_gt": T_gt, "odo": odo,
+            "pi": pi, "oi": oi, "obs": obs, "nbr": nbr}
 
 
 def problem(seed: int = 0):
