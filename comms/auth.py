@@ -200,16 +200,22 @@ class Verifier:
         #: The claimed sender of the last datagram examined (None if its header did not parse).
         self.last_claimed_sender: int | None = None
 
-    def check(self, datagram: bytes) -> tuple[NeighbourMessage | None, Reject | None]:
-        """(message, None) if accepted, else (None, reason). Never raises."""
-        msg, reason = self._check(datagram)
+    def check(self, datagram: bytes, delta_for=None
+              ) -> tuple[NeighbourMessage | None, Reject | None]:
+        """(message, None) if accepted, else (None, reason). Never raises.
+
+        ``delta_for(header)``, if given, returns the receiving side of the delta state for that
+        sender (``comms.delta.DeltaDecoder``); it is asked, and the state changed, only for a
+        datagram that passed every other check (authenticated, not replayed, not stale)."""
+        msg, reason = self._check(datagram, delta_for)
         if reason is None:
             self.counts.accepted += 1
         else:
             self.counts.rejected[reason.value] += 1
         return msg, reason
 
-    def _check(self, datagram: bytes) -> tuple[NeighbourMessage | None, Reject | None]:
+    def _check(self, datagram: bytes, delta_for=None
+               ) -> tuple[NeighbourMessage | None, Reject | None]:
         self.last_claimed_sender = None
         try:
             h = decode_header(datagram)
@@ -230,7 +236,9 @@ class Verifier:
         if verdict is not None:
             return None, verdict
         try:
-            msg = decode_datagram(datagram)
+            msg = decode_datagram(datagram)  # strict and stateless: validates every value
+            if delta_for is not None and h.delta:  # valid, so rebuilding cannot fail halfway
+                msg = decode_datagram(datagram, delta_for(h))
         except DecodeError:
             return None, Reject.MALFORMED
         self._window_commit(h.sender_id, h.boot_epoch, h.sequence)

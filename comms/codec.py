@@ -349,8 +349,10 @@ class _Ids:
     end: int
     init_value_bytes: int
     sep_value_bytes: int = -1
-    #: per separator / init entry: round of the delta's base (None: absolute value)
+    obj_value_bytes: int = -1
+    #: per separator / object / init entry: round of the delta's base (None: absolute value)
     sep_base: tuple = ()
+    obj_base: tuple = ()
     init_base: tuple = ()
 
 
@@ -387,10 +389,24 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         sep_ids.append((owner, kf, stamp))
     sep_id_end = pos
     obj_ids = []
+    obj_base: list = []
+    obj_bytes = 0
     for _ in range(h.n_objects):
         oid, pos = _read_varint(data, pos, end)
         origin, pos = _read_varint(data, pos, end)
         hops, pos = _read_varint(data, pos, end)
+        is_delta = False
+        if h.delta:
+            origin, is_delta = origin >> 1, bool(origin & 1)
+        if is_delta:
+            back, pos = _read_varint(data, pos, end)
+            if back == 0 or back > h.round:
+                raise DecodeError(f"delta base {back} rounds back from round {h.round}")
+            obj_base.append(h.round - back)
+            obj_bytes += DP
+        else:
+            obj_base.append(None)
+            obj_bytes += P
         obj_ids.append((oid, origin, hops))
     obj_id_end = pos
     init_ids = []
@@ -420,14 +436,14 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         else:
             init_base.append(None)
             init_bytes += _rotation_value_bytes(h.dim) if stage.matrix_valued else P
-    sep_obj_bytes = sep_bytes + h.n_objects * P
+    sep_obj_bytes = sep_bytes + obj_bytes
     if end - pos != sep_obj_bytes + init_bytes:
         raise DecodeError(
             f"value block is {end - pos} bytes, counts "
             f"{h.n_separators}/{h.n_objects}/{h.n_init} need {sep_obj_bytes + init_bytes}"
         )
     return _Ids(sep_ids, obj_ids, init_ids, sep_id_end, obj_id_end, pos, init_bytes, sep_bytes,
-                tuple(sep_base), tuple(init_base))
+                obj_bytes, tuple(sep_base), tuple(obj_base), tuple(init_base))
 
 
 def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
@@ -435,7 +451,7 @@ def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
     return {
         KIND_HEADER: h.body_offset + TAG_BYTES,
         KIND_SEPARATOR: ids.sep_end - h.body_offset + ids.sep_value_bytes,
-        KIND_OBJECT: ids.obj_end - ids.sep_end + h.n_objects * P,
+        KIND_OBJECT: ids.obj_end - ids.sep_end + ids.obj_value_bytes,
         KIND_INIT: ids.end - ids.obj_end + ids.init_value_bytes,
     }
 
@@ -497,8 +513,21 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
                 if T is not None:
                     ids.sep[k] = (owner, kf, delta.stamp(key))
             sep_T.append(T)
-    obj_T = _decode_poses(data[pos : pos + h.n_objects * P], dim)
-    pos += h.n_objects * P
+    if not h.delta:
+        obj_T = list(_decode_poses(data[pos : pos + h.n_objects * P], dim))
+        pos += h.n_objects * P
+    else:
+        obj_T = []
+        for (oid, origin, _hops), base in zip(ids.obj, ids.obj_base):
+            key = ("o", oid)
+            if base is None:
+                T = _decode_poses(data[pos : pos + P], dim)[0]
+                pos += P
+                if delta is not None:
+                    delta.absolute(key, T, h.round)
+            else:
+                T = delta_value(key, dl.POSE, base, dof)
+            obj_T.append(T)
     init_values: list = []
     bases = ids.init_base if h.delta else (None,) * len(ids.init)
     for (stage, owner, kf), base in zip(ids.init, bases):
@@ -526,7 +555,8 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
         for i, (owner, kf, stamp) in enumerate(ids.sep) if sep_T[i] is not None
     )
     objects = tuple(
-        ObjectEntry(oid, obj_T[i], origin, hops) for i, (oid, origin, hops) in enumerate(ids.obj)
+        ObjectEntry(oid, obj_T[i], origin, hops)
+        for i, (oid, origin, hops) in enumerate(ids.obj) if obj_T[i] is not None
     )
     init = tuple(
         InitEntry(stage, owner, kf, init_values[i])
@@ -590,8 +620,8 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
         _check_poses(T, dim, "separator/object")
         block = _encode_poses(T, dim)
         values.extend(block[i * P : (i + 1) * P] for i in range(len(poses)))
-        if delta is not None and n_sep:
-            decoded = _decode_poses(block[: n_sep * P], dim)
+        if delta is not None:
+            decoded = _decode_poses(block, dim)  # what the receiver holds after absolute ones
     for k, e in enumerate(message.separators):
         if e.stamp_ns < 0:
             raise EncodeError(f"separator stamp_ns must be >= 0, got {e.stamp_ns}")
@@ -615,11 +645,25 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
             ids.append(_varint((int(e.owner_robot) << 1) | 1) + kf + _varint(rnd - base_round))
             values[k] = _delta_bytes(ex, q)
             delta.sent_delta(key, rebuilt, rnd)
-    for e in message.objects:
+    for k, e in enumerate(message.objects, start=n_sep):
         kinds.append(KIND_OBJECT)
-        ids.append(
-            _varint(int(e.object_id)) + _varint(int(e.origin_robot)) + _varint(int(e.hop_count))
-        )
+        if delta is None:
+            ids.append(
+                _varint(int(e.object_id)) + _varint(int(e.origin_robot)) + _varint(int(e.hop_count))
+            )
+            continue
+        key = ("o", int(e.object_id))
+        plan = delta.plan(key, dl.POSE, np.asarray(e.T_world_object, np.float64), rnd)
+        oid, hops = _varint(int(e.object_id)), _varint(int(e.hop_count))
+        if plan is None:
+            ids.append(oid + _varint(int(e.origin_robot) << 1) + hops)
+            delta.sent_absolute(key, decoded[k], rnd)
+        else:
+            base_round, ex, q, rebuilt = plan
+            ids.append(oid + _varint((int(e.origin_robot) << 1) | 1) + hops
+                       + _varint(rnd - base_round))
+            values[k] = _delta_bytes(ex, q)
+            delta.sent_delta(key, rebuilt, rnd)
     assert len(ids) == len(values) and n_sep <= len(ids)
     for e in message.init:
         stage = InitStage(e.stage)

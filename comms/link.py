@@ -10,6 +10,12 @@ the bytes on the wire and their accounting are the same everywhere.
 - ``poll(now_ns)`` drains the transport, verifies and decodes every datagram, counts it
   (accepted per sender and kind with last-heard time; rejected per reason), and returns the
   accepted messages. Nothing an attacker sends makes it raise.
+- ``delta_every > 0``: the delta layout (``comms.delta``, docs/wire-format.md). Each message is
+  encoded once per recipient against that link's ``DeltaEncoder``; received datagrams are
+  rebuilt against the sender's ``DeltaDecoder`` only after they pass authentication and the
+  replay window, and a sender's new boot epoch starts a fresh decoder (a restarted robot's
+  rounds start over). Delta entries whose base is not held are left out and counted
+  (``delta_unresolved``).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from typing import Iterable
 from dran_edge.comms.auth import AuthPolicy, Reject, Signer, Verifier
 from dran_edge.comms.codec import DEFAULT_MAX_DATAGRAM_BYTES, encode_datagrams
 from dran_edge.comms.counters import CommCounters
+from dran_edge.comms.delta import DeltaDecoder, DeltaEncoder
 from dran_edge.comms.transport import Transport
 from dran_edge.messages import NeighbourMessage
 
@@ -35,6 +42,7 @@ class NeighbourLink:
         boot_epoch: int,
         max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
         first_sequence: int = 0,
+        delta_every: int = 0,
     ):
         self.transport = transport
         self.policy = policy
@@ -47,6 +55,11 @@ class NeighbourLink:
         self.counters = CommCounters()
         #: Set to a list to record every accepted datagram's bytes (tests, harnesses).
         self.accepted_datagrams: list[bytes] | None = None
+        self.delta_every = int(delta_every)
+        self._enc: dict[int, DeltaEncoder] = {}
+        self._dec: dict[int, tuple[int, DeltaDecoder]] = {}  # sender -> (boot epoch, state)
+        #: Delta entries received whose base was not held (lost or reordered datagrams).
+        self.delta_unresolved = 0
 
     @property
     def next_sequence(self) -> int:
@@ -58,15 +71,28 @@ class NeighbourLink:
             raise ValueError(
                 f"message sender {message.sender_id} is not this robot ({self.policy.self_id})"
             )
+        targets = list(to)
+        if not self.delta_every:  # one encoding for every recipient
+            return self._send(self._encode(message, None), targets)
+        out = []
+        for j in targets:  # one encoding per link: each link has its own delta state
+            enc = self._enc.setdefault(j, DeltaEncoder(self.delta_every))
+            out += self._send(self._encode(message, enc), [j])
+        return out
+
+    def _encode(self, message: NeighbourMessage, enc: DeltaEncoder | None) -> list:
         grams = encode_datagrams(
             message,
             fleet_id=self.policy.fleet_id,
             boot_epoch=self.boot_epoch,
             first_sequence=self._next_sequence,
             max_datagram_bytes=self.max_datagram_bytes,
+            delta=enc,
         )
         self._next_sequence += len(grams)
-        targets = list(to)
+        return grams
+
+    def _send(self, grams: list, targets: list[int]) -> list[bytes]:
         out = []
         for g in grams:
             data = self._signer.sign(g.data)
@@ -78,14 +104,23 @@ class NeighbourLink:
                     self.counters.dropped(j, len(data), "transport_refused")
         return out
 
+    def _decoder_for(self, header) -> DeltaDecoder:
+        held = self._dec.get(header.sender_id)
+        if held is None or header.boot_epoch > held[0]:
+            held = (header.boot_epoch, DeltaDecoder())
+            self._dec[header.sender_id] = held
+        return held[1]
+
     def poll(
         self, now_ns: int | None = None, max_datagrams: int | None = None
     ) -> list[NeighbourMessage]:
         """Accepted messages among the datagrams that arrived; the rest counted and dropped."""
         accepted = []
+        delta_for = self._decoder_for if self.delta_every else None
         for _hint, data in self.transport.receive(max_datagrams):
-            msg, reason = self.verifier.check(data)
+            msg, reason = self.verifier.check(data, delta_for)
             if reason is None:
+                self.delta_unresolved += msg.extra.get("delta_unresolved", 0)
                 self.counters.received(msg.sender_id, len(data), msg.extra["bytes_by_kind"], now_ns)
                 accepted.append(msg)
                 if self.accepted_datagrams is not None:

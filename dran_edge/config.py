@@ -314,6 +314,10 @@ class CommsSection(_Checked):
     """Round period: one DRAN round and one exchange per period, seconds (2 Hz default)."""
     allow_relay_from: tuple[int, ...] = _f((), lo=0, hi=65535)
     """Robots not configured as neighbours whose relayed datagrams are still accepted."""
+    delta_every: int = _f(20, lo=0, hi=10_000)
+    """> 0: send separators and object estimates as quantised changes against per-neighbour
+    state (the delta layout, docs/wire-format.md), each sent whole again at least every this
+    many rounds; 0: whole values only (what builds before the layout read)."""
 
     def _check(self) -> None:
         try:

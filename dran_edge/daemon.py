@@ -326,7 +326,8 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
                                                | {cfg.robot.id}),
                         neighbours=frozenset(ids), relay_from=frozenset(cfg.comms.allow_relay_from))
     link = NeighbourLink(RadioTransport(params), key=key, policy=policy, boot_epoch=boot_epoch,
-                         max_datagram_bytes=cfg.comms.datagram_max_bytes)
+                         max_datagram_bytes=cfg.comms.datagram_max_bytes,
+                         delta_every=cfg.comms.delta_every)
     return LinkTransport(link)
 
 

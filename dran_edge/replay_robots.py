@@ -258,7 +258,8 @@ class RobotRunner:
                                 fleet_robots=ids, neighbours=frozenset(mission.neighbours(info.id)),
                                 relay_from=frozenset(cfg.comms.allow_relay_from))
             link = NeighbourLink(tr, key=REPLAY_KEY, policy=policy, boot_epoch=1,
-                                 max_datagram_bytes=cfg.comms.datagram_max_bytes)
+                                 max_datagram_bytes=cfg.comms.datagram_max_bytes,
+                                 delta_every=cfg.comms.delta_every)
             self.robots[info.id] = _Robot(info, cfg, core, link, tr, timeline, rejected=rejected,
                                           observations=n_obs,
                                           next_order=len(timeline))

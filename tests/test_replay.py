@@ -146,3 +146,24 @@ def test_udp_loopback_gives_the_bus_numbers(tiny, tmp_path):
     assert rep["transport"] == "udp"
     assert rep["bytes_total"] == report["bytes_total"]
     assert (udp / "out" / "rounds.csv").read_text() == (run / "out" / "rounds.csv").read_text()
+
+
+def test_delta_layout_default_saves_bytes_at_the_same_accuracy(tiny, tmp_path):
+    """comms.delta_every (default 20) against whole values (0) on the same run: fewer bytes,
+    the same trajectories to the quantisation's order (the UDP test above runs the default)."""
+    run, report = tiny
+    plain = tmp_path / "plain"
+    shutil.copytree(run, plain, ignore=shutil.ignore_patterns("eval"))
+    shutil.rmtree(plain / "out")
+    for cfg in (plain / "robots").glob("*/robot.yaml"):
+        text = cfg.read_text()
+        assert "  delta_every: 20\n" in text
+        cfg.write_text(text.replace("  delta_every: 20\n", "  delta_every: 0\n"))
+    rep = rp.replay_run(plain, rp.ReplayOptions(settle_rounds=10, evaluate=False, workers=1)).report
+    assert 0 < report["bytes_total"] < 0.8 * rep["bytes_total"]
+    assert rep["rounds"] == report["rounds"]
+    for robot in (run / "out").iterdir():
+        if (robot / "trajectory.tum").exists():
+            a = np.loadtxt(robot / "trajectory.tum")
+            b = np.loadtxt(plain / "out" / robot.name / "trajectory.tum")
+            assert a.shape == b.shape and np.abs(a[:, 1:4] - b[:, 1:4]).max() < 0.01  # metres
