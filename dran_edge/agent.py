@@ -501,14 +501,14 @@ class Agent:
         graph = s.graph.with_factors(*self._consensus_blocks(obj_slot, c_base, s.pair_keys))
         poses = self._poses(s)
         x_k = self.x.copy()
-        first = self.counters["accepted"] == 0
+        accepted_before = self.counters["accepted"]
         norm_u, norm_v = self._local_step(graph, s, poses)
-        if c.sor_omega != 1.0 and not first:
+        if c.sor_omega != 1.0 and accepted_before > 0 and self.counters["accepted"] > accepted_before:
             # block SOR on the trajectory: x_k ⊕ ω (z ⊖ x_k), z the round's local solution;
             # kept only while it does not raise L̂_i above its value at x_k (nonlinear safeguard)
             z = self.x
             self.x = geo.retract(x_k, c.sor_omega * geo.log(geo.between(x_k, z)))
-            if evaluate_cost(graph, self._poses(s)) > evaluate_cost(graph, poses):
+            if evaluate_cost(graph, self._poses(s)) > self._cost_at_start:
                 self.x = z
                 self.counters["sor_rejected"] = self.counters.get("sor_rejected", 0) + 1
         phi2 = 0.0
@@ -529,7 +529,7 @@ class Agent:
         c = self.config
         plan = s.plan
         lin = linearize(graph, plan, poses)
-        cost = lin.cost
+        cost = self._cost_at_start = lin.cost
         if self.mu is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
             # relative to the median curvature: a stiff gauge prior must not inflate μ
