@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 from dran_edge.comms import delta as dl
@@ -339,6 +339,14 @@ def decode_header(data: bytes) -> Header:
 
 
 # --------------------------------------------------------------------------- decode
+def _read_base_round(data: bytes, pos: int, end: int, h: Header) -> tuple[int, int]:
+    """A delta entry's ``back`` varint as the round of its base; (base round, new pos)."""
+    back, pos = _read_varint(data, pos, end)
+    if back == 0 or back > h.round:
+        raise DecodeError(f"delta base {back} rounds back from round {h.round}")
+    return h.round - back, pos
+
+
 @dataclass(frozen=True)
 class _Ids:
     sep: list
@@ -378,10 +386,8 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
             if stamp < 0:
                 raise DecodeError(f"separator stamp {stamp} ns is negative")
         if is_delta:
-            back, pos = _read_varint(data, pos, end)
-            if back == 0 or back > h.round:
-                raise DecodeError(f"delta base {back} rounds back from round {h.round}")
-            sep_base.append(h.round - back)
+            base, pos = _read_base_round(data, pos, end, h)
+            sep_base.append(base)
             sep_bytes += DP
         else:
             sep_base.append(None)
@@ -399,10 +405,8 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         if h.delta:
             origin, is_delta = origin >> 1, bool(origin & 1)
         if is_delta:
-            back, pos = _read_varint(data, pos, end)
-            if back == 0 or back > h.round:
-                raise DecodeError(f"delta base {back} rounds back from round {h.round}")
-            obj_base.append(h.round - back)
+            base, pos = _read_base_round(data, pos, end, h)
+            obj_base.append(base)
             obj_bytes += DP
         else:
             obj_base.append(None)
@@ -427,10 +431,8 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         kf, pos = _read_varint(data, pos, end)
         init_ids.append((InitStage(stage), owner, kf))
         if is_delta:
-            back, pos = _read_varint(data, pos, end)
-            if back == 0 or back > h.round:
-                raise DecodeError(f"delta base {back} rounds back from round {h.round}")
-            init_base.append(h.round - back)
+            base, pos = _read_base_round(data, pos, end, h)
+            init_base.append(base)
             n = h.dim * h.dim if stage.matrix_valued else geo.dof(h.dim)
             init_bytes += dl.value_bytes(n)
         else:
@@ -447,7 +449,6 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
 
 
 def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
-    P = pose_bytes(h.dim)
     return {
         KIND_HEADER: h.body_offset + TAG_BYTES,
         KIND_SEPARATOR: ids.sep_end - h.body_offset + ids.sep_value_bytes,
@@ -495,14 +496,15 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
         unresolved += delta.unresolved - before
         return value
 
-    # separators (absolute ones decoded in one batch), then objects
-    sep_T: list = []
-    if not h.delta:
-        sep_T = list(_decode_poses(data[pos : pos + h.n_separators * P], dim))
-        pos += h.n_separators * P
-    else:
-        for k, ((owner, kf, stamp), base) in enumerate(zip(ids.sep, ids.sep_base)):
-            key = ("s", owner, kf)
+    def poses(keys: list, bases: tuple, stamps: list) -> list:
+        """Separator or object poses: one batch without deltas, else entry by entry."""
+        nonlocal pos
+        if not h.delta:
+            out = list(_decode_poses(data[pos : pos + len(keys) * P], dim))
+            pos += len(keys) * P
+            return out
+        out = []
+        for key, base, stamp in zip(keys, bases, stamps):
             if base is None:
                 T = _decode_poses(data[pos : pos + P], dim)[0]
                 pos += P
@@ -510,24 +512,16 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
                     delta.absolute(key, T, h.round, stamp)
             else:
                 T = delta_value(key, dl.POSE, base, dof)
-                if T is not None:
-                    ids.sep[k] = (owner, kf, delta.stamp(key))
-            sep_T.append(T)
-    if not h.delta:
-        obj_T = list(_decode_poses(data[pos : pos + h.n_objects * P], dim))
-        pos += h.n_objects * P
-    else:
-        obj_T = []
-        for (oid, origin, _hops), base in zip(ids.obj, ids.obj_base):
-            key = ("o", oid)
-            if base is None:
-                T = _decode_poses(data[pos : pos + P], dim)[0]
-                pos += P
-                if delta is not None:
-                    delta.absolute(key, T, h.round)
-            else:
-                T = delta_value(key, dl.POSE, base, dof)
-            obj_T.append(T)
+            out.append(T)
+        return out
+
+    sep_keys = [("s", owner, kf) for owner, kf, _ in ids.sep]
+    sep_T = poses(sep_keys, ids.sep_base, [stamp for *_, stamp in ids.sep])
+    for k, base in enumerate(ids.sep_base if h.delta else ()):
+        if base is not None and sep_T[k] is not None:  # a delta entry's stamp: its key's
+            ids.sep[k] = (*ids.sep[k][:2], delta.stamp(sep_keys[k]))
+    obj_T = poses([("o", oid) for oid, _, _ in ids.obj], ids.obj_base,
+                  [None] * len(ids.obj))
     init_values: list = []
     bases = ids.init_base if h.delta else (None,) * len(ids.init)
     for (stage, owner, kf), base in zip(ids.init, bases):
@@ -622,6 +616,18 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
         values.extend(block[i * P : (i + 1) * P] for i in range(len(poses)))
         if delta is not None:
             decoded = _decode_poses(block, dim)  # what the receiver holds after absolute ones
+
+    def as_delta(key: tuple, kind: str, value: np.ndarray, held_if_absolute: Callable):
+        """Plan one entry on ``delta``: None (send it absolute; ``held_if_absolute()`` is what
+        the receiver will hold) or (back, delta value bytes)."""
+        plan = delta.plan(key, kind, value, rnd)
+        if plan is None:
+            delta.sent_absolute(key, held_if_absolute(), rnd)
+            return None
+        base_round, ex, q, rebuilt = plan
+        delta.sent_delta(key, rebuilt, rnd)
+        return rnd - base_round, _delta_bytes(ex, q)
+
     for k, e in enumerate(message.separators):
         if e.stamp_ns < 0:
             raise EncodeError(f"separator stamp_ns must be >= 0, got {e.stamp_ns}")
@@ -634,17 +640,14 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
             )
             continue
         key = ("s", int(e.owner_robot), int(e.keyframe_id))
-        plan = delta.plan(key, dl.POSE, np.asarray(e.T_world_body, np.float64), rnd)
+        d = as_delta(key, dl.POSE, np.asarray(e.T_world_body, np.float64), lambda k=k: decoded[k])
         kf = _varint(int(e.keyframe_id))
-        if plan is None:
+        if d is None:
             ids.append(_varint(int(e.owner_robot) << 1) + kf
                        + _varint(_zigzag(int(e.stamp_ns) - stamp)))
-            delta.sent_absolute(key, decoded[k], rnd)
         else:
-            base_round, ex, q, rebuilt = plan
-            ids.append(_varint((int(e.owner_robot) << 1) | 1) + kf + _varint(rnd - base_round))
-            values[k] = _delta_bytes(ex, q)
-            delta.sent_delta(key, rebuilt, rnd)
+            ids.append(_varint((int(e.owner_robot) << 1) | 1) + kf + _varint(d[0]))
+            values[k] = d[1]
     for k, e in enumerate(message.objects, start=n_sep):
         kinds.append(KIND_OBJECT)
         if delta is None:
@@ -652,18 +655,14 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
                 _varint(int(e.object_id)) + _varint(int(e.origin_robot)) + _varint(int(e.hop_count))
             )
             continue
-        key = ("o", int(e.object_id))
-        plan = delta.plan(key, dl.POSE, np.asarray(e.T_world_object, np.float64), rnd)
+        d = as_delta(("o", int(e.object_id)), dl.POSE, np.asarray(e.T_world_object, np.float64),
+                     lambda k=k: decoded[k])
         oid, hops = _varint(int(e.object_id)), _varint(int(e.hop_count))
-        if plan is None:
+        if d is None:
             ids.append(oid + _varint(int(e.origin_robot) << 1) + hops)
-            delta.sent_absolute(key, decoded[k], rnd)
         else:
-            base_round, ex, q, rebuilt = plan
-            ids.append(oid + _varint((int(e.origin_robot) << 1) | 1) + hops
-                       + _varint(rnd - base_round))
-            values[k] = _delta_bytes(ex, q)
-            delta.sent_delta(key, rebuilt, rnd)
+            ids.append(oid + _varint((int(e.origin_robot) << 1) | 1) + hops + _varint(d[0]))
+            values[k] = d[1]
     assert len(ids) == len(values) and n_sep <= len(ids)
     for e in message.init:
         stage = InitStage(e.stage)
@@ -685,19 +684,16 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
             values.append(value)
             continue
         key = ("i", int(stage), int(e.owner_robot), int(e.keyframe_id))
-        kind = dl.LINEAR if rotation else dl.POSE
-        plan = delta.plan(key, kind, v, rnd)
-        if plan is None:
+        d = as_delta(key, dl.LINEAR if rotation else dl.POSE, v,
+                     lambda value=value, rotation=rotation: (
+                         np.frombuffer(value, "<f4").astype(np.float64).reshape(dim, dim)
+                         if rotation else _decode_poses(value, dim)[0]))
+        if d is None:
             ids.append(bytes([int(stage)]) + who)
             values.append(value)
-            held = (np.frombuffer(value, "<f4").astype(np.float64).reshape(dim, dim) if rotation
-                    else _decode_poses(value, dim)[0])
-            delta.sent_absolute(key, held, rnd)
         else:
-            base_round, ex, q, rebuilt = plan
-            ids.append(bytes([int(stage) | _INIT_DELTA_BIT]) + who + _varint(rnd - base_round))
-            values.append(_delta_bytes(ex, q))
-            delta.sent_delta(key, rebuilt, rnd)
+            ids.append(bytes([int(stage) | _INIT_DELTA_BIT]) + who + _varint(d[0]))
+            values.append(d[1])
     return kinds, ids, values
 
 
