@@ -106,8 +106,11 @@ class ReplayOptions:
     """Seed of the bus's loss model."""
     evaluate: bool = True
     """Score against the run's mocap (when it has one) and put the metrics in report.json."""
-    udp_wait_s: float = 0.5
-    """UDP only: how long a round waits for the datagrams of the previous round."""
+    udp_wait_s: float = 5.0
+    """UDP only: the longest a round waits for the datagrams of the previous round. The wait
+    ends as soon as every one has arrived, so only a datagram really lost costs the whole wait;
+    0.5 s was too short on a loaded machine (a round went ahead without a late datagram and the
+    run diverged from the bus run)."""
 
     def __post_init__(self) -> None:
         if self.transport not in ("bus", "udp"):
