@@ -339,8 +339,12 @@ def decode_header(data: bytes) -> Header:
 
 
 # --------------------------------------------------------------------------- decode
-def _read_base_round(data: bytes, pos: int, end: int, h: Header) -> tuple[int, int]:
-    """A delta entry's ``back`` varint as the round of its base; (base round, new pos)."""
+def _read_base_round(data: bytes, pos: int, end: int, h: Header,
+                     is_delta: bool) -> tuple[int | None, int]:
+    """A delta entry's ``back`` varint as the round of its base; (base round, new pos).
+    An absolute entry has none: (None, pos)."""
+    if not is_delta:
+        return None, pos
     back, pos = _read_varint(data, pos, end)
     if back == 0 or back > h.round:
         raise DecodeError(f"delta base {back} rounds back from round {h.round}")
@@ -385,13 +389,9 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
             stamp = h.stamp_ns + _unzigzag(dstamp)
             if stamp < 0:
                 raise DecodeError(f"separator stamp {stamp} ns is negative")
-        if is_delta:
-            base, pos = _read_base_round(data, pos, end, h)
-            sep_base.append(base)
-            sep_bytes += DP
-        else:
-            sep_base.append(None)
-            sep_bytes += P
+        base, pos = _read_base_round(data, pos, end, h, is_delta)
+        sep_base.append(base)
+        sep_bytes += P if base is None else DP
         sep_ids.append((owner, kf, stamp))
     sep_id_end = pos
     obj_ids = []
@@ -404,13 +404,9 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         is_delta = False
         if h.delta:
             origin, is_delta = origin >> 1, bool(origin & 1)
-        if is_delta:
-            base, pos = _read_base_round(data, pos, end, h)
-            obj_base.append(base)
-            obj_bytes += DP
-        else:
-            obj_base.append(None)
-            obj_bytes += P
+        base, pos = _read_base_round(data, pos, end, h, is_delta)
+        obj_base.append(base)
+        obj_bytes += P if base is None else DP
         obj_ids.append((oid, origin, hops))
     obj_id_end = pos
     init_ids = []
@@ -430,13 +426,11 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         owner, pos = _read_varint(data, pos, end)
         kf, pos = _read_varint(data, pos, end)
         init_ids.append((InitStage(stage), owner, kf))
-        if is_delta:
-            base, pos = _read_base_round(data, pos, end, h)
-            init_base.append(base)
-            n = h.dim * h.dim if stage.matrix_valued else geo.dof(h.dim)
-            init_bytes += dl.value_bytes(n)
+        base, pos = _read_base_round(data, pos, end, h, is_delta)
+        init_base.append(base)
+        if base is not None:
+            init_bytes += dl.value_bytes(h.dim * h.dim if stage.matrix_valued else geo.dof(h.dim))
         else:
-            init_base.append(None)
             init_bytes += _rotation_value_bytes(h.dim) if stage.matrix_valued else P
     sep_obj_bytes = sep_bytes + obj_bytes
     if end - pos != sep_obj_bytes + init_bytes:

@@ -403,10 +403,7 @@ def schur_step(
             y_g, Y_C = Y[:, 0], Y[:, 1:]
             H_hat = B + mu * np.eye(n_v) - Y_C.T @ Y_C  # eq. 11
             g_hat = g_y - Y_C.T @ y_g  # eq. 10
-            try:
-                v = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
-            except np.linalg.LinAlgError as exc:
-                raise LinearSolveError(f"reduced Hessian is not positive definite: {exc}") from None
+            v = _reduced_step(H_hat, g_hat)
             u = -lu.backward(y_g + Y_C @ v)[:, 0]  # eq. 8
             return u, v
         X = lu.solve(np.column_stack([g_x, C_dense]) if n_v else g_x[:, None])
@@ -416,12 +413,17 @@ def schur_step(
     C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
     H_hat = B + mu * np.eye(n_v) - C_dense.T @ Ainv_C  # eq. 11
     g_hat = g_y - C_dense.T @ Ainv_g  # eq. 10
-    try:
-        v = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
-    except np.linalg.LinAlgError as exc:
-        raise LinearSolveError(f"reduced Hessian is not positive definite: {exc}") from None
+    v = _reduced_step(H_hat, g_hat)
     u = -(Ainv_g + Ainv_C @ v)  # eq. 8
     return u, v
+
+
+def _reduced_step(H_hat: np.ndarray, g_hat: np.ndarray) -> np.ndarray:
+    """v = −Ĥ⁻¹ ĝ, the minimiser of the reduced model h (eq. 9), by a dense Cholesky of Ĥ."""
+    try:
+        return -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
+    except np.linalg.LinAlgError as exc:
+        raise LinearSolveError(f"reduced Hessian is not positive definite: {exc}") from None
 
 
 # ----------------------------------------------------------------------------- the LM loop
