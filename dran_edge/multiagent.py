@@ -214,14 +214,17 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
 
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
                  links: BusParams | None = None, partitions=(), callback=None,
-                 schedule: str = "parallel", delta_every: int = 0) -> dict:
+                 schedule: str = "parallel", delta_every: int = 0,
+                 initial_poses: np.ndarray | None = None) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
     network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
     (every robot every round) or "colour" (the robots of one colour of a greedy colouring per
     round); ``delta_every``: see ``Fleet``. Returns the merged poses and the numbers the bench
-    reports."""
+    reports. ``initial_poses`` (diagnostics): start DRAN from these instead of running the
+    distributed init (no init rounds or bytes)."""
     import dataclasses
+    import types
 
     from dran_edge.agent import LocalProblem
     from dran_edge.dist_init import InitParams, distributed_chordal_init, greedy_colouring
@@ -235,8 +238,12 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
               partitions=partitions)
     W = neighbour_weights(bus)
     fleet = Fleet([], bus, delta_every=delta_every)
-    init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
-                                    part, fleet.init_exchange, init_params or InitParams(gauss_seidel=True))
+    if initial_poses is not None:
+        init = types.SimpleNamespace(poses=np.asarray(initial_poses, np.float64).copy())
+    else:
+        init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
+                                        part, fleet.init_exchange,
+                                        init_params or InitParams(gauss_seidel=True))
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)

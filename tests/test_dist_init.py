@@ -139,6 +139,23 @@ def test_table1_setup_reaches_the_optimum_with_fewer_bytes_than_plain_alg1(graph
     assert fast["bytes_total"] < 0.6 * slow["bytes_total"]
 
 
+def test_table1_setup_keeps_the_centralized_optimum_a_fixed_point(graph):
+    """Started at F* (``initial_poses``), 60 rounds of the Table 1 setup with the stopping tests
+    off stay there: delta quantisation, the send threshold and anchors held between resends do
+    not pull the iteration away from the optimum."""
+    from dran_edge.multiagent import table1_setup
+
+    g = graph
+    opt = solve_g2o(g, params=LMParams(max_iterations=50)).result.poses
+    star = _F(g, opt)
+    cfg, kw = table1_setup(2)
+    cfg = dataclasses.replace(cfg, eps_u=0.0, eps_cost_rel=0.0)
+    res = run_g2o_dran(g, 3, cfg, max_rounds=60, initial_poses=opt, **kw)
+    assert res["rounds"] == 60 and res["bytes_init"] == 0 and res["bytes_total"] > 0
+    assert abs(res["objective_final"] - star) <= 1e-6 * star
+    assert np.abs(res["poses"][:, :2, 2] - opt[:, :2, 2]).max() < 1e-3  # metres
+
+
 def test_bench_g2o_cli_runs_the_table1_setup_plain_and_dgs(graph, tmp_path, capsys):
     """``dran-edge bench g2o`` end to end on a small graph: the default is the Table 1 setup
     (colour schedule, deltas), ``--plain`` Alg. 1 as printed; ``--out`` writes the estimate."""
