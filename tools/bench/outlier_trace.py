@@ -1,0 +1,91 @@
+"""Trace the object simulation with outliers: which wrong observations get past the gates, and
+what the trajectories' ATE does over the rounds (diagnostic behind docs/benchmarks.md).
+
+Usage: .venv/bin/python tools/bench/outlier_trace.py [--rounds 300] [--every 50] [--rho 0.3]
+           [--outliers 0.2] [--drop-wrong]
+
+Same scenario, communication graph and agent settings as ``dran-edge bench objects --rho 0.3
+--outliers 0.2`` (Cauchy 0.1, ``object_min_views`` 2). Whether an observation is wrong is read
+from the ground truth (its prediction lies > 0.5 m from the labelled object). Every ``--every``
+rounds: wrong and right observations the agents use (``Agent.obs_ok``) and the ATE; at the end,
+each wrong observation in use. ``--drop-wrong`` removes the wrong observations from the scenario
+first (an oracle: the same trajectories with perfect id association; the false loops stay).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import dataclasses
+
+import numpy as np
+
+from dran_edge import metrics
+from dran_edge.agent import Agent
+from dran_edge.comms.bus import Bus, BusParams, random_connected_graph
+from dran_edge.config import AgentConfig
+from dran_edge.multiagent import Fleet, neighbour_weights
+from dran_edge.objects_sim import SimParams, make_scenario
+
+
+def wrong_mask(sc, r: int, p) -> np.ndarray:
+    """Per observation of robot r: does its ground-truth prediction miss the labelled object?"""
+    pred = sc.gt_robots[r][p.obs_own] @ p.obs_T
+    return np.linalg.norm(pred[:, :3, 3] - sc.gt_objects[p.obs_object][:, :3, 3], axis=1) >= 0.5
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rounds", type=int, default=300)
+    ap.add_argument("--every", type=int, default=50)
+    ap.add_argument("--rho", type=float, default=0.3)
+    ap.add_argument("--outliers", type=float, default=0.2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drop-wrong", action="store_true")
+    args = ap.parse_args(argv)
+    sc = make_scenario(SimParams(seed=args.seed, outlier_ratio=args.outliers))
+    if args.drop_wrong:
+        problems = []
+        for r, p in enumerate(sc.problems):
+            keep = ~wrong_mask(sc, r, p)
+            problems.append(dataclasses.replace(p, obs_own=p.obs_own[keep], obs_object=p.obs_object[keep],
+                                                obs_T=p.obs_T[keep], obs_W=p.obs_W[keep]))
+        sc = dataclasses.replace(sc, problems=problems)
+    cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_min_views=2)
+    ids = range(len(sc.problems))
+    bus = Bus(ids, graph=random_connected_graph(ids, args.rho, seed=args.seed + 1),
+              params=BusParams(seed=args.seed))
+    W = neighbour_weights(bus)
+    agents = [Agent(dataclasses.replace(cfg, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3), p,
+                    weights=W[r]) for r, p in enumerate(sc.problems)]
+    wrong = [wrong_mask(sc, r, p) for r, p in enumerate(sc.problems)]
+    gt_x = np.concatenate(sc.gt_robots)
+
+    def callback(k, _fleet):
+        if k % args.every:
+            return
+        used_wrong = sum(int((a.obs_ok & w).sum()) for a, w in zip(agents, wrong))
+        used_right = sum(int((a.obs_ok & ~w).sum()) for a, w in zip(agents, wrong))
+        ate = metrics.ate_log_rmse(np.concatenate([a.x for a in agents]), gt_x)
+        print(f"round {k}: wrong observations used {used_wrong}/{sum(int(w.sum()) for w in wrong)}, "
+              f"right {used_right}/{sum(int((~w).sum()) for w in wrong)}, ATE {ate:.3f}", flush=True)
+
+    Fleet(agents, bus).run(args.rounds, callback=callback)
+    for r, (a, p, w) in enumerate(zip(agents, sc.problems, wrong)):
+        pred = sc.gt_robots[r][p.obs_own] @ p.obs_T
+        for i in np.flatnonzero(a.obs_ok & w):
+            label = int(p.obs_object[i])
+            true = int(np.argmin(np.linalg.norm(sc.gt_objects[:, :3, 3] - pred[i, :3, 3], axis=1)))
+            apart = np.linalg.norm(sc.gt_objects[label][:3, 3] - sc.gt_objects[true][:3, 3])
+            same = p.obs_object == label
+            print(f"  robot {r}, pose {p.obs_own[i]}: object {true} labelled {label} ({apart:.2f} m "
+                  f"apart); the robot's observations labelled {label}: {same.sum()}, "
+                  f"{int((same & ~w).sum())} of them right")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
