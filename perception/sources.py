@@ -293,7 +293,7 @@ class RealSenseRecordingSource(_RealSensePipelineSource):
     The playback device is resolved and switched to non-real-time *before* the pipeline starts
     (``pipeline.start`` reuses the config's cached resolved profile). Switching after ``start``
     loses the first frame in roughly one playback in five (measured with pyrealsense2 2.59.1:
-    frame 0 missing in 4 of 15 runs), because playback has already begun in real time.
+    frame 0 missing in 3 of 15 runs), because playback has already begun in real time.
     """
 
     def __init__(self, path: str | Path, align: bool = True, timeout_ms: int = 1000) -> None:
