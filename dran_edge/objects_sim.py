@@ -94,6 +94,10 @@ def _look_along(direction: np.ndarray) -> np.ndarray:
 
 def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -> Scenario:
     rng = np.random.default_rng(params.seed)
+    # Outliers draw from their own stream, so a scenario with outliers has exactly the
+    # trajectories, odometry and observation noise of the same seed without them (the
+    # outlier-free run it is compared with).
+    outlier_rng = np.random.default_rng([params.seed, 1])
     M = params.num_objects
     box = np.asarray(params.box_m)
     obj_t = rng.random((M, 3)) * box
@@ -130,16 +134,16 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         between = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
         between_T, robust = Z_odo, np.zeros(n - 1, bool)
         if params.outlier_ratio > 0:
-            wrong = rng.random(pi.size) < params.outlier_ratio
-            shift = rng.integers(1, M, wrong.sum())
+            wrong = outlier_rng.random(pi.size) < params.outlier_ratio
+            shift = outlier_rng.integers(1, M, wrong.sum())
             if params.outlier_kinds in ("ids", "both"):
                 obs_obj[wrong] = (oi[wrong] + shift) % M
             n_loops = round(params.outlier_ratio * max(pi.size, 1))
             if params.outlier_kinds == "ids":
                 n_loops = 0
             if n_loops and n > 3:
-                a = rng.integers(0, n, n_loops)
-                b = (a + rng.integers(2, n, n_loops)) % n
+                a = outlier_rng.integers(0, n, n_loops)
+                b = (a + outlier_rng.integers(2, n, n_loops)) % n
                 between = np.vstack([between, np.stack([a, b], 1)])
                 between_T = np.concatenate([between_T, np.broadcast_to(np.eye(4), (n_loops, 4, 4))])
                 robust = np.concatenate([robust, np.ones(n_loops, bool)])
