@@ -35,7 +35,7 @@ from dran_edge.errors import DecodeError, DranError
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, ObjectEntry, SeparatorEntry
 
 MAGIC = b"DR"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 TAG_BYTES = 16
 HARD_CAP_BYTES = 4096
 DEFAULT_MAX_DATAGRAM_BYTES = 1200
@@ -97,6 +97,13 @@ def _rotation_value_bytes(dim: int) -> int:
 
 # --------------------------------------------------------------------------- varints
 _SMALL_VARINTS = tuple(bytes([i]) for i in range(0x80))
+
+
+def _support(e: ObjectEntry) -> int:
+    support = int(e.support)
+    if not 0 <= support <= _U16_MAX:
+        raise EncodeError(f"object {e.object_id}: support must be in [0, {_U16_MAX}], got {support}")
+    return support
 
 
 def _varint(value: int) -> bytes:
@@ -401,13 +408,16 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         oid, pos = _read_varint(data, pos, end)
         origin, pos = _read_varint(data, pos, end)
         hops, pos = _read_varint(data, pos, end)
+        support, pos = _read_varint(data, pos, end)
+        if support > _U16_MAX:
+            raise DecodeError(f"object support {support} exceeds {_U16_MAX}")
         is_delta = False
         if h.delta:
             origin, is_delta = origin >> 1, bool(origin & 1)
         base, pos = _read_base_round(data, pos, end, h, is_delta)
         obj_base.append(base)
         obj_bytes += P if base is None else DP
-        obj_ids.append((oid, origin, hops))
+        obj_ids.append((oid, origin, hops, support))
     obj_id_end = pos
     init_ids = []
     init_base: list = []
@@ -514,7 +524,7 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
     for k, base in enumerate(ids.sep_base if h.delta else ()):
         if base is not None and sep_T[k] is not None:  # a delta entry's stamp: its key's
             ids.sep[k] = (*ids.sep[k][:2], delta.stamp(sep_keys[k]))
-    obj_T = poses([("o", oid) for oid, _, _ in ids.obj], ids.obj_base,
+    obj_T = poses([("o", oid) for oid, *_ in ids.obj], ids.obj_base,
                   [None] * len(ids.obj))
     init_values: list = []
     bases = ids.init_base if h.delta else (None,) * len(ids.init)
@@ -543,8 +553,8 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
         for i, (owner, kf, stamp) in enumerate(ids.sep) if sep_T[i] is not None
     )
     objects = tuple(
-        ObjectEntry(oid, obj_T[i], origin, hops)
-        for i, (oid, origin, hops) in enumerate(ids.obj) if obj_T[i] is not None
+        ObjectEntry(oid, obj_T[i], origin, hops, support)
+        for i, (oid, origin, hops, support) in enumerate(ids.obj) if obj_T[i] is not None
     )
     init = tuple(
         InitEntry(stage, owner, kf, init_values[i])
@@ -647,11 +657,12 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
         if delta is None:
             ids.append(
                 _varint(int(e.object_id)) + _varint(int(e.origin_robot)) + _varint(int(e.hop_count))
+                + _varint(_support(e))
             )
             continue
         d = as_delta(("o", int(e.object_id)), dl.POSE, np.asarray(e.T_world_object, np.float64),
                      lambda k=k: decoded[k])
-        oid, hops = _varint(int(e.object_id)), _varint(int(e.hop_count))
+        oid, hops = _varint(int(e.object_id)), _varint(int(e.hop_count)) + _varint(_support(e))
         if d is None:
             ids.append(oid + _varint(int(e.origin_robot) << 1) + hops)
         else:

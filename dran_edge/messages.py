@@ -55,6 +55,10 @@ class ObjectEntry:
     T_world_object: np.ndarray
     origin_robot: int
     hop_count: int = 0
+    #: own observations of the object that ``origin_robot`` uses (≥ 1 for a copy built from
+    #: observations; relays forward their origin's count): the weight of this copy's vote in
+    #: the cross-robot association check (docs/dran.md, robustness)
+    support: int = 1
 
 
 @dataclass(frozen=True, eq=False)

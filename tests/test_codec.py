@@ -23,24 +23,24 @@ GOLDEN_MESSAGE = NeighbourMessage(
     round=42,
     stamp_ns=1_000_000_123,
     separators=(SeparatorEntry(7, 300, 999_000_000, T1),),
-    objects=(ObjectEntry(12, T2, 3, 2),),
+    objects=(ObjectEntry(12, T2, 3, 2, 5),),
     init=(
         InitEntry(InitStage.ROTATION, 7, 5, ROT_RELAXED),
         InitEntry(InitStage.TRANSLATION, 7, 6, T1),
     ),
 )
-# Schema version 1. Changing these bytes needs a version bump + docs/wire-format.md CHANGELOG.
+# Schema version 2. Changing these bytes needs a version bump + docs/wire-format.md CHANGELOG.
 GOLDEN_HEX = (
-    "4452010181040780e2cfaa068180042afb94ebdc0301010207ac02f58a7a0c03020107050207060000803f00"
-    "0000c0000060400300000100807764560080c842000000000000e0c006020cfdfd73d506460000803f000000"
-    "3f00000000000000000000803f0000000000000000000000000000a0bf0000803f000000c000006040030000"
-    "01008077645600000000000000000000000000000000"
+    "4452020181040780e2cfaa068180042afb94ebdc0301010207ac02f58a7a0c0302050107050207060000803f"
+    "000000c0000060400300000100807764560080c842000000000000e0c006020cfdfd73d506460000803f0000"
+    "003f00000000000000000000803f0000000000000000000000000000a0bf0000803f000000c0000060400300"
+    "0001008077645600000000000000000000000000000000"
 )
 GOLDEN_SE2_HEX = (
-    "4452010001020000010001010002090001020000004040000080c00e241a0000003f0000803ef9ffff000000"
-    "00000000000000000000000000"
+    "445202000102000001000101000209000102000100004040000080c00e241a0000003f0000803ef9ffff0000"
+    "0000000000000000000000000000"
 )
-GOLDEN_HEARTBEAT_HEX = "4452010101010000000000000000000000000000000000000000000000"
+GOLDEN_HEARTBEAT_HEX = "4452020101010000000000000000000000000000000000000000000000"
 
 
 def _golden_se2_message():
@@ -63,7 +63,7 @@ def _one(msg, **kw):
 def test_golden_bytes_se3_all_entry_kinds():
     data = _one(GOLDEN_MESSAGE, fleet_id=513, boot_epoch=1_700_000_000, first_sequence=65537)
     assert data.hex() == GOLDEN_HEX
-    assert len(data) == 154
+    assert len(data) == 155
 
 
 def test_golden_bytes_se2_and_heartbeat():
@@ -83,7 +83,7 @@ def test_golden_decodes_to_the_message():
     )
     (s,), (o,) = m.separators, m.objects
     assert (s.owner_robot, s.keyframe_id, s.stamp_ns) == (7, 300, 999_000_000)
-    assert (o.object_id, o.origin_robot, o.hop_count) == (12, 3, 2)
+    assert (o.object_id, o.origin_robot, o.hop_count, o.support) == (12, 3, 2, 5)
     np.testing.assert_allclose(s.T_world_body, T1, atol=1e-6)
     np.testing.assert_allclose(o.T_world_object, T2, atol=1e-5)
     r, t = m.init
@@ -91,8 +91,8 @@ def test_golden_decodes_to_the_message():
     np.testing.assert_array_equal(r.value, ROT_RELAXED)  # exactly representable in float32
     assert t.stage == InitStage.TRANSLATION and t.keyframe_id == 6
     np.testing.assert_allclose(t.value, T1, atol=1e-6)
-    assert m.extra["bytes_by_kind"] == {"header": 40, "separator": 27, "object": 24, "init": 63}
-    assert sum(m.extra["bytes_by_kind"].values()) == 154
+    assert m.extra["bytes_by_kind"] == {"header": 40, "separator": 27, "object": 25, "init": 63}
+    assert sum(m.extra["bytes_by_kind"].values()) == 155
     assert codec.bytes_by_kind(bytes.fromhex(GOLDEN_HEX)) == m.extra["bytes_by_kind"]
     assert codec.bytes_by_kind(b"junk") == {"malformed": 4}
 
@@ -212,7 +212,8 @@ u64 = st.integers(0, 2**63)
     round_=u64,
     stamp=st.integers(0, 2**62),
     seps=st.lists(st.tuples(u64, u64, st.integers(0, 2**62), pose3), max_size=40),
-    objs=st.lists(st.tuples(u64, u64, st.integers(0, 300), pose3), max_size=40),
+    objs=st.lists(st.tuples(u64, u64, st.integers(0, 300), pose3, st.integers(0, 0xFFFF)),
+                  max_size=40),
 )
 def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, objs):
     msg = NeighbourMessage(
@@ -220,7 +221,7 @@ def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, obj
         round=round_,
         stamp_ns=stamp,
         separators=tuple(SeparatorEntry(o, k, s, T) for o, k, s, T in seps),
-        objects=tuple(ObjectEntry(i, T, o, h) for i, o, h, T in objs),
+        objects=tuple(ObjectEntry(i, T, o, h, n) for i, o, h, T, n in objs),
     )
     grams = codec.encode_message(msg, fleet_id=fleet, boot_epoch=epoch, first_sequence=seq)
     got_s, got_o, msgs = _decode_all(grams)
@@ -233,7 +234,8 @@ def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, obj
             epoch,
         )
     assert [(e.owner_robot, e.keyframe_id, e.stamp_ns) for e in got_s] == [s[:3] for s in seps]
-    assert [(e.object_id, e.origin_robot, e.hop_count) for e in got_o] == [o[:3] for o in objs]
+    assert [(e.object_id, e.origin_robot, e.hop_count, e.support) for e in got_o] == [
+        (*o[:3], o[4]) for o in objs]
     for (_, _, _, T), e in zip(seps, got_s, strict=True):
         assert (
             np.abs(e.T_world_body[:3, 3] - T[:3, 3]).max()
@@ -254,7 +256,8 @@ def _valid():
         (lambda d: b"", "truncated"),
         (lambda d: d + bytes(codec.HARD_CAP_BYTES), "exceeds"),
         (lambda d: b"XR" + d[2:], "magic"),
-        (lambda d: d[:2] + bytes([2]) + d[3:], "version"),
+        (lambda d: d[:2] + bytes([1]) + d[3:], "version"),  # the previous schema
+        (lambda d: d[:2] + bytes([3]) + d[3:], "version"),
         (lambda d: d[:3] + bytes([0x81]) + d[3:], "flag"),
         (lambda d: d[:-17] + d[-16:], "value block"),  # one byte short
         (lambda d: d[:-16] + b"\x00" + d[-16:], "value block"),  # one byte long
@@ -267,35 +270,40 @@ def test_malformed_is_decode_error(mutate, match):
 
 def _header_with_counts(n_sep, n_obj, n_init, body=b"", dim3=True):
     # magic, version, flags; fleet 1, sender 2, epoch 3, sequence 4, round 0, stamp 0, counts
-    fixed = struct.pack("<2sBB", b"DR", 1, 1 if dim3 else 0) + bytes([1, 2, 3, 4, 0, 0])
+    fixed = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1 if dim3 else 0) + bytes([1, 2, 3, 4, 0, 0])
     return fixed + bytes([n_sep, n_obj, n_init]) + body + bytes(codec.TAG_BYTES)
+
+
+OBJ_IDS = b"\x01\x02\x00\x01"  # object 1, origin 2, hop 0, support 1
 
 
 def test_bad_counts_nan_and_nonunit_quaternion():
     pose = bytes(codec._encode_poses(np.eye(4)[None], 3))
-    ok = _header_with_counts(0, 1, 0, b"\x01\x02\x00" + pose)
+    ok = _header_with_counts(0, 1, 0, OBJ_IDS + pose)
     assert codec.decode_datagram(ok).objects[0].object_id == 1
     with pytest.raises(DecodeError, match="do not fit"):
-        codec.decode_datagram(_header_with_counts(100, 0, 0, b"\x01\x02\x00" + pose))
+        codec.decode_datagram(_header_with_counts(100, 0, 0, OBJ_IDS + pose))
     nan = struct.pack("<f", float("nan")) + pose[4:]
     with pytest.raises(DecodeError, match="NaN"):
-        codec.decode_datagram(_header_with_counts(0, 1, 0, b"\x01\x02\x00" + nan))
+        codec.decode_datagram(_header_with_counts(0, 1, 0, OBJ_IDS + nan))
     inf = pose[:4] + struct.pack("<f", float("inf")) + pose[8:]
     with pytest.raises(DecodeError, match="NaN or inf"):
-        codec.decode_datagram(_header_with_counts(0, 1, 0, b"\x01\x02\x00" + inf))
+        codec.decode_datagram(_header_with_counts(0, 1, 0, OBJ_IDS + inf))
     # Smallest three all at +1/sqrt2: squared norm 1.5 > 1.
     big = (0x7FFFFF << 2) | (0x7FFFFF << 25) | ((0x7FFFFF & 0xFFFF) << 48)
     nonunit = pose[:12] + struct.pack("<QB", big & (2**64 - 1), 0x7FFFFF >> 16)
     with pytest.raises(DecodeError, match="not unit"):
-        codec.decode_datagram(_header_with_counts(0, 1, 0, b"\x01\x02\x00" + nonunit))
+        codec.decode_datagram(_header_with_counts(0, 1, 0, OBJ_IDS + nonunit))
     padding = pose[:20] + bytes([pose[20] | 0x80])
     with pytest.raises(DecodeError, match="padding"):
-        codec.decode_datagram(_header_with_counts(0, 1, 0, b"\x01\x02\x00" + padding))
+        codec.decode_datagram(_header_with_counts(0, 1, 0, OBJ_IDS + padding))
     rot_nan = struct.pack("<9f", *([float("nan")] * 9))
     with pytest.raises(DecodeError, match="NaN"):
         codec.decode_datagram(_header_with_counts(0, 0, 1, b"\x01\x07\x05" + rot_nan + bytes(0)))
     with pytest.raises(DecodeError, match="stage"):
         codec.decode_datagram(_header_with_counts(0, 0, 1, b"\x05\x07\x05" + bytes(36)))
+    with pytest.raises(DecodeError, match="support"):  # support 65 536
+        codec.decode_datagram(_header_with_counts(0, 1, 0, b"\x01\x02\x00\x80\x80\x04" + pose))
 
 
 def test_varints_strict():
@@ -336,6 +344,11 @@ def test_encode_rejects_bad_input():
     )
     with pytest.raises(codec.EncodeError):
         codec.encode_message(neg, fleet_id=1, boot_epoch=0, first_sequence=0)
+    for support in (-1, 0x10000):
+        bad = NeighbourMessage(sender_id=1, round=0, stamp_ns=0,
+                               objects=(ObjectEntry(1, np.eye(4), 1, 0, support),))
+        with pytest.raises(codec.EncodeError, match="support"):
+            codec.encode_message(bad, fleet_id=1, boot_epoch=0, first_sequence=0)
 
 
 @settings(max_examples=2000, deadline=None)
@@ -384,10 +397,10 @@ def test_header_ids_out_of_range(field):
     """fleet/sender are u16 and boot epoch/sequence u32 even though they travel as varints."""
     values = [1, 2, 3, 4]
     values[field] = (1 << 16) if field < 2 else (1 << 32)
-    head = struct.pack("<2sBB", b"DR", 1, 1) + b"".join(codec._varint(v) for v in values)
+    head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(codec._varint(v) for v in values)
     data = head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES)
     with pytest.raises(DecodeError, match="exceeds"):
         codec.decode_header(data)
     values[field] -= 1
-    head = struct.pack("<2sBB", b"DR", 1, 1) + b"".join(codec._varint(v) for v in values)
+    head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(codec._varint(v) for v in values)
     assert codec.decode_header(head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES))
