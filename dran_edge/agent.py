@@ -223,6 +223,12 @@ class Agent:
         self.anchors: dict[tuple[int, int], np.ndarray] = {}
         self.anchor_round: dict[tuple[int, int], int] = {}
         self.nbr_obj: dict[tuple[int, int], tuple[np.ndarray, int, int]] = {}
+        #: (neighbour, object id) -> the robot whose observations that copy comes from
+        self.nbr_origin: dict[tuple[int, int], int] = {}
+        #: (neighbour, object id) -> its ``support`` (own observations its origin uses)
+        self.nbr_support: dict[tuple[int, int], int] = {}
+        #: object id -> support of this robot's copy (own usable observations, or the origin's)
+        self.support: dict[int, int] = {}
         self.lam: dict[tuple[int, int], np.ndarray] = {}
         self.last_sent: dict[tuple[int, str, int], tuple[np.ndarray, int]] = {}
         self.counters = {"rounds": 0, "accepted": 0, "rejected": 0, "linear_fail": 0,
@@ -273,6 +279,8 @@ class Agent:
                 self.counters["stale_dropped"] += 1
                 continue
             self.nbr_obj[key] = (np.asarray(e.T_world_object, np.float64), int(e.hop_count), rnd)
+            self.nbr_origin[key] = int(e.origin_robot)
+            self.nbr_support[key] = int(getattr(e, "support", 1))
 
     def _init_objects_from_observations(self) -> None:
         """Gate the own observations, then initialise unknown objects from them.
@@ -319,6 +327,7 @@ class Agent:
                     self.y[oid] = pred[idx[m]].copy()
                 self.hops[oid] = 0
                 self.origin[oid] = self.id
+                self.support[oid] = min(int(ok.sum()), 0xFFFF)
         self.counters["obs_gated"] = int((~self.obs_ok & ~self.obs_pending).sum())
         self.counters["obs_pending"] = int(self.obs_pending.sum())
         self.obs_ok_gate = self.obs_ok.copy()
@@ -335,58 +344,115 @@ class Agent:
         for oid, (hop, j, T) in best.items():
             self.y[oid] = T.copy()
             self.hops[oid] = hop + 1
-            self.origin[oid] = j
+            self.origin[oid] = self.nbr_origin.get((j, oid), j)
+            self.support[oid] = self.nbr_support.get((j, oid), 1)
             self.counters["objects_adopted"] += 1
-        for oid in self.y:
-            if self.hops.get(oid, 0) > 0:
-                hs = [h for (j, o), (_, h, _r) in self.nbr_obj.items() if o == oid]
-                if hs:
-                    self.hops[oid] = min(self.hops[oid], min(hs) + 1)
+
+    def _votes(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Per object: the neighbours' copies as independent votes, positions (m, 3) and weights.
+
+        A copy counts once per robot whose observations it comes from (its origin) and weighs
+        that robot's ``support`` (how many own observations of the object it uses): relays
+        repeat their origin's estimate, so several neighbours relaying one robot's copy are one
+        vote, and copies that come from this robot itself (its own estimate echoed back) are
+        none. Per origin, the copy with the fewest hops."""
+        best: dict[tuple[int, int], tuple[int, np.ndarray, int]] = {}
+        for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
+            origin = self.nbr_origin.get((j, oid), j)
+            if origin == self.id:
+                continue
+            if (oid, origin) not in best or hop < best[(oid, origin)][0]:
+                best[(oid, origin)] = (hop, T[:-1, -1], max(self.nbr_support.get((j, oid), 1), 1))
+        votes: dict[int, tuple[list, list]] = {}
+        for (oid, _origin), (_hop, t, n) in sorted(best.items()):
+            P, w = votes.setdefault(oid, ([], []))
+            P.append(t)
+            w.append(n)
+        return {oid: (np.array(P), np.array(w, float)) for oid, (P, w) in votes.items()}
 
     def _check_associations(self) -> None:
-        """Cross-robot association check: an own observation whose predicted object position is
-        farther than ``association_gate_m`` from the median of the neighbours' copies of that
-        object (at least two copies) is treated as a wrong tag association and dropped
-        (``obs_rejected``); the object's copy restarts from the neighbours' median when none of
-        its own observations remain. Re-evaluated every round, so a dropped observation comes
-        back once the estimates agree with it."""
+        """Cross-robot association check, weighted by evidence.
+
+        Per object, the candidates are the neighbours' votes (``_votes``) and, while this robot
+        uses own observations of it, its own copy weighted by their number. The centre is the
+        weighted medoid of the candidates (the one with the least support-weighted distance to
+        the others; a tie keeps the own copy). Own observations whose predicted object position
+        is farther than ``association_gate_m`` from the centre are treated as wrong tag
+        associations and dropped (``obs_rejected``): two keyframes' worth of a wrong id lose to
+        another robot's five correct views, whichever robot got its copy out first. A copy
+        left without own observations that is farther than the gate from the centre (built
+        from the wrong observations, or a relay that sided with the weaker hypothesis)
+        restarts there; a copy within the gate is left to consensus (restarting it every round
+        kept undoing the local steps and the duals, and the fleet's estimate slid away over
+        hundreds of rounds: docs/dran.md). Re-evaluated every round, so a dropped observation
+        comes back once the estimates agree with it."""
         gate = self.config.association_gate_m
         p = self.problem
-        if gate <= 0 or p.obs_object.size == 0:
+        if gate <= 0:
             return
-        by_obj: dict[int, list[np.ndarray]] = {}
-        for (j, oid), (T, _hop, _rnd) in self.nbr_obj.items():
-            if oid in self._obs_groups:
-                by_obj.setdefault(oid, []).append(T[:-1, -1])
-        if not by_obj:
+        votes = self._votes()
+        if not votes:
             self.obs_ok = self.obs_ok_gate
             self.counters["obs_rejected"] = self.counters["obs_corroborated"] = 0
             return
+        n_obs = p.obs_object.size
         # predicted object positions x_p t̃ (rotation times translation, no 4x4 products)
         x = self.x[p.obs_own]
         pred = (x[:, :-1, :-1] @ p.obs_T[:, :-1, -1:])[..., 0] + x[:, :-1, -1]
-        rejected = np.zeros(p.obs_object.size, bool)
-        corroborated = np.zeros(p.obs_object.size, bool)
+        rejected = np.zeros(n_obs, bool)
+        corroborated = np.zeros(n_obs, bool)
         gate_obj = self.config.object_gate_m
-        for oid, positions in by_obj.items():
-            idx = self._obs_groups[oid]
-            P = np.array(positions)
-            # a lone observation is used once some neighbour's copy is within the object gate
-            pending = self.obs_pending[idx]
-            if pending.any():
-                near = np.sqrt(((pred[idx][:, None] - P[None]) ** 2).sum(-1)).min(axis=1)
-                corroborated[idx] = pending & (near <= gate_obj)
-            if len(positions) < 2:
+        for oid, (P, w) in votes.items():
+            idx = self._obs_groups.get(oid, np.zeros(0, np.int64))
+            if idx.size:
+                # a lone observation is used once another robot's copy is within the object gate
+                pending = self.obs_pending[idx]
+                if pending.any():
+                    near = np.sqrt(((pred[idx][:, None] - P[None]) ** 2).sum(-1)).min(axis=1)
+                    corroborated[idx] = pending & (near <= gate_obj)
+            n_own = int((self.obs_ok_gate[idx] | corroborated[idx]).sum()) if idx.size else 0
+            if n_own and oid in self.y:
+                P = np.vstack([self.y[oid][:-1, -1], P])
+                w = np.concatenate([[float(n_own)], w])
+            if P.shape[0] < 2:
                 continue
-            centre = np.median(P, axis=0)
-            rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
-            if rejected[idx].all() and oid in self.y:
+            spread = np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)) @ w
+            centre = P[int(np.argmin(spread))]
+            if idx.size:
+                rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
+            if (oid in self.y and (not idx.size or rejected[idx].all())
+                    and np.linalg.norm(self.y[oid][:-1, -1] - centre) > gate):
                 y = self.y[oid].copy()
                 y[:-1, -1] = centre
                 self.y[oid] = y
         self.obs_ok = (self.obs_ok_gate | corroborated) & ~rejected
         self.counters["obs_rejected"] = int(rejected.sum())
         self.counters["obs_corroborated"] = int(corroborated.sum())
+
+    def _update_provenance(self) -> None:
+        """Hop count, origin and support of every copy: 0, this robot and the number of own
+        observations in use while there are any; otherwise a relay of the nearest neighbour's
+        copy (fewest hops) that lies within ``association_gate_m`` of it and does not come
+        from this robot, one hop more, with that copy's origin and support. A robot whose own
+        observations were all rejected thus stops passing its copy off as evidence."""
+        gate = self.config.association_gate_m
+        nearest: dict[int, tuple[int, int, int]] = {}
+        for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
+            origin = self.nbr_origin.get((j, oid), j)
+            if origin == self.id or oid not in self.y:
+                continue
+            if gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate:
+                continue
+            if oid not in nearest or hop < nearest[oid][0]:
+                nearest[oid] = (hop, origin, self.nbr_support.get((j, oid), 1))
+        for oid in self.y:
+            idx = self._obs_groups.get(oid)
+            n_own = int(self.obs_ok[idx].sum()) if idx is not None else 0
+            if n_own:
+                self.hops[oid], self.origin[oid], self.support[oid] = 0, self.id, min(n_own, 0xFFFF)
+            elif oid in nearest:
+                hop, origin, support = nearest[oid]
+                self.hops[oid], self.origin[oid], self.support[oid] = hop + 1, origin, support
 
     def _structure_for(self) -> _Structure:
         p = self.problem
@@ -480,6 +546,7 @@ class Agent:
             return [self._estimate(stamp_ns, self.last_norms[2])]
         self._adopt_unknown_objects()
         self._check_associations()
+        self._update_provenance()
         s = self._structure_for()
         # Dual update, eq. 5b, with the newest copies of both ends.
         if s.pair_keys:
@@ -593,7 +660,7 @@ class Agent:
                 key = (q, "o", oid)
                 if self._changed(key, T, False):
                     objs.append(ObjectEntry(oid, T.copy(), self.origin.get(oid, self.id),
-                                            self.hops.get(oid, 0)))
+                                            self.hops.get(oid, 0), self.support.get(oid, 1)))
                     self.last_sent[key] = (T.copy(), self.k)
             if seps or objs:
                 msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs))
@@ -622,6 +689,8 @@ class Agent:
             "anchors": {k: v.copy() for k, v in self.anchors.items()},
             "anchor_round": dict(self.anchor_round),
             "nbr_obj": {k: (v[0].copy(), v[1], v[2]) for k, v in self.nbr_obj.items()},
+            "nbr_origin": dict(self.nbr_origin), "nbr_support": dict(self.nbr_support),
+            "support": dict(self.support),
             "lam": {k: v.copy() for k, v in self.lam.items()}, "w": dict(self.w),
             "counters": dict(self.counters),
         }
@@ -637,6 +706,9 @@ class Agent:
         agent.anchors = {tuple(k): np.asarray(v) for k, v in state["anchors"].items()}
         agent.anchor_round = {tuple(k): int(v) for k, v in state["anchor_round"].items()}
         agent.nbr_obj = {tuple(k): (np.asarray(v[0]), int(v[1]), int(v[2])) for k, v in state["nbr_obj"].items()}
+        agent.nbr_origin = {tuple(k): int(v) for k, v in state.get("nbr_origin", {}).items()}
+        agent.nbr_support = {tuple(k): int(v) for k, v in state.get("nbr_support", {}).items()}
+        agent.support = {int(k): int(v) for k, v in state.get("support", {}).items()}
         agent.lam = {tuple(k): np.asarray(v) for k, v in state["lam"].items()}
         agent.counters.update(state["counters"])
         return agent

@@ -209,7 +209,8 @@ class AgentConfig(_Checked):
     object_gate_m of it (1: every observation that passes the gate; 2 rejects lone wrong ids)."""
     association_gate_m: float = _f(8.0, lo=0.0)
     """Cross-robot association check: an own object observation predicting the object farther
-    than this from the median of >= 2 neighbours' copies is dropped as a wrong association
+    than this from the evidence-weighted medoid of the copies (one vote per observing robot,
+    weighted by its number of observations; docs/dran.md) is dropped as a wrong association
     (0: off), metres."""
     send_threshold: float = _f(1e-4, lo=0.0)
     """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
