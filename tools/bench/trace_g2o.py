@@ -1,7 +1,7 @@
 """Trace one Table 1 run: objective and bytes every N rounds, and where it crosses 0.1 % of F*.
 
 Usage: .venv/bin/python tools/bench/trace_g2o.py DATASET.g2o F_STAR [--every 10] [--max-rounds N]
-           [--no-cost-stop] [--plain] [--sor 1.9]
+           [--no-cost-stop] [--plain] [--sor 1.9] [--send-threshold 1e-4]
 
 Runs ``run_g2o_dran`` with ``multiagent.table1_setup`` (or ``--plain``) and a callback that
 merges the robots' trajectories and evaluates the SE-Sync objective. ``--no-cost-stop`` turns
@@ -38,6 +38,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cost-stop", action="store_true")
     ap.add_argument("--plain", action="store_true")
     ap.add_argument("--sor", type=float, default=None, help="override the SOR omega")
+    ap.add_argument("--send-threshold", type=float, default=None,
+                    help="override AgentConfig.send_threshold (re-send a pose once it moved more)")
     args = ap.parse_args(argv)
     g = read_g2o(args.dataset)
     kappa, tau = sesync_weights(g.dim, g.information)
@@ -47,6 +49,8 @@ def main(argv=None) -> int:
         cfg = dataclasses.replace(cfg, eps_u=0.0, eps_cost_rel=0.0)
     if args.sor is not None:
         cfg = dataclasses.replace(cfg, sor_omega=args.sor)
+    if args.send_threshold is not None:
+        cfg = dataclasses.replace(cfg, send_threshold=args.send_threshold)
     crossed = []
 
     def callback(k, fleet):
