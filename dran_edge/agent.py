@@ -348,6 +348,14 @@ class Agent:
             self.support[oid] = self.nbr_support.get((j, oid), 1)
             self.counters["objects_adopted"] += 1
 
+    def _copies_from_others(self):
+        """(object id, T, hop, origin, support) of every neighbour copy, in neighbour order,
+        except those whose origin is this robot (its own estimate echoed back)."""
+        for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
+            origin = self.nbr_origin.get((j, oid), j)
+            if origin != self.id:
+                yield oid, T, hop, origin, self.nbr_support.get((j, oid), 1)
+
     def _votes(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Per object: the neighbours' copies as independent votes, positions (m, 3) and weights.
 
@@ -357,12 +365,9 @@ class Agent:
         vote, and copies that come from this robot itself (its own estimate echoed back) are
         none. Per origin, the copy with the fewest hops."""
         best: dict[tuple[int, int], tuple[int, np.ndarray, int]] = {}
-        for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
-            origin = self.nbr_origin.get((j, oid), j)
-            if origin == self.id:
-                continue
+        for oid, T, hop, origin, support in self._copies_from_others():
             if (oid, origin) not in best or hop < best[(oid, origin)][0]:
-                best[(oid, origin)] = (hop, T[:-1, -1], max(self.nbr_support.get((j, oid), 1), 1))
+                best[(oid, origin)] = (hop, T[:-1, -1], max(support, 1))
         votes: dict[int, tuple[list, list]] = {}
         for (oid, _origin), (_hop, t, n) in sorted(best.items()):
             P, w = votes.setdefault(oid, ([], []))
@@ -437,14 +442,13 @@ class Agent:
         observations were all rejected thus stops passing its copy off as evidence."""
         gate = self.config.association_gate_m
         nearest: dict[int, tuple[int, int, int]] = {}
-        for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
-            origin = self.nbr_origin.get((j, oid), j)
-            if origin == self.id or oid not in self.y:
+        for oid, T, hop, origin, support in self._copies_from_others():
+            if oid not in self.y:
                 continue
             if gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate:
                 continue
             if oid not in nearest or hop < nearest[oid][0]:
-                nearest[oid] = (hop, origin, self.nbr_support.get((j, oid), 1))
+                nearest[oid] = (hop, origin, support)
         for oid in self.y:
             idx = self._obs_groups.get(oid)
             n_own = int(self.obs_ok[idx].sum()) if idx is not None else 0
