@@ -280,7 +280,7 @@ class Agent:
                 continue
             self.nbr_obj[key] = (np.asarray(e.T_world_object, np.float64), int(e.hop_count), rnd)
             self.nbr_origin[key] = int(e.origin_robot)
-            self.nbr_support[key] = int(getattr(e, "support", 1))
+            self.nbr_support[key] = int(e.support)
 
     def _init_objects_from_observations(self) -> None:
         """Gate the own observations, then initialise unknown objects from them.
