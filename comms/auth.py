@@ -26,7 +26,7 @@ import stat
 import time
 from dataclasses import dataclass, field
 
-from dran_edge.comms.codec import TAG_BYTES, decode_datagram, decode_header
+from dran_edge.comms.codec import MAGIC, SCHEMA_VERSION, TAG_BYTES, decode_datagram, decode_header
 from dran_edge.errors import ConfigError, DecodeError
 from dran_edge.messages import NeighbourMessage
 
@@ -141,6 +141,9 @@ class Reject(str, enum.Enum):
     """Why a datagram was dropped (counter names)."""
 
     MALFORMED = "malformed"
+    #: our magic, another schema version: a robot running another release (a fleet updates
+    #: together; docs/wire-format.md, CHANGELOG)
+    WRONG_VERSION = "wrong_version"
     WRONG_FLEET = "wrong_fleet"
     UNKNOWN_SENDER = "unknown_sender"
     NOT_NEIGHBOUR = "not_neighbour"
@@ -220,6 +223,8 @@ class Verifier:
         try:
             h = decode_header(datagram)
         except DecodeError:
+            if datagram[:2] == MAGIC and len(datagram) > 2 and datagram[2] != SCHEMA_VERSION:
+                return None, Reject.WRONG_VERSION
             return None, Reject.MALFORMED
         p = self.policy
         self.last_claimed_sender = h.sender_id

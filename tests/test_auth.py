@@ -93,6 +93,7 @@ def test_accepts_valid_and_relay_allowed():
         (_datagram(key=OTHER_KEY), Reject.BAD_TAG),
         (_datagram()[:-16] + bytes(16), Reject.BAD_TAG),
         (b"\x00" * 50, Reject.MALFORMED),
+        (_datagram()[:2] + bytes([codec.SCHEMA_VERSION - 1]) + _datagram()[3:], Reject.WRONG_VERSION),
         (b"", Reject.MALFORMED),
     ],
 )
@@ -122,6 +123,7 @@ def test_replay_window_and_restarted_neighbour():
     assert v.peer_state() == {2: (11, 0)}
     assert v.counts.rejected == {
         "malformed": 0,
+        "wrong_version": 0,
         "wrong_fleet": 0,
         "unknown_sender": 0,
         "not_neighbour": 0,

@@ -292,6 +292,7 @@ def test_attacks_rejected_and_counted_exactly():
             "replayed": 0,
             "stale": 0,
             "malformed": 0,
+            "wrong_version": 0,
         }
         n = 60
         for i in range(n):
@@ -307,7 +308,8 @@ def test_attacks_rejected_and_counted_exactly():
                 "replayed": target.acked[0],
                 # an old boot epoch of neighbour 2 (its window is at epoch 1)
                 "stale": target.valid(sender=2, epoch=0, seq=30_000 + i),
-                "malformed": b"DR\x09\x01" + bytes(40),  # unknown schema version
+                "malformed": b"XR\x02\x01" + bytes(40),  # not our magic
+                "wrong_version": b"DR\x09\x01" + bytes(40),  # our magic, unknown schema version
             }
             for reason, data in attacks.items():
                 target.raw(target.frame(data))
