@@ -52,7 +52,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
     o.add_argument("--outliers", type=float, default=0.0,
                    help="fraction of wrong object ids / loops; also turns on the Cauchy kernel "
-                        "(scale 0.1) and --min-views 2")
+                        "(scale 0.1) and --min-views 2. Everything else (trajectories, noise) is "
+                        "the same --seed's outlier-free scenario, so the two runs compare")
     o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
                    help="what --outliers injects: wrong object ids, false loops, or both")
     o.add_argument("--min-views", type=int, default=None,
@@ -60,9 +61,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "object observation is used unless a neighbour's copy corroborates it "
                         "(default: 2 with --outliers, which rejects lone wrong tag ids; else 1)")
     o.add_argument("--rounds", type=int, default=150, help="DRAN rounds per run (default 150)")
-    o.add_argument("--robots", type=int, default=21)
-    o.add_argument("--objects", type=int, default=60)
-    o.add_argument("--seed", type=int, default=0)
+    o.add_argument("--robots", type=int, default=21, help="robots (default 21, as the paper)")
+    o.add_argument("--objects", type=int, default=60, help="objects (default 60, as the paper)")
+    o.add_argument("--seed", type=int, default=0,
+                   help="scenario seed; the communication graph uses seed + 1 (default 0)")
     o.add_argument("--json", action="store_true", help="print one JSON object per run")
     o.add_argument("--plot", metavar="DIR", help="write a PNG per sweep into DIR")
     return parser
