@@ -102,13 +102,19 @@ def test_duals_integrate_only_near_consensus(scenario):
     assert np.linalg.norm(a.lam[(1, oid)]) > 0.0
 
 
-def test_observation_contradicted_by_more_evidence_is_dropped(scenario):
+def _object_seen_here_and_20_m_away(scenario):
+    """Robot 0 with neighbours 1 and 2, one object it observes, its own-observation mask, and
+    that object's pose moved 20 m (another robot's disagreeing copy)."""
     a = _agent(scenario, neighbours=(1, 2))
     oid = sorted(a.y)[0]
-    own = a.problem.obs_object == oid
-    n_own = int(own.sum())
     far = a.y[oid].copy()
     far[:3, 3] += 20.0
+    return a, oid, a.problem.obs_object == oid, far
+
+
+def test_observation_contradicted_by_more_evidence_is_dropped(scenario):
+    a, oid, own, far = _object_seen_here_and_20_m_away(scenario)
+    n_own = int(own.sum())
     a.handle(_obj_msg(1, 1, oid, far, support=n_own))
     a.handle(_obj_msg(2, 1, oid, far, support=n_own))
     a.handle(Tick(1))
@@ -138,12 +144,8 @@ def test_observations_survive_weaker_relayed_or_echoed_disagreement(scenario, ca
     """Votes count evidence, not messages: two single views elsewhere do not outvote this
     robot's views of the object, two relays of one robot are one vote, and this robot's own
     copy echoed back by its neighbours is no vote at all."""
-    a = _agent(scenario, neighbours=(1, 2))
-    oid = sorted(a.y)[0]
-    own = a.problem.obs_object == oid
+    a, oid, own, far = _object_seen_here_and_20_m_away(scenario)
     n_own = int(own.sum())
-    far = a.y[oid].copy()
-    far[:3, 3] += 20.0
     kw = {"weaker": [dict(support=1), dict(support=1)],
           "one origin relayed twice": [dict(origin=5, hop=1, support=n_own - 1)] * 2,
           "own echo": [dict(origin=0, hop=1, support=100)] * 2}[case]
