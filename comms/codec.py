@@ -662,11 +662,12 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
             continue
         d = as_delta(("o", int(e.object_id)), dl.POSE, np.asarray(e.T_world_object, np.float64),
                      lambda k=k: decoded[k])
-        oid, hops = _varint(int(e.object_id)), _varint(int(e.hop_count)) + _varint(_support(e))
+        oid = _varint(int(e.object_id))
+        hops_support = _varint(int(e.hop_count)) + _varint(_support(e))
         if d is None:
-            ids.append(oid + _varint(int(e.origin_robot) << 1) + hops)
+            ids.append(oid + _varint(int(e.origin_robot) << 1) + hops_support)
         else:
-            ids.append(oid + _varint((int(e.origin_robot) << 1) | 1) + hops + _varint(d[0]))
+            ids.append(oid + _varint((int(e.origin_robot) << 1) | 1) + hops_support + _varint(d[0]))
             values[k] = d[1]
     assert len(ids) == len(values) and n_sep <= len(ids)
     for e in message.init:
