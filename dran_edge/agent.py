@@ -231,6 +231,8 @@ class Agent:
         self.support: dict[int, int] = {}
         self.lam: dict[tuple[int, int], np.ndarray] = {}
         self.last_sent: dict[tuple[int, str, int], tuple[np.ndarray, int]] = {}
+        #: (neighbour, "o", object id) -> (origin, hop, support) last sent with that copy
+        self.last_sent_provenance: dict[tuple[int, str, int], tuple[int, int, int]] = {}
         self.counters = {"rounds": 0, "accepted": 0, "rejected": 0, "linear_fail": 0,
                          "stale_dropped": 0, "objects_adopted": 0, "unhandled_events": 0,
                          "obs_gated": 0, "obs_rejected": 0}
@@ -362,12 +364,14 @@ class Agent:
         A copy counts once per robot whose observations it comes from (its origin) and weighs
         that robot's ``support`` (how many own observations of the object it uses): relays
         repeat their origin's estimate, so several neighbours relaying one robot's copy are one
-        vote, and copies that come from this robot itself (its own estimate echoed back) are
-        none. Per origin, the copy with the fewest hops."""
+        vote, and copies that come from this robot itself (its own estimate echoed back) or
+        carry no support (bare estimates) are none. Per origin, the copy with the fewest hops."""
         best: dict[tuple[int, int], tuple[int, np.ndarray, int]] = {}
         for oid, T, hop, origin, support in self._copies_from_others():
+            if support <= 0:
+                continue  # a bare estimate: no observation behind it (``_update_provenance``)
             if (oid, origin) not in best or hop < best[(oid, origin)][0]:
-                best[(oid, origin)] = (hop, T[:-1, -1], max(support, 1))
+                best[(oid, origin)] = (hop, T[:-1, -1], support)
         votes: dict[int, tuple[list, list]] = {}
         for (oid, _origin), (_hop, t, n) in sorted(best.items()):
             P, w = votes.setdefault(oid, ([], []))
@@ -437,15 +441,17 @@ class Agent:
     def _update_provenance(self) -> None:
         """Hop count, origin and support of every copy: 0, this robot and the number of own
         observations in use while there are any; otherwise a relay of the nearest neighbour's
-        copy (fewest hops) that lies within ``association_gate_m`` of it and does not come
-        from this robot, one hop more, with that copy's origin and support. A robot whose own
-        observations were all rejected thus stops passing its copy off as evidence."""
+        copy (fewest hops) that has support, lies within ``association_gate_m`` of it and does
+        not come from this robot, one hop more, with that copy's origin and support; otherwise
+        a bare estimate (support 0, no vote anywhere). A robot whose own observations were all
+        rejected thus stops passing its copy off as evidence, on its own behalf or on a former
+        source's (before, such a copy kept its last support for good)."""
         gate = self.config.association_gate_m
         nearest: dict[int, tuple[int, int, int]] = {}
         for oid, T, hop, origin, support in self._copies_from_others():
             if oid not in self.y:
                 continue
-            if gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate:
+            if support <= 0 or (gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate):
                 continue
             if oid not in nearest or hop < nearest[oid][0]:
                 nearest[oid] = (hop, origin, support)
@@ -457,6 +463,8 @@ class Agent:
             elif oid in nearest:
                 hop, origin, support = nearest[oid]
                 self.hops[oid], self.origin[oid], self.support[oid] = hop + 1, origin, support
+            else:
+                self.support[oid] = 0  # a bare estimate now: it no longer stands for evidence
 
     def _structure_for(self) -> _Structure:
         p = self.problem
@@ -662,10 +670,12 @@ class Agent:
                 if self.hops.get(oid, 0) >= self.config.relay_max_hops:
                     continue
                 key = (q, "o", oid)
-                if self._changed(key, T, False):
-                    objs.append(ObjectEntry(oid, T.copy(), self.origin.get(oid, self.id),
-                                            self.hops.get(oid, 0), self.support.get(oid, 1)))
+                prov = (self.origin.get(oid, self.id), self.hops.get(oid, 0), self.support.get(oid, 1))
+                # a new origin, hop count or support goes out at once: it changes the votes
+                if self._changed(key, T, self.last_sent_provenance.get(key) != prov):
+                    objs.append(ObjectEntry(oid, T.copy(), *prov))
                     self.last_sent[key] = (T.copy(), self.k)
+                    self.last_sent_provenance[key] = prov
             if seps or objs:
                 msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs))
                 out.append(Outgoing(msg, (q,)))

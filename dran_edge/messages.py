@@ -56,8 +56,9 @@ class ObjectEntry:
     origin_robot: int
     hop_count: int = 0
     #: own observations of the object that ``origin_robot`` uses (≥ 1 for a copy built from
-    #: observations; relays forward their origin's count): the weight of this copy's vote in
-    #: the cross-robot association check (docs/dran.md, robustness)
+    #: observations; relays forward their origin's count; 0 for a bare estimate that no
+    #: observation in use stands behind): the weight of this copy's vote in the cross-robot
+    #: association check (docs/dran.md, robustness)
     support: int = 1
 
 

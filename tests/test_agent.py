@@ -157,6 +157,33 @@ def test_observations_survive_weaker_relayed_or_echoed_disagreement(scenario, ca
     assert np.linalg.norm(a.y[oid][:3, 3] - far[:3, 3]) > 10.0
 
 
+def _sent_objects(outputs, oid):
+    return [e for o in outputs if isinstance(o, Outgoing) for e in o.message.objects
+            if e.object_id == oid]
+
+
+def test_a_relay_whose_source_drops_its_evidence_becomes_a_bare_estimate(scenario):
+    """A copy with no own observation in use and no supported copy near is a bare estimate:
+    support 0, sent at once (the pose did not change), and no vote at the neighbours. Before,
+    it kept the support it last had, for good, and kept voting for an abandoned hypothesis."""
+    a = _agent(scenario, neighbours=(1, 2))
+    oid = 999
+    assert oid not in a.y
+    T = np.eye(4)
+    T[:3, 3] = (3.0, 4.0, 1.0)
+    a.handle(_obj_msg(1, 1, oid, T, support=3))
+    out = a.handle(Tick(1))
+    assert (a.hops[oid], a.origin[oid], a.support[oid]) == (1, 1, 3)
+    assert [e.support for e in _sent_objects(out, oid)] == [3, 3]
+    a.handle(_obj_msg(1, 2, oid, T, support=0))  # robot 1 no longer uses its views of it
+    out = a.handle(Tick(2))
+    assert a.support[oid] == 0
+    assert [e.support for e in _sent_objects(out, oid)] == [0, 0]
+    b = _agent(scenario, neighbours=(1,))
+    b.handle(_obj_msg(1, 1, oid, T, origin=7, hop=1, support=0))
+    assert oid not in b._votes()
+
+
 def test_colour_schedule_steps_only_on_the_robots_turn(scenario):
     cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), colours=2, colour=1)
     agent = Agent(cfg, scenario.problems[0], weights={1: 0.5})
