@@ -451,7 +451,8 @@ class Agent:
         for oid, T, hop, origin, support in self._copies_from_others():
             if oid not in self.y:
                 continue
-            if support <= 0 or (gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate):
+            far = gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate
+            if support <= 0 or far:
                 continue
             if oid not in nearest or hop < nearest[oid][0]:
                 nearest[oid] = (hop, origin, support)
@@ -670,7 +671,8 @@ class Agent:
                 if self.hops.get(oid, 0) >= self.config.relay_max_hops:
                     continue
                 key = (q, "o", oid)
-                prov = (self.origin.get(oid, self.id), self.hops.get(oid, 0), self.support.get(oid, 1))
+                prov = (self.origin.get(oid, self.id), self.hops.get(oid, 0),
+                        self.support.get(oid, 1))
                 # a new origin, hop count or support goes out at once: it changes the votes
                 if self._changed(key, T, self.last_sent_provenance.get(key) != prov):
                     objs.append(ObjectEntry(oid, T.copy(), *prov))
