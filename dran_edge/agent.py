@@ -352,11 +352,13 @@ class Agent:
 
     def _copies_from_others(self):
         """(object id, T, hop, origin, support) of every neighbour copy, in neighbour order,
-        except those whose origin is this robot (its own estimate echoed back)."""
+        except those whose origin is this robot (its own estimate echoed back) and bare
+        estimates (support 0: no observation behind them, ``_update_provenance``)."""
         for (j, oid), (T, hop, _rnd) in sorted(self.nbr_obj.items()):
             origin = self.nbr_origin.get((j, oid), j)
-            if origin != self.id:
-                yield oid, T, hop, origin, self.nbr_support.get((j, oid), 1)
+            support = self.nbr_support.get((j, oid), 1)
+            if origin != self.id and support > 0:
+                yield oid, T, hop, origin, support
 
     def _votes(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Per object: the neighbours' copies as independent votes, positions (m, 3) and weights.
@@ -368,8 +370,6 @@ class Agent:
         carry no support (bare estimates) are none. Per origin, the copy with the fewest hops."""
         best: dict[tuple[int, int], tuple[int, np.ndarray, int]] = {}
         for oid, T, hop, origin, support in self._copies_from_others():
-            if support <= 0:
-                continue  # a bare estimate: no observation behind it (``_update_provenance``)
             if (oid, origin) not in best or hop < best[(oid, origin)][0]:
                 best[(oid, origin)] = (hop, T[:-1, -1], support)
         votes: dict[int, tuple[list, list]] = {}
@@ -451,8 +451,7 @@ class Agent:
         for oid, T, hop, origin, support in self._copies_from_others():
             if oid not in self.y:
                 continue
-            far = gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate
-            if support <= 0 or far:
+            if gate > 0 and np.linalg.norm(T[:-1, -1] - self.y[oid][:-1, -1]) > gate:
                 continue
             if oid not in nearest or hop < nearest[oid][0]:
                 nearest[oid] = (hop, origin, support)
