@@ -192,13 +192,15 @@ def centralized(sc: Scenario, kernel=None) -> tuple[PoseGraph, np.ndarray, np.nd
 
 
 def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
-                max_rounds: int = 200, seed: int = 0, history_every: int = 0) -> dict:
+                max_rounds: int = 200, seed: int = 0, history_every: int = 0,
+                progress=None) -> dict:
     """DRAN on the scenario over the in-process bus, with the paper's metrics.
 
     ``comm_graph``: the communication graph as ``comms.bus.Bus`` takes it (undirected robot
     pairs or a ``round -> edges`` callable such as ``bus.random_connected_graph``); ``links``:
     the bus's ``BusParams`` (default lossless, next-round delivery); ``seed`` replaces
-    ``links.seed``."""
+    ``links.seed``. ``history_every`` > 0: the metrics every that many rounds in ``history``;
+    ``progress(round)``, if given, is called after every round (for progress output)."""
     from dran_edge.comms.bus import Bus, BusParams
     from dran_edge.multiagent import Fleet, neighbour_weights
 
@@ -241,11 +243,12 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
                 "ATE": ate_k, "SR_ATE": metrics.sr_ate(ate0, ate_k, ate_star), "CE": float(ce),
                 "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
 
-    cb = None
-    if history_every:
-        def cb(k, _fleet):
-            if k % history_every == 0:
-                history.append(snapshot())
+    def cb(k, _fleet):
+        if history_every and k % history_every == 0:
+            history.append(snapshot())
+        if progress is not None:
+            progress(k)
+
     rounds = fleet.run(max_rounds, callback=cb)
     out = snapshot()
     out.update({"rounds": rounds, "F_init": F_init, "F_star": F_star, "ATE_init": ate0,

@@ -1,0 +1,35 @@
+"""``dran-edge bench objects`` end to end on a tiny scenario (the numbers live in docs/benchmarks.md)."""
+
+import json
+
+import pytest
+
+from dran_edge.cli import main
+
+
+@pytest.mark.parametrize("flags, robust, min_views", [
+    ([], False, 1), (["--robust"], True, 2), (["--outliers", "0.2"], True, 2)])
+def test_bench_objects_reports_the_settings_it_ran_with(capsys, flags, robust, min_views):
+    rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
+               "--rounds", "3", "--json", *flags])
+    assert rc == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.strip()]
+    assert len(rows) == 1
+    assert rows[0]["robust"] is robust and rows[0]["min_views"] == min_views
+    assert rows[0]["rounds"] <= 3
+    assert set(rows[0]) >= {"SR_cost", "SR_ATE", "CE", "Bias", "ATE", "bytes"}
+
+
+def test_bench_objects_history_has_one_row_per_n_rounds(capsys):
+    rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
+               "--rounds", "4", "--history-every", "2", "--json"])
+    assert rc == 0
+    row = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert row["rounds"] == 4  # this toy does not meet the stopping rule in 4 rounds
+    assert [h["round"] for h in row["history"]] == [2, 4]
+    assert row["history"][-1]["ATE"] == row["ATE"]  # the last snapshot is the final state
+
+
+def test_bench_objects_rejects_a_bad_round_count(capsys):
+    assert main(["bench", "objects", "--rounds", "0"]) == 2
+    assert "--rounds" in capsys.readouterr().err
