@@ -12,10 +12,13 @@ Weights: ``weights='unit'`` (default) uses Ω = I for every factor — the PyPos
 costs suggest, and the scale at which the paper's β = 1 balances the consensus term;
 ``weights='noise'`` uses Ω = diag(1/σ_t², 1/σ_r²).
 
-Outliers (``outlier_ratio`` p): each object observation gets a wrong object id with probability
-p, and p × (observations / robots) false intra-robot loop closures per robot join random pose
-pairs with an identity measurement. The agent's robust kernel (``AgentConfig.robust_kernel``)
-is what must absorb them.
+Outliers (``outlier_ratio`` p): each object observation is, with probability p, also reported
+under a wrong object id (``outlier_ids='add'``, the default: the outlier run has every
+observation of the outlier-free run plus the wrong ones, so comparing the two measures what the
+outliers cost) or reported under a wrong id instead of its own (``'relabel'``, a misread tag:
+the run also loses those observations); and p × (observations / robots) false intra-robot loop
+closures per robot join random pose pairs with an identity measurement. The agent's robustness
+settings (docs/dran.md, robustness) are what must absorb them.
 
 Metrics (paper Sec. 6.2, ``dran_edge.metrics``): SR_ATE, SR_cost against the centralized LM of the
 solver core on the same factors (one copy per object), CE over the robots' object copies and
@@ -61,8 +64,19 @@ class SimParams:
     outlier_kinds: str = "both"
     """Which outliers ``outlier_ratio`` injects: 'ids' (wrong object ids), 'loops' (false loop
     closures) or 'both'."""
+    outlier_ids: str = "add"
+    """How a wrong id enters: 'add' (a second report of the observation under a wrong id; the
+    right one stays) or 'relabel' (the wrong id replaces the right one)."""
     weights: str = "unit"
     seed: int = 0
+
+    def __post_init__(self):
+        for name, allowed in (("outlier_kinds", ("ids", "loops", "both")),
+                              ("outlier_ids", ("add", "relabel")), ("weights", ("unit", "noise"))):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"SimParams.{name}: expected one of {allowed}, got {getattr(self, name)!r}")
+        if not 0.0 <= self.outlier_ratio < 1.0:
+            raise ValueError(f"SimParams.outlier_ratio: expected 0 <= p < 1, got {self.outlier_ratio}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,11 +148,17 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         between = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
         between_T, robust = Z_odo, np.zeros(n - 1, bool)
         if params.outlier_ratio > 0:
-            wrong = outlier_rng.random(pi.size) < params.outlier_ratio
+            n_obs = pi.size
+            wrong = outlier_rng.random(n_obs) < params.outlier_ratio
             shift = outlier_rng.integers(1, M, wrong.sum())
             if params.outlier_kinds in ("ids", "both"):
-                obs_obj[wrong] = (oi[wrong] + shift) % M
-            n_loops = round(params.outlier_ratio * max(pi.size, 1))
+                if params.outlier_ids == "relabel":
+                    obs_obj[wrong] = (oi[wrong] + shift) % M
+                else:  # the same detection once more, under a wrong id
+                    pi = np.concatenate([pi, pi[wrong]])
+                    obs_obj = np.concatenate([obs_obj, (oi[wrong] + shift) % M])
+                    Z_obs = np.concatenate([Z_obs, Z_obs[wrong]])
+            n_loops = round(params.outlier_ratio * max(n_obs, 1))
             if params.outlier_kinds == "ids":
                 n_loops = 0
             if n_loops and n > 3:

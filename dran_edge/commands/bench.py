@@ -67,6 +67,11 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "without outliers: the outlier-free run with the same agent settings")
     o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
                    help="what --outliers injects: wrong object ids, false loops, or both")
+    o.add_argument("--outlier-ids", choices=("add", "relabel"), default="add",
+                   help="how a wrong object id enters: 'add' reports an observation a second time "
+                        "under a wrong id (the right one stays: the run has every observation of "
+                        "the outlier-free run); 'relabel' replaces its id (a misread tag; the run "
+                        "also loses those observations). Default add")
     o.add_argument("--min-views", type=int, default=None,
                    help="AgentConfig.object_min_views: own observations that must agree before an "
                         "object observation is used unless a neighbour's copy corroborates it "
@@ -140,7 +145,8 @@ def run_objects_cmd(args) -> int:
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
-                         outlier_ratio=args.outliers, outlier_kinds=args.outlier_kinds)
+                         outlier_ratio=args.outliers, outlier_kinds=args.outlier_kinds,
+                         outlier_ids=args.outlier_ids)
         params = dataclasses.replace(base, sigma_rot_rad=base.sigma_rot_rad * noise,
                                      sigma_trans_m=base.sigma_trans_m * noise)
         sc = make_scenario(params)
@@ -156,7 +162,7 @@ def run_objects_cmd(args) -> int:
                               max_rounds=args.rounds, seed=args.seed,
                               history_every=args.history_every, progress=progress)
             row = {"rho": rho, "noise": noise, "loss": args.loss, "outliers": args.outliers,
-                   "robust": robust, "min_views": cfg.object_min_views}
+                   "outlier_ids": args.outlier_ids if args.outliers > 0 else None, "robust": robust, "min_views": cfg.object_min_views}
             row.update({k: v for k, v in out.items() if k != "history" or args.history_every})
             rows.append(row)
             if args.json:

@@ -2,7 +2,8 @@
 what the trajectories' ATE does over the rounds (diagnostic behind docs/benchmarks.md).
 
 Usage: .venv/bin/python tools/bench/outlier_trace.py [--rounds 300] [--every 50] [--rho 0.3]
-           [--outliers 0.2] [--outlier-kinds both|ids|loops] [--drop-wrong]
+           [--outliers 0.2] [--outlier-kinds both|ids|loops] [--outlier-ids add|relabel]
+           [--drop-wrong] [--seed 0]
 
 Same scenario, communication graph and agent settings as ``dran-edge bench objects --rho 0.3
 --outliers 0.2`` (Cauchy 0.1, ``object_min_views`` 2). Whether an observation is wrong is read
@@ -44,11 +45,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rho", type=float, default=0.3)
     ap.add_argument("--outliers", type=float, default=0.2)
     ap.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both")
+    ap.add_argument("--outlier-ids", choices=("add", "relabel"), default="add",
+                    help="wrong ids added to the right observations, or replacing them")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--drop-wrong", action="store_true")
     args = ap.parse_args(argv)
     sc = make_scenario(SimParams(seed=args.seed, outlier_ratio=args.outliers,
-                                     outlier_kinds=args.outlier_kinds))
+                                     outlier_kinds=args.outlier_kinds, outlier_ids=args.outlier_ids))
     if args.drop_wrong:
         problems = []
         for r, p in enumerate(sc.problems):

@@ -2,6 +2,7 @@
 
 Usage: .venv/bin/python tools/bench/trace_g2o.py DATASET.g2o F_STAR [--every 10] [--max-rounds N]
            [--no-cost-stop] [--plain] [--sor 1.9] [--send-threshold 1e-4]
+           [--resend-period 20]
 
 Runs ``run_g2o_dran`` with ``multiagent.table1_setup`` (or ``--plain``) and a callback that
 merges the robots' trajectories and evaluates the SE-Sync objective. ``--no-cost-stop`` turns
@@ -40,6 +41,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sor", type=float, default=None, help="override the SOR omega")
     ap.add_argument("--send-threshold", type=float, default=None,
                     help="override AgentConfig.send_threshold (re-send a pose once it moved more)")
+    ap.add_argument("--resend-period", type=int, default=None,
+                    help="override AgentConfig.resend_period_rounds (periodic re-send of unchanged poses)")
     args = ap.parse_args(argv)
     g = read_g2o(args.dataset)
     kappa, tau = sesync_weights(g.dim, g.information)
@@ -51,6 +54,8 @@ def main(argv=None) -> int:
         cfg = dataclasses.replace(cfg, sor_omega=args.sor)
     if args.send_threshold is not None:
         cfg = dataclasses.replace(cfg, send_threshold=args.send_threshold)
+    if args.resend_period is not None:
+        cfg = dataclasses.replace(cfg, resend_period_rounds=args.resend_period)
     crossed = []
 
     def callback(k, fleet):
