@@ -39,6 +39,7 @@ from dran_edge import geometry as geo
 from dran_edge import metrics
 from dran_edge.agent import Agent, LocalProblem
 from dran_edge.config import AgentConfig
+from dran_edge.errors import InputError
 from dran_edge.factors import BetweenFactors, Cauchy, Huber, PriorFactors
 from dran_edge.graph import PoseGraph, kinds_array
 from dran_edge.lm import LMParams, evaluate_cost, solve
@@ -70,13 +71,16 @@ class SimParams:
     weights: str = "unit"
     seed: int = 0
 
-    def __post_init__(self):
-        for name, allowed in (("outlier_kinds", ("ids", "loops", "both")),
-                              ("outlier_ids", ("add", "relabel")), ("weights", ("unit", "noise"))):
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"SimParams.{name}: expected one of {allowed}, got {getattr(self, name)!r}")
-        if not 0.0 <= self.outlier_ratio < 1.0:
-            raise ValueError(f"SimParams.outlier_ratio: expected 0 <= p < 1, got {self.outlier_ratio}")
+    def __post_init__(self) -> None:
+        checks = [  # the same form as simulate.SimParams
+            ("outlier_ratio", 0.0 <= self.outlier_ratio < 1.0, "0 <= p < 1"),
+            ("outlier_kinds", self.outlier_kinds in ("ids", "loops", "both"), "ids, loops or both"),
+            ("outlier_ids", self.outlier_ids in ("add", "relabel"), "add or relabel"),
+            ("weights", self.weights in ("unit", "noise"), "unit or noise"),
+        ]
+        for name, ok, expected in checks:
+            if not ok:
+                raise InputError(f"SimParams.{name}: expected {expected}, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True, eq=False)

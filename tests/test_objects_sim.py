@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from dran_edge.errors import InputError
 from dran_edge.objects_sim import SimParams, make_scenario
 
 SMALL = dict(num_robots=4, num_objects=12, box_m=(15.0, 15.0, 3.0), goals_per_robot=2, seed=5)
@@ -48,7 +49,7 @@ def test_the_false_loop_count_does_not_depend_on_the_id_mode():
 
 
 def test_bad_parameters_are_named():
-    with pytest.raises(ValueError, match="outlier_ids"):
+    with pytest.raises(InputError, match="outlier_ids"):
         SimParams(outlier_ids="swap")
-    with pytest.raises(ValueError, match="outlier_ratio"):
+    with pytest.raises(InputError, match="outlier_ratio"):
         SimParams(outlier_ratio=1.0)

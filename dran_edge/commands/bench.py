@@ -162,7 +162,8 @@ def run_objects_cmd(args) -> int:
                               max_rounds=args.rounds, seed=args.seed,
                               history_every=args.history_every, progress=progress)
             row = {"rho": rho, "noise": noise, "loss": args.loss, "outliers": args.outliers,
-                   "outlier_ids": args.outlier_ids if args.outliers > 0 else None, "robust": robust, "min_views": cfg.object_min_views}
+                   "outlier_ids": args.outlier_ids if args.outliers > 0 else None,
+                   "robust": robust, "min_views": cfg.object_min_views}
             row.update({k: v for k, v in out.items() if k != "history" or args.history_every})
             rows.append(row)
             if args.json:
