@@ -206,7 +206,8 @@ def test_two_daemons_exchange_over_loopback_udp(tmp_path):
             assert st["transport"]["datagrams_rejected"] == 0
     finally:
         outs = [stop(p) for p in procs]
-    assert all(rc == 0 for rc, _ in outs), outs
+    for i, (rc, out) in enumerate(outs):
+        assert rc == 0, f"robot {i + 1} exited with {rc}; its log ends:\n{out[-4000:]}"
 
 
 def test_udp_without_key_fails_with_one_clear_line(tmp_path):
