@@ -8,7 +8,8 @@ Usage: .venv/bin/python tools/bench/outlier_trace.py [--rounds 300] [--every 50]
 Same scenario, communication graph and agent settings as ``dran-edge bench objects --rho 0.3
 --outliers 0.2`` (Cauchy 0.1, ``object_min_views`` 2). Whether an observation is wrong is read
 from the ground truth (its prediction lies > 0.5 m from the labelled object). Every ``--every``
-rounds: wrong and right observations the agents use (``Agent.obs_ok``) and the ATE; at the end,
+rounds: wrong and right observations the agents use (``Agent.obs_ok``), the ATE, and the median
+whitened residual of the right observations in use with its Cauchy weight; at the end,
 each wrong observation in use. ``--drop-wrong`` removes the wrong observations from the scenario
 first (an oracle: the same trajectories with perfect id association; the false loops stay).
 """
@@ -24,6 +25,7 @@ import dataclasses
 
 import numpy as np
 
+from dran_edge import geometry as geo
 from dran_edge import metrics
 from dran_edge.agent import Agent
 from dran_edge.comms.bus import Bus, BusParams, random_connected_graph
@@ -75,8 +77,19 @@ def main(argv=None) -> int:
         used_wrong = sum(int((a.obs_ok & w).sum()) for a, w in zip(agents, wrong))
         used_right = sum(int((a.obs_ok & ~w).sum()) for a, w in zip(agents, wrong))
         ate = metrics.ate_log_rmse(np.concatenate([a.x for a in agents]), gt_x)
+        # whitened residual norm of every right observation in use, and its Cauchy weight
+        res = []
+        for a, p, w in zip(agents, sc.problems, wrong):
+            i = np.flatnonzero(a.obs_ok & ~w)
+            Y = np.stack([a.y[int(o)] for o in p.obs_object[i]]) if i.size else np.zeros((0, 4, 4))
+            xi = geo.log(geo.between(a.x[p.obs_own[i]] @ p.obs_T[i], Y))
+            res.append(np.linalg.norm(xi * p.obs_W[i], axis=1))
+        res = np.concatenate(res)
+        weight = 1.0 / (1.0 + (res / cfg.robust_threshold) ** 2)
         print(f"round {k}: wrong observations used {used_wrong}/{sum(int(w.sum()) for w in wrong)}, "
-              f"right {used_right}/{sum(int((~w).sum()) for w in wrong)}, ATE {ate:.3f}", flush=True)
+              f"right {used_right}/{sum(int((~w).sum()) for w in wrong)}, ATE {ate:.3f}, "
+              f"right residuals median {np.median(res):.4f} (Cauchy weight median "
+              f"{np.median(weight):.2f})", flush=True)
 
     Fleet(agents, bus).run(args.rounds, callback=callback)
     for r, (a, p, w) in enumerate(zip(agents, sc.problems, wrong)):
