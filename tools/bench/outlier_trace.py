@@ -30,6 +30,7 @@ from dran_edge import metrics
 from dran_edge.agent import Agent
 from dran_edge.comms.bus import Bus, BusParams, random_connected_graph
 from dran_edge.config import AgentConfig
+from dran_edge.factors import Cauchy
 from dran_edge.multiagent import Fleet, neighbour_weights
 from dran_edge.objects_sim import SimParams, make_scenario
 
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
             xi = geo.log(geo.between(a.x[p.obs_own[i]] @ p.obs_T[i], Y))
             res.append(np.linalg.norm(xi * p.obs_W[i], axis=1))
         res = np.concatenate(res)
-        weight = 1.0 / (1.0 + (res / cfg.robust_threshold) ** 2)
+        weight = Cauchy(cfg.robust_threshold).weight(res ** 2)
         print(f"round {k}: wrong observations used {used_wrong}/{sum(int(w.sum()) for w in wrong)}, "
               f"right {used_right}/{sum(int((~w).sum()) for w in wrong)}, ATE {ate:.3f}, "
               f"right residuals median {np.median(res):.4f} (Cauchy weight median "
