@@ -59,7 +59,7 @@ from dran_edge.events import (
     Output,
     Tick,
 )
-from dran_edge.factors import BetweenFactors, Cauchy, Huber, PriorFactors, isotropic_whitening
+from dran_edge.factors import BetweenFactors, Cauchy, PriorFactors, isotropic_whitening, make_kernel
 from dran_edge.graph import PoseGraph, kinds_array
 from dran_edge.lm import (
     LinearSolveError,
@@ -505,7 +505,8 @@ class Agent:
         ok = self.obs_ok
         if ok.any():
             var = np.stack([p.obs_own[ok], np.array([obj_slot[int(o)] for o in p.obs_object[ok]])], axis=1)
-            blocks.append(BetweenFactors(var, p.obs_T[ok], p.obs_W[ok], p.residual, kernel, "object"))
+            blocks.append(BetweenFactors(var, p.obs_T[ok], p.obs_W[ok], p.residual,
+                                         self._kernel(self.config.object_robust_threshold), "object"))
         graph = PoseGraph(dim=p.dim, kinds=kinds, factors=tuple(blocks))
         plan = build_plan(graph.with_factors(*self._consensus_blocks(obj_slot, c_base, pair_keys)))
         self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys,
@@ -519,22 +520,40 @@ class Agent:
         r = phi_dim(self.config.residual, self.config.dim)
         lam = np.stack([self.lam.get(k, np.zeros(r)) for k in pair_keys])
         w = np.array([self.w[j] for j, _ in pair_keys])
-        # With a robust kernel configured, a Cauchy kernel also bounds the pull of a neighbour's
-        # copy: a copy built from a wrong tag association is far away and would otherwise drag
-        # every copy to it. Its scale puts the half-weight point at φ = object_gate_m, so copies
-        # that differ by ordinary drift still pull almost fully.
-        kernel = None
-        if self.config.robust_kernel != "none" and self.config.object_gate_m > 0:
-            kernel = Cauchy(float(np.sqrt(self.config.beta) * np.mean(w) * self.config.object_gate_m))
-        return (ConsensusFactors(var, w, lam, self.config.beta, self.config.residual, kernel),)
-
-    def _kernel(self):
         c = self.config
-        if c.robust_kernel == "huber":
-            return Huber(c.robust_threshold)
-        if c.robust_kernel == "cauchy":
-            return Cauchy(c.robust_threshold)
-        return None
+        # With a robust kernel configured, a Cauchy kernel bounds the pull of a neighbour's copy
+        # that stands for another hypothesis: built from a wrong tag association, it lies far
+        # away and would otherwise drag every copy to it. Its scale puts the half-weight point
+        # at φ = object_gate_m. Only conflicting pairs get it (``_conflicts``); every other
+        # pair stays least squares (infinite scale), so copies that differ by drift pull fully
+        # and an outlier-free run is the plain one (docs/dran.md, robustness).
+        kernel = None
+        if c.robust_kernel != "none" and c.object_gate_m > 0:
+            conflict = self._conflicts(pair_keys)
+            if conflict.any():
+                scale = float(np.sqrt(c.beta) * np.mean(w) * c.object_gate_m)
+                kernel = Cauchy(np.where(conflict, scale, np.inf))
+        return (ConsensusFactors(var, w, lam, c.beta, c.residual, kernel),)
+
+    def _conflicts(self, pair_keys: tuple) -> np.ndarray:
+        """Per consensus pair (j, object): does j's copy stand for another hypothesis than ours?
+
+        Yes when it comes from another observing robot (origin) and lies more than
+        2 · ``association_gate_m`` from our copy: two copies that are each within the gate of
+        the object (drifted estimates of it) are at most that far apart, so beyond it at least
+        one of them is something else. A relay of our own copy is never a conflict."""
+        reach = 2.0 * self.config.association_gate_m
+        out = np.zeros(len(pair_keys), bool)
+        for i, (j, oid) in enumerate(pair_keys):
+            if self.nbr_origin.get((j, oid), j) == self.origin.get(oid, self.id):
+                continue
+            d = np.linalg.norm(self.nbr_obj[(j, oid)][0][:-1, -1] - self.y[oid][:-1, -1])
+            out[i] = d > reach
+        return out
+
+    def _kernel(self, threshold: float = 0.0):
+        """The configured kernel, of width ``threshold`` (0: ``robust_threshold``)."""
+        return make_kernel(self.config.robust_kernel, threshold or self.config.robust_threshold)
 
     def _poses(self, s: _Structure) -> np.ndarray:
         p = self.problem

@@ -197,6 +197,11 @@ class AgentConfig(_Checked):
     """Robust kernel on loop and object residuals (whitened)."""
     robust_threshold: float = _f(1.345, lo=0.0, lo_open=True)
     """Kernel width on the whitened residual norm (1.345: 95 % efficiency for Huber)."""
+    object_robust_threshold: float = _f(0.0, lo=0.0)
+    """Kernel width on object observations alone (0: robust_threshold). Loops want a tight
+    kernel (a false loop is wrong by metres and must not pull); an observation that passed the
+    gates wants a wider one, or the kernel also holds back the right ones while the
+    trajectories still drift (docs/dran.md, robustness)."""
     dual_max_phi2: float = _f(0.1, lo=0.0)
     """Anti-windup of eq. 5b: a dual λ_ij is updated only while φ²(y_i, y_j) is at most this
     (squared geodesic distance, same units as eps_phi; default = the paper's eps_phi)."""

@@ -59,19 +59,33 @@ class Huber:
 class Cauchy:
     """Cauchy kernel: ρ(s) = c² log(1 + s / c²)."""
 
-    scale: float
-    """c, in whitened units (standard deviations)."""
+    scale: float | np.ndarray
+    """c, in whitened units (standard deviations): one for the block, or one per factor (m,);
+    an infinite c leaves that factor least squares (ρ(s) = s, its limit)."""
 
     def rho(self, s: np.ndarray) -> np.ndarray:
-        c2 = self.scale * self.scale
-        return c2 * np.log1p(s / c2)
+        c2 = np.square(self.scale)
+        ls = np.isinf(c2)
+        c2 = np.where(ls, 1.0, c2)
+        return np.where(ls, s, c2 * np.log1p(s / c2))
 
     def weight(self, s: np.ndarray) -> np.ndarray:
         """ρ'(s) = 1 / (1 + s / c²)."""
-        return 1.0 / (1.0 + s / (self.scale * self.scale))
+        return 1.0 / (1.0 + s / np.square(self.scale))
 
 
 Kernel = Huber | Cauchy
+
+
+def make_kernel(name: str, width: float) -> Kernel | None:
+    """The kernel a config names ('none', 'huber', 'cauchy'), of width ``width``."""
+    if name == "none":
+        return None
+    if name == "huber":
+        return Huber(width)
+    if name == "cauchy":
+        return Cauchy(width)
+    raise ValueError(f"unknown robust kernel {name!r} (none, huber or cauchy)")
 
 
 def kernel_cost(kernel: Kernel | None, s: np.ndarray) -> np.ndarray:

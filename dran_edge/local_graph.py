@@ -54,9 +54,8 @@ from dran_edge.config import AgentConfig, NoiseModel
 from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
 from dran_edge.factors import (
     BetweenFactors,
-    Cauchy,
-    Huber,
     PriorFactors,
+    make_kernel,
     whitening_from_information,
 )
 from dran_edge.graph import PoseGraph, VariableKind
@@ -597,15 +596,17 @@ class LocalGraph:
         qi = np.searchsorted(keys, fa["q"])
         W = _whitening(fa["S"], residual)
         cfg = self.config
-        kernel = {"huber": Huber(cfg.robust_threshold), "cauchy": Cauchy(cfg.robust_threshold),
-                  "none": None}[cfg.robust_kernel]
+        kernels = {KIND_ODOMETRY: None,
+                   KIND_LOOP: make_kernel(cfg.robust_kernel, cfg.robust_threshold),
+                   KIND_OBSERVATION: make_kernel(cfg.robust_kernel, cfg.object_robust_threshold
+                                                 or cfg.robust_threshold)}
         blocks: list = []
         for kind in (KIND_ODOMETRY, KIND_LOOP, KIND_OBSERVATION):
             sel = (fa["kind"] == kind) & (fa["p"] >= 0)
             if np.any(sel):
                 blocks.append(BetweenFactors(
                     np.stack([pi[sel], qi[sel]], axis=1), fa["Z"][sel], W[sel], residual,
-                    None if kind == KIND_ODOMETRY else kernel, label=KIND_NAMES[kind]))
+                    kernels[kind], label=KIND_NAMES[kind]))
         sel = fa["p"] < 0
         if np.any(sel):
             blocks.append(PriorFactors(qi[sel][:, None], fa["Z"][sel], W[sel], residual,

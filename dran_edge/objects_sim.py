@@ -40,7 +40,7 @@ from dran_edge import metrics
 from dran_edge.agent import Agent, LocalProblem
 from dran_edge.config import AgentConfig
 from dran_edge.errors import InputError
-from dran_edge.factors import BetweenFactors, Cauchy, Huber, PriorFactors
+from dran_edge.factors import BetweenFactors, PriorFactors, make_kernel
 from dran_edge.graph import PoseGraph, kinds_array
 from dran_edge.lm import LMParams, evaluate_cost, solve
 
@@ -187,8 +187,12 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
     return Scenario(params, gt_robots, gt_objects, problems)
 
 
-def centralized(sc: Scenario, kernel=None) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
-    """The global graph (all trajectories + one copy per object), its initial values, offsets."""
+def centralized(sc: Scenario, kernel=None, object_kernel="same") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+    """The global graph (all trajectories + one copy per object), its initial values, offsets.
+
+    ``kernel`` on the loops, ``object_kernel`` on the observations ('same': ``kernel``)."""
+    if isinstance(object_kernel, str):
+        object_kernel = kernel
     sizes = [p.n for p in sc.problems]
     off = np.concatenate([[0], np.cumsum(sizes)])
     M = sc.params.num_objects
@@ -205,7 +209,7 @@ def centralized(sc: Scenario, kernel=None) -> tuple[PoseGraph, np.ndarray, np.nd
             blocks.append(BetweenFactors(p.between[rob] + o, p.between_T[rob], p.between_W[rob], p.residual, kernel))
         blocks.append(PriorFactors(p.prior_own[:, None] + o, p.prior_T, p.prior_W, p.residual))
         var = np.stack([p.obs_own + o, off[-1] + p.obs_object], axis=1)
-        blocks.append(BetweenFactors(var, p.obs_T, p.obs_W, p.residual, kernel))
+        blocks.append(BetweenFactors(var, p.obs_T, p.obs_W, p.residual, object_kernel))
         for k in range(p.obs_object.size):
             oid = p.obs_object[k]
             if not seen[oid]:
@@ -228,9 +232,9 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     from dran_edge.comms.bus import Bus, BusParams
     from dran_edge.multiagent import Fleet, neighbour_weights
 
-    kernel = {"huber": Huber(config.robust_threshold), "cauchy": Cauchy(config.robust_threshold)
-              }.get(config.robust_kernel)
-    graph, init, off = centralized(sc, kernel)
+    graph, init, off = centralized(
+        sc, make_kernel(config.robust_kernel, config.robust_threshold),
+        make_kernel(config.robust_kernel, config.object_robust_threshold or config.robust_threshold))
     ref = solve(graph, init, LMParams(max_iterations=100))
     M = sc.params.num_objects
     gt_x = np.concatenate(sc.gt_robots)

@@ -129,6 +129,16 @@ def test_kernel_weight_is_derivative_of_rho(kernel):
     assert np.all(kernel.rho(s) <= s + 1e-12)  # robust kernels never exceed the quadratic
 
 
+def test_cauchy_takes_one_scale_per_factor_and_infinity_is_least_squares():
+    s = np.array([0.5, 4.0, 4.0, 100.0])
+    per_factor = Cauchy(np.array([1.0, 2.0, np.inf, np.inf]))
+    rho, w = per_factor.rho(s), per_factor.weight(s)
+    np.testing.assert_allclose(rho[:2], [Cauchy(1.0).rho(s[0]), Cauchy(2.0).rho(s[1])])
+    np.testing.assert_allclose(w[:2], [Cauchy(1.0).weight(s[0]), Cauchy(2.0).weight(s[1])])
+    np.testing.assert_array_equal(rho[2:], s[2:])  # no nan from inf · log1p(0)
+    np.testing.assert_array_equal(w[2:], 1.0)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_chordal_second_order_gives_the_exact_hessian(dim):
     """JᵀJ + Σ S_i ∂²r_i equals the finite-difference Hessian of ½‖W r‖² on the pullback."""

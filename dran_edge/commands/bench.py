@@ -59,11 +59,12 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="noise multipliers of (1 deg, 0.005 m) (default 1)")
     o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
     o.add_argument("--outliers", type=float, default=0.0,
-                   help="fraction of wrong object ids / loops; also turns on the Cauchy kernel "
-                        "(scale 0.1) and --min-views 2. Everything else (trajectories, noise) is "
+                   help="fraction of wrong object ids / loops; also turns on the robust settings "
+                        "(Cauchy kernel of scale 0.1 on loops and 1.0 on object observations, on "
+                        "conflicting object copies; --min-views 2). Everything else (trajectories, noise) is "
                         "the same --seed's outlier-free scenario, so the two runs compare")
     o.add_argument("--robust", action="store_true",
-                   help="the robust settings of --outliers (Cauchy kernel, scale 0.1; --min-views 2) "
+                   help="the robust settings of --outliers (Cauchy kernels; --min-views 2) "
                         "without outliers: the outlier-free run with the same agent settings")
     o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
                    help="what --outliers injects: wrong object ids, false loops, or both")
@@ -140,6 +141,7 @@ def run_objects_cmd(args) -> int:
         raise InputError(f"--history-every must be 0 (off) or a round count, got {args.history_every}")
     robust = args.outliers > 0 or args.robust
     cfg = AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.1,
+                      object_robust_threshold=1.0,
                       object_min_views=(args.min_views if args.min_views is not None
                                         else 2 if robust else 1))
     rows = []
