@@ -236,3 +236,35 @@ def test_lone_wrong_tag_id_waits_for_a_neighbour_to_corroborate_it(scenario):
     assert a.obs_ok[k] and new_id in a.y and a.counters["obs_corroborated"] == 1
     plain = Agent(dataclasses.replace(cfg, object_min_views=1), prob, weights={1: 0.5})
     assert plain.obs_ok[k] and new_id in plain.y  # the default keeps it
+
+
+def _pull(scenario, config, offset_m, origin=None):
+    """How far one round moves robot 0's copy of an object it observes towards a neighbour's copy
+    ``offset_m`` away (along x), sent by robot 1 on behalf of ``origin`` (default: itself)."""
+    a = Agent(dataclasses.replace(config, robot_id=0, neighbours=(1,)), scenario.problems[0],
+              weights={1: 0.5})
+    oid = sorted(a.y)[0]
+    before = a.y[oid][:3, 3].copy()
+    other = a.y[oid].copy()
+    other[0, 3] += offset_m
+    a.handle(_obj_msg(1, 1, oid, other, origin=origin))
+    a.handle(Tick(1))
+    return float(a.y[oid][0, 3] - before[0]), a, oid
+
+
+def test_consensus_kernel_acts_only_on_conflicting_copies(scenario):
+    robust = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0)
+    reach = 2 * robust.association_gate_m  # 16 m: two copies each within the gate of the object
+    drift, a, oid = _pull(scenario, robust, 0.6 * reach)
+    assert not a._conflicts(((1, oid),)).any()
+    conflict, b, _ = _pull(scenario, robust, 1.25 * reach)
+    assert b._conflicts(((1, oid),)).all()
+    # least squares pulls harder the farther the copy; the kernel cuts a conflicting copy's pull
+    plain = dataclasses.replace(robust, robust_kernel="none")
+    drift_ls, _, _ = _pull(scenario, plain, 0.6 * reach)
+    conflict_ls, _, _ = _pull(scenario, plain, 1.25 * reach)
+    assert 0 < drift_ls < conflict_ls
+    assert 0 < conflict < 0.2 * conflict_ls and conflict < drift
+    # our own copy echoed back by a neighbour is never a conflict, however far it has drifted
+    _, c, _ = _pull(scenario, robust, 1.25 * reach, origin=0)
+    assert not c._conflicts(((1, oid),)).any()

@@ -1,5 +1,6 @@
 """DRAN agents in one process over encoded datagrams on the bus (multiagent, objects_sim)."""
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -33,7 +34,6 @@ def test_three_robot_toy_reaches_consensus_and_the_centralized_answer(toy):
 def test_relay_reaches_a_robot_two_hops_away():
     sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
                                  goals_per_robot=2, seed=3))
-    import dataclasses
 
     from dran_edge.agent import Agent
 
@@ -79,7 +79,6 @@ def test_weights_are_the_consensus_mh_weights_of_the_bus_graph():
 def test_fleet_traffic_is_the_bus_count_of_every_datagram_byte(toy):
     """The fleet's totals are the bus's; a partition cuts robot 2 off (no bytes to or from it
     while cut, since only links that are up carry datagrams), and the agents still run."""
-    import dataclasses
 
     from dran_edge.agent import Agent
 
@@ -112,7 +111,6 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
     association check weighs evidence, not messages: robot 1 sides with robot 2's seven views,
     robot 0 then drops its two, and every copy of object 7 ends near robot 2's estimate (the
     relays' copies still swing about it by ~1 m after 30 rounds, as in the clean scenario)."""
-    import dataclasses
 
     from dran_edge.agent import Agent
 
@@ -147,3 +145,18 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
         assert np.linalg.norm(a.y[7][:3, 3] - true_copy) < 2.0
         assert np.linalg.norm(a.y[7][:3, 3] - phantom) > 10.0
     assert (agents[0].hops[7], agents[0].origin[7]) == (2, 2)
+
+
+def test_outlier_runs_are_scored_against_the_outlier_free_centralized_solution():
+    params = dataclasses.replace(SMALL, outlier_ratio=0.3)
+    cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0,
+                      object_min_views=2)
+    edges = [(0, 1), (1, 2)]
+    noisy = run_objects(make_scenario(params), cfg, edges, max_rounds=3)
+    clean = run_objects(make_scenario(dataclasses.replace(params, outlier_ratio=0.0)), cfg, edges,
+                        max_rounds=3)
+    # same reference (the outlier-free graph's F_init, F*, ATE*) for both runs ...
+    for key in ("F_init", "F_star", "ATE_init", "ATE_star"):
+        assert noisy[key] == clean[key], key
+    # ... and it is a sound one: the centralized LM lands near the ground truth
+    assert noisy["ATE_star"] < 0.5 * noisy["ATE_init"]
