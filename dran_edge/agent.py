@@ -235,7 +235,7 @@ class Agent:
         self.last_sent_provenance: dict[tuple[int, str, int], tuple[int, int, int]] = {}
         self.counters = {"rounds": 0, "accepted": 0, "rejected": 0, "linear_fail": 0,
                          "stale_dropped": 0, "objects_adopted": 0, "unhandled_events": 0,
-                         "obs_gated": 0, "obs_rejected": 0}
+                         "obs_gated": 0, "obs_rejected": 0, "consensus_conflicts": 0}
         self.converged = False
         self.last_norms = (math.inf, math.inf, math.inf)
         self.last_cost = math.nan
@@ -541,7 +541,8 @@ class Agent:
         Yes when it comes from another observing robot (origin) and lies more than
         2 · ``association_gate_m`` from our copy: two copies that are each within the gate of
         the object (drifted estimates of it) are at most that far apart, so beyond it at least
-        one of them is something else. A relay of our own copy is never a conflict."""
+        one of them is something else. A relay of our own copy is never a conflict.
+        Counted per pair and round in ``counters['consensus_conflicts']``."""
         reach = 2.0 * self.config.association_gate_m
         out = np.zeros(len(pair_keys), bool)
         for i, (j, oid) in enumerate(pair_keys):
@@ -596,7 +597,10 @@ class Agent:
         n = self.problem.n
         obj_slot = {oid: n + i for i, oid in enumerate(s.obj_ids)}
         c_base = n + len(s.obj_ids) + len(s.anchor_keys)
-        graph = s.graph.with_factors(*self._consensus_blocks(obj_slot, c_base, s.pair_keys))
+        cons = self._consensus_blocks(obj_slot, c_base, s.pair_keys)
+        graph = s.graph.with_factors(*cons)
+        if cons and cons[0].kernel is not None:  # pairs under the kernel (conflicts) this round
+            self.counters["consensus_conflicts"] += int(np.isfinite(cons[0].kernel.scale).sum())
         poses = self._poses(s)
         x_k = self.x.copy()
         accepted_before = self.counters["accepted"]

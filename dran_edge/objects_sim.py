@@ -219,6 +219,17 @@ def centralized(sc: Scenario, kernel=None, object_kernel="same") -> tuple[PoseGr
     return graph, np.concatenate(x0 + [y0]), off
 
 
+def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
+    """The agent settings of ``dran-edge bench objects``: least squares everywhere, or with
+    ``robust`` the settings ``--outliers`` turns on (docs/dran.md, robustness): Cauchy 0.1 on
+    the loops (unit information: 0.1 m / 0.1 rad), 1.0 on the object observations, the Cauchy
+    kernel on conflicting consensus pairs, and lone observations held back (min views 2).
+    ``min_views`` overrides the last."""
+    return AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.1,
+                       object_robust_threshold=1.0,
+                       object_min_views=min_views if min_views is not None else 2 if robust else 1)
+
+
 def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
                 max_rounds: int = 200, seed: int = 0, history_every: int = 0,
                 progress=None) -> dict:
@@ -292,5 +303,6 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     out.update({"rounds": rounds, "F_init": F_init, "F_star": F_star, "ATE_init": ate0,
                 "ATE_star": ate_star, "history": history,
                 "local_step_ms_median": float(np.median(fleet.step_ms)),
-                "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped})
+                "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,
+                "consensus_conflicts": sum(a.counters["consensus_conflicts"] for a in agents)})
     return out

@@ -243,7 +243,7 @@ def _pull(scenario, config, offset_m, origin=None):
     ``offset_m`` away (along x), sent by robot 1 on behalf of ``origin`` (default: itself)."""
     a = Agent(dataclasses.replace(config, robot_id=0, neighbours=(1,)), scenario.problems[0],
               weights={1: 0.5})
-    oid = sorted(a.y)[0]
+    oid = min(a.y)
     before = a.y[oid][:3, 3].copy()
     other = a.y[oid].copy()
     other[0, 3] += offset_m
@@ -256,9 +256,9 @@ def test_consensus_kernel_acts_only_on_conflicting_copies(scenario):
     robust = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0)
     reach = 2 * robust.association_gate_m  # 16 m: two copies each within the gate of the object
     drift, a, oid = _pull(scenario, robust, 0.6 * reach)
-    assert not a._conflicts(((1, oid),)).any()
+    assert not a._conflicts(((1, oid),)).any() and a.counters["consensus_conflicts"] == 0
     conflict, b, _ = _pull(scenario, robust, 1.25 * reach)
-    assert b._conflicts(((1, oid),)).all()
+    assert b._conflicts(((1, oid),)).all() and b.counters["consensus_conflicts"] == 1
     # least squares pulls harder the farther the copy; the kernel cuts a conflicting copy's pull
     plain = dataclasses.replace(robust, robust_kernel="none")
     drift_ls, _, _ = _pull(scenario, plain, 0.6 * reach)

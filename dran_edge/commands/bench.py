@@ -131,19 +131,15 @@ def run_g2o(args) -> int:
 
 def run_objects_cmd(args) -> int:
     from dran_edge.comms.bus import BusParams, random_connected_graph
-    from dran_edge.config import AgentConfig
     from dran_edge.errors import InputError
-    from dran_edge.objects_sim import SimParams, make_scenario, run_objects
+    from dran_edge.objects_sim import SimParams, bench_config, make_scenario, run_objects
 
     if args.rounds < 1:
         raise InputError(f"--rounds must be at least 1, got {args.rounds}")
     if args.history_every < 0:
         raise InputError(f"--history-every must be 0 (off) or a round count, got {args.history_every}")
     robust = args.outliers > 0 or args.robust
-    cfg = AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.1,
-                      object_robust_threshold=1.0,
-                      object_min_views=(args.min_views if args.min_views is not None
-                                        else 2 if robust else 1))
+    cfg = bench_config(robust, args.min_views)
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
@@ -173,7 +169,9 @@ def run_objects_cmd(args) -> int:
             else:
                 print(f"rho={rho:.1f} noise={noise:g}: SR_cost={row['SR_cost']:.2f}% "
                       f"SR_ATE={row['SR_ATE']:.2f}% CE={row['CE']:.3g} Bias={row['Bias']:.3g} "
-                      f"ATE={row['ATE']:.4f} bytes={row['bytes']} rounds={row['rounds']}", flush=True)
+                      f"ATE={row['ATE']:.4f} bytes={row['bytes']} rounds={row['rounds']}"
+                      + (f" consensus_conflicts={row['consensus_conflicts']}" if robust else ""),
+                      flush=True)
                 for h in row.get("history", ()):
                     print(f"  round {h['round']}: SR_cost={h['SR_cost']:.2f}% ATE={h['ATE']:.4f} "
                           f"CE={h['CE']:.3g} bytes={h['bytes']}", flush=True)

@@ -6,7 +6,7 @@ Usage: .venv/bin/python tools/bench/outlier_trace.py [--rounds 300] [--every 50]
            [--drop-wrong] [--seed 0]
 
 Same scenario, communication graph and agent settings as ``dran-edge bench objects --rho 0.3
---outliers 0.2`` (Cauchy 0.1, ``object_min_views`` 2). Whether an observation is wrong is read
+--outliers 0.2`` (``objects_sim.bench_config``). Whether an observation is wrong is read
 from the ground truth (its prediction lies > 0.5 m from the labelled object). Every ``--every``
 rounds: wrong and right observations the agents use (``Agent.obs_ok``), the ATE, and the median
 whitened residual of the right observations in use with its Cauchy weight; at the end,
@@ -29,10 +29,9 @@ from dran_edge import geometry as geo
 from dran_edge import metrics
 from dran_edge.agent import Agent
 from dran_edge.comms.bus import Bus, BusParams, random_connected_graph
-from dran_edge.config import AgentConfig
 from dran_edge.factors import Cauchy
 from dran_edge.multiagent import Fleet, neighbour_weights
-from dran_edge.objects_sim import SimParams, make_scenario
+from dran_edge.objects_sim import SimParams, bench_config, make_scenario
 
 
 def wrong_mask(sc, r: int, p) -> np.ndarray:
@@ -62,7 +61,7 @@ def main(argv=None) -> int:
             problems.append(dataclasses.replace(p, obs_own=p.obs_own[keep], obs_object=p.obs_object[keep],
                                                 obs_T=p.obs_T[keep], obs_W=p.obs_W[keep]))
         sc = dataclasses.replace(sc, problems=problems)
-    cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_min_views=2)
+    cfg = bench_config(robust=True)
     ids = range(len(sc.problems))
     bus = Bus(ids, graph=random_connected_graph(ids, args.rho, seed=args.seed + 1),
               params=BusParams(seed=args.seed))
@@ -86,7 +85,7 @@ def main(argv=None) -> int:
             xi = geo.log(geo.between(a.x[p.obs_own[i]] @ p.obs_T[i], Y))
             res.append(np.linalg.norm(xi * p.obs_W[i], axis=1))
         res = np.concatenate(res)
-        weight = Cauchy(cfg.robust_threshold).weight(res ** 2)
+        weight = Cauchy(cfg.object_robust_threshold).weight(res ** 2)
         print(f"round {k}: wrong observations used {used_wrong}/{sum(int(w.sum()) for w in wrong)}, "
               f"right {used_right}/{sum(int((~w).sum()) for w in wrong)}, ATE {ate:.3f}, "
               f"right residuals median {np.median(res):.4f} (Cauchy weight median "
