@@ -690,9 +690,12 @@ class Agent:
                     self.last_sent[key] = (self.x[i].copy(), self.k)
             objs = []
             for oid, T in objects:
-                if self.hops.get(oid, 0) >= self.config.relay_max_hops:
-                    continue
                 key = (q, "o", oid)
+                # beyond relay_max_hops a copy is not offered to new neighbours, but one that
+                # was sent to q before keeps being updated there: else q would hold our last
+                # value (and its provenance) for good, e.g. a phantom we have since dropped
+                if self.hops.get(oid, 0) >= self.config.relay_max_hops and key not in self.last_sent:
+                    continue
                 prov = (self.origin.get(oid, self.id), self.hops.get(oid, 0),
                         self.support.get(oid, 1))
                 # a new origin, hop count or support goes out at once: it changes the votes
