@@ -187,12 +187,10 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
     return Scenario(params, gt_robots, gt_objects, problems)
 
 
-def centralized(sc: Scenario, kernel=None, object_kernel="same") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """The global graph (all trajectories + one copy per object), its initial values, offsets.
 
-    ``kernel`` on the loops, ``object_kernel`` on the observations ('same': ``kernel``)."""
-    if isinstance(object_kernel, str):
-        object_kernel = kernel
+    ``kernel`` on the robust loops, ``object_kernel`` on the observations (None: least squares)."""
     sizes = [p.n for p in sc.problems]
     off = np.concatenate([[0], np.cumsum(sizes)])
     M = sc.params.num_objects
