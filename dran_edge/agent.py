@@ -481,7 +481,7 @@ class Agent:
         anc_slot = {k: a_base + i for i, k in enumerate(anchor_keys)}
         kinds = kinds_array(n + n_o + n_a + n_c, public=np.arange(o_base, a_base),
                             fixed=np.arange(a_base, c_base + n_c))
-        kernel = self._kernel()
+        kernel = make_kernel(self.config.robust_kernel, self.config.robust_threshold)
         blocks = []
         if p.between.shape[0]:
             rob = p.between_robust
@@ -506,7 +506,8 @@ class Agent:
         if ok.any():
             var = np.stack([p.obs_own[ok], np.array([obj_slot[int(o)] for o in p.obs_object[ok]])], axis=1)
             blocks.append(BetweenFactors(var, p.obs_T[ok], p.obs_W[ok], p.residual,
-                                         self._kernel(self.config.object_robust_threshold), "object"))
+                                         make_kernel(self.config.robust_kernel,
+                                                     self.config.object_kernel_width), "object"))
         graph = PoseGraph(dim=p.dim, kinds=kinds, factors=tuple(blocks))
         plan = build_plan(graph.with_factors(*self._consensus_blocks(obj_slot, c_base, pair_keys)))
         self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys,
@@ -551,10 +552,6 @@ class Agent:
             d = np.linalg.norm(self.nbr_obj[(j, oid)][0][:-1, -1] - self.y[oid][:-1, -1])
             out[i] = d > reach
         return out
-
-    def _kernel(self, threshold: float = 0.0):
-        """The configured kernel, of width ``threshold`` (0: ``robust_threshold``)."""
-        return make_kernel(self.config.robust_kernel, threshold or self.config.robust_threshold)
 
     def _poses(self, s: _Structure) -> np.ndarray:
         p = self.problem

@@ -239,6 +239,12 @@ class AgentConfig(_Checked):
     graph: GraphBounds = _f(GraphBounds())
     """The bounded local graph."""
 
+    @property
+    def object_kernel_width(self) -> float:
+        """The kernel width in use on object observations (object_robust_threshold, or else
+        robust_threshold)."""
+        return self.object_robust_threshold or self.robust_threshold
+
     def _check(self) -> None:
         if self.robot_id in self.neighbours:
             raise ConfigError(f"neighbours: a robot cannot neighbour itself (id {self.robot_id})")

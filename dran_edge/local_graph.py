@@ -598,8 +598,7 @@ class LocalGraph:
         cfg = self.config
         kernels = {KIND_ODOMETRY: None,
                    KIND_LOOP: make_kernel(cfg.robust_kernel, cfg.robust_threshold),
-                   KIND_OBSERVATION: make_kernel(cfg.robust_kernel, cfg.object_robust_threshold
-                                                 or cfg.robust_threshold)}
+                   KIND_OBSERVATION: make_kernel(cfg.robust_kernel, cfg.object_kernel_width)}
         blocks: list = []
         for kind in (KIND_ODOMETRY, KIND_LOOP, KIND_OBSERVATION):
             sel = (fa["kind"] == kind) & (fa["p"] >= 0)

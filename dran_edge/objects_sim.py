@@ -253,7 +253,7 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
         ref_sc = make_scenario(dataclasses.replace(sc.params, outlier_ratio=0.0), sc.problems[0].residual)
     graph, init, off = centralized(
         ref_sc, make_kernel(config.robust_kernel, config.robust_threshold),
-        make_kernel(config.robust_kernel, config.object_robust_threshold or config.robust_threshold))
+        make_kernel(config.robust_kernel, config.object_kernel_width))
     ref = solve(graph, init, LMParams(max_iterations=100))
     M = sc.params.num_objects
     gt_x = np.concatenate(sc.gt_robots)
