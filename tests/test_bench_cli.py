@@ -7,15 +7,17 @@ import pytest
 from dran_edge.cli import main
 
 
-@pytest.mark.parametrize("flags, robust, min_views", [
-    ([], False, 1), (["--robust"], True, 2), (["--outliers", "0.2"], True, 2)])
-def test_bench_objects_reports_the_settings_it_ran_with(capsys, flags, robust, min_views):
+@pytest.mark.parametrize("flags, robust, min_views, beta, eta", [
+    ([], False, 1, 1.0, 0.1), (["--robust"], True, 2, 1.0, 0.1),
+    (["--outliers", "0.2"], True, 2, 1.0, 0.1), (["--beta", "0.1", "--eta", "0.3"], False, 1, 0.1, 0.3)])
+def test_bench_objects_reports_the_settings_it_ran_with(capsys, flags, robust, min_views, beta, eta):
     rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
                "--rounds", "3", "--json", *flags])
     assert rc == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.strip()]
     assert len(rows) == 1
     assert rows[0]["robust"] is robust and rows[0]["min_views"] == min_views
+    assert rows[0]["beta"] == beta and rows[0]["eta"] == eta  # the paper's β, η unless given
     assert rows[0]["rounds"] <= 3
     assert set(rows[0]) >= {"SR_cost", "SR_ATE", "CE", "Bias", "ATE", "bytes"}
 
@@ -33,3 +35,9 @@ def test_bench_objects_history_has_one_row_per_n_rounds(capsys):
 def test_bench_objects_rejects_a_bad_round_count(capsys):
     assert main(["bench", "objects", "--rounds", "0"]) == 2
     assert "--rounds" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag", ["--beta", "--eta"])
+def test_bench_objects_rejects_a_non_positive_penalty_or_dual_step(capsys, flag):
+    assert main(["bench", "objects", flag, "0"]) == 2
+    assert f"{flag} must be positive" in capsys.readouterr().err

@@ -77,6 +77,11 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="AgentConfig.object_min_views: own observations that must agree before an "
                         "object observation is used unless a neighbour's copy corroborates it "
                         "(default: 2 with --outliers, which rejects lone wrong tag ids; else 1)")
+    o.add_argument("--beta", type=float, default=None,
+                   help="consensus penalty β (default: the paper's 1.0; docs/benchmarks.md "
+                        "measures smaller ones on this unit-information simulation)")
+    o.add_argument("--eta", type=float, default=None,
+                   help="dual step η (default: the paper's 0.1)")
     o.add_argument("--rounds", type=int, default=150,
                    help="DRAN rounds per run (default 150; a run ends earlier when every robot "
                         "meets the stopping rule)")
@@ -140,6 +145,12 @@ def run_objects_cmd(args) -> int:
         raise InputError(f"--history-every must be 0 (off) or a round count, got {args.history_every}")
     robust = args.outliers > 0 or args.robust
     cfg = bench_config(robust, args.min_views)
+    for name in ("beta", "eta"):
+        value = getattr(args, name)
+        if value is not None:
+            if not value > 0:
+                raise InputError(f"--{name} must be positive, got {value}")
+            cfg = dataclasses.replace(cfg, **{name: value})
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
@@ -161,7 +172,8 @@ def run_objects_cmd(args) -> int:
                               history_every=args.history_every, progress=progress)
             row = {"rho": rho, "noise": noise, "loss": args.loss, "outliers": args.outliers,
                    "outlier_ids": args.outlier_ids if args.outliers > 0 else None,
-                   "robust": robust, "min_views": cfg.object_min_views}
+                   "robust": robust, "min_views": cfg.object_min_views,
+                   "beta": cfg.beta, "eta": cfg.eta}
             row.update({k: v for k, v in out.items() if k != "history" or args.history_every})
             rows.append(row)
             if args.json:
