@@ -40,4 +40,4 @@ def test_bench_objects_rejects_a_bad_round_count(capsys):
 @pytest.mark.parametrize("flag", ["--beta", "--eta"])
 def test_bench_objects_rejects_a_non_positive_penalty_or_dual_step(capsys, flag):
     assert main(["bench", "objects", flag, "0"]) == 2
-    assert f"{flag} must be positive" in capsys.readouterr().err
+    assert f"{flag}: {flag[2:]}: expected a value > 0" in capsys.readouterr().err

@@ -136,7 +136,7 @@ def run_g2o(args) -> int:
 
 def run_objects_cmd(args) -> int:
     from dran_edge.comms.bus import BusParams, random_connected_graph
-    from dran_edge.errors import InputError
+    from dran_edge.errors import ConfigError, InputError
     from dran_edge.objects_sim import SimParams, bench_config, make_scenario, run_objects
 
     if args.rounds < 1:
@@ -146,11 +146,11 @@ def run_objects_cmd(args) -> int:
     robust = args.outliers > 0 or args.robust
     cfg = bench_config(robust, args.min_views)
     for name in ("beta", "eta"):
-        value = getattr(args, name)
-        if value is not None:
-            if not value > 0:
-                raise InputError(f"--{name} must be positive, got {value}")
-            cfg = dataclasses.replace(cfg, **{name: value})
+        if getattr(args, name) is not None:
+            try:  # AgentConfig's own range check, reported with the flag's name
+                cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
+            except ConfigError as exc:
+                raise InputError(f"--{name}: {exc}") from None
     rows = []
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
