@@ -457,11 +457,7 @@ class Agent:
                 nearest[oid] = (hop, origin, support)
         for oid in self.y:
             idx = self._obs_groups.get(oid)
-            # lone views used only because a neighbour's copy corroborates them are not
-            # independent evidence: counting them made this robot the origin, the neighbours'
-            # copies turned into echoes of it, the corroboration vanished, and the view went
-            # in and out every other round (docs/dran.md, robustness item 5)
-            n_own = int((self.obs_ok[idx] & ~self.obs_pending[idx]).sum()) if idx is not None else 0
+            n_own = int(self.obs_ok[idx].sum()) if idx is not None else 0
             if n_own:
                 self.hops[oid], self.origin[oid], self.support[oid] = 0, self.id, min(n_own, 0xFFFF)
             elif oid in nearest:
