@@ -301,6 +301,8 @@ class Agent:
         gate = self.config.object_gate_m
         self.obs_ok = np.ones(p.obs_object.size, bool)
         self.obs_pending = np.zeros(p.obs_object.size, bool)
+        #: pending views corroborated once and not rejected since (``_check_associations``)
+        self.obs_latched = np.zeros(p.obs_object.size, bool)
         self.obs_ok_gate = self.obs_ok.copy()
         self._obs_groups: dict[int, np.ndarray] = {}
         if p.obs_object.size == 0:
@@ -401,7 +403,7 @@ class Agent:
             return
         votes = self._votes()
         if not votes:
-            self.obs_ok = self.obs_ok_gate
+            self.obs_ok = self.obs_ok_gate | (self.obs_pending & self.obs_latched)
             self.counters["obs_rejected"] = self.counters["obs_corroborated"] = 0
             return
         n_obs = p.obs_object.size
@@ -434,6 +436,13 @@ class Agent:
                 y = self.y[oid].copy()
                 y[:-1, -1] = centre
                 self.y[oid] = y
+        # A corroborated view stays in use until the check rejects it. Once it is used this
+        # robot is the origin of its copy, its neighbours (relaying the copy with the fewest
+        # hops) echo that copy back, and an echo is no vote: without the latch the
+        # corroboration vanished and the view went out and back in every other round
+        # (docs/dran.md, robustness item 5).
+        corroborated = (corroborated | (self.obs_pending & self.obs_latched)) & ~rejected
+        self.obs_latched = corroborated.copy()
         self.obs_ok = (self.obs_ok_gate | corroborated) & ~rejected
         self.counters["obs_rejected"] = int(rejected.sum())
         self.counters["obs_corroborated"] = int(corroborated.sum())

@@ -238,6 +238,38 @@ def test_lone_wrong_tag_id_waits_for_a_neighbour_to_corroborate_it(scenario):
     assert plain.obs_ok[k] and new_id in plain.y  # the default keeps it
 
 
+def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
+    """Once a lone view is corroborated and used, this robot is the origin of its copy and the
+    neighbour that relays the copy with the fewest hops echoes it back; an echo is no vote. The
+    view stays in use (before, it went out and back in every other round, and a 21-robot outlier
+    run never met the stopping rule) until the association check rejects it."""
+    p = scenario.problems[0]
+    k = int(np.flatnonzero(p.obs_object == p.obs_object[0])[0])
+    new_id = 1000
+    obs_object = p.obs_object.copy()
+    obs_object[k] = new_id  # a view this robot has of object 1000 only once
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1, 2), object_min_views=2)
+    a = Agent(cfg, dataclasses.replace(p, obs_object=obs_object), weights={1: 0.3, 2: 0.3})
+    T_pred = a.x[p.obs_own[k]] @ p.obs_T[k]
+    a.handle(_obj_msg(1, 1, new_id, T_pred, origin=7, hop=1, support=4))
+    a.handle(Tick(2))
+    assert a.obs_ok[k] and (a.origin[new_id], a.hops[new_id]) == (0, 0)
+    for rnd in range(3, 7):  # robot 1 now relays our copy (hop 0 beats robot 7's hop 1)
+        a.handle(_obj_msg(1, rnd, new_id, a.y[new_id], origin=0, hop=1, support=1))
+        a.handle(Tick(rnd))
+        assert new_id not in a._votes() and a.obs_ok[k], rnd
+    far = T_pred.copy()
+    far[0, 3] += 20.0  # two other robots, with many views each, place object 1000 20 m away
+    a.handle(_obj_msg(1, 7, new_id, far, origin=5, support=9))
+    a.handle(_obj_msg(2, 7, new_id, far, origin=6, support=9))
+    a.handle(Tick(7))
+    assert not a.obs_ok[k] and a.counters["obs_rejected"] == 1
+    a.handle(_obj_msg(1, 8, new_id, far, origin=0, hop=1, support=1))  # the far votes go away
+    a.handle(_obj_msg(2, 8, new_id, far, origin=0, hop=1, support=1))
+    a.handle(Tick(8))
+    assert not a.obs_ok[k]  # rejected once: pending again, not back by the latch
+
+
 def _pull(scenario, config, offset_m, origin=None):
     """How far one round moves robot 0's copy of an object it observes towards a neighbour's copy
     ``offset_m`` away (along x), sent by robot 1 on behalf of ``origin`` (default: itself)."""
