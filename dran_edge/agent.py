@@ -301,8 +301,6 @@ class Agent:
         gate = self.config.object_gate_m
         self.obs_ok = np.ones(p.obs_object.size, bool)
         self.obs_pending = np.zeros(p.obs_object.size, bool)
-        #: pending views corroborated once and not rejected since (``_check_associations``)
-        self.obs_latched = np.zeros(p.obs_object.size, bool)
         self.obs_ok_gate = self.obs_ok.copy()
         self._obs_groups: dict[int, np.ndarray] = {}
         if p.obs_object.size == 0:
@@ -402,8 +400,10 @@ class Agent:
         if gate <= 0:
             return
         votes = self._votes()
+        # held-back views in use: corroborated before and not rejected since (see below)
+        latched = self.obs_pending & self.obs_ok
         if not votes:
-            self.obs_ok = self.obs_ok_gate | (self.obs_pending & self.obs_latched)
+            self.obs_ok = self.obs_ok_gate | latched
             self.counters["obs_rejected"] = self.counters["obs_corroborated"] = 0
             return
         n_obs = p.obs_object.size
@@ -441,8 +441,7 @@ class Agent:
         # hops) echo that copy back, and an echo is no vote: without the latch the
         # corroboration vanished and the view went out and back in every other round
         # (docs/dran.md, robustness item 5).
-        corroborated = (corroborated | (self.obs_pending & self.obs_latched)) & ~rejected
-        self.obs_latched = corroborated.copy()
+        corroborated = (corroborated | latched) & ~rejected
         self.obs_ok = (self.obs_ok_gate | corroborated) & ~rejected
         self.counters["obs_rejected"] = int(rejected.sum())
         self.counters["obs_corroborated"] = int(corroborated.sum())
