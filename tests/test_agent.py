@@ -307,17 +307,12 @@ def test_a_copy_past_the_relay_limit_still_updates_neighbours_that_hold_it(scena
     limit; before, the neighbour kept the last value and provenance for good (a phantom)."""
     a = _agent(scenario)
     oid = min(a.y)
-
-    def sent(outs):
-        return [e for o in outs if isinstance(o, Outgoing) for e in o.message.objects
-                if e.object_id == oid]
-
-    assert sent(a.handle(Tick(1)))  # our own copy (hop 0) goes to neighbour 1
+    assert _sent_objects(a.handle(Tick(1)), oid)  # our own copy (hop 0) goes to neighbour 1
     a.hops[oid] = a.config.relay_max_hops  # now a relay at the limit (what _round would derive)
     a.y[oid] = a.y[oid].copy()
     a.y[oid][0, 3] += 1.0
-    again = sent(a._outputs(0, a._structure_for(), 0.0))
+    again = _sent_objects(a._outputs(0, a._structure_for(), 0.0), oid)
     assert again and again[0].hop_count == a.config.relay_max_hops
     b = _agent(scenario)  # never sent to neighbour 1: a copy at the limit is not offered
     b.hops[oid] = b.config.relay_max_hops
-    assert not sent(b._outputs(0, b._structure_for(), 0.0))
+    assert not _sent_objects(b._outputs(0, b._structure_for(), 0.0), oid)
