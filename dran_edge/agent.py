@@ -306,6 +306,9 @@ class Agent:
         if p.obs_object.size == 0:
             return
         pred = self.x[p.obs_own] @ p.obs_T
+        pos_all = pred[:, :-1, -1]
+        excl = self.config.object_exclusion_m
+        self.counters["obs_exclusion_clear"] = 0
         order = np.argsort(p.obs_object, kind="stable")
         ids, starts = np.unique(p.obs_object[order], return_index=True)
         #: object id -> indices of its own observations (fixed for this problem)
@@ -317,6 +320,14 @@ class Agent:
             ok = np.ones(idx.size, bool)
             if gate > 0:
                 lone = (dist <= gate).sum(axis=1) < self.config.object_min_views
+                if excl > 0 and lone.any():
+                    # spatial exclusion: a lone view that no view of another object shares
+                    # its place with cannot be a second label of something seen there
+                    others = pos_all[p.obs_object != oid]
+                    d_other = np.linalg.norm(pos[lone][:, None] - others[None], axis=-1)
+                    clear = (d_other > excl).all(axis=1) if others.size else np.ones(lone.sum(), bool)
+                    lone[np.flatnonzero(lone)[clear]] = False
+                    self.counters["obs_exclusion_clear"] += int(clear.sum())
                 ok = ~lone & ((dist[med] <= gate) if idx.size > 2 else True)
                 self.obs_pending[idx[lone]] = True
                 self.obs_ok[idx[~ok]] = False

@@ -212,6 +212,12 @@ class AgentConfig(_Checked):
     """An own object observation is used only when at least this many own observations of that
     object (itself included) agree within object_gate_m, or a neighbour's copy lies within
     object_gate_m of it (1: every observation that passes the gate; 2 rejects lone wrong ids)."""
+    object_exclusion_m: float = _f(0.5, lo=0.0)
+    """Spatial exclusion for lone observations (object_min_views > 1): a lone observation whose
+    predicted object position is farther than this from every own observation of another object
+    is used at once instead of waiting for a neighbour's corroboration. Two objects do not occupy
+    one place, so a wrong id (a second label on something seen there) lies within it of the
+    right one's views; 0: off, every lone observation waits. Metres."""
     association_gate_m: float = _f(8.0, lo=0.0)
     """Cross-robot association check: an own object observation predicting the object farther
     than this from the evidence-weighted medoid of the copies (one vote per observing robot,

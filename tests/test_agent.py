@@ -238,6 +238,36 @@ def test_lone_wrong_tag_id_waits_for_a_neighbour_to_corroborate_it(scenario):
     assert plain.obs_ok[k] and new_id in plain.y  # the default keeps it
 
 
+def test_a_lone_view_waits_only_where_another_object_was_seen(scenario):
+    """Spatial exclusion (object_exclusion_m): with object_min_views = 2, a lone view that shares
+    its place with a view of another object (a second label on one detection) waits for a
+    neighbour's corroboration; a lone view of a place no other object was seen at is used at
+    once. With the exclusion off, both wait."""
+    p = scenario.problems[0]
+    k = int(np.flatnonzero(p.obs_object == p.obs_object[0])[0])
+    twin_id, alone_id = 1000, 1001
+    T_alone = p.obs_T[k].copy()
+    T_alone[:3, 3] += (0.0, 0.0, 2.5)  # 2.5 m off the seen object, along the camera's z
+    prob = dataclasses.replace(
+        p, obs_own=np.concatenate([p.obs_own, [p.obs_own[k]] * 2]),
+        obs_object=np.concatenate([p.obs_object, [twin_id, alone_id]]),
+        obs_T=np.concatenate([p.obs_T, [p.obs_T[k], T_alone]]),
+        obs_W=np.concatenate([p.obs_W, p.obs_W[[k, k]]]))
+    twin, alone = p.obs_object.size, p.obs_object.size + 1
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
+    a = Agent(cfg, prob, weights={1: 0.5})
+    pos = (a.x[prob.obs_own] @ prob.obs_T)[:, :3, 3]
+    others = np.linalg.norm(pos[:alone] - pos[alone], axis=1)
+    assert others.min() > 2 * cfg.object_exclusion_m  # nothing else was seen near it
+    assert a.obs_pending[twin] and not a.obs_ok[twin] and twin_id not in a.y
+    assert a.obs_ok[alone] and not a.obs_pending[alone] and alone_id in a.y
+    assert a.counters["obs_exclusion_clear"] == 1
+    a.handle(Tick(1))
+    assert a.obs_ok[alone] and not a.obs_ok[twin]
+    off = Agent(dataclasses.replace(cfg, object_exclusion_m=0.0), prob, weights={1: 0.5})
+    assert off.obs_pending[[twin, alone]].all() and not off.obs_ok[[twin, alone]].any()
+
+
 def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
     """Once a lone view is corroborated and used, this robot is the origin of its copy and the
     neighbour that relays the copy with the fewest hops echoes it back; an echo is no vote. The
