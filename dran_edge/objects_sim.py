@@ -219,11 +219,11 @@ def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGrap
 
 def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     """The agent settings of ``dran-edge bench objects``: least squares everywhere, or with
-    ``robust`` the settings ``--outliers`` turns on (docs/dran.md, robustness): Cauchy 0.1 on
-    the loops (unit information: 0.1 m / 0.1 rad), 1.0 on the object observations, the Cauchy
+    ``robust`` the settings ``--outliers`` turns on (docs/dran.md, robustness): Cauchy 0.05 on
+    the loops (unit information: 0.05 m / 0.05 rad), 1.0 on the object observations, the Cauchy
     kernel on conflicting consensus pairs, and lone observations held back (min views 2).
     ``min_views`` overrides the last."""
-    return AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.1,
+    return AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
                        object_robust_threshold=1.0,
                        object_min_views=min_views if min_views is not None else 2 if robust else 1)
 

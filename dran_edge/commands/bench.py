@@ -60,7 +60,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
     o.add_argument("--outliers", type=float, default=0.0,
                    help="fraction of wrong object ids / loops; also turns on the robust settings "
-                        "(Cauchy kernel of scale 0.1 on loops and 1.0 on object observations, on "
+                        "(Cauchy kernel of scale 0.05 on loops and 1.0 on object observations, on "
                         "conflicting object copies; --min-views 2). Everything else (trajectories, noise) is "
                         "the same --seed's outlier-free scenario, so the two runs compare")
     o.add_argument("--robust", action="store_true",
@@ -75,7 +75,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "also loses those observations). Default add")
     o.add_argument("--min-views", type=int, default=None,
                    help="AgentConfig.object_min_views: own observations that must agree before an "
-                        "object observation is used unless a neighbour's copy corroborates it "
+                        "object observation is used unless a neighbour's copy corroborates it, "
+                        "or no view of another object lies within 0.5 m of it "
                         "(default: 2 with --outliers, which rejects lone wrong tag ids; else 1)")
     o.add_argument("--beta", type=float, default=None,
                    help="consensus penalty β (default: the paper's 1.0; docs/benchmarks.md "
