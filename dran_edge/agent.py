@@ -559,11 +559,10 @@ class Agent:
         """Per consensus pair (j, object): does j's copy stand for another hypothesis than ours?
 
         Yes when it comes from another observing robot (origin) and lies more than
-        2 · ``association_gate_m`` from our copy: two copies that are each within the gate of
-        the object (drifted estimates of it) are at most that far apart, so beyond it at least
-        one of them is something else. A relay of our own copy is never a conflict.
-        Counted per pair and round in ``counters['consensus_conflicts']``."""
-        reach = 2.0 * self.config.association_gate_m
+        ``conflict_reach_m`` from our copy: two drifted estimates of one object lie closer, so
+        beyond it at least one of them is something else. A relay of our own copy is never a
+        conflict. Counted per pair and round in ``counters['consensus_conflicts']``."""
+        reach = self.config.conflict_reach_m
         out = np.zeros(len(pair_keys), bool)
         for i, (j, oid) in enumerate(pair_keys):
             if self.nbr_origin.get((j, oid), j) == self.origin.get(oid, self.id):

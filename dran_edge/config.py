@@ -223,6 +223,13 @@ class AgentConfig(_Checked):
     than this from the evidence-weighted medoid of the copies (one vote per observing robot,
     weighted by its number of observations; docs/dran.md) is dropped as a wrong association
     (0: off), metres."""
+    conflict_reach_m: float = _f(16.0, lo=0.0)
+    """With a robust kernel: a neighbour's copy from another observing robot that lies farther
+    than this from ours stands for another hypothesis (a wrong id), and its consensus term gets
+    the Cauchy kernel (``Agent._conflicts``); closer copies pull as least squares. Two copies
+    each within association_gate_m (8 m) of the object are at most twice that apart. The first
+    rounds' drift can exceed it (drifted copies up to 21.5 m apart on simulation seeds 0 and
+    5), and a wider reach lets nearer wrong hypotheses pull (docs/dran.md, robustness). Metres."""
     send_threshold: float = _f(1e-4, lo=0.0)
     """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
     moved by more than this since it was last sent to that neighbour (metres / unitless)."""

@@ -316,7 +316,7 @@ def _pull(scenario, config, offset_m, origin=None):
 
 def test_consensus_kernel_acts_only_on_conflicting_copies(scenario):
     robust = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0)
-    reach = 2 * robust.association_gate_m  # 16 m: two copies each within the gate of the object
+    reach = robust.conflict_reach_m  # 16 m: two copies each within the 8 m gate of the object
     drift, a, oid = _pull(scenario, robust, 0.6 * reach)
     assert not a._conflicts(((1, oid),)).any() and a.counters["consensus_conflicts"] == 0
     conflict, b, _ = _pull(scenario, robust, 1.25 * reach)
