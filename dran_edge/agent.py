@@ -294,7 +294,9 @@ class Agent:
         only when at least k own observations of the object (itself included) predict it
         within the gate (a tag is seen from several keyframes in a row; a wrong id is usually
         a lone observation); lone ones wait (``obs_pending``) until a neighbour's copy
-        corroborates them (``_check_associations``). An unknown object starts at the medoid of
+        corroborates them (``_check_associations``), except where no own observation of another
+        object lies within ``object_exclusion_m`` (a wrong id is a second label on something
+        seen there, so it lies next to that object's views). An unknown object starts at the medoid of
         its usable observations (Alg. 1 uses the first).
         """
         p = self.problem
@@ -303,18 +305,18 @@ class Agent:
         self.obs_pending = np.zeros(p.obs_object.size, bool)
         self.obs_ok_gate = self.obs_ok.copy()
         self._obs_groups: dict[int, np.ndarray] = {}
+        self.counters["obs_exclusion_clear"] = 0
         if p.obs_object.size == 0:
             return
         pred = self.x[p.obs_own] @ p.obs_T
         pos_all = pred[:, :-1, -1]
         excl = self.config.object_exclusion_m
-        self.counters["obs_exclusion_clear"] = 0
         order = np.argsort(p.obs_object, kind="stable")
         ids, starts = np.unique(p.obs_object[order], return_index=True)
         #: object id -> indices of its own observations (fixed for this problem)
         self._obs_groups = {int(o): g for o, g in zip(ids.tolist(), np.split(order, starts[1:]))}
         for oid, idx in self._obs_groups.items():
-            pos = pred[idx, :-1, -1]
+            pos = pos_all[idx]
             dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
             med = int(np.argmin(dist.sum(axis=1)))
             ok = np.ones(idx.size, bool)
@@ -325,7 +327,7 @@ class Agent:
                     # its place with cannot be a second label of something seen there
                     others = pos_all[p.obs_object != oid]
                     d_other = np.linalg.norm(pos[lone][:, None] - others[None], axis=-1)
-                    clear = (d_other > excl).all(axis=1) if others.size else np.ones(lone.sum(), bool)
+                    clear = (d_other > excl).all(axis=1)  # True with no other object at all
                     lone[np.flatnonzero(lone)[clear]] = False
                     self.counters["obs_exclusion_clear"] += int(clear.sum())
                 ok = ~lone & ((dist[med] <= gate) if idx.size > 2 else True)
