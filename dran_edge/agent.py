@@ -47,6 +47,7 @@ import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig
@@ -296,8 +297,12 @@ class Agent:
         a lone observation); lone ones wait (``obs_pending``) until a neighbour's copy
         corroborates them (``_check_associations``), except where no own observation of another
         object lies within ``object_exclusion_m`` (a wrong id is a second label on something
-        seen there, so it lies next to that object's views). An unknown object starts at the medoid of
-        its usable observations (Alg. 1 uses the first).
+        seen there, so it lies next to that object's views). By the same exclusion, a view that
+        shares its place with another object's views, and has no more views of its own object
+        there than that object has, waits too, however many views it has (``obs_shadowed``):
+        a tag misread the same way from several keyframes would otherwise start a phantom copy
+        where the object it misreads is. An unknown object starts at the medoid of its usable
+        observations (Alg. 1 uses the first).
         """
         p = self.problem
         gate = self.config.object_gate_m
@@ -305,31 +310,35 @@ class Agent:
         self.obs_pending = np.zeros(p.obs_object.size, bool)
         self.obs_ok_gate = self.obs_ok.copy()
         self._obs_groups: dict[int, np.ndarray] = {}
-        self.counters["obs_exclusion_clear"] = 0
+        self.counters["obs_exclusion_clear"] = self.counters["obs_shadowed"] = 0
         if p.obs_object.size == 0:
             return
         pred = self.x[p.obs_own] @ p.obs_T
         pos_all = pred[:, :-1, -1]
-        excl = self.config.object_exclusion_m
         order = np.argsort(p.obs_object, kind="stable")
         ids, starts = np.unique(p.obs_object[order], return_index=True)
         #: object id -> indices of its own observations (fixed for this problem)
         self._obs_groups = {int(o): g for o, g in zip(ids.tolist(), np.split(order, starts[1:]))}
+        dists = {oid: np.linalg.norm(pos_all[idx][:, None] - pos_all[idx][None], axis=-1)
+                 for oid, idx in self._obs_groups.items()}
+        # views of its own object within the gate of each view (itself included)
+        n_near = np.zeros(p.obs_object.size, np.int64)
         for oid, idx in self._obs_groups.items():
-            pos = pos_all[idx]
-            dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+            n_near[idx] = (dists[oid] <= gate).sum(axis=1)
+        collides, shadowed = self._exclusion(pos_all, n_near)
+        for oid, idx in self._obs_groups.items():
+            dist = dists[oid]
             med = int(np.argmin(dist.sum(axis=1)))
             ok = np.ones(idx.size, bool)
             if gate > 0:
-                lone = (dist <= gate).sum(axis=1) < self.config.object_min_views
-                if excl > 0 and lone.any():
+                lone = n_near[idx] < self.config.object_min_views
+                if self.config.object_exclusion_m > 0:
                     # spatial exclusion: a lone view that no view of another object shares
                     # its place with cannot be a second label of something seen there
-                    others = pos_all[p.obs_object != oid]
-                    d_other = np.linalg.norm(pos[lone][:, None] - others[None], axis=-1)
-                    clear = (d_other > excl).all(axis=1)  # True with no other object at all
-                    lone[np.flatnonzero(lone)[clear]] = False
+                    clear = lone & ~collides[idx]
                     self.counters["obs_exclusion_clear"] += int(clear.sum())
+                    self.counters["obs_shadowed"] += int((shadowed[idx] & ~lone).sum())
+                    lone = (lone & ~clear) | shadowed[idx]
                 ok = ~lone & ((dist[med] <= gate) if idx.size > 2 else True)
                 self.obs_pending[idx[lone]] = True
                 self.obs_ok[idx[~ok]] = False
@@ -346,6 +355,27 @@ class Agent:
         self.counters["obs_gated"] = int((~self.obs_ok & ~self.obs_pending).sum())
         self.counters["obs_pending"] = int(self.obs_pending.sum())
         self.obs_ok_gate = self.obs_ok.copy()
+
+    def _exclusion(self, pos: np.ndarray, n_near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per own view: does an own view of another object lie within ``object_exclusion_m``
+        of it (``collides``), and does one of those have at least as many views of its object
+        near it as this view has of its own (``shadowed``)? Both all False unless
+        ``object_min_views`` > 1 (the plain agent holds nothing back)."""
+        p = self.problem
+        collides = np.zeros(p.obs_object.size, bool)
+        shadowed = collides.copy()
+        excl = self.config.object_exclusion_m
+        if excl <= 0 or self.config.object_min_views <= 1 or self.config.object_gate_m <= 0:
+            return collides, shadowed
+        a, b = cKDTree(pos).query_pairs(excl, output_type="ndarray").T
+        other = p.obs_object[a] != p.obs_object[b]
+        a, b = a[other], b[other]
+        collides[a] = collides[b] = True
+        rival = np.zeros(p.obs_object.size, np.int64)  # best-seen other object sharing the place
+        np.maximum.at(rival, a, n_near[b])
+        np.maximum.at(rival, b, n_near[a])
+        shadowed = collides & (n_near <= rival)
+        return collides, shadowed
 
     # ----------------------------------------------------------------- one round
     def _adopt_unknown_objects(self) -> None:
@@ -550,7 +580,7 @@ class Agent:
         # pair stays least squares (infinite scale), so copies that differ by drift pull fully
         # and an outlier-free run is the plain one (docs/dran.md, robustness).
         kernel = None
-        if c.robust_kernel != "none" and c.object_gate_m > 0:
+        if c.robust_kernel != "none" and c.object_gate_m > 0 and c.conflict_reach_m > 0:
             conflict = self._conflicts(pair_keys)
             if conflict.any():
                 scale = float(np.sqrt(c.beta) * np.mean(w) * c.object_gate_m)
@@ -563,7 +593,7 @@ class Agent:
         Yes when it comes from another observing robot (origin) and lies more than
         ``conflict_reach_m`` from our copy: two drifted estimates of one object lie closer, so
         beyond it at least one of them is something else. A relay of our own copy is never a
-        conflict. Counted per pair and round in ``counters['consensus_conflicts']``."""
+        conflict. Only called with a reach > 0 (0 turns the conflict kernel off). Counted per pair and round in ``counters['consensus_conflicts']``."""
         reach = self.config.conflict_reach_m
         out = np.zeros(len(pair_keys), bool)
         for i, (j, oid) in enumerate(pair_keys):

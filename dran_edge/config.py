@@ -217,7 +217,10 @@ class AgentConfig(_Checked):
     predicted object position is farther than this from every own observation of another object
     is used at once instead of waiting for a neighbour's corroboration. Two objects do not occupy
     one place, so a wrong id (a second label on something seen there) lies within it of the
-    right one's views; 0: off, every lone observation waits. Metres."""
+    right one's views. By the same rule an observation within it of another object's views, with
+    no more views of its own object there than that object has, waits however many views it has
+    (a tag misread the same way from several keyframes). 0: off, every lone observation waits
+    and repeated ones are used. Metres."""
     association_gate_m: float = _f(8.0, lo=0.0)
     """Cross-robot association check: an own object observation predicting the object farther
     than this from the evidence-weighted medoid of the copies (one vote per observing robot,
@@ -229,7 +232,8 @@ class AgentConfig(_Checked):
     the Cauchy kernel (``Agent._conflicts``); closer copies pull as least squares. Two copies
     each within association_gate_m (8 m) of the object are at most twice that apart. The first
     rounds' drift can exceed it (drifted copies up to 21.5 m apart on simulation seeds 0 and
-    5), and a wider reach lets nearer wrong hypotheses pull (docs/dran.md, robustness). Metres."""
+    5), and a wider reach lets nearer wrong hypotheses pull (docs/dran.md, robustness). 0: off,
+    every consensus term least squares. Metres."""
     send_threshold: float = _f(1e-4, lo=0.0)
     """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
     moved by more than this since it was last sent to that neighbour (metres / unitless)."""

@@ -268,6 +268,46 @@ def test_a_lone_view_waits_only_where_another_object_was_seen(scenario):
     assert off.obs_pending[[twin, alone]].all() and not off.obs_ok[[twin, alone]].any()
 
 
+def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
+    """The exclusion applies to repeated views too: a tag misread the same way from two
+    keyframes (two views of the wrong id, enough for object_min_views = 2) shares its place with
+    the better-seen object's views, so both misreads wait (``obs_shadowed``) and the seen object
+    is used. Where both labels have as many views (every view read twice), neither can be told
+    apart from the other: all wait for a neighbour."""
+    p = scenario.problems[0]
+    ids, counts = np.unique(p.obs_object, return_counts=True)
+    o = int(ids[np.argmax(counts)])
+    views = np.flatnonzero(p.obs_object == o)
+    assert views.size >= 4
+    new_id = 1000
+
+    def with_copies(k: np.ndarray):
+        return dataclasses.replace(
+            p, obs_own=np.concatenate([p.obs_own, p.obs_own[k]]),
+            obs_object=np.concatenate([p.obs_object, np.full(k.size, new_id)]),
+            obs_T=np.concatenate([p.obs_T, p.obs_T[k]]), obs_W=np.concatenate([p.obs_W, p.obs_W[k]]))
+
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
+    twice = views[:2]  # consecutive keyframes, a few metres' travel apart at most
+    a = Agent(cfg, with_copies(twice), weights={1: 0.5})
+    misread = np.arange(p.obs_object.size, p.obs_object.size + 2)
+    pos = (a.x[a.problem.obs_own] @ a.problem.obs_T)[:, :3, 3]
+    assert np.linalg.norm(pos[misread[0]] - pos[misread[1]]) <= cfg.object_gate_m  # not lone
+    assert a.obs_pending[misread].all() and not a.obs_ok[misread].any() and new_id not in a.y
+    assert a.counters["obs_shadowed"] == 2
+    assert a.obs_ok[views].all() and o in a.y
+    a.handle(Tick(1))
+    assert not a.obs_ok[misread].any()
+    # the same two misreads without the exclusion: used at once, a phantom copy
+    off = Agent(dataclasses.replace(cfg, object_exclusion_m=0.0), with_copies(twice), weights={1: 0.5})
+    assert off.obs_ok[misread].all() and new_id in off.y
+    # every view read twice: a tie, both labels wait
+    both = Agent(cfg, with_copies(views), weights={1: 0.5})
+    copies = np.arange(p.obs_object.size, p.obs_object.size + views.size)
+    assert both.obs_pending[views].all() and both.obs_pending[copies].all()
+    assert o not in both.y and new_id not in both.y
+
+
 def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
     """Once a lone view is corroborated and used, this robot is the origin of its copy and the
     neighbour that relays the copy with the fewest hops echoes it back; an echo is no vote. The

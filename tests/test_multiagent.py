@@ -110,26 +110,15 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
     7, from 7 keyframes. Robot 1 hears both copies (the phantom lies 23 m from object 7). The
     association check weighs evidence, not messages: robot 1 sides with robot 2's seven views,
     robot 0 then drops its two, and every copy of object 7 ends near robot 2's estimate (the
-    relays' copies still swing about it by ~1 m after 30 rounds, as in the clean scenario)."""
+    relays' copies still swing about it by ~1 m after 30 rounds, as in the clean scenario).
+    The spatial exclusion is off here: it would hold the two misreads back from the start
+    (the next test); this one checks the association check and the conflict kernel, which
+    must also hold where misreads share no place with what was seen (a duplicated tag)."""
 
-    from dran_edge.agent import Agent
-
-    sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
-                                 goals_per_robot=2, seed=6))
-    p0 = sc.problems[0]
-    assert 7 not in p0.obs_object and 7 not in sc.problems[1].obs_object
-    wrong = np.flatnonzero(p0.obs_object == 6)[:2]
-    obs_object = p0.obs_object.copy()
-    obs_object[wrong] = 7
-    problems = [dataclasses.replace(p0, obs_object=obs_object), *sc.problems[1:]]
-    cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_min_views=2)
-    bus = Bus(range(3), graph=[(0, 1), (1, 2)])
-    W = neighbour_weights(bus)
-    agents = [Agent(dataclasses.replace(cfg, robot_id=r, neighbours=tuple(sorted(W[r]))),
-                    problems[r], W[r]) for r in range(3)]
+    sc, wrong, agents = _misread_toy(object_exclusion_m=0.0)
     phantom = agents[0].y[7][:3, 3].copy()
     assert agents[0].obs_ok[wrong].all()  # the two wrong views start in use
-    fleet = Fleet(agents, bus)
+    fleet = Fleet(agents, Bus(range(3), graph=[(0, 1), (1, 2)]))
     conflict = False  # robot 1 holds both hypotheses, > 10 m apart, at some round
     for _ in range(30):
         fleet.step()
@@ -145,6 +134,51 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
         assert np.linalg.norm(a.y[7][:3, 3] - true_copy) < 2.0
         assert np.linalg.norm(a.y[7][:3, 3] - phantom) > 10.0
     assert (agents[0].hops[7], agents[0].origin[7]) == (2, 2)
+
+
+def _misread_toy(**config):
+    """Three robots in a line (0 - 1 - 2); robot 0 reads object 6's tag as id 7 from two
+    keyframes in a row; only robot 2 sees object 7. Returns (scenario, the misread views, agents)."""
+    from dran_edge.agent import Agent
+
+    sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
+                                 goals_per_robot=2, seed=6))
+    p0 = sc.problems[0]
+    assert 7 not in p0.obs_object and 7 not in sc.problems[1].obs_object
+    wrong = np.flatnonzero(p0.obs_object == 6)[:2]
+    obs_object = p0.obs_object.copy()
+    obs_object[wrong] = 7
+    problems = [dataclasses.replace(p0, obs_object=obs_object), *sc.problems[1:]]
+    cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_min_views=2, **config)
+    bus = Bus(range(3), graph=[(0, 1), (1, 2)])
+    W = neighbour_weights(bus)
+    agents = [Agent(dataclasses.replace(cfg, robot_id=r, neighbours=tuple(sorted(W[r]))),
+                    problems[r], W[r]) for r in range(3)]
+    return sc, wrong, agents
+
+
+def test_a_repeated_misread_sharing_its_place_with_the_seen_object_never_starts_a_phantom():
+    """The same toy with the spatial exclusion on (the default 0.5 m) and no conflict kernel
+    (unbounded reach): robot 0's two views of "7" lie where its other views of object 6 are,
+    and object 6 has more of them there, so the misreads wait for a neighbour's corroboration
+    (``obs_shadowed``), which never comes (robot 2's object 7 is 23 m away). No phantom copy
+    goes out, so none can pull the true one (without the exclusion and the kernel, the
+    phantom drags every copy of object 7 ~8 m, docs/dran.md)."""
+    sc, wrong, agents = _misread_toy(conflict_reach_m=0.0)
+    a0 = agents[0]
+    assert a0.counters["obs_shadowed"] == 2 and 7 not in a0.y
+    six = np.flatnonzero(sc.problems[0].obs_object == 6)[2:]
+    assert a0.obs_ok[six].all()  # the seen object's remaining views are used
+    fleet = Fleet(agents, Bus(range(3), graph=[(0, 1), (1, 2)]))
+    for _ in range(30):
+        fleet.step()
+        assert not a0.obs_ok[wrong].any()
+        assert all(a.origin.get(7, 2) == 2 for a in agents)  # robot 2's copy, or none yet
+    assert sum(a.counters["consensus_conflicts"] for a in agents) == 0
+    true_copy = agents[2].y[7][:3, 3]
+    assert np.linalg.norm(true_copy - sc.gt_objects[7][:3, 3]) < 2.0
+    for a in agents:
+        assert np.linalg.norm(a.y[7][:3, 3] - true_copy) < 2.0
 
 
 def test_outlier_runs_are_scored_against_the_outlier_free_centralized_solution():
