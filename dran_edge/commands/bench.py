@@ -60,8 +60,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
     o.add_argument("--outliers", type=float, default=0.0,
                    help="fraction of wrong object ids / loops; also turns on the robust settings "
-                        "(Cauchy kernel of scale 0.05 on loops and 1.0 on object observations, on "
-                        "conflicting object copies; --min-views 2). Everything else (trajectories, noise) is "
+                        "(Cauchy kernel of scale 0.05 on loops and 1.0 on object observations; "
+                        "--min-views 2 with the spatial exclusion). Everything else (trajectories, noise) is "
                         "the same --seed's outlier-free scenario, so the two runs compare")
     o.add_argument("--robust", action="store_true",
                    help="the robust settings of --outliers (Cauchy kernels; --min-views 2) "
