@@ -454,16 +454,9 @@ class Agent:
         x = self.x[p.obs_own]
         pred = (x[:, :-1, :-1] @ p.obs_T[:, :-1, -1:])[..., 0] + x[:, :-1, -1]
         rejected = np.zeros(n_obs, bool)
-        corroborated = np.zeros(n_obs, bool)
-        gate_obj = self.config.object_gate_m
+        corroborated = self._corroborated(pred, votes)
         for oid, (P, w) in votes.items():
             idx = self._obs_groups.get(oid, np.zeros(0, np.int64))
-            if idx.size:
-                # a lone observation is used once another robot's copy is within the object gate
-                pending = self.obs_pending[idx]
-                if pending.any():
-                    near = np.sqrt(((pred[idx][:, None] - P[None]) ** 2).sum(-1)).min(axis=1)
-                    corroborated[idx] = pending & (near <= gate_obj)
             n_own = int((self.obs_ok_gate[idx] | corroborated[idx]).sum()) if idx.size else 0
             if n_own and oid in self.y:
                 P = np.vstack([self.y[oid][:-1, -1], P])
@@ -488,6 +481,40 @@ class Agent:
         self.obs_ok = (self.obs_ok_gate | corroborated) & ~rejected
         self.counters["obs_rejected"] = int(rejected.sum())
         self.counters["obs_corroborated"] = int(corroborated.sum())
+
+    def _corroborated(self, pred: np.ndarray, votes: dict) -> np.ndarray:
+        """Held-back views (``obs_pending``) a neighbour's copy vouches for, as a mask over the
+        own observations. A view of object k is corroborated when another robot's copy of k
+        (``votes``) lies within ``object_gate_m`` of its prediction ``pred``, or, by the ratio
+        test, within ``association_gate_m`` and ``corroboration_ratio`` times nearer than the
+        nearest copy of any other object (the neighbours' and this robot's own). The ratio test
+        is for a stretch of trajectory whose only object view is the held-back one: there the
+        drift can exceed the object gate, and without the view it is never corrected (a right
+        view whose twin was relabelled waited to the end of a run; docs/dran.md, robustness
+        item 5). A wrong id lies where the seen object's copies are, so it fails the test."""
+        p = self.problem
+        ok = np.zeros(p.obs_object.size, bool)
+        pend = np.flatnonzero(self.obs_pending)
+        if not pend.size or not votes:
+            return ok
+        labels = np.concatenate([np.full(len(P), oid) for oid, (P, _w) in votes.items()])
+        d = np.linalg.norm(pred[pend][:, None] - np.vstack([P for P, _w in votes.values()])[None],
+                           axis=-1)
+        same = labels[None] == p.obs_object[pend][:, None]
+        d_own = np.where(same, d, np.inf).min(axis=1)
+        hit = d_own <= self.config.object_gate_m
+        ratio = self.config.corroboration_ratio
+        if ratio > 0:
+            d_other = np.where(same, np.inf, d).min(axis=1)
+            if self.y:
+                ids = np.fromiter(self.y, np.int64, len(self.y))
+                Y = np.stack([T[:-1, -1] for T in self.y.values()])
+                dy = np.linalg.norm(pred[pend][:, None] - Y[None], axis=-1)
+                mine = ids[None] == p.obs_object[pend][:, None]
+                d_other = np.minimum(d_other, np.where(mine, np.inf, dy).min(axis=1))
+            hit |= (d_own <= self.config.association_gate_m) & (ratio * d_own < d_other)
+        ok[pend[hit]] = True
+        return ok
 
     def _update_provenance(self) -> None:
         """Hop count, origin and support of every copy: 0, this robot and the number of own

@@ -221,6 +221,12 @@ class AgentConfig(_Checked):
     no more views of its own object there than that object has, waits however many views it has
     (a tag misread the same way from several keyframes). 0: off, every lone observation waits
     and repeated ones are used. Metres."""
+    corroboration_ratio: float = _f(2.0, lo=0.0)
+    """A held-back observation (object_min_views > 1) is also corroborated when a neighbour's
+    copy of its object lies within association_gate_m of its prediction and this many times
+    nearer than any copy of another object (a ratio test: the view's stretch of trajectory may
+    have drifted past object_gate_m, but a wrong id lies where the seen object's copies are).
+    0: off, corroboration within object_gate_m only."""
     association_gate_m: float = _f(8.0, lo=0.0)
     """Cross-robot association check: an own object observation predicting the object farther
     than this from the evidence-weighted medoid of the copies (one vote per observing robot,

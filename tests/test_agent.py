@@ -308,6 +308,46 @@ def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
     assert o not in both.y and new_id not in both.y
 
 
+def test_a_held_back_view_past_the_gate_is_corroborated_by_the_ratio_test(scenario):
+    """A held-back view whose stretch of trajectory drifted past object_gate_m: the neighbour's
+    copy of its object lies 3 m from the prediction. With nothing else near, the ratio test
+    (corroboration_ratio) accepts it; its twin with another label (whose copy is far away) and
+    a view with a rival copy as near stay held back; with the ratio test off, all wait."""
+    p = scenario.problems[0]
+    T_far = np.eye(4)
+    T_far[2, 3] = 30.0  # 30 m along the camera axis: outside the 12 m box, near no object
+    a_id, b_id = 1000, 1001  # one place, two labels: a relabelled twin, both lone
+    prob = dataclasses.replace(
+        p, obs_own=np.concatenate([p.obs_own, [0, 0]]),
+        obs_object=np.concatenate([p.obs_object, [a_id, b_id]]),
+        obs_T=np.concatenate([p.obs_T, [T_far, T_far]]),
+        obs_W=np.concatenate([p.obs_W, p.obs_W[[0, 0]]]))
+    va, vb = p.obs_object.size, p.obs_object.size + 1
+    cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
+
+    def run(config, b_at):
+        a = Agent(config, prob, weights={1: 0.5})
+        assert a.obs_pending[[va, vb]].all() and not a.obs_ok[[va, vb]].any()
+        T_pred = a.x[0] @ T_far
+        T_a = T_pred.copy()
+        T_a[0, 3] += 3.0  # the neighbour's copy of a_id: past the 2 m gate, inside the 8 m one
+        T_b = T_pred.copy()
+        T_b[0, 3] += b_at
+        others = np.linalg.norm(np.stack([T[:3, 3] for T in a.y.values()]) - T_pred[:3, 3], axis=1)
+        assert others.min() > 2 * 3.0  # the robot's own copies are all far
+        a.handle(_obj_msg(1, 1, a_id, T_a))
+        a.handle(_obj_msg(1, 1, b_id, T_b))
+        a.handle(Tick(2))
+        return a
+
+    a = run(cfg, b_at=-30.0)  # b_id's copy is where b_id really is, 30 m away
+    assert a.obs_ok[va] and not a.obs_ok[vb] and a.counters["obs_corroborated"] == 1
+    rival = run(cfg, b_at=-4.0)  # a copy of b_id as near as 4 m: a_id's 3 m is not 2x nearer
+    assert not rival.obs_ok[[va, vb]].any()
+    off = run(dataclasses.replace(cfg, corroboration_ratio=0.0), b_at=-30.0)
+    assert not off.obs_ok[[va, vb]].any() and off.counters["obs_corroborated"] == 0
+
+
 def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
     """Once a lone view is corroborated and used, this robot is the origin of its copy and the
     neighbour that relays the copy with the fewest hops echoes it back; an echo is no vote. The
