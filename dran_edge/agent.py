@@ -231,6 +231,8 @@ class Agent:
         #: object id -> support of this robot's copy (own usable observations, or the origin's)
         self.support: dict[int, int] = {}
         self.lam: dict[tuple[int, int], np.ndarray] = {}
+        #: object id -> the association check's centre this round (``_check_associations``)
+        self._centres: dict[int, np.ndarray] = {}
         self.last_sent: dict[tuple[int, str, int], tuple[np.ndarray, int]] = {}
         #: (neighbour, "o", object id) -> (origin, hop, support) last sent with that copy
         self.last_sent_provenance: dict[tuple[int, str, int], tuple[int, int, int]] = {}
@@ -434,15 +436,17 @@ class Agent:
         another robot's five correct views, whichever robot got its copy out first. A copy
         left without own observations that is farther than the gate from the centre (built
         from the wrong observations, or a relay that sided with the weaker hypothesis)
-        restarts there; a copy within the gate is left to consensus (restarting it every round
-        kept undoing the local steps and the duals, and the fleet's estimate slid away over
-        hundreds of rounds: docs/dran.md). Re-evaluated every round, so a dropped observation
-        comes back once the estimates agree with it."""
+        restarts there, also when the centre is a lone vote; a copy within the gate is left to
+        consensus (restarting it every round kept undoing the local steps and the duals, and
+        the fleet's estimate slid away over hundreds of rounds: docs/dran.md). The centres are
+        kept for the round's consensus kernel (``_centres``, ``centre_reach_m``). Re-evaluated
+        every round, so a dropped observation comes back once the estimates agree with it."""
         gate = self.config.association_gate_m
         p = self.problem
         if gate <= 0:
             return
         votes = self._votes()
+        self._centres = {}
         # held-back views in use: corroborated before and not rejected since (see below)
         latched = self.obs_pending & self.obs_ok
         if not votes:
@@ -462,12 +466,17 @@ class Agent:
                 P = np.vstack([self.y[oid][:-1, -1], P])
                 w = np.concatenate([[float(n_own)], w])
             if P.shape[0] < 2:
-                continue
-            spread = np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)) @ w
-            centre = P[int(np.argmin(spread))]
-            if idx.size:
-                rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
-            if (oid in self.y and (not idx.size or rejected[idx].all())
+                # one vote and no own views to weigh it against: nothing is rejected, but a
+                # copy that consensus dragged past the gate from its only source restarts there
+                centre = P[0]
+            else:
+                spread = np.sqrt(((P[:, None] - P[None]) ** 2).sum(-1)) @ w
+                centre = P[int(np.argmin(spread))]
+                if idx.size:
+                    rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
+            self._centres[oid] = centre
+            in_use = (self.obs_ok_gate[idx] | corroborated[idx] | latched[idx]) & ~rejected[idx]
+            if (oid in self.y and not in_use.any()
                     and np.linalg.norm(self.y[oid][:-1, -1] - centre) > gate):
                 y = self.y[oid].copy()
                 y[:-1, -1] = centre
@@ -604,10 +613,11 @@ class Agent:
         # that stands for another hypothesis: built from a wrong tag association, it lies far
         # away and would otherwise drag every copy to it. Its scale puts the half-weight point
         # at φ = object_gate_m. Only conflicting pairs get it (``_conflicts``); every other
-        # pair stays least squares (infinite scale), so copies that differ by drift pull fully
-        # and an outlier-free run is the plain one (docs/dran.md, robustness).
+        # pair stays least squares (infinite scale), so copies that differ by drift within the
+        # reaches pull fully (docs/dran.md, robustness).
         kernel = None
-        if c.robust_kernel != "none" and c.object_gate_m > 0 and c.conflict_reach_m > 0:
+        if c.robust_kernel != "none" and c.object_gate_m > 0 and (
+                c.conflict_reach_m > 0 or c.centre_reach_m > 0):
             conflict = self._conflicts(pair_keys)
             if conflict.any():
                 scale = float(np.sqrt(c.beta) * np.mean(w) * c.object_gate_m)
@@ -617,13 +627,24 @@ class Agent:
     def _conflicts(self, pair_keys: tuple) -> np.ndarray:
         """Per consensus pair (j, object): does j's copy stand for another hypothesis than ours?
 
-        Yes when it comes from another observing robot (origin) and lies more than
-        ``conflict_reach_m`` from our copy: two drifted estimates of one object lie closer, so
-        beyond it at least one of them is something else. A relay of our own copy is never a
-        conflict. Only called with a reach > 0 (0 turns the conflict kernel off). Counted per pair and round in ``counters['consensus_conflicts']``."""
+        Yes when it lies more than ``centre_reach_m`` from the association check's centre for
+        the object (``_centres``, whatever its origin: a relay dragged by a phantom carries the
+        right origin), or when it comes from another observing robot (origin) and lies more
+        than ``conflict_reach_m`` from our copy: two drifted estimates of one object lie closer,
+        so beyond it at least one of them is something else; a relay of our own copy is never a
+        conflict by that rule. Only called with a reach > 0 (both 0 turn the conflict kernel
+        off). Counted per pair and round in ``counters['consensus_conflicts']``."""
         reach = self.config.conflict_reach_m
         out = np.zeros(len(pair_keys), bool)
+        centre_reach = self.config.centre_reach_m
+        centres = self._centres if centre_reach > 0 else {}
         for i, (j, oid) in enumerate(pair_keys):
+            if oid in centres and np.linalg.norm(
+                    self.nbr_obj[(j, oid)][0][:-1, -1] - centres[oid]) > centre_reach:
+                out[i] = True
+                continue
+            if reach <= 0:
+                continue
             if self.nbr_origin.get((j, oid), j) == self.origin.get(oid, self.id):
                 continue
             d = np.linalg.norm(self.nbr_obj[(j, oid)][0][:-1, -1] - self.y[oid][:-1, -1])

@@ -232,14 +232,25 @@ class AgentConfig(_Checked):
     than this from the evidence-weighted medoid of the copies (one vote per observing robot,
     weighted by its number of observations; docs/dran.md) is dropped as a wrong association
     (0: off), metres."""
+    centre_reach_m: float = _f(16.0, lo=0.0)
+    """With a robust kernel and association_gate_m > 0: a neighbour's copy farther than this
+    from the association check's centre for its object (the copy the votes side with,
+    ``Agent._check_associations``) is in conflict whatever its origin, and its consensus term
+    gets the Cauchy kernel. A copy built from a lone wrong view in the first rounds is dropped
+    by the check within a round or two, but least squares has by then averaged it into the
+    relays around it, which carry the right origin and vouch for the dragged value. 16 m, like
+    conflict_reach_m: a drifted copy and a centre each within association_gate_m of the object
+    are at most that far apart; at 8 m the kernel also held honestly drifted copies apart (one
+    simulation seed's 20 % outlier run fell 15-26 % behind the outlier-free one; docs/dran.md,
+    robustness). 0: off. Metres."""
     conflict_reach_m: float = _f(16.0, lo=0.0)
     """With a robust kernel: a neighbour's copy from another observing robot that lies farther
     than this from ours stands for another hypothesis (a wrong id), and its consensus term gets
     the Cauchy kernel (``Agent._conflicts``); closer copies pull as least squares. Two copies
     each within association_gate_m (8 m) of the object are at most twice that apart. The first
     rounds' drift can exceed it (drifted copies up to 21.5 m apart on simulation seeds 0 and
-    5), and a wider reach lets nearer wrong hypotheses pull (docs/dran.md, robustness). 0: off,
-    every consensus term least squares. Metres."""
+    5), and a wider reach lets nearer wrong hypotheses pull (docs/dran.md, robustness). 0: off
+    (with centre_reach_m also 0 every consensus term is least squares). Metres."""
     send_threshold: float = _f(1e-4, lo=0.0)
     """A separator/object entry is re-sent to a neighbour only when an element of its pose matrix
     moved by more than this since it was last sent to that neighbour (metres / unitless)."""

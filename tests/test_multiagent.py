@@ -181,6 +181,36 @@ def test_a_repeated_misread_sharing_its_place_with_the_seen_object_never_starts_
         assert np.linalg.norm(a.y[7][:3, 3] - true_copy) < 2.0
 
 
+def test_a_copy_far_from_the_votes_centre_does_not_drag_the_relays():
+    """The misread toy with neither the spatial exclusion nor the origin-based conflict kernel:
+    robot 0's two misreads of object 6 as "7" start a phantom copy 23 m from object 7, and
+    robot 1 hears it next to robot 2's copy, built from seven views. Under least squares the
+    phantom drags the copies (the relays with it: they then carry robot 2's origin and vouch
+    for the dragged value). With ``centre_reach_m`` (16 m) robot 1's consensus term to the
+    copy farther than that from its association check's centre gets the Cauchy kernel, and
+    every copy stays near the object (docs/dran.md, robustness)."""
+    def worst_offset(**config):
+        sc, wrong, agents = _misread_toy(object_exclusion_m=0.0, conflict_reach_m=0.0, **config)
+        assert np.linalg.norm(agents[0].y[7][:3, 3] - sc.gt_objects[7][:3, 3]) > 16.0
+        assert agents[0].obs_ok[wrong].all()  # the two misreads start in use
+        fleet = Fleet(agents, Bus(range(3), graph=[(0, 1), (1, 2)]))
+        worst = 0.0
+        for _ in range(40):
+            fleet.step()
+            truth = sc.gt_objects[7][:3, 3]
+            worst = max(worst, max(np.linalg.norm(a.y[7][:3, 3] - truth) for a in agents if 7 in a.y
+                                   and a.origin.get(7) != 0))
+        conflicts = sum(a.counters["consensus_conflicts"] for a in agents)
+        return worst, conflicts, agents, wrong
+
+    worst_ls, conflicts_ls, _, _ = worst_offset(centre_reach_m=0.0)
+    worst_gate, conflicts_gate, agents, wrong = worst_offset()
+    assert conflicts_ls == 0 and conflicts_gate > 0
+    assert worst_ls > 5.0  # least squares: a relay of robot 2's copy dragged > 5 m off
+    assert worst_gate < 2.0
+    assert not agents[0].obs_ok[wrong].any()
+
+
 def test_outlier_runs_are_scored_against_the_outlier_free_centralized_solution():
     params = dataclasses.replace(SMALL, outlier_ratio=0.3)
     cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0,
