@@ -13,11 +13,20 @@ the same round semantics as ``bus.BusParams(latency_rounds=1)``: in round k a no
 message sent to it in rounds < k (sorted by sender and sequence, so arrival order on UDP does
 not matter), then its sends go out. ``run_bus_fleet`` does that in-process;
 ``run_loopback_fleet`` starts one process per robot (``python -m dran_edge.comms.loopback``),
-each with a DISH on ``127.0.0.1:base_port + index`` and one RADIO per neighbour. Processes keep
-in step on absolute deadlines from a shared start time: poll at ``t0 + k·period``, send at
-``t0 + (k + ½)·period``, so a loopback delivery (well under a millisecond) lands in the next
-round as on the bus. Each runner returns, per robot: the node's result, the link counters, and
-the SHA-256 of every accepted datagram (sorted), so the two runs can be compared byte for byte.
+each with a DISH on ``127.0.0.1:base_port + index`` and one RADIO per neighbour. The parent
+keeps the processes in step over their stdin/stdout pipes, two phases per round (the datagrams
+themselves only ever cross the UDP sockets):
+
+1. ``poll k N``: the node reads its DISH until it holds the ``N`` datagrams sent to it in
+   rounds < k (the parent adds up what the neighbours reported), or ``FleetSpec.wait_s``
+   passed (then round k is listed in ``stalled_rounds``), and answers ``polled k``;
+2. ``step k`` (once every node has polled): the node steps, sends, and answers ``sent k`` with
+   its cumulative datagram count per neighbour.
+
+So a slow process (a first solve, a busy machine) only slows the run down; it cannot move a
+datagram into another round, and the UDP run matches the bus bit for bit unless a datagram is
+really lost. Each runner returns, per robot: the node's result, the link counters, and the
+SHA-256 of every accepted datagram (sorted), so the two runs can be compared byte for byte.
 
 ``GossipNode`` is a small reference node (object relay with hop counts plus one separator per
 round) used by the tests and ``tools/bench/bench_comms.py``.
@@ -30,6 +39,7 @@ import hashlib
 import importlib
 import json
 import os
+import select
 import subprocess
 import sys
 import tempfile
@@ -63,8 +73,9 @@ class FleetSpec:
     key_hex: str = "00" * 32
     boot_epoch: int = 1
     max_datagram_bytes: int = 1200
-    #: Loopback runner only: round period and first DISH port.
-    period_s: float = 0.1
+    #: Loopback runner only: how long a node waits for the datagrams sent to it in the
+    #: previous round, and the first DISH port.
+    wait_s: float = 5.0
     base_port: int = 46000
 
     def neighbours(self, robot: int) -> list[int]:
@@ -136,56 +147,37 @@ def run_bus_fleet(spec: FleetSpec, params: BusParams | None = None) -> dict[int,
     return {i: _report(nodes[i], links[i]) for i in spec.robot_ids}
 
 
-def run_loopback_fleet(
-    spec: FleetSpec, *, start_delay_s: float = 3.0, timeout_s: float = 60.0
-) -> dict[int, dict]:
-    """One process per robot over RADIO/DISH on 127.0.0.1; raises ``DranError`` on failure."""
-    t0 = time.time() + start_delay_s
+def run_loopback_fleet(spec: FleetSpec, *, timeout_s: float = 60.0) -> dict[int, dict]:
+    """One process per robot over RADIO/DISH on 127.0.0.1, kept in step by this process (see
+    the module docstring); raises ``DranError`` when a node fails or does not answer within
+    ``timeout_s``."""
     with tempfile.TemporaryDirectory(prefix="dran-loop-") as tmp:
-        procs = {}
-        for i in spec.robot_ids:
-            out = os.path.join(tmp, f"robot{i}.json")
-            cmd = [
-                sys.executable,
-                "-m",
-                "dran_edge.comms.loopback",
-                "--robot",
-                str(i),
-                "--t0",
-                repr(t0),
-                "--out",
-                out,
-            ]
-            # stderr to a file, not a pipe: a chatty node must never block on a full pipe.
-            err_path = os.path.join(tmp, f"robot{i}.err")
-            with open(err_path, "w", encoding="utf-8") as err_file:
-                p = subprocess.Popen(
-                    cmd,
-                    stdin=subprocess.PIPE,
-                    stdout=subprocess.DEVNULL,
-                    stderr=err_file,
-                    text=True,
-                )
-            procs[i] = (p, out, err_path)
-            p.stdin.write(spec.to_json())
-            p.stdin.close()
+        procs: dict[int, tuple[subprocess.Popen, str, str]] = {}
         try:
-            deadline = t0 + spec.rounds * spec.period_s + timeout_s
-            failures = []
+            for i in spec.robot_ids:
+                out = os.path.join(tmp, f"robot{i}.json")
+                cmd = [sys.executable, "-m", "dran_edge.comms.loopback", "--robot", str(i),
+                       "--out", out]
+                # stderr to a file, not a pipe: a chatty node must never block on a full pipe.
+                err_path = os.path.join(tmp, f"robot{i}.err")
+                with open(err_path, "w", encoding="utf-8") as err_file:
+                    p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         stderr=err_file, text=True, bufsize=1)
+                procs[i] = (p, out, err_path)
+                p.stdin.write(spec.to_json() + "\n")
+            ask = _Steward(procs, timeout_s)
+            ask.all("", "ready")
+            # sent[j][i]: datagrams robot j has sent to robot i so far
+            sent = {j: {} for j in spec.robot_ids}
+            for k in range(spec.rounds):
+                ask.all(lambda i: f"poll {k} {sum(sent[j].get(i, 0) for j in spec.robot_ids)}",
+                        f"polled {k}")
+                for j, reply in ask.all(f"step {k}", f"sent {k}").items():
+                    sent[j] = {int(q): n for q, n in json.loads(reply).items()}
+            ask.all("end", "done")
             reports = {}
-            for i, (p, out, err_path) in procs.items():
-                try:
-                    p.wait(timeout=max(deadline - time.time(), 1.0))
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-                    failures.append(f"robot {i}: timed out")
-                    continue
-                with open(err_path, encoding="utf-8", errors="replace") as f:
-                    err = f.read()
-                if p.returncode != 0:
-                    failures.append(f"robot {i}: exit {p.returncode}: {err.strip()[-2000:]}")
-                    continue
+            for i, (p, out, _) in procs.items():
+                p.wait(timeout=timeout_s)
                 with open(out, encoding="utf-8") as f:
                     reports[i] = json.load(f)
         finally:
@@ -193,15 +185,62 @@ def run_loopback_fleet(
                 if p.poll() is None:
                     p.kill()
                     p.wait()
-        if failures:
-            raise DranError("loopback fleet failed: " + "; ".join(failures))
+                for stream in (p.stdin, p.stdout):
+                    try:
+                        stream.close()
+                    except OSError:  # a pipe to a process that died
+                        pass
     return reports
 
 
-def _node_main(robot: int, t0: float, out: str) -> int:
+class _Steward:
+    """The parent's side of the round protocol: one command line out, one answer line back."""
+
+    def __init__(self, procs: dict, timeout_s: float):
+        self.procs, self.timeout_s = procs, timeout_s
+
+    def all(self, command, answer: str) -> dict[int, str]:
+        """Send ``command`` (a string, or a function of the robot id; "" sends nothing) to every
+        node, then read each one's answer line, which must start with ``answer``; returns the
+        rest of each line."""
+        for i, (p, _, _) in self.procs.items():
+            text = command(i) if callable(command) else command
+            if text:
+                try:
+                    p.stdin.write(text + "\n")
+                except (BrokenPipeError, OSError):
+                    self._fail(i, f"exited before {text!r}")
+        replies = {}
+        for i, (p, _, _) in self.procs.items():
+            ready, _, _ = select.select([p.stdout], [], [], self.timeout_s)
+            line = p.stdout.readline() if ready else None
+            if line is None:
+                self._fail(i, f"no {answer!r} within {self.timeout_s:.0f} s")
+            if not line:
+                self._fail(i, f"exited before answering {answer!r}")
+            if not line.startswith(answer):
+                self._fail(i, f"expected {answer!r}, got {line.strip()[:200]!r}")
+            replies[i] = line[len(answer):].strip()
+        return replies
+
+    def _fail(self, robot: int, what: str):
+        p, _, err_path = self.procs[robot]
+        if p.poll() is None:
+            p.kill()
+        p.wait()
+        with open(err_path, encoding="utf-8", errors="replace") as f:
+            err = f.read().strip()[-2000:]
+        raise DranError(f"loopback fleet failed: robot {robot}: {what} (exit {p.returncode})"
+                        + (f": {err}" if err else ""))
+
+
+def _node_main(robot: int, out: str) -> int:
     from dran_edge.comms.radio import RadioParams, RadioTransport
 
-    spec = FleetSpec.from_json(sys.stdin.read())
+    # The protocol owns stdout; whatever the node prints goes to stderr (a file).
+    proto = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
+    sys.stdout = sys.stderr
+    spec = FleetSpec.from_json(sys.stdin.readline())
     params = RadioParams(
         group=spec.group,
         bind=f"udp://127.0.0.1:{spec.port(robot)}",
@@ -209,31 +248,42 @@ def _node_main(robot: int, t0: float, out: str) -> int:
         max_datagram_bytes=spec.max_datagram_bytes,
     )
     node = _make_node(spec, robot)
-    late = []
+    stalled = []
     with RadioTransport(params) as radio:
         link = _make_link(spec, robot, radio)
-        for k in range(spec.rounds):
-            _sleep_until(t0 + k * spec.period_s)
-            received = _sorted(link.poll(now_ns=k))
-            sends = node.step(k, received)
-            if time.time() > t0 + (k + 0.5) * spec.period_s:
-                late.append(k)
-            _sleep_until(t0 + (k + 0.5) * spec.period_s)
-            for msg, to in sends:
-                link.send_message(msg, to)
+        time.sleep(0.2)  # let libzmq's I/O thread bind the DISH and connect the RADIOs
+        print("ready", file=proto)
+        received: list[NeighbourMessage] = []
+        while line := sys.stdin.readline():
+            cmd, *args = line.split()
+            if cmd == "poll":
+                k, expected = int(args[0]), int(args[1])
+                deadline = time.monotonic() + spec.wait_s
+                while True:
+                    received += link.poll(now_ns=k)
+                    if radio.counters.totals()["datagrams_received"] >= expected:
+                        break
+                    if time.monotonic() > deadline:
+                        stalled.append(k)
+                        break
+                    radio.wait(0.01)
+                print(f"polled {k}", file=proto)
+            elif cmd == "step":
+                k = int(args[0])
+                for msg, to in node.step(k, _sorted(received)):
+                    link.send_message(msg, to)
+                received = []
+                counts = {str(q): radio.counters.peers[q].datagrams_sent
+                          for q in spec.neighbours(robot)}
+                print(f"sent {k} {json.dumps(counts)}", file=proto)
+            elif cmd == "end":
+                break
         report = _report(node, link)
-    report["late_rounds"] = late
+    report["stalled_rounds"] = stalled
     with open(out, "w", encoding="utf-8") as f:
         json.dump(report, f)
+    print("done", file=proto)
     return 0
-
-
-def _sleep_until(t: float) -> None:
-    while True:
-        dt = t - time.time()
-        if dt <= 0:
-            return
-        time.sleep(min(dt, 0.05))
 
 
 # --------------------------------------------------------------------------- reference node
@@ -338,16 +388,15 @@ def main(argv: list[str] | None = None) -> int:
         "accepts; FleetSpec JSON on stdin"
     )
     ap.add_argument("--robot", type=int, required=True)
-    ap.add_argument("--t0", type=float, help="shared start time (time.time())")
-    ap.add_argument("--out", help="JSON report path")
+    ap.add_argument("--out", help="JSON report path (fleet node; the round protocol on stdin)")
     ap.add_argument("--dish-target", metavar="BIND", help="run a DISH target bound to BIND")
     ap.add_argument("--max-s", type=float, default=600.0, help="DISH target time limit")
     a = ap.parse_args(argv)
     if a.dish_target:
         return _dish_target_main(a.robot, a.dish_target, a.max_s)
-    if a.t0 is None or a.out is None:
-        ap.error("--t0 and --out are required for a fleet node")
-    return _node_main(a.robot, a.t0, a.out)
+    if a.out is None:
+        ap.error("--out is required for a fleet node")
+    return _node_main(a.robot, a.out)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ import pytest
 from dran_edge.comms import radio
 from dran_edge.comms.loopback import FleetSpec, run_bus_fleet, run_loopback_fleet
 from dran_edge.comms.radio import RadioParams, RadioTransport
-from dran_edge.errors import ConfigError, DependencyError
+from dran_edge.errors import ConfigError, DependencyError, DranError
 
 zmq = pytest.importorskip("zmq")
 needs_draft = pytest.mark.skipif(not zmq.has("draft"), reason="pyzmq without drafts")
@@ -129,7 +129,6 @@ def test_four_processes_over_radio_dish_match_the_in_process_bus():
         robot_ids=(0, 1, 2, 3),
         edges=((0, 1), (1, 2), (2, 3)),
         rounds=10,
-        period_s=0.2,
         base_port=base,
         node_config={"seed": 5},
         fleet_id=3,
@@ -137,7 +136,7 @@ def test_four_processes_over_radio_dish_match_the_in_process_bus():
     on_bus = run_bus_fleet(spec)
     on_udp = run_loopback_fleet(spec)
     for i in spec.robot_ids:
-        assert on_udp[i]["late_rounds"] == []
+        assert on_udp[i]["stalled_rounds"] == []
         assert on_udp[i]["result"] == on_bus[i]["result"]
         assert on_udp[i]["accepted_sha256"] == on_bus[i]["accepted_sha256"]  # same bytes
         assert on_udp[i]["counters"]["totals"] == on_bus[i]["counters"]["totals"]
@@ -156,7 +155,6 @@ def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run
         robot_ids=(0, 1, 2),
         edges=edges,
         rounds=12,
-        period_s=0.4,
         base_port=_consecutive_free_ports(3),
         node_factory="dran_edge.dran_node:DranNode",
         node_config={
@@ -170,7 +168,7 @@ def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run
     on_bus = run_bus_fleet(spec)
     on_udp = run_loopback_fleet(spec, timeout_s=120.0)
     for i in spec.robot_ids:
-        assert on_udp[i]["late_rounds"] == []
+        assert on_udp[i]["stalled_rounds"] == []
         assert on_udp[i]["result"] == on_bus[i]["result"]  # every bit of every estimate
         assert on_udp[i]["accepted_sha256"] == on_bus[i]["accepted_sha256"]
         assert on_udp[i]["result"]["rounds"] == spec.rounds
@@ -179,6 +177,15 @@ def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run
     # Object maps are shared (and relayed over robot 1): all end with the same objects.
     known = [set(on_udp[i]["result"]["objects"]) for i in spec.robot_ids]
     assert known[0] == known[1] == known[2] and len(known[0]) > 0
+
+
+@needs_draft
+def test_a_node_process_that_fails_is_named_with_its_error():
+    spec = FleetSpec(robot_ids=(0, 1), edges=((0, 1),), rounds=3,
+                     node_factory="dran_edge.comms.loopback:NoSuchNode",
+                     base_port=_consecutive_free_ports(2))
+    with pytest.raises(DranError, match=r"(?s)robot 0: exited .*NoSuchNode"):
+        run_loopback_fleet(spec, timeout_s=30.0)
 
 
 def _can_netns() -> bool:
