@@ -237,8 +237,10 @@ class _Steward:
 def _node_main(robot: int, out: str) -> int:
     from dran_edge.comms.radio import RadioParams, RadioTransport
 
-    # The protocol owns stdout; whatever the node prints goes to stderr (a file).
-    proto = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1)
+    # The protocol owns the stdout pipe; whatever the node (or a native library) prints goes
+    # to stderr, a file.
+    proto = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)
     sys.stdout = sys.stderr
     spec = FleetSpec.from_json(sys.stdin.readline())
     params = RadioParams(

@@ -8,8 +8,8 @@ Builds, in one process, a linear system whose distributed solution costs DRAN or
 rounds, splits the unknowns like Table 1 (contiguous segments, 5 robots), factorises each robot's
 diagonal block (what a robot's local solve does) and compares, iteration by iteration:
 
-- block SOR in robot order with over-relaxation ω (a DRAN round schedule visits every robot once
-  per sweep);
+- block SOR in robot order with over-relaxation ω, the first sweep plain as in the init (a
+  DRAN round schedule visits every robot once per sweep);
 - block-Jacobi preconditioned conjugate gradients (BJ-PCG: one exchange per iteration plus two
   network-wide sums);
 - symmetric block SOR (ω = 1) preconditioned CG (BSSOR-PCG: a forward and a backward sweep per
