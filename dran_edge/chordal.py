@@ -42,10 +42,12 @@ def _check_connected(n: int, edges: np.ndarray) -> None:
         )
 
 
-def chordal_rotations(
+def relaxed_rotation_system(
     n: int, edges: np.ndarray, R_meas: np.ndarray, kappa: np.ndarray, anchor: int = 0
-) -> np.ndarray:
-    """(n, d, d) rotations from the relaxed κ-weighted least squares, projected to SO(d)."""
+) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    """Normal equations ``A X = B`` of the relaxed rotation least squares (stage 1 above) over
+    the unknowns ``X_v = R_vᵀ`` stacked per vertex (d rows each), the anchor's rotation fixed to
+    I: returns ``(A, B, free)`` with ``free`` the (n·d,) mask of the rows that are unknowns."""
     d = R_meas.shape[-1]
     m = edges.shape[0]
     i, j = edges[:, 0], edges[:, 1]
@@ -69,12 +71,25 @@ def chordal_rotations(
     free[anchor * d : (anchor + 1) * d] = False
     J_free, J_fix = J[:, free], J[:, ~free]
     # anchor rotation I: column a of the fixed unknowns is e_a, so J_fix @ I gives each RHS.
-    rhs = -(J_free.T @ (J_fix @ np.eye(d)))
-    X = np.zeros((n * d, d))
-    X[free] = _solve_spd(J_free.T @ J_free, rhs)
+    return sp.csr_matrix(J_free.T @ J_free), -(J_free.T @ (J_fix @ np.eye(d))), free
+
+
+def relaxed_to_rotations(X_free: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(n, d, d) rotations: the relaxed unknowns (anchor rows I) projected to SO(d)."""
+    d = X_free.shape[1]
+    X = np.zeros((free.size, d))
+    X[free] = X_free
     X[~free] = np.eye(d)
-    R = np.swapaxes(X.reshape(n, d, d), 1, 2)  # R_i[a, b] = X[i·d + b, a]
+    R = np.swapaxes(X.reshape(-1, d, d), 1, 2)  # R_i[a, b] = X[i·d + b, a]
     return geo.so3_project(R)
+
+
+def chordal_rotations(
+    n: int, edges: np.ndarray, R_meas: np.ndarray, kappa: np.ndarray, anchor: int = 0
+) -> np.ndarray:
+    """(n, d, d) rotations from the relaxed κ-weighted least squares, projected to SO(d)."""
+    A, B, free = relaxed_rotation_system(n, edges, R_meas, kappa, anchor)
+    return relaxed_to_rotations(_solve_spd(A, B), free)
 
 
 def chordal_translations(

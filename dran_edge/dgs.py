@@ -122,10 +122,12 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
 
 
 def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params=None,
-                links=None, partitions=(), delta_every: int = 0) -> dict:
+                links=None, partitions=(), delta_every: int = 0,
+                initial_poses: np.ndarray | None = None) -> dict:
     """DGS on a g2o graph split like Table 1; same bus and byte accounting as ``run_g2o_dran``
     (``links``: the bus's ``BusParams``, default lossless; ``delta_every``: the delta layout,
-    see ``Fleet``)."""
+    see ``Fleet``; ``initial_poses`` (diagnostics): run the pose stage from these instead of
+    the distributed init, no init rounds or bytes)."""
     from dran_edge.comms.bus import Bus, BusParams
     from dran_edge.multiagent import Fleet
     from dran_edge.objective import sesync_objective, sesync_weights
@@ -137,11 +139,14 @@ def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params
     bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
               partitions=partitions)
     fleet = Fleet([], bus, delta_every=delta_every)
-    init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
-                                    part, fleet.init_exchange,
-                                    init_params or InitParams(gauss_seidel=True))
+    if initial_poses is not None:
+        start = np.asarray(initial_poses, np.float64).copy()
+    else:
+        start = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa,
+                                         tau, part, fleet.init_exchange,
+                                         init_params or InitParams(gauss_seidel=True)).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
-    poses, sweeps = dgs_pose_stage(g, part, init.poses, kappa, tau, fleet.init_exchange, params)
+    poses, sweeps = dgs_pose_stage(g, part, start, kappa, tau, fleet.init_exchange, params)
 
     def F(T):
         return sesync_objective(T, g.edges, g.measurements, kappa, tau)
@@ -155,7 +160,7 @@ def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params
         "bytes_init": init_bytes,
         "bytes_total": fleet.traffic.bytes_total,
         "datagrams": fleet.traffic.datagrams,
-        "objective_init": F(init.poses),
+        "objective_init": F(start),
         "objective_final": F(poses),
         "local_step_ms_median": None,
         "wall_s": time.perf_counter() - t0,

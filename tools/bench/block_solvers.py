@@ -36,8 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from dran_edge import geometry as geo
-from dran_edge.chordal import chordal_translations
+from dran_edge.chordal import chordal_translations, relaxed_rotation_system, relaxed_to_rotations
 from dran_edge.g2o import read_g2o
 from dran_edge.lm import build_plan, linearize, retract
 from dran_edge.objective import sesync_objective, sesync_weights
@@ -144,31 +143,15 @@ def main(argv=None) -> int:
             x = x_next
         return 0
 
-    # relaxed rotations: rows of √κ (R_j − R_i R̃) over X_v = R_vᵀ (dran_edge.chordal)
-    m = g.edges.shape[0]
-    i, j = g.edges[:, 0], g.edges[:, 1]
+    # the init's first stage: the relaxed rotation least squares of dran_edge.chordal
     anchor = int(np.flatnonzero(gauge_fixed(g))[0])
     T_anchor = g.poses[anchor]
-    w = np.sqrt(kappa)
-    eb = (np.arange(m)[:, None] * d + np.arange(d)[None]).ravel()
-    J = sp.csr_matrix((
-        np.concatenate([np.repeat(w, d), (-np.swapaxes(g.measurements[:, :d, :d], 1, 2)
-                                          * w[:, None, None]).ravel()]),
-        (np.concatenate([eb, np.repeat(eb, d)]),
-         np.concatenate([(j[:, None] * d + np.arange(d)[None]).ravel(),
-                         (i[:, None, None] * d + np.arange(d)[None, None, :]).repeat(d, 1).ravel()]))),
-        shape=(m * d, n * d))
-    free = np.ones(n * d, bool)
-    free[anchor * d:(anchor + 1) * d] = False
-    A = J[:, free].T @ J[:, free]
-    B = -(J[:, free].T @ (J[:, ~free] @ np.eye(d)))
+    A, B, free = relaxed_rotation_system(n, g.edges, g.measurements[:, :d, :d], kappa, anchor)
     system = BlockSystem(A, B, np.repeat(owner_v, d)[free], args.robots)
     exact = spla.spsolve(sp.csc_matrix(A), B)
 
     def poses_of(Xf):
-        X = np.zeros((n * d, d))
-        X[free], X[~free] = Xf, np.eye(d)
-        R = geo.so3_project(np.swapaxes(X.reshape(n, d, d), 1, 2))
+        R = relaxed_to_rotations(Xf, free)
         t = chordal_translations(n, g.edges, R, g.measurements[:, :d, d], tau, anchor)
         T = np.tile(np.eye(d + 1), (n, 1, 1))
         T[:, :d, :d], T[:, :d, d] = R, t

@@ -33,12 +33,11 @@ import typing
 
 import numpy as np
 
-from dran_edge.comms.bus import Bus, BusParams
 from dran_edge.config import AgentConfig
-from dran_edge.dgs import DGSParams, dgs_pose_stage, run_g2o_dgs
+from dran_edge.dgs import run_g2o_dgs
 from dran_edge.dist_init import InitParams
 from dran_edge.g2o import read_g2o
-from dran_edge.multiagent import TABLE1_DELTA_EVERY, Fleet, run_g2o_dran, table1_setup
+from dran_edge.multiagent import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 from dran_edge.objective import sesync_objective, sesync_weights
 from dran_edge.partition import partition_contiguous
 from dran_edge.pgo import initial_poses
@@ -111,16 +110,10 @@ def main(argv=None) -> int:
             f"{gap(r['objective_final'])}, {r['bytes_total'] / 1e6:.3f} MB (own phase "
             f"{(r['bytes_total'] - r['bytes_init']) / 1e6:.3f}), {r['rounds']} rounds")
     if not args.no_dgs:
-        if start is None:
-            d = run_g2o_dgs(g, args.robots, init_params=init_params, delta_every=TABLE1_DELTA_EVERY)
-            d_final, d_bytes, d_init = d["objective_final"], d["bytes_total"], d["bytes_init"]
-        else:  # the pose stage alone, from the same centralized init, over the same wire
-            bus = Bus(range(args.robots), graph=part.neighbour_pairs(), params=BusParams())
-            fleet = Fleet([], bus, delta_every=TABLE1_DELTA_EVERY)
-            poses, _ = dgs_pose_stage(g, part, start, kappa, tau, fleet.init_exchange, DGSParams())
-            d_final, d_bytes, d_init = F(poses), fleet.traffic.bytes_total, 0
-        line += (f" | DGS {gap(d_final)}, {d_bytes / 1e6:.3f} MB (own phase "
-                 f"{(d_bytes - d_init) / 1e6:.3f})")
+        d = run_g2o_dgs(g, args.robots, init_params=init_params, delta_every=TABLE1_DELTA_EVERY,
+                        initial_poses=start)
+        line += (f" | DGS {gap(d['objective_final'])}, {d['bytes_total'] / 1e6:.3f} MB (own "
+                 f"phase {(d['bytes_total'] - d['bytes_init']) / 1e6:.3f})")
     print(line)
     return 0
 
