@@ -414,18 +414,20 @@ class WorkerPool:
     def step(self, t_k: int, inboxes: dict[int, list[bytes]]) -> dict[int, dict]:
         for conn, ids in zip(self._conns, self._ids_of):
             conn.send(("step", (t_k, {i: inboxes.get(i, []) for i in ids})))
-        out: dict[int, dict] = {}
-        for conn in self._conns:
-            out.update(_unwrap(conn.recv()))
-        return out
+        return self._gather()
 
     def results(self) -> dict[int, RobotResult]:
         for conn in self._conns:
             conn.send(("finish", None))
-        out: dict[int, RobotResult] = {}
+        return self._gather()
+
+    def _gather(self) -> dict:
+        """Every worker's reply, keyed by robot id in ascending order as one RobotRunner
+        gives it: callers sum over the values, and float sums depend on their order."""
+        out: dict = {}
         for conn in self._conns:
             out.update(_unwrap(conn.recv()))
-        return out
+        return {rid: out[rid] for rid in sorted(out)}
 
     def close(self) -> None:
         for p in self._procs:
