@@ -31,22 +31,20 @@ from pathlib import Path
 
 import numpy as np
 
+from dran_edge import geometry as geo
 from dran_edge.comms import codec
 from dran_edge.comms.delta import DeltaEncoder
 from dran_edge.g2o import read_g2o
-from dran_edge import geometry as geo
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, SeparatorEntry
 from dran_edge.partition import partition_contiguous
 
-# name: (file, the issue's byte bar in MB = half the paper's DRAN column)
-BARS = {
-    "parking-garage": ("parking-garage.g2o", 0.615),
-    "sphere2500": ("sphere2500.g2o", 0.67),
-    "torus3D": ("torus3D.g2o", 1.615),
-    "CSAIL": ("CSAIL.g2o", 0.005),
-    "intel": ("input_INTEL_g2o.g2o", 0.27),
-    "manhattan": ("input_M3500_g2o.g2o", 6.735),
-}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_table1 import PAPER  # noqa: E402 - the paper's columns, in one place
+
+
+def byte_bar_mb(name: str) -> float:
+    """The issue's byte bar: half the paper's DRAN column."""
+    return PAPER[name][5] / 2
 
 
 def _bytes(messages: list[NeighbourMessage], encoders: list[DeltaEncoder | None]) -> int:
@@ -102,12 +100,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_dir", type=Path, help="folder with the six Table 1 g2o files")
     ap.add_argument("--robots", type=int, default=5)
-    ap.add_argument("--only", nargs="+", choices=sorted(BARS), help="some graphs only")
+    ap.add_argument("--only", nargs="+", choices=sorted(PAPER), help="some graphs only")
     args = ap.parse_args(argv)
     print(f"{'graph':<15} {'links':>5} {'copies':>6} {'absolute B':>10} {'delta B':>8} "
           f"{'init rot B':>10} {'bar MB':>7} {'bar / delta':>11}")
-    for name in args.only or BARS:
-        file, bar_mb = BARS[name]
+    for name in args.only or PAPER:
+        file, bar_mb = PAPER[name][0], byte_bar_mb(name)
         path = args.data_dir / file
         if not path.exists():
             print(f"{name}: {path} not found", file=sys.stderr)
