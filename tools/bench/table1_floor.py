@@ -36,6 +36,7 @@ from dran_edge.comms import codec
 from dran_edge.comms.delta import DeltaEncoder
 from dran_edge.g2o import read_g2o
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, SeparatorEntry
+from dran_edge.multiagent import ROUND_PERIOD_NS, TABLE1_DELTA_EVERY
 from dran_edge.partition import partition_contiguous
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -58,21 +59,18 @@ def full_exchange_bytes(g, num_robots: int) -> dict:
     exchange (delta), summed over every directed link of the split."""
     part = partition_contiguous(g.edges, g.num_vertices, num_robots)
     rng = np.random.default_rng(0)
-    links = []  # (sender, receiver, vertices the receiver needs from the sender)
-    for a, b in part.neighbour_pairs():
-        for s, r in ((a, b), (b, a)):
-            need = np.intersect1d(part.parts[r].anchors, part.parts[s].vertices)
-            if need.size:
-                links.append((s, r, need))
+    # (sender, receiver, the sender's vertices the receiver needs), as the init sends them
+    links = [(p.robot_id, q, vs) for p in part.parts for q, vs in p.separators_for.items()
+             if len(vs)]
 
     def separators(round_, poses):
-        return [NeighbourMessage(sender_id=s, round=round_, stamp_ns=round_ * 500_000_000,
+        return [NeighbourMessage(sender_id=s, round=round_, stamp_ns=round_ * ROUND_PERIOD_NS,
                                  separators=tuple(SeparatorEntry(s, int(v), 0, poses[v])
                                                   for v in need))
                 for s, _r, need in links]
 
     def rotations(round_, R):
-        return [NeighbourMessage(sender_id=s, round=round_, stamp_ns=round_ * 500_000_000,
+        return [NeighbourMessage(sender_id=s, round=round_, stamp_ns=round_ * ROUND_PERIOD_NS,
                                  init=tuple(InitEntry(InitStage.ROTATION, s, int(v), R[v])
                                             for v in need))
                 for s, _r, need in links]
@@ -83,8 +81,8 @@ def full_exchange_bytes(g, num_robots: int) -> dict:
     R0 = poses[:, :d, :d].copy()
     R1 = R0 + 1e-3 * rng.standard_normal(R0.shape)
     none = [None] * len(links)
-    pose_enc = [DeltaEncoder(absolute_every=20) for _ in links]
-    rot_enc = [DeltaEncoder(absolute_every=20) for _ in links]
+    pose_enc = [DeltaEncoder(absolute_every=TABLE1_DELTA_EVERY) for _ in links]
+    rot_enc = [DeltaEncoder(absolute_every=TABLE1_DELTA_EVERY) for _ in links]
     _bytes(separators(1, poses), pose_enc)
     _bytes(rotations(1, R0), rot_enc)
     return {
