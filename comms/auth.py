@@ -1,6 +1,6 @@
 """Datagram authentication: HMAC-SHA256 tags, fleet key files, and the drop-and-count verifier.
 
-DESIGN §5. UDP RADIO/DISH has no security mechanism of its own (no CURVE, no peer
+docs/wire-format.md. UDP RADIO/DISH has no security mechanism of its own (no CURVE, no peer
 identity), so every neighbour datagram carries a tag in the codec's last ``TAG_BYTES`` = 16
 bytes: HMAC-SHA256 (RFC 2104) over everything before the tag, truncated to 128 bits as in
 RFC 4868 (HMAC-SHA-256-128). One secret key per fleet.

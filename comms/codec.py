@@ -1,6 +1,6 @@
 """Wire codec for neighbour datagrams: ``NeighbourMessage`` <-> self-contained datagrams.
 
-DESIGN §5; layout, precision and CHANGELOG in ``docs/wire-format.md`` (schema version 1).
+Layout, precision and CHANGELOG in ``docs/wire-format.md`` (schema version 1).
 One round's message may span several datagrams; each carries a full header and a share of the
 entries, decodes alone, and is at most ``max_datagram_bytes`` long (default 1200, hard cap
 ``HARD_CAP_BYTES`` = 4096, far below libzmq's 8192-byte UDP buffer). Bytes are the paper's

@@ -1,4 +1,4 @@
-"""Traffic counters per neighbour and per message kind (health is data, DESIGN §5).
+"""Traffic counters per neighbour and per message kind (health is data, docs/architecture.md).
 
 Every transport owns one ``CommCounters``: datagrams and bytes sent / received / dropped,
 per peer (robot id, or ``None`` when the sender is not known, e.g. a datagram that did not

@@ -1,4 +1,4 @@
-"""ZeroMQ UDP RADIO/DISH transport between robots (DESIGN §5, ecosystem notes §4).
+"""ZeroMQ UDP RADIO/DISH transport between robots (docs/wire-format.md, docs/zeromq.md).
 
 Each robot binds one DISH (``udp://*:PORT`` or its WiFi address) joined to the fleet's group,
 and opens one RADIO per configured neighbour, ``connect`` ed to that neighbour's DISH by

@@ -1,4 +1,4 @@
-"""One robot's configuration: frozen dataclasses and a strict YAML loader (DESIGN §6).
+"""One robot's configuration: frozen dataclasses and a strict YAML loader (docs/config.md).
 
 A robot reads one YAML file (schema and examples: ``docs/config.md``, ``calib/fleet/``)::
 
@@ -344,7 +344,7 @@ def parse_address(text: str, key: str) -> tuple[str, int]:
 
 @dataclass(frozen=True)
 class CommsSection(_Checked):
-    """Neighbour link (ZeroMQ UDP RADIO/DISH, DESIGN §5)."""
+    """Neighbour link (ZeroMQ UDP RADIO/DISH, docs/wire-format.md)."""
 
     transport: str = _f("udp", choices=("udp", "none"))
     """``udp``: RADIO/DISH to the neighbours; ``none``: no radio (a lone robot or a laptop)."""

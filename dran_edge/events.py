@@ -1,4 +1,4 @@
-"""Events into and outputs out of one robot's pure core (DESIGN §3).
+"""Events into and outputs out of one robot's pure core (docs/architecture.md).
 
 ``Agent.handle(event) -> list[output]`` is the only way into a robot's logic. Every event
 carries its own timestamp (int nanoseconds, ``_ns``); the core has no clock. Poses are

@@ -1,4 +1,4 @@
-"""Typed neighbour messages: what one robot's agent tells its neighbours (DESIGN §5).
+"""Typed neighbour messages: what one robot's agent tells its neighbours (docs/architecture.md; on the wire: docs/wire-format.md).
 
 The agent emits and consumes these; ``dran_edge.comms.codec`` turns them into
 self-contained, authenticated datagrams and back. Poses are ``(4, 4)`` SE(3) or ``(3, 3)``

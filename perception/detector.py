@@ -1,6 +1,6 @@
 """AprilTag detection with pupil-apriltags: one pinned family, explicit parameters.
 
-The binding (pupil-apriltags 1.0.4.x, ecosystem-facts §3.1) has three traps this wrapper closes:
+The binding (pupil-apriltags 1.0.4.x, docs/perception.md) has three traps this wrapper closes:
 
 - it adds only ONE family (an ``if/elif`` chain over the space-separated string), silently
   dropping the rest: we accept exactly one known family name and refuse anything else;

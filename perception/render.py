@@ -8,7 +8,7 @@ Conventions (docs/perception.md, "Renderer"):
   the viewer when ``R_camera_tag = I``); ``tag_size_m`` is the edge of the black square.
 - Texture: OpenCV's ``DICT_APRILTAG_36h11`` markers decode to the same ids in pupil-apriltags.
   An OpenCV marker drawn upright in the image has ``R_camera_tag = Rz(180 deg)`` in that frame
-  (ecosystem-facts §3.5), so the texture's +u axis is the tag's -x and +v is -y. The renderer
+  (docs/perception.md), so the texture's +u axis is the tag's -x and +v is -y. The renderer
   applies this so that ``T_camera_tag`` given here is exactly what the detector should recover.
 - Each tag is pasted with a white quiet zone of ``quiet_zone_modules`` modules around the black
   square, drawn back to front. Depth (uint16 mm) is the exact plane depth of that face;

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import yaml
 
-from dran_edge.commands.status import query_status
+from dran_edge.cli.commands.status import query_status
 
 
 def write_config(tmp: Path, **overrides) -> Path:
@@ -68,7 +68,7 @@ def start_daemon(config: Path, env_extra: dict, cwd: Path | None = None) -> subp
                         "RUNTIME_DIRECTORY", "INVOCATION_ID", "JOURNAL_STREAM")}
     env.update(env_extra)
     return subprocess.Popen(
-        [sys.executable, "-m", "dran_edge.cli", "-v", "run", "--config", str(config)],
+        [sys.executable, "-m", "dran_edge.cli.app", "-v", "run", "--config", str(config)],
         env=env, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )
 

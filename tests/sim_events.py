@@ -1,10 +1,10 @@
-"""One simulated robot's ingest events, time-ordered: shared by the OnlineAgent tests."""
+"""One simulated robot's ingest events, time-ordered: shared by the RobotCore tests."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from dran_edge import simulate as sim
+from dran_edge.sim import mission as sim
 from dran_edge.events import (
     Keyframe,
     LoopClosure,

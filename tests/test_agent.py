@@ -1,4 +1,4 @@
-"""One robot's DRAN agent (dran_edge.agent): descent, asynchrony, checkpoints."""
+"""One robot's DRAN agent (dran_edge.dran.agent): descent, asynchrony, checkpoints."""
 
 import dataclasses
 import itertools
@@ -6,12 +6,12 @@ import itertools
 import numpy as np
 import pytest
 
-from dran_edge.agent import Agent
+from dran_edge.dran.agent import Agent
 from dran_edge.config import AgentConfig
 from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
-from dran_edge.lm import evaluate_cost
+from dran_edge.solver.lm import evaluate_cost
 from dran_edge.messages import NeighbourMessage, ObjectEntry
-from dran_edge.objects_sim import SimParams, make_scenario
+from dran_edge.experiments.objects import SimParams, make_scenario
 
 CFG = AgentConfig(robust_kernel="none")
 

@@ -1,4 +1,4 @@
-"""Association, clock offset and alignment (dran_edge.align), and TUM files (dran_edge.tum)."""
+"""Association, clock offset and alignment (dran_edge.evaluation.align), and TUM files (dran_edge.formats.tum)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from dran_edge import align, tum
+from dran_edge.evaluation import align
+from dran_edge.formats import tum
 from dran_edge.errors import InputError
 
 

@@ -159,7 +159,7 @@ def test_forgeries_never_accepted(data):
 
 
 def test_fleet_key_command(tmp_path, capsys):
-    from dran_edge.cli import main
+    from dran_edge.cli.app import main
 
     path = tmp_path / "fleet.key"
     assert main(["fleet-key", "new", str(path)]) == 0

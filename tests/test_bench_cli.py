@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from dran_edge.cli import main
+from dran_edge.cli.app import main
 
 
 @pytest.mark.parametrize("flags, robust, min_views, beta, eta", [

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from dran_edge.checkpoint import CheckpointStore, atomic_write, dumps, loads, next_boot_epoch
+from dran_edge.daemon.checkpoint import CheckpointStore, atomic_write, dumps, loads, next_boot_epoch
 from dran_edge.errors import DecodeError
 
 
@@ -79,7 +79,7 @@ def test_atomic_write_replaces(tmp_path):
 
 WRITER = """
 import sys, numpy as np
-from dran_edge.checkpoint import CheckpointStore
+from dran_edge.daemon.checkpoint import CheckpointStore
 store = CheckpointStore(sys.argv[1])
 big = np.random.default_rng(0).normal(size=(20000, 4, 4))
 i = 0

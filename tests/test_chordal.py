@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.chordal import chordal_initialization
+from dran_edge.solver.chordal import chordal_initialization
 from dran_edge.errors import InputError
-from dran_edge.graphgen import synthetic_graph
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.pgo import initial_poses
+from dran_edge.sim.graphgen import synthetic_graph
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.solver.centralized import initial_poses
 
 
 @pytest.mark.parametrize("dim", [2, 3])

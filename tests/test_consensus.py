@@ -1,9 +1,9 @@
-"""Tests of dran_edge.consensus: MH weights, φ, dual update and the eq. 6 factor."""
+"""Tests of dran_edge.dran.consensus: MH weights, φ, dual update and the eq. 6 factor."""
 
 import numpy as np
 
 from dran_edge import geometry as geo
-from dran_edge.consensus import (
+from dran_edge.dran.consensus import (
     ConsensusFactors,
     dual_update,
     metropolis_hastings_matrix,

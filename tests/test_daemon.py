@@ -9,9 +9,9 @@ from daemon_helpers import write_config
 
 from dran_edge.comms.ingest import encode_event
 from dran_edge.config import load_config
-from dran_edge.daemon import Daemon, DropOldestQueue
-from dran_edge.notify import Notifier
-from dran_edge.vio_sim import vio_mission
+from dran_edge.daemon.service import Daemon, DropOldestQueue
+from dran_edge.daemon.notify import Notifier
+from dran_edge.sim.vio import vio_mission
 
 
 class RecordingNotifier(Notifier):

@@ -1,4 +1,4 @@
-"""The daemon drives the OnlineAgent core: bad records are dropped, its checkpoint loads back."""
+"""The daemon drives the RobotCore core: bad records are dropped, its checkpoint loads back."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from daemon_helpers import write_config
 
 from dran_edge.comms.ingest import encode_event
 from dran_edge.config import load_config
-from dran_edge.daemon import Daemon
-from dran_edge.notify import Notifier
-from dran_edge.online_agent import OnlineAgent
-from dran_edge.vio_sim import vio_mission
+from dran_edge.daemon.service import Daemon
+from dran_edge.daemon.notify import Notifier
+from dran_edge.robot.core import RobotCore
+from dran_edge.sim.vio import vio_mission
 
 
 def _daemon(tmp_path) -> Daemon:
@@ -32,7 +32,7 @@ def _send_all(d: Daemon, events) -> None:
 def test_a_record_the_graph_raises_on_is_counted_and_dropped(tmp_path):
     d = _daemon(tmp_path)
     d.start()
-    assert isinstance(d.agent, OnlineAgent) and d.graph is d.agent.local_graph
+    assert isinstance(d.agent, RobotCore) and d.graph is d.agent.local_graph
     m = vio_mission(60, seed=3)
     real = d.graph.handle
     raised = []

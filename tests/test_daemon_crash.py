@@ -1,4 +1,4 @@
-"""Crash safety: kill -9 mid-mission, restart, and nothing accepted is lost (issue 5)."""
+"""Crash safety: kill -9 mid-mission, restart, and nothing accepted is lost (docs/architecture.md)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import socket
 import numpy as np
 from daemon_helpers import start_daemon, stop, wait_status, write_config
 
-from dran_edge.agent import Agent
-from dran_edge.checkpoint import CheckpointStore
+from dran_edge.dran.agent import Agent
+from dran_edge.daemon.checkpoint import CheckpointStore
 from dran_edge.comms.ingest import encode_event
 from dran_edge.config import load_config
 from dran_edge.events import Tick
-from dran_edge.local_graph import LocalGraph, gauge_anchor
-from dran_edge.online_agent import problem_from_graph
-from dran_edge.vio_sim import vio_mission
+from dran_edge.robot.keyframe_graph import KeyframeGraph, gauge_anchor
+from dran_edge.robot.core import problem_from_graph
+from dran_edge.sim.vio import vio_mission
 
 ROUNDS_AFTER_DATA = 30
 
@@ -27,7 +27,7 @@ def ate(stamps: np.ndarray, T: np.ndarray, mission) -> float:
 
 def reference(cfg, events, mission) -> tuple[dict, float]:
     """The same inputs without interruption, in process: counts and accuracy to match."""
-    g = LocalGraph(cfg.agent, anchor_first=gauge_anchor(cfg.agent))
+    g = KeyframeGraph(cfg.agent, anchor_first=gauge_anchor(cfg.agent))
     a = Agent(cfg.agent)
     half = len(events) // 2
     for chunk in (events[:half], events[half:]):

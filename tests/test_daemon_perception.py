@@ -17,7 +17,7 @@ from daemon_helpers import write_config  # noqa: E402
 from dran_edge import geometry as geo  # noqa: E402
 from dran_edge.comms import ingest as I  # noqa: E402
 from dran_edge.config import load_config  # noqa: E402
-from dran_edge.daemon import Daemon  # noqa: E402
+from dran_edge.daemon.service import Daemon  # noqa: E402
 from dran_edge.perception.calib import load_calibration  # noqa: E402
 from dran_edge.perception.frame import Frame, frame_to_bytes  # noqa: E402
 from dran_edge.perception.render import TagRenderer  # noqa: E402

@@ -15,7 +15,7 @@ import pytest
 from daemon_helpers import NotifyListener, start_daemon, stop, wait_status, write_config
 
 from dran_edge.comms import ingest as I
-from dran_edge.commands.status import query_status
+from dran_edge.cli.commands.status import query_status
 
 REPO = Path(__file__).resolve().parents[1]
 WATCHDOG_USEC = 2_000_000  # systemd would kill us after 2 s without a ping
@@ -97,14 +97,14 @@ def test_status_command_prints_health(tmp_path):
     try:
         wait_status(tmp_path / "run" / "status.sock", lambda s: s["rounds"]["ticks"] >= 1,
                     proc=proc)
-        res = subprocess.run([sys.executable, "-m", "dran_edge.cli", "status", "--config",
+        res = subprocess.run([sys.executable, "-m", "dran_edge.cli.app", "status", "--config",
                               str(cfg)], capture_output=True, text=True, timeout=30)
     finally:
         stop(proc)
     assert res.returncode == 0, res.stderr
     for word in ("rounds", "graph", "ingest", "neighbours", "queues"):
         assert word in res.stdout
-    res = subprocess.run([sys.executable, "-m", "dran_edge.cli", "status", "--socket",
+    res = subprocess.run([sys.executable, "-m", "dran_edge.cli.app", "status", "--socket",
                           str(tmp_path / "absent.sock")], capture_output=True, text=True,
                          timeout=30)
     assert res.returncode == 1 and "no daemon answers" in res.stderr
@@ -121,7 +121,7 @@ def test_under_systemd_run(tmp_path):
     user = [] if os.geteuid() == 0 else ["--user"]
     res = subprocess.run(
         ["systemd-run", *user, "--unit", unit, "--property=Type=notify",
-         "--property=WatchdogSec=4", "--collect", sys.executable, "-m", "dran_edge.cli", "run",
+         "--property=WatchdogSec=4", "--collect", sys.executable, "-m", "dran_edge.cli.app", "run",
          "--config", str(cfg)], capture_output=True, text=True, timeout=60)
     if res.returncode != 0:
         pytest.skip(f"systemd-run refused: {res.stderr.strip()}")
@@ -160,7 +160,7 @@ def test_two_daemons_exchange_over_loopback_udp(tmp_path):
     from dran_edge.comms.auth import write_fleet_key
     from dran_edge.comms.ingest import encode_event
 
-    from dran_edge.vio_sim import vio_mission
+    from dran_edge.sim.vio import vio_mission
 
     try:
         from dran_edge.comms.radio import hardened_libzmq_stamp, require_draft_zmq
@@ -212,7 +212,7 @@ def test_two_daemons_exchange_over_loopback_udp(tmp_path):
 
 def test_udp_without_key_fails_with_one_clear_line(tmp_path):
     cfg = write_config(tmp_path, comms={"transport": "udp", "key_file": str(tmp_path / "nokey")})
-    res = subprocess.run([sys.executable, "-m", "dran_edge.cli", "run", "--config", str(cfg)],
+    res = subprocess.run([sys.executable, "-m", "dran_edge.cli.app", "run", "--config", str(cfg)],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode in (2, 3), res.stderr
     assert "dran-edge run: error:" in res.stderr and "Traceback" not in res.stderr

@@ -7,17 +7,17 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.chordal import chordal_initialization
+from dran_edge.solver.chordal import chordal_initialization
 from dran_edge.config import AgentConfig
-from dran_edge.dgs import run_g2o_dgs
-from dran_edge.dist_init import InitParams, direct_exchange, distributed_chordal_init
-from dran_edge.g2o import G2oGraph
-from dran_edge.graphgen import synthetic_graph
-from dran_edge.lm import LMParams
-from dran_edge.multiagent import run_g2o_dran
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.partition import partition_contiguous
-from dran_edge.pgo import solve_g2o
+from dran_edge.experiments.dgs import run_g2o_dgs
+from dran_edge.dran.dist_init import InitParams, direct_exchange, distributed_chordal_init
+from dran_edge.formats.g2o import G2oGraph
+from dran_edge.sim.graphgen import synthetic_graph
+from dran_edge.solver.lm import LMParams
+from dran_edge.experiments.fleet import run_g2o_dran
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.dran.partition import partition_contiguous
+from dran_edge.solver.centralized import solve_g2o
 
 
 def lawnmower(rows=4, cols=15, seed=0) -> G2oGraph:
@@ -123,7 +123,7 @@ def test_five_robots_on_a_generated_garage_land_on_the_centralized_chordal_init(
 def test_table1_setup_reaches_the_optimum_with_fewer_bytes_than_plain_alg1(graph):
     """Colour schedule + block SOR + delta entries (``multiagent.table1_setup``) against Alg. 1
     as printed, same graph, same split, same rounds budget: closer to F* and fewer bytes."""
-    from dran_edge.multiagent import table1_setup
+    from dran_edge.experiments.fleet import table1_setup
 
     g = graph
     star = solve_g2o(g, params=LMParams(max_iterations=50)).objective_final
@@ -143,7 +143,7 @@ def test_table1_setup_keeps_the_centralized_optimum_a_fixed_point(graph):
     """Started at F* (``initial_poses``), 60 rounds of the Table 1 setup with the stopping tests
     off stay there: delta quantisation, the send threshold and anchors held between resends do
     not pull the iteration away from the optimum."""
-    from dran_edge.multiagent import table1_setup
+    from dran_edge.experiments.fleet import table1_setup
 
     g = graph
     opt = solve_g2o(g, params=LMParams(max_iterations=50)).result.poses
@@ -159,8 +159,8 @@ def test_table1_setup_keeps_the_centralized_optimum_a_fixed_point(graph):
 def test_bench_g2o_cli_runs_the_table1_setup_plain_and_dgs(graph, tmp_path, capsys):
     """``dran-edge bench g2o`` end to end on a small graph: the default is the Table 1 setup
     (colour schedule, deltas), ``--plain`` Alg. 1 as printed; ``--out`` writes the estimate."""
-    from dran_edge.cli import main
-    from dran_edge.g2o import read_g2o, write_g2o
+    from dran_edge.cli.app import main
+    from dran_edge.formats.g2o import read_g2o, write_g2o
 
     path = tmp_path / "lawnmower.g2o"
     write_g2o(path, graph)

@@ -1,4 +1,4 @@
-"""Run-level evaluation (dran_edge.evaluate) and ``dran-edge eval`` on a tiny run written here."""
+"""Run-level evaluation (dran_edge.evaluation.score) and ``dran-edge eval`` on a tiny run written here."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dran_edge import cli, evaluate, motive, tum
+from dran_edge.cli import app as cli
+from dran_edge.evaluation import score as evaluate
+from dran_edge.formats import motive, tum
 from dran_edge.errors import InputError
 
 START_NS = 1_700_000_000_000_000_000
@@ -236,8 +238,8 @@ def test_cli_eval_run_and_traj(tmp_path, capsys):
 
 @pytest.mark.parametrize("connected", [True, False])
 def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, connected):
-    pytest.importorskip("dran_edge.pgo")
-    from dran_edge.g2o import G2oGraph, write_g2o
+    pytest.importorskip("dran_edge.solver.centralized")
+    from dran_edge.formats.g2o import G2oGraph, write_g2o
 
     truth = make_run(tmp_path / "run")
     out = tmp_path / "run" / "out"
@@ -289,7 +291,7 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
         assert any("chordal initialisation failed" in n for n in r["notes"])
     # F_init is F at the robots' initial estimates (trajectory_init.tum at the vertex stamps),
     # whether or not the graph is connected.
-    from dran_edge.objective import sesync_objective, sesync_weights
+    from dran_edge.solver.objective import sesync_objective, sesync_weights
 
     P0 = []
     for name in ("dingo1", "dingo2"):

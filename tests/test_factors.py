@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.factors import (
+from dran_edge.solver.factors import (
     BetweenFactors,
     Cauchy,
     Huber,

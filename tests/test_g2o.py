@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from dran_edge.cli import main
+from dran_edge.cli.app import main
 from dran_edge.errors import InputError
-from dran_edge.g2o import read_g2o, write_g2o
-from dran_edge.graphgen import synthetic_graph
+from dran_edge.formats.g2o import read_g2o, write_g2o
+from dran_edge.sim.graphgen import synthetic_graph
 
 SE2_EDGE = "EDGE_SE2 0 1 1.0 0.0 0.1 10 0 0 10 0 20"
 # upper triangle of diag(10, 10, 10, 20, 20, 20), row by row

@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from dran_edge.comms import ingest as I
-from dran_edge.ingest_server import IngestServer, RateLimitedLog
+from dran_edge.daemon.ingest_server import IngestServer, RateLimitedLog
 
 
 def wait_for(pred, timeout_s=10.0):

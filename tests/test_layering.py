@@ -1,9 +1,16 @@
-"""The layering rule of DESIGN §2, enforced.
+"""The architecture's layers (docs/architecture.md), enforced on every import statement.
 
-- Core modules of ``dran_edge`` import only numpy, scipy, yaml, the standard library and
-  other core modules — never ``dran_edge.perception`` / ``dran_edge.comms`` or a shell.
-- Nothing imports a hardware library (pyrealsense2, depthai, zmq, systemd) at module
-  import time: importing every module of the package leaves them out of ``sys.modules``.
+Every module belongs to a layer: ``dran_edge`` top-level modules (errors, geometry, config,
+events, messages) form the base; then solver < dran < robot (the pure core); then the adapters comms,
+perception and formats; then evaluation and sim; then daemon; then replay and experiments; then
+cli. A module may import from its own package and from packages of strictly lower layers, never
+from a sibling of its own layer or from above. The pure core imports only numpy, scipy and the
+standard library (``dran_edge.config``, the strict YAML loader, may also import yaml).
+
+Every import counts: ``import dran_edge.x``, ``from dran_edge.x import y`` and
+``from dran_edge import x`` (which imports module ``x``), at module level or inside a function.
+Relative imports are not used. Imports under ``if TYPE_CHECKING:`` are annotations only and do
+not count.
 """
 
 from __future__ import annotations
@@ -13,70 +20,142 @@ import json
 import pathlib
 import subprocess
 import sys
+import tomllib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
-# Shells own clocks, sockets, threads, files and processes; they may import anything (lazily
-# for hardware). Every other module under dran_edge/ is core.
-SHELL_MODULES = {
-    "cli",
-    "daemon",
-    "ingest_server",
-    "notify",
-    "checkpoint",
-    "replay",
-    "simulate",
-    "evaluate",
-    "multiagent",
-    "run_dir",
-    "journal",  # the daemon's on-disk ingest journal
-    "sim_writer",  # writes simulated runs (renders frames, encodes ingest bytes)
-    "dgs",  # DGS baseline driven over the in-process bus (experiment driver)
-    "objects_sim",  # the Ego-like object experiment driver
-    "replay_robots",  # replay's per-robot drivers (daemon code, transports)
-    "dran_node",  # a DRAN agent as a comms.loopback node (simulation scenario inside)
-}
-SHELL_PACKAGES = {"commands"}
-CORE_THIRD_PARTY = {"numpy", "scipy", "yaml"}
+# Lowest first. Packages in one tuple are one layer and must not import each other.
+LAYERS: list[tuple[str, ...]] = [
+    ("base",),  # dran_edge/*.py and geometry/: errors, config, events, messages, geometry
+    ("solver",),
+    ("dran",),
+    ("robot",),
+    ("comms", "perception", "formats"),
+    ("evaluation", "sim"),
+    ("daemon",),
+    ("replay", "experiments"),
+    ("cli",),
+]
+LAYER_OF = {pkg: level for level, group in enumerate(LAYERS) for pkg in group}
+CORE = {"base", "solver", "dran", "robot"}
+CORE_THIRD_PARTY = {"numpy", "scipy"}
+YAML_ALLOWED = {"dran_edge/config.py"}
 HARDWARE = {"pyrealsense2", "depthai", "zmq", "systemd"}
+BASE_MODULES = {"errors", "config", "events", "messages", "geometry", "__version__"}
 
 
-def _core_files() -> list[pathlib.Path]:
-    out = []
-    for path in sorted((ROOT / "dran_edge").rglob("*.py")):
-        rel = path.relative_to(ROOT / "dran_edge")
-        if rel.parts[0] in SHELL_PACKAGES or (len(rel.parts) == 1 and path.stem in SHELL_MODULES):
-            continue
-        out.append(path)
-    return out
+def _source_files() -> list[pathlib.Path]:
+    return sorted(
+        [*(ROOT / "dran_edge").rglob("*.py"), *(ROOT / "comms").glob("*.py"),
+         *(ROOT / "perception").glob("*.py")]
+    )
 
 
-def _imported_modules(path: pathlib.Path) -> list[tuple[int, str]]:
+def _package_of_file(path: pathlib.Path) -> str:
+    rel = path.relative_to(ROOT).parts
+    if rel[0] in ("comms", "perception"):
+        return rel[0]
+    if len(rel) == 2 or rel[1] == "geometry":
+        return "base"
+    return rel[1]
+
+
+def _package_of_module(dotted: str) -> str | None:
+    """The layer package of an imported ``dran_edge`` module, or None for a third-party one."""
+    parts = dotted.split(".")
+    if parts[0] != "dran_edge":
+        return None
+    if len(parts) == 1 or parts[1] in BASE_MODULES:
+        return "base"
+    if parts[1] not in LAYER_OF:
+        raise AssertionError(f"{dotted}: dran_edge.{parts[1]} is in no layer of LAYERS")
+    return parts[1]
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _imports(path: pathlib.Path) -> list[tuple[int, str]]:
+    """(line, dotted module) of every import in the file, TYPE_CHECKING blocks left out."""
     tree = ast.parse(path.read_text(), filename=str(path))
-    found = []
+    skip = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and _is_type_checking(node)
+            for stmt in node.body for n in ast.walk(stmt)}
+    found: list[tuple[int, str]] = []
     for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             found += [(node.lineno, alias.name) for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            found.append((node.lineno, node.module))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                found.append((node.lineno, "." * node.level + (node.module or "")))
+            elif node.module in ("dran_edge", "dran_edge.comms", "dran_edge.perception",
+                                 *(f"dran_edge.{p}" for p in LAYER_OF)):
+                # ``from dran_edge import daemon`` imports the module dran_edge.daemon
+                found += [(node.lineno, f"{node.module}.{alias.name}") for alias in node.names]
+            else:
+                found.append((node.lineno, node.module or ""))
     return found
 
 
-def test_core_imports_only_numpy_scipy_stdlib_and_core():
+def test_every_package_is_in_a_layer_and_installed():
+    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    for init in sorted((ROOT / "dran_edge").rglob("__init__.py")):
+        rel = init.parent.relative_to(ROOT)
+        name = ".".join(rel.parts)
+        assert name in packages, f"{name} is missing from pyproject's [tool.setuptools] packages"
+        if len(rel.parts) > 1 and rel.parts[1] != "geometry":
+            assert rel.parts[1] in LAYER_OF, f"{name} is in no layer of {__name__}.LAYERS"
+
+
+def test_imports_respect_the_layers():
+    bad = []
+    for path in _source_files():
+        src = _package_of_file(path)
+        where = path.relative_to(ROOT)
+        for lineno, name in _imports(path):
+            if name.startswith("."):
+                bad.append(f"{where}:{lineno} relative import {name} (write dran_edge.…)")
+                continue
+            dst = _package_of_module(name)
+            if dst is None or dst == src:
+                continue
+            if LAYER_OF[dst] >= LAYER_OF[src]:
+                bad.append(f"{where}:{lineno} {src} imports {name} ({dst} is not below {src})")
+    assert not bad, "layer contract broken:\n" + "\n".join(bad)
+
+
+def test_core_imports_only_numpy_scipy_and_the_standard_library():
     stdlib = set(sys.stdlib_module_names) | {"__future__"}
     bad = []
-    for path in _core_files():
-        for lineno, name in _imported_modules(path):
+    for path in _source_files():
+        if _package_of_file(path) not in CORE:
+            continue
+        where = path.relative_to(ROOT)
+        for lineno, name in _imports(path):
             top = name.split(".")[0]
-            if top == "dran_edge":
-                parts = name.split(".")
-                if len(parts) > 1 and (
-                    parts[1] in {"perception", "comms"} | SHELL_PACKAGES | SHELL_MODULES
-                ):
-                    bad.append(f"{path.relative_to(ROOT)}:{lineno} imports shell {name}")
-            elif top not in stdlib and top not in CORE_THIRD_PARTY:
-                bad.append(f"{path.relative_to(ROOT)}:{lineno} imports {name}")
+            if top in stdlib or top in CORE_THIRD_PARTY or top == "dran_edge":
+                continue
+            if top == "yaml" and str(where) in YAML_ALLOWED:
+                continue
+            bad.append(f"{where}:{lineno} imports {name}")
     assert not bad, "core modules must stay pure:\n" + "\n".join(bad)
+
+
+def test_the_contract_catches_what_it_claims(tmp_path):
+    """The checker itself: a core module importing a shell in each spelling is caught."""
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "from dran_edge import daemon\nimport dran_edge.replay.run\nfrom . import x\n"
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from dran_edge.cli import app\n"
+    )
+    names = [n for _, n in _imports(probe)]
+    assert names == ["dran_edge.daemon", "dran_edge.replay.run", ".", "typing"]
+    assert {_package_of_module(n) for n in names[:2]} == {"daemon", "replay"}
 
 
 def test_no_hardware_library_is_imported_at_module_import_time():
@@ -107,10 +186,10 @@ print(json.dumps({{"modules": len(names), "failed": failed, "hardware_loaded": l
 
 
 def test_cli_help_is_instant_and_lists_every_command():
-    from dran_edge import cli
+    from dran_edge.cli import app as cli
 
     out = subprocess.run(
-        [sys.executable, "-c", "import sys; from dran_edge.cli import main; sys.exit(main(['--help']))"],
+        [sys.executable, "-c", "import sys; from dran_edge.cli.app import main; sys.exit(main(['--help']))"],
         capture_output=True,
         text=True,
         timeout=60,

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.factors import BetweenFactors, Cauchy, PriorFactors, isotropic_whitening
-from dran_edge.graph import PoseGraph, VariableKind, kinds_array
-from dran_edge.graphgen import synthetic_graph
-from dran_edge.lm import (
+from dran_edge.solver.factors import BetweenFactors, Cauchy, PriorFactors, isotropic_whitening
+from dran_edge.solver.graph import PoseGraph, VariableKind, kinds_array
+from dran_edge.sim.graphgen import synthetic_graph
+from dran_edge.solver.lm import (
     LMParams,
     LMStatus,
     build_plan,
@@ -20,7 +20,7 @@ from dran_edge.lm import (
     schur_step,
     solve,
 )
-from dran_edge.pgo import pose_graph
+from dran_edge.solver.centralized import pose_graph
 
 
 def _random_problem(rng, dim, residual, n_private, n_public, n_fixed, kernel=None):

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dran_edge.graph import kinds_array
-from dran_edge.graphgen import synthetic_graph
-from dran_edge.lm import LMParams, build_plan, cholesky_factorizer, linearize, schur_step, solve
-from dran_edge.pgo import initial_poses, pose_graph
-from dran_edge.sparse_cholesky import (
+from dran_edge.solver.graph import kinds_array
+from dran_edge.sim.graphgen import synthetic_graph
+from dran_edge.solver.lm import LMParams, build_plan, cholesky_factorizer, linearize, schur_step, solve
+from dran_edge.solver.centralized import initial_poses, pose_graph
+from dran_edge.solver.sparse_cholesky import (
     NotPositiveDefinite,
     SymbolicCholesky,
     _front_pos,
@@ -107,7 +107,7 @@ def test_gathered_leaf_siblings_are_split_when_their_parent_cannot_join(monkeypa
     """Natural order on 0–2, 0–3, 1–2, 1–4, 2–3, 3–4: leaves 0 and 1 are siblings under 2 with
     different structures ({2, 3} and {2, 4}). With max_cols=2 they gather but 2 cannot join
     them, so they must become two supernodes again (one front would miss row 3 or 4)."""
-    import dran_edge.sparse_cholesky as sc
+    import dran_edge.solver.sparse_cholesky as sc
 
     monkeypatch.setattr(sc, "_block_order", lambda nb, rows, cols: np.arange(nb))
     rng = np.random.default_rng(11)
@@ -122,7 +122,7 @@ def test_gathered_leaf_siblings_are_split_when_their_parent_cannot_join(monkeypa
 
 
 def test_extend_add_fallback_for_old_numpy_gives_the_same_solution(monkeypatch):
-    import dran_edge.sparse_cholesky as sc
+    import dran_edge.solver.sparse_cholesky as sc
 
     g, truth = synthetic_graph(3, side=4, layers=2, seed=5)
     plan = build_plan(pose_graph(g, "chordal", "sesync"))

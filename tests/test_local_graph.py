@@ -8,29 +8,29 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.checkpoint import dumps, loads
+from dran_edge.daemon.checkpoint import dumps, loads
 from dran_edge.config import AgentConfig, GraphBounds
 from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
-from dran_edge.local_graph import (
+from dran_edge.robot.keyframe_graph import (
     KIND_LOOP,
     KIND_OBSERVATION,
     KIND_ODOMETRY,
     OBJ,
-    LocalGraph,
+    KeyframeGraph,
     compose_cov,
     fuse,
     gauge_anchor,
     invert_cov,
 )
-from dran_edge.segments import Segmenter
-from dran_edge.vio_sim import vio_mission
+from dran_edge.robot.segments import Segmenter
+from dran_edge.sim.vio import vio_mission
 
 
 def cfg(max_nodes=100_000, max_edges=400_000, **kw) -> AgentConfig:
     return AgentConfig(graph=GraphBounds(max_nodes=max_nodes, max_edges=max_edges), **kw)
 
 
-def feed(g: LocalGraph, events) -> None:
+def feed(g: KeyframeGraph, events) -> None:
     for e in events:
         g.handle(e)
 
@@ -67,7 +67,7 @@ def test_invert_and_fuse():
 
 # --------------------------------------------------------------------------- selection, segments
 def test_keyframe_selection_by_distance_angle_time():
-    g = LocalGraph(cfg())
+    g = KeyframeGraph(cfg())
     b = g.bounds
     t = 1_000_000_000
     g.handle(Keyframe(t, pose()))
@@ -99,7 +99,7 @@ def test_segments_from_reset_gap_and_jump():
 
 def test_no_odometry_edge_across_a_reset():
     m = vio_mission(120, seed=3, reset_at=(60,))
-    g = LocalGraph(cfg())
+    g = KeyframeGraph(cfg())
     feed(g, m.events)
     fa = g.factor_arrays()
     odo = fa["kind"] == KIND_ODOMETRY
@@ -112,7 +112,7 @@ def test_no_odometry_edge_across_a_reset():
 def test_loop_and_observation_measurements_match_truth():
     m = vio_mission(200, seed=4, drift_t=1e-6, drift_r=1e-7, loop_sigma=(1e-6, 1e-7),
                     obs_sigma=(1e-6, 1e-7))
-    g = LocalGraph(cfg())
+    g = KeyframeGraph(cfg())
     feed(g, m.events)
     fa = g.factor_arrays()
     stamps = dict(zip(g.node_keys().tolist(), g.node_stamps_ns().tolist()))
@@ -129,7 +129,7 @@ def test_loop_and_observation_measurements_match_truth():
 
 
 def test_observation_before_its_odometry_waits_for_it():
-    g = LocalGraph(cfg())
+    g = KeyframeGraph(cfg())
     t = 10**9
     g.handle(OdometrySample(t, pose()))
     g.handle(Keyframe(t, pose()))
@@ -144,7 +144,7 @@ def test_observation_before_its_odometry_waits_for_it():
 # --------------------------------------------------------------------------- bounds
 def test_hard_caps_hold_over_a_long_mission():
     m = vio_mission(500, seed=6, reset_at=(250,))
-    g = LocalGraph(cfg(max_nodes=80, max_edges=320))
+    g = KeyframeGraph(cfg(max_nodes=80, max_edges=320))
     peak_nodes = peak_edges = 0
     for e in m.events:
         g.handle(e)
@@ -159,7 +159,7 @@ def test_marginalisation_is_exact_for_a_linearised_graph():
     """Removing nodes after the optimum leaves the optimum of the kept nodes unchanged."""
     m = vio_mission(250, seed=7)
     evs = [e for e in m.events if not isinstance(e, LoopClosure)]
-    g = LocalGraph(cfg(robust_kernel="none"))
+    g = KeyframeGraph(cfg(robust_kernel="none"))
     feed(g, evs)
     for _ in range(3):
         g.solve()
@@ -177,7 +177,7 @@ def test_marginalisation_is_exact_for_a_linearised_graph():
 
 def test_protected_nodes_leave_last():
     m = vio_mission(100, seed=8)
-    g = LocalGraph(cfg(max_nodes=40, max_edges=400))
+    g = KeyframeGraph(cfg(max_nodes=40, max_edges=400))
     feed(g, m.events[: len(m.events) // 3])
     keep = g.node_keys()[:3]
     g.protect(keep)
@@ -189,10 +189,10 @@ def test_protected_nodes_leave_last():
 def test_state_round_trip_through_a_checkpoint():
     m = vio_mission(300, seed=9, reset_at=(150,))
     c = cfg(max_nodes=60, max_edges=240)
-    a = LocalGraph(c)
+    a = KeyframeGraph(c)
     half = len(m.events) // 2
     feed(a, m.events[:half])
-    b = LocalGraph.from_state(c, loads(dumps(a.to_state())))
+    b = KeyframeGraph.from_state(c, loads(dumps(a.to_state())))
     feed(a, m.events[half:])
     feed(b, m.events[half:])
     assert a.counters == b.counters
@@ -204,7 +204,7 @@ def test_state_round_trip_through_a_checkpoint():
 
 def test_problem_and_sparsified_prior():
     m = vio_mission(300, seed=10)
-    g = LocalGraph(cfg(max_nodes=60, max_edges=240))
+    g = KeyframeGraph(cfg(max_nodes=60, max_edges=240))
     feed(g, m.events)
     graph, poses, keys = g.problem()
     assert poses.shape == (len(keys), 4, 4)
@@ -224,7 +224,7 @@ def test_gauge_anchor_rule():
 
 
 def test_reset_event_alone_changes_nothing_structural():
-    g = LocalGraph(cfg())
+    g = KeyframeGraph(cfg())
     assert not g.handle(VioReset(5, "x"))
     with pytest.raises(ValueError):
-        LocalGraph(AgentConfig(dim=2))
+        KeyframeGraph(AgentConfig(dim=2))

@@ -1,4 +1,4 @@
-"""Paper metrics and the usual ones (dran_edge.metrics), and our ATE against evo's."""
+"""Paper metrics and the usual ones (dran_edge.evaluation.metrics), and our ATE against evo's."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dran_edge import align, metrics, tum
+from dran_edge.evaluation import align, metrics
+from dran_edge.formats import tum
 
 DATA = Path(__file__).parent / "data" / "eval"
 

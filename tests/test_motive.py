@@ -1,4 +1,4 @@
-"""Motive CSV reader and writer (dran_edge.motive) on hand-checked fixtures (tests/data/motive)."""
+"""Motive CSV reader and writer (dran_edge.formats.motive) on hand-checked fixtures (tests/data/motive)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dran_edge import motive
+from dran_edge.formats import motive
 from dran_edge.errors import InputError
 
 DATA = Path(__file__).parent / "data" / "motive"

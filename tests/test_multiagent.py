@@ -8,9 +8,9 @@ import pytest
 from dran_edge.comms.bus import Bus, BusParams, Partition, random_connected_graph
 
 from dran_edge.config import AgentConfig
-from dran_edge.consensus import metropolis_hastings_matrix
-from dran_edge.multiagent import Fleet, neighbour_weights
-from dran_edge.objects_sim import SimParams, make_scenario, run_objects
+from dran_edge.dran.consensus import metropolis_hastings_matrix
+from dran_edge.experiments.fleet import Fleet, neighbour_weights
+from dran_edge.experiments.objects import SimParams, make_scenario, run_objects
 
 CFG = AgentConfig(robust_kernel="none", eps_phi=1e-6)
 SMALL = SimParams(num_robots=3, num_objects=6, box_m=(12.0, 12.0, 3.0), goals_per_robot=2,
@@ -35,7 +35,7 @@ def test_relay_reaches_a_robot_two_hops_away():
     sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
                                  goals_per_robot=2, seed=3))
 
-    from dran_edge.agent import Agent
+    from dran_edge.dran.agent import Agent
 
     bus = Bus(range(3), graph=[(0, 1), (1, 2)])
     W = neighbour_weights(bus)
@@ -80,7 +80,7 @@ def test_fleet_traffic_is_the_bus_count_of_every_datagram_byte(toy):
     """The fleet's totals are the bus's; a partition cuts robot 2 off (no bytes to or from it
     while cut, since only links that are up carry datagrams), and the agents still run."""
 
-    from dran_edge.agent import Agent
+    from dran_edge.dran.agent import Agent
 
     bus = Bus(range(3), graph=[(0, 1), (1, 2), (0, 2)],
               partitions=[Partition(frozenset({2}), start_round=1, end_round=4)])
@@ -139,7 +139,7 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
 def _misread_toy(**config):
     """Three robots in a line (0 - 1 - 2); robot 0 reads object 6's tag as id 7 from two
     keyframes in a row; only robot 2 sees object 7. Returns (scenario, the misread views, agents)."""
-    from dran_edge.agent import Agent
+    from dran_edge.dran.agent import Agent
 
     sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
                                  goals_per_robot=2, seed=6))

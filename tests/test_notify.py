@@ -9,7 +9,7 @@ import uuid
 
 import pytest
 
-from dran_edge.notify import Notifier, setup_logging
+from dran_edge.daemon.notify import Notifier, setup_logging
 
 
 @pytest.fixture
@@ -54,7 +54,7 @@ def test_abstract_socket_builtin():
 
 
 def test_without_systemd_is_a_noop_said_once(caplog):
-    with caplog.at_level(logging.INFO, logger="dran_edge.notify"):
+    with caplog.at_level(logging.INFO, logger="dran_edge.daemon.notify"):
         n = Notifier({})
     assert not n.enabled and n.backend == "none"
     assert not n.ready() and not n.watchdog()

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from dran_edge import geometry as geo
-from dran_edge.graphgen import synthetic_graph
-from dran_edge.lm import evaluate_cost
-from dran_edge.objective import edge_factors, sesync_objective, sesync_weights
-from dran_edge.pgo import pose_graph
+from dran_edge.sim.graphgen import synthetic_graph
+from dran_edge.solver.lm import evaluate_cost
+from dran_edge.solver.objective import edge_factors, sesync_objective, sesync_weights
+from dran_edge.solver.centralized import pose_graph
 
 
 def test_two_edge_example_by_hand_2d():

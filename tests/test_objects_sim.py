@@ -1,10 +1,10 @@
-"""The Ego-like object scenario (dran_edge.objects_sim): outliers leave the inlier data alone."""
+"""The Ego-like object scenario (dran_edge.experiments.objects): outliers leave the inlier data alone."""
 
 import numpy as np
 import pytest
 
 from dran_edge.errors import InputError
-from dran_edge.objects_sim import SimParams, make_scenario
+from dran_edge.experiments.objects import SimParams, make_scenario
 
 SMALL = dict(num_robots=4, num_objects=12, box_m=(15.0, 15.0, 3.0), goals_per_robot=2, seed=5)
 

@@ -1,4 +1,4 @@
-"""OnlineAgent.to_state / from_state (the daemon's checkpoint of its core) and the write-back."""
+"""RobotCore.to_state / from_state (the daemon's checkpoint of its core) and the write-back."""
 
 from __future__ import annotations
 
@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.checkpoint import dumps, loads
+from dran_edge.daemon.checkpoint import dumps, loads
 from dran_edge.config import AgentConfig, GraphBounds
 from dran_edge.events import (
     EstimateUpdate,
     Tick,
 )
-from dran_edge.online_agent import OnlineAgent
+from dran_edge.robot.core import RobotCore
 from sim_events import single_robot_events
 
 
@@ -51,10 +51,10 @@ def test_state_round_trips_through_a_checkpoint_and_continues_alike(mission):
     steps = _ticks(events)
     half = len(steps) // 2
     cfg = AgentConfig(robot_id=1)
-    core = OnlineAgent(cfg, T_world_odom=r.T_world_odom[0])
+    core = RobotCore(cfg, T_world_odom=r.T_world_odom[0])
     _feed(core, steps[:half])
     state = loads(dumps(core.to_state()))  # through the daemon's checkpoint format
-    again = OnlineAgent.from_state(cfg, state)
+    again = RobotCore.from_state(cfg, state)
     assert again.local_graph.num_nodes == core.local_graph.num_nodes > 10
     np.testing.assert_array_equal(again.T_world_odom, core.T_world_odom)
     assert again.local_graph.anchor_first == core.local_graph.anchor_first
@@ -74,7 +74,7 @@ def test_state_round_trips_through_a_checkpoint_and_continues_alike(mission):
 def test_to_state_holds_the_optimised_estimates(mission):
     r, events = mission
     steps = _ticks(events)
-    core = OnlineAgent(AgentConfig(robot_id=1), T_world_odom=r.T_world_odom[0])
+    core = RobotCore(AgentConfig(robot_id=1), T_world_odom=r.T_world_odom[0])
     _feed(core, steps[: len(steps) // 2])
     for k in range(5):  # rounds after the last rebuild move the estimates on
         core.handle(Tick(steps[-1][1].stamp_ns + k))
@@ -96,7 +96,7 @@ def test_to_state_holds_the_optimised_estimates(mission):
 def test_dead_reckoning_stays_bounded_by_the_graph(mission):
     r, events = mission
     cfg = AgentConfig(robot_id=1, graph=GraphBounds(max_nodes=12, max_edges=48))
-    core = OnlineAgent(cfg, T_world_odom=r.T_world_odom[0])
+    core = RobotCore(cfg, T_world_odom=r.T_world_odom[0])
     _feed(core, _ticks(events))
     g = core.local_graph
     assert g.counters.get("nodes_added", 0) > g.num_nodes, "the graph should have dropped nodes"
@@ -105,7 +105,7 @@ def test_dead_reckoning_stays_bounded_by_the_graph(mission):
 
 
 def test_from_state_refuses_another_format(mission):
-    state = OnlineAgent(AgentConfig(robot_id=1)).to_state()
+    state = RobotCore(AgentConfig(robot_id=1)).to_state()
     state["online"]["format"] = 99
     with pytest.raises(ValueError, match="state format"):
-        OnlineAgent.from_state(AgentConfig(robot_id=1), state)
+        RobotCore.from_state(AgentConfig(robot_id=1), state)

@@ -1,8 +1,8 @@
-"""Tests of the contiguous graph split (dran_edge.partition)."""
+"""Tests of the contiguous graph split (dran_edge.dran.partition)."""
 
 import numpy as np
 
-from dran_edge.partition import contiguous_owner, partition_contiguous
+from dran_edge.dran.partition import contiguous_owner, partition_contiguous
 
 
 def _ring_with_chords(n: int) -> np.ndarray:

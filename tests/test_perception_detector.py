@@ -88,7 +88,7 @@ def test_renderer_corner_convention_and_ids():
 
 
 def test_upright_opencv_marker_is_rz180():
-    """ecosystem-facts 3.5: an OpenCV marker drawn upright has R_camera_tag = Rz(180)."""
+    """docs/perception.md: an OpenCV marker drawn upright has R_camera_tag = Rz(180)."""
     renderer = TagRenderer()
     Rz180 = np.diag([-1.0, -1.0, 1.0])
     colour, _ = renderer.render(K, 640, 480, [geo.se3_from_rt(Rz180, [0, 0, 1.0])], [7], 0.16)

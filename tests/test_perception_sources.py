@@ -232,7 +232,7 @@ def test_depthai_source_skips_cleanly_without_depthai():
 # --------------------------------------------------------------------------- CLI, layering
 def test_detect_command_json_lines(capsys):
     pytest.importorskip("pupil_apriltags")
-    from dran_edge.cli import main
+    from dran_edge.cli.app import main
 
     assert main(["detect", str(DATA), "--json", "--intrinsics", "615,615,319.5,239.5",
                  "--tag-size", "0.16"]) == 0
@@ -252,7 +252,7 @@ def test_detect_command_json_lines(capsys):
 
 def test_detect_command_with_calib_gives_object_ids(tmp_path, capsys):
     pytest.importorskip("pupil_apriltags")
-    from dran_edge.cli import main
+    from dran_edge.cli.app import main
 
     assert main(["detect", str(DATA / "three_tags_clutter.png"), "--json", "--calib",
                  str(ROOT / "calib"), "--robot", "dingo1"]) == 0
@@ -265,7 +265,7 @@ def test_detect_command_with_calib_gives_object_ids(tmp_path, capsys):
 
 def test_perception_imports_no_hardware_library():
     code = ("import sys; import dran_edge.perception.pipeline, dran_edge.perception.sources, "
-            "dran_edge.perception.render, dran_edge.commands.detect; "
+            "dran_edge.perception.render, dran_edge.cli.commands.detect; "
             "bad = [m for m in ('pyrealsense2', 'depthai', 'zmq') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)

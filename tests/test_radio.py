@@ -148,7 +148,7 @@ def test_four_processes_over_radio_dish_match_the_in_process_bus():
 
 @needs_draft
 def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run():
-    """Issue 4: three DRAN agents (objects toy), one process each with its own DISH on
+    """Three DRAN agents (objects toy), one process each with its own DISH on
     loopback, end bit-identical to the same three agents in one process on the bus."""
     edges = ((0, 1), (1, 2))
     spec = FleetSpec(
@@ -156,7 +156,7 @@ def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run
         edges=edges,
         rounds=12,
         base_port=_consecutive_free_ports(3),
-        node_factory="dran_edge.dran_node:DranNode",
+        node_factory="dran_edge.experiments.dran_node:DranNode",
         node_config={
             "sim": {"num_robots": 3, "num_objects": 6, "box_m": [12.0, 12.0, 3.0],
                     "goals_per_robot": 2, "step_m": 1.5, "seed": 3},

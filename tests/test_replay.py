@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dran_edge import replay as rp
+from dran_edge.replay import run as rp
 from dran_edge.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,8 +34,8 @@ def tiny(tmp_path_factory, regen):
 
 
 def test_outputs_exist_and_are_readable(tiny):
-    from dran_edge.evaluate import read_rounds_csv
-    from dran_edge.tum import read_tum
+    from dran_edge.evaluation.score import read_rounds_csv
+    from dran_edge.formats.tum import read_tum
 
     run, report = tiny
     for key in ("robots", "mission_s", "replay_wall_s", "rounds", "bytes_total"):

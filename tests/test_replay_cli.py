@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from dran_edge.cli import main
+from dran_edge.cli.app import main
 
 
 def test_simulate_then_replay_through_the_cli(tmp_path, capsys):

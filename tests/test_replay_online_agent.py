@@ -1,4 +1,4 @@
-"""OnlineAgent / problem_from_graph: ingest events -> bounded local graph -> the agent's problem."""
+"""RobotCore / problem_from_graph: ingest events -> bounded local graph -> the agent's problem."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from dran_edge.events import (
     EstimateUpdate,
     Tick,
 )
-from dran_edge.local_graph import OBJ
-from dran_edge.online_agent import OnlineAgent, problem_from_graph
+from dran_edge.robot.keyframe_graph import OBJ
+from dran_edge.robot.core import RobotCore, problem_from_graph
 from sim_events import single_robot_events
 
 
@@ -41,7 +41,7 @@ def _run(core, events, period_ns=500_000_000):
 
 def test_problem_from_graph_maps_every_factor(robot_events):
     m, r, events = robot_events
-    core = OnlineAgent(AgentConfig(robot_id=1))
+    core = RobotCore(AgentConfig(robot_id=1))
     for _, _, ev in events:
         core.local_graph.handle(ev)
     g = core.local_graph
@@ -66,7 +66,7 @@ def test_problem_from_graph_maps_every_factor(robot_events):
 
 def test_online_agent_estimates_in_the_world_frame(robot_events):
     m, r, events = robot_events
-    core = OnlineAgent(AgentConfig(robot_id=1), T_world_odom=r.T_world_odom[0])
+    core = RobotCore(AgentConfig(robot_id=1), T_world_odom=r.T_world_odom[0])
     last = _run(core, events)
     assert last is not None and len(last.keyframe_stamps_ns) > 20
     truth = r.path.poses((last.keyframe_stamps_ns - m.params.start_ns) / 1e9)
@@ -83,7 +83,7 @@ def test_online_agent_estimates_in_the_world_frame(robot_events):
 
 def test_world_frame_only_before_the_first_keyframe(robot_events):
     _, r, events = robot_events
-    core = OnlineAgent(AgentConfig(robot_id=1))
+    core = RobotCore(AgentConfig(robot_id=1))
     for _, _, ev in events[:200]:
         core.handle(ev)
     with pytest.raises(ValueError, match="already has nodes"):
@@ -91,10 +91,10 @@ def test_world_frame_only_before_the_first_keyframe(robot_events):
 
 
 def test_without_world_frame_only_the_lowest_id_anchors():
-    lone = OnlineAgent(AgentConfig(robot_id=3, neighbours=(5, 7)))
+    lone = RobotCore(AgentConfig(robot_id=3, neighbours=(5, 7)))
     assert lone.local_graph.anchor_first
-    other = OnlineAgent(AgentConfig(robot_id=3, neighbours=(1, 5)))
+    other = RobotCore(AgentConfig(robot_id=3, neighbours=(1, 5)))
     assert not other.local_graph.anchor_first
-    with_frame = OnlineAgent(dataclasses.replace(AgentConfig(robot_id=3, neighbours=(1,))),
+    with_frame = RobotCore(dataclasses.replace(AgentConfig(robot_id=3, neighbours=(1,))),
                              T_world_odom=np.eye(4))
     assert with_frame.local_graph.anchor_first

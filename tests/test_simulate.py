@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge import run_dir as rd
-from dran_edge import simulate as sim
+from dran_edge.formats import run_dir as rd
+from dran_edge.sim import mission as sim
 from dran_edge.errors import InputError
 
 SMALL = sim.SimParams(robots=3, objects=4, duration_s=60.0, arena_m=6.0, seed=3)
@@ -179,7 +179,7 @@ def test_bad_parameters_are_rejected():
 # ------------------------------------------------------------------------------ run directory
 @pytest.fixture(scope="module")
 def written_run(tmp_path_factory, mission):
-    from dran_edge.sim_writer import write_run
+    from dran_edge.sim.writer import write_run
 
     root = tmp_path_factory.mktemp("simrun") / "run"
     write_run(mission, root, frames="none")
@@ -219,7 +219,7 @@ def test_written_run_reads_back_with_the_projects_readers(written_run, mission):
 
 
 def test_written_mocap_is_motive_y_up_and_matches_the_truth(written_run, mission):
-    from dran_edge.motive import read_motive_csv
+    from dran_edge.formats.motive import read_motive_csv
 
     text = (written_run / "mocap.csv").read_text()
     assert text.startswith("Format Version,1.23,")

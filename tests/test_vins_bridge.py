@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from dran_edge import geometry as geo
 from dran_edge.comms import ingest as I
 from dran_edge.events import Keyframe, LoopClosure, OdometrySample, VioReset
-from dran_edge.ingest_server import IngestServer
+from dran_edge.daemon.ingest_server import IngestServer
 
 REPO = Path(__file__).resolve().parents[1]
 BRIDGE = REPO / "tools" / "vins_bridge.py"

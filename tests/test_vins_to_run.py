@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge import run_dir as rd
-from dran_edge import simulate as sim
+from dran_edge.formats import run_dir as rd
+from dran_edge.sim import mission as sim
 
 TOOL = Path(__file__).resolve().parents[1] / "tools" / "vins_to_run.py"
 

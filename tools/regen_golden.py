@@ -22,9 +22,9 @@ GOLDEN = ROOT / "tests" / "data" / "golden" / "tiny_replay.json"
 
 def tiny_run(directory: Path) -> dict:
     """Simulate the tiny mission into ``directory`` and replay it; returns the report."""
-    from dran_edge.replay import ReplayOptions, replay_run
-    from dran_edge.sim_writer import write_run
-    from dran_edge.simulate import SimParams, generate_mission
+    from dran_edge.replay.run import ReplayOptions, replay_run
+    from dran_edge.sim.writer import write_run
+    from dran_edge.sim.mission import SimParams, generate_mission
 
     params = SimParams(**json.loads(GOLDEN.with_suffix(".params.json").read_text()))
     write_run(generate_mission(params), directory / "run", frames="render", workers=1)
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--check", action="store_true", help="compare only; do not write")
     args = ap.parse_args(argv)
-    from dran_edge.replay import compare_summary, golden_summary
+    from dran_edge.replay.run import compare_summary, golden_summary
 
     with tempfile.TemporaryDirectory() as tmp:
         summary = golden_summary(tiny_run(Path(tmp)))

@@ -8,7 +8,7 @@ One robot per invocation; run it once per robot with the same OUT_DIR to build a
         [--pose-graph out1/pose_graph.txt] [--images cam0/data --calib calib/] \\
         [--neighbours 2,3] [--mocap take.csv --mocap-body dingo1]
 
-What it reads (ecosystem-facts §1.4; docs/replay.md "Converting VINS-Mono outputs"):
+What it reads (docs/vins-mono.md; docs/replay.md "Converting VINS-Mono outputs"):
 
 - ``vins_result_no_loop.csv`` (required): the estimator's odometry, one line per processed
   image: ``t_ns, px, py, pz, qw, qx, qy, qz, vx, vy, vz,`` — nanosecond stamps, w-first
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from dran_edge import geometry as geo
-from dran_edge import run_dir as rd
+from dran_edge.formats import run_dir as rd
 from dran_edge.errors import DranError, InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")

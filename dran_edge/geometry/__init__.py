@@ -1,6 +1,6 @@
 """SE(2) and SE(3) on plain numpy arrays, batched over leading axes.
 
-Project conventions (DESIGN §4), fixed here once:
+Project conventions (docs/architecture.md, "Conventions"), fixed here once:
 
 - Poses are ``(..., 4, 4)`` (SE(3)) or ``(..., 3, 3)`` (SE(2)) float64 arrays; ``T_a_b`` maps
   frame-b points into frame a, so ``T_a_c = T_a_b @ T_b_c``.

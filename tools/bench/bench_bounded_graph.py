@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
-"""Bounded vs unbounded local graph on a long VIO mission (issue 5 benchmark).
+"""Bounded vs unbounded local graph on a long VIO mission (docs/benchmarks.md, bounded graph).
 
-One simulated robot (``dran_edge.vio_sim``: laps among 9 AprilTag objects, 10 Hz odometry with
+One simulated robot (``dran_edge.sim.vio``: laps among 9 AprilTag objects, 10 Hz odometry with
 drift, DBoW2-like loops, tag observations, two VIO resets) streams N keyframes into
 
-- the bounded :class:`LocalGraph` (``max_nodes``/``max_edges`` caps, composition and Schur
+- the bounded :class:`KeyframeGraph` (``max_nodes``/``max_edges`` caps, composition and Schur
   marginalisation), solved every ``--round-every`` keyframes (a "round", 3 warm-started LM
   iterations), and
 - the same graph without caps (the baseline), solved with the same settings at every report
@@ -38,13 +38,13 @@ import tempfile  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from dran_edge import lm  # noqa: E402
+from dran_edge.solver import lm  # noqa: E402
 from dran_edge.comms.ingest import IngestDecodeError, StreamDecoder, encode_event  # noqa: E402
 from dran_edge.config import AgentConfig, GraphBounds  # noqa: E402
 from dran_edge.events import Keyframe  # noqa: E402
-from dran_edge.graph import PoseGraph  # noqa: E402
-from dran_edge.local_graph import LocalGraph  # noqa: E402
-from dran_edge.vio_sim import vio_mission  # noqa: E402
+from dran_edge.solver.graph import PoseGraph  # noqa: E402
+from dran_edge.robot.keyframe_graph import KeyframeGraph  # noqa: E402
+from dran_edge.sim.vio import vio_mission  # noqa: E402
 
 
 def rss_mb(field: str = "VmRSS") -> float:
@@ -55,13 +55,13 @@ def rss_mb(field: str = "VmRSS") -> float:
     return float("nan")
 
 
-def round_solve(g: LocalGraph, iterations: int) -> float:
+def round_solve(g: KeyframeGraph, iterations: int) -> float:
     t = time.perf_counter()
     g.solve(lm.LMParams(max_iterations=iterations))
     return time.perf_counter() - t
 
 
-def errors(g: LocalGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
+def errors(g: KeyframeGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
            ) -> tuple[float, float]:
     i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
     ate = float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2,
@@ -72,7 +72,7 @@ def errors(g: LocalGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: n
     return ate, obj
 
 
-def solve_sparsified(g: LocalGraph) -> tuple[np.ndarray, np.ndarray]:
+def solve_sparsified(g: KeyframeGraph) -> tuple[np.ndarray, np.ndarray]:
     """The bounded graph as the agent sees it: sparsified prior instead of the dense one."""
     graph, poses, keys = g.problem()
     blocks = g._blocks(g.factor_arrays(include_prior=True), keys, g.config.residual)
@@ -140,8 +140,8 @@ def main(argv=None) -> int:
     print(f"mission: {n} keyframes, {os.path.getsize(path) / 1e6:.1f} MB of ingest records, "
           f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB")
     base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
-    bounded = LocalGraph(base)
-    unbounded = None if args.no_baseline else LocalGraph(
+    bounded = KeyframeGraph(base)
+    unbounded = None if args.no_baseline else KeyframeGraph(
         AgentConfig(graph=GraphBounds(max_nodes=1_000_000, max_edges=10_000_000)))
 
     print("\n| keyframes | bounded nodes / factors / prior vars | bounded round solve ms "

@@ -9,11 +9,11 @@ SuperLU (``splu``, MMD on AᵀA+A, symmetric mode, as lm.py's 'superlu' option) 
 numeric factorisation, plus our one-off analysis and one solve with 1 right-hand side each;
 the relative residual ‖(A+μI)x − b‖∞/‖b‖∞ checks both.
 
-``--baseline FILE`` (another version of dran_edge/sparse_cholesky.py, e.g. from
-``git show REV:dran_edge/sparse_cholesky.py > /tmp/base.py``) adds an A/B table on the SE(3)
+``--baseline FILE`` (another version of dran_edge/solver/sparse_cholesky.py, e.g. from
+``git show REV:dran_edge/solver/sparse_cholesky.py > /tmp/base.py``) adds an A/B table on the SE(3)
 graphs: analysis, factorisation and solve of both versions on the same matrix, and whole LM solves
 (lm.solve with linear_solver='cholesky': chordal residual with the exact Hessian to 1e-8 as the
-CLI, and geodesic Gauss–Newton to 1e-5) with each version swapped into dran_edge.lm, interleaved,
+CLI, and geodesic Gauss–Newton to 1e-5) with each version swapped into dran_edge.solver.lm, interleaved,
 best of --repeat. These times are CPU seconds of this process (time.process_time), which a
 shared, oversubscribed machine disturbs far less than wall time; F of both results is compared.
 """
@@ -33,13 +33,13 @@ import importlib.util
 import numpy as np
 import scipy.sparse as sp
 
-import dran_edge.sparse_cholesky as ours
-from dran_edge import lm
-from dran_edge.g2o import read_g2o
-from dran_edge.lm import LMParams, _factorize, build_plan, linearize
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.pgo import initial_poses, pose_graph
-from dran_edge.sparse_cholesky import SymbolicCholesky
+import dran_edge.solver.sparse_cholesky as ours
+from dran_edge.solver import lm
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.solver.lm import LMParams, _factorize, build_plan, linearize
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.solver.centralized import initial_poses, pose_graph
+from dran_edge.solver.sparse_cholesky import SymbolicCholesky
 
 FILES = {
     "parking-garage": "parking-garage.g2o",

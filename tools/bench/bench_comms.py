@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Comms benchmark (issue 4): codec + auth cost against baselines, precision, loopback RADIO/DISH.
+"""Comms benchmark: codec + auth cost against baselines, precision, loopback RADIO/DISH.
 
     .venv/bin/python tools/bench/bench_comms.py [--quick] [--json]
 

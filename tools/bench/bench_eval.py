@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dran_edge import align, metrics, motive, tum
+from dran_edge.evaluation import align, metrics
+from dran_edge.formats import motive, tum
 
 
 def _track(t):

@@ -35,10 +35,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 
-from dran_edge.g2o import read_g2o
-from dran_edge.lm import LMParams, solve
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.pgo import initial_poses, pose_graph
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.solver.lm import LMParams, solve
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.solver.centralized import initial_poses, pose_graph
 
 # F* of the data README (exact LM, ‖grad‖ ≤ 2e-4); the paper prints them rounded.
 DATASETS = {

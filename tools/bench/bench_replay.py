@@ -9,7 +9,7 @@ pipeline on every frame, like ``make demo``) and once with tag observations writ
 into ingest.bin (the back-end alone). Both are replayed back to back in this process with the
 default options (in-process bus, as fast as possible, evaluation off) and the script prints
 mission time, wall time and the real-time factor (mission / wall) of each, the wall-time split
-(perception / rounds) and the ratio of the two arms. The target (issue 8) is a real-time factor
+(perception / rounds) and the ratio of the two arms. The target is a real-time factor
 >= 5 for the full replay of the default 6-robot, 180 s mission on the 2-core reference machine.
 """
 
@@ -25,8 +25,8 @@ from pathlib import Path
 
 
 def _simulate(workdir: Path, frames: str, args) -> Path:
-    from dran_edge.sim_writer import write_run
-    from dran_edge.simulate import SimParams, generate_mission
+    from dran_edge.sim.writer import write_run
+    from dran_edge.sim.mission import SimParams, generate_mission
 
     tag = f"r{args.robots}_d{args.duration_s:g}_s{args.seed}_{frames}"
     run = workdir / tag
@@ -42,7 +42,7 @@ def _simulate(workdir: Path, frames: str, args) -> Path:
 
 
 def _replay(run: Path, workers: int | None) -> dict:
-    from dran_edge.replay import ReplayOptions, replay_run
+    from dran_edge.replay.run import ReplayOptions, replay_run
 
     if (run / "out").exists():
         shutil.rmtree(run / "out")
@@ -58,9 +58,9 @@ def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
 
     import numpy as np
 
-    from dran_edge import run_dir as rd
+    from dran_edge.formats import run_dir as rd
     from dran_edge.events import Tick
-    from dran_edge.replay_robots import RobotRunner, RobotSpec, restore_blas_threads, set_blas_threads
+    from dran_edge.replay.robots import RobotRunner, RobotSpec, restore_blas_threads, set_blas_threads
 
     mission = rd.open_run(run).mission
     cpu = {"default": [], "1 thread": []}

@@ -28,10 +28,10 @@ import numpy as np
 import scipy.linalg
 
 from dran_edge import geometry as geo
-from dran_edge.consensus import ConsensusFactors
-from dran_edge.factors import BetweenFactors, PriorFactors
-from dran_edge.graph import PoseGraph, kinds_array
-from dran_edge.lm import (
+from dran_edge.dran.consensus import ConsensusFactors
+from dran_edge.solver.factors import BetweenFactors, PriorFactors
+from dran_edge.solver.graph import PoseGraph, kinds_array
+from dran_edge.solver.lm import (
     build_plan,
     cholesky_factorizer,
     evaluate_cost,
@@ -90,7 +90,7 @@ def agent_round_ms(seed: int, rounds: int) -> tuple[float, float]:
     """The same robot as a real ``Agent`` (paper defaults, no robust kernel): its 9 objects'
     copies from 2 neighbours arrive as ``NeighbourData``; one ``Tick`` = one DRAN round (dual
     update, the local step with its acceptance test, outputs). Returns (median ms, p90 ms)."""
-    from dran_edge.agent import Agent, LocalProblem
+    from dran_edge.dran.agent import Agent, LocalProblem
     from dran_edge.config import AgentConfig
     from dran_edge.events import NeighbourData, Tick
     from dran_edge.messages import NeighbourMessage, ObjectEntry

@@ -5,7 +5,7 @@ Usage: .venv/bin/python tools/bench/bench_table1.py DATA_DIR [--robots 5] [--onl
 Prints a Table-1-like table with the paper's columns next to ours: objective (SE-Sync convention)
 at the distributed initialisation and at the end, rounds and total transmitted bytes (every byte
 of every datagram, initialisation included) for DRAN and DGS. The gap is to our own centralized
-optimum F* (the SE-Sync optimum to 3e-9, docs/benchmarks.md "Issue 2"), not to the paper's
+optimum F* (the SE-Sync optimum to 3e-9, docs/benchmarks.md, centralised solver), not to the paper's
 rounded column. DRAN runs with the Table 1 setup of ``multiagent.table1_setup`` (colour schedule,
 block SOR, delta entries; ``--plain`` for Alg. 1 as printed); DGS uses the same wire layout.
 """
@@ -21,9 +21,9 @@ import json
 import sys
 from pathlib import Path
 
-from dran_edge.dgs import run_g2o_dgs
-from dran_edge.g2o import read_g2o
-from dran_edge.multiagent import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
+from dran_edge.experiments.dgs import run_g2o_dgs
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 
 # name: (file, F* (ours, centralized), paper DGS F, paper DRAN F, paper DGS MB, paper DRAN MB)
 PAPER = {

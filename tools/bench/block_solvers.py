@@ -20,7 +20,7 @@ fixed) at the centralized chordal initialisation, then ``--gn-steps − 1`` more
 exact Gauss–Newton iterate. Printed per iteration count: energy-norm error of the step
 relative to the exact step / gap of F(x ⊕ step) to F*, in percent.
 ``--system rotation``: the init's first stage, the relaxed rotation least squares of
-``dran_edge.chordal`` from zero; printed: max abs error of the relaxed rotations / gap to F* of
+``dran_edge.solver.chordal`` from zero; printed: max abs error of the relaxed rotations / gap to F* of
 the poses they give (projected, translations solved exactly).
 """
 
@@ -36,12 +36,12 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from dran_edge.chordal import chordal_translations, relaxed_rotation_system, relaxed_to_rotations
-from dran_edge.g2o import read_g2o
-from dran_edge.lm import build_plan, linearize, retract
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.partition import contiguous_owner
-from dran_edge.pgo import gauge_fixed, initial_poses, pose_graph
+from dran_edge.solver.chordal import chordal_translations, relaxed_rotation_system, relaxed_to_rotations
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.solver.lm import build_plan, linearize, retract
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.dran.partition import contiguous_owner
+from dran_edge.solver.centralized import gauge_fixed, initial_poses, pose_graph
 
 MARKS = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 
@@ -143,7 +143,7 @@ def main(argv=None) -> int:
             x = x_next
         return 0
 
-    # the init's first stage: the relaxed rotation least squares of dran_edge.chordal
+    # the init's first stage: the relaxed rotation least squares of dran_edge.solver.chordal
     anchor = int(np.flatnonzero(gauge_fixed(g))[0])
     T_anchor = g.poses[anchor]
     A, B, free = relaxed_rotation_system(n, g.edges, g.measurements[:, :d, :d], kappa, anchor)

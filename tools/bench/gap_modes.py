@@ -31,12 +31,12 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from dran_edge import geometry as geo
-from dran_edge.g2o import read_g2o
-from dran_edge.lm import LMParams, solve
-from dran_edge.multiagent import run_g2o_dran, table1_setup
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.partition import partition_contiguous
-from dran_edge.pgo import pose_graph, solve_g2o
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.solver.lm import LMParams, solve
+from dran_edge.experiments.fleet import run_g2o_dran, table1_setup
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.dran.partition import partition_contiguous
+from dran_edge.solver.centralized import pose_graph, solve_g2o
 
 
 def rigid_corrected(g, poses, group, kappa, tau):

@@ -17,7 +17,7 @@ bytes and the bytes of its own phase (after the init), and the same for DGS.
   It shows what DRAN and DGS do from the exact solution of the relaxation the init distributes.
 - ``--every N``: print F and bytes every N DRAN rounds.
 
-F* is the centralized optimum (docs/benchmarks.md, "Issue 2"). Gaps are to F*, in percent;
+F* is the centralized optimum (docs/benchmarks.md, centralised solver). Gaps are to F*, in percent;
 MB = 10^6 bytes, every byte of every datagram (``Fleet`` accounting).
 """
 
@@ -34,13 +34,13 @@ import typing
 import numpy as np
 
 from dran_edge.config import AgentConfig
-from dran_edge.dgs import run_g2o_dgs
-from dran_edge.dist_init import InitParams
-from dran_edge.g2o import read_g2o
-from dran_edge.multiagent import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.partition import partition_contiguous
-from dran_edge.pgo import initial_poses
+from dran_edge.experiments.dgs import run_g2o_dgs
+from dran_edge.dran.dist_init import InitParams
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.dran.partition import partition_contiguous
+from dran_edge.solver.centralized import initial_poses
 
 
 def overrides(cls, pairs: list[str]) -> dict:

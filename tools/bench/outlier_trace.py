@@ -30,12 +30,12 @@ import dataclasses
 import numpy as np
 
 from dran_edge import geometry as geo
-from dran_edge import metrics
-from dran_edge.agent import Agent
+from dran_edge.evaluation import metrics
+from dran_edge.dran.agent import Agent
 from dran_edge.comms.bus import Bus, BusParams, random_connected_graph
-from dran_edge.factors import Cauchy
-from dran_edge.multiagent import Fleet, neighbour_weights
-from dran_edge.objects_sim import SimParams, bench_config, make_scenario
+from dran_edge.solver.factors import Cauchy
+from dran_edge.experiments.fleet import Fleet, neighbour_weights
+from dran_edge.experiments.objects import SimParams, bench_config, make_scenario
 
 
 def wrong_mask(sc, r: int, p) -> np.ndarray:

@@ -34,10 +34,10 @@ import numpy as np
 from dran_edge import geometry as geo
 from dran_edge.comms import codec
 from dran_edge.comms.delta import DeltaEncoder
-from dran_edge.g2o import read_g2o
+from dran_edge.formats.g2o import read_g2o
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, SeparatorEntry
-from dran_edge.multiagent import ROUND_PERIOD_NS, TABLE1_DELTA_EVERY
-from dran_edge.partition import partition_contiguous
+from dran_edge.experiments.fleet import ROUND_PERIOD_NS, TABLE1_DELTA_EVERY
+from dran_edge.dran.partition import partition_contiguous
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_table1 import PAPER  # noqa: E402 - the paper's columns, in one place

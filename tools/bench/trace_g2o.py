@@ -23,10 +23,10 @@ import json
 
 import numpy as np
 
-from dran_edge.g2o import read_g2o
-from dran_edge.multiagent import run_g2o_dran, table1_setup
-from dran_edge.objective import sesync_objective, sesync_weights
-from dran_edge.partition import partition_contiguous
+from dran_edge.formats.g2o import read_g2o
+from dran_edge.experiments.fleet import run_g2o_dran, table1_setup
+from dran_edge.solver.objective import sesync_objective, sesync_weights
+from dran_edge.dran.partition import partition_contiguous
 
 
 def main(argv=None) -> int:

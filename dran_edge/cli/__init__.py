@@ -1,0 +1,2 @@
+"""The ``dran-edge`` command line (``app``) and its sub-commands (``commands``).
+"""

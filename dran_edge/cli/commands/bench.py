@@ -1,0 +1,230 @@
+"""``dran-edge bench``: the paper's experiments (Table 1 on g2o graphs; the object simulation)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+
+# One BLAS thread: the local steps are small dense products, and OpenBLAS's thread pool on a
+# busy 2-core machine made them ~75x slower (measured, docs/benchmarks.md). Must precede numpy.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+HELP = "run the paper's experiments: Table 1 on a g2o graph, or the object simulation sweeps"
+
+
+def build_parser(prog: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        description=(
+            "Benchmarks of the DRAN agent (docs/dran.md, docs/benchmarks.md).\n\n"
+            "  g2o DATASET.g2o   split the graph into --robots contiguous segments (Table 1), run the\n"
+            "                    distributed chordal init and DRAN (or the DGS baseline) over encoded\n"
+            "                    datagrams; report objective (SE-Sync convention), rounds, bytes.\n"
+            "  objects           the Ego-like simulation (21 robots, 60 objects): SR_ATE, SR_cost, CE,\n"
+            "                    Bias against the centralized LM, per rho and per noise level.\n\n"
+            "examples:\n"
+            "  dran-edge bench g2o CSAIL.g2o --robots 5 --json\n"
+            "  dran-edge bench objects --rho 0.3 --outliers 0.2 --json     # 20 % wrong ids / loops\n"
+            "  dran-edge bench objects --rho 0.3 --robust --json           # same settings, no outliers"
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="what", required=True, metavar="{g2o,objects}")
+    g = sub.add_parser("g2o", help="Table 1 protocol on one g2o file")
+    g.add_argument("dataset", help="a g2o file (VERTEX_SE2/SE3:QUAT, EDGE_SE2/SE3:QUAT)")
+    g.add_argument("--robots", type=int, default=5, help="number of robots (default 5)")
+    g.add_argument("--method", choices=("dran", "dgs"), default="dran",
+                   help="dran (default) or the DGS baseline of Choudhary et al. 2017: the same "
+                        "initialisation, then one Gauss-Newton step by distributed Gauss-Seidel")
+    g.add_argument("--max-rounds", type=int, default=None,
+                   help="cap on DRAN rounds (default: K_max=500 local steps per robot, i.e. 500 x "
+                        "the number of colours in the colour schedule)")
+    g.add_argument("--plain", action="store_true",
+                   help="Alg. 1 as printed: every robot every round, no over-relaxation, absolute "
+                        "values on the wire (default: colour schedule, SOR, delta entries; "
+                        "docs/dran.md)")
+    g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
+                   help="residual of the local problems (chordal optimises the reported F exactly)")
+    g.add_argument("--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
+    g.add_argument("--json", action="store_true", help="print one JSON object")
+    o = sub.add_parser("objects", help="object simulation sweeps",
+                       description="The paper's object simulation (Sec. 6.2): robots on trajectories "
+                                   "through random objects, an observation whenever an object is "
+                                   "within 5 m; DRAN for --rounds rounds over the in-process bus, "
+                                   "scored against the centralized LM (docs/benchmarks.md).")
+    o.add_argument("--rho", type=float, nargs="+", default=[round(0.1 * k, 1) for k in range(1, 11)],
+                   help="communication edge probabilities (default 0.1 … 1.0)")
+    o.add_argument("--noise", type=float, nargs="+", default=[1.0],
+                   help="noise multipliers of (1 deg, 0.005 m) (default 1)")
+    o.add_argument("--loss", type=float, default=0.0, help="datagram loss probability")
+    o.add_argument("--outliers", type=float, default=0.0,
+                   help="fraction of wrong object ids / loops; also turns on the robust settings "
+                        "(Cauchy kernel of scale 0.05 on loops and 1.0 on object observations; "
+                        "--min-views 2 with the spatial exclusion). Everything else (trajectories, noise) is "
+                        "the same --seed's outlier-free scenario, so the two runs compare")
+    o.add_argument("--robust", action="store_true",
+                   help="the robust settings of --outliers (Cauchy kernels; --min-views 2) "
+                        "without outliers: the outlier-free run with the same agent settings")
+    o.add_argument("--outlier-kinds", choices=("both", "ids", "loops"), default="both",
+                   help="what --outliers injects: wrong object ids, false loops, or both")
+    o.add_argument("--outlier-ids", choices=("add", "relabel"), default="add",
+                   help="how a wrong object id enters: 'add' reports an observation a second time "
+                        "under a wrong id (the right one stays: the run has every observation of "
+                        "the outlier-free run); 'relabel' replaces its id (a misread tag; the run "
+                        "also loses those observations). Default add")
+    o.add_argument("--min-views", type=int, default=None,
+                   help="AgentConfig.object_min_views: own observations that must agree before an "
+                        "object observation is used unless a neighbour's copy corroborates it, "
+                        "or no view of another object lies within 0.5 m of it "
+                        "(default: 2 with --outliers, which rejects lone wrong tag ids; else 1)")
+    o.add_argument("--beta", type=float, default=None,
+                   help="consensus penalty β (default: the paper's 1.0; docs/benchmarks.md "
+                        "measures smaller ones on this unit-information simulation)")
+    o.add_argument("--eta", type=float, default=None,
+                   help="dual step η (default: the paper's 0.1)")
+    o.add_argument("--rounds", type=int, default=150,
+                   help="DRAN rounds per run (default 150; a run ends earlier when every robot "
+                        "meets the stopping rule)")
+    o.add_argument("--history-every", type=int, default=0, metavar="N",
+                   help="also report the metrics every N rounds (JSON key 'history'; the ATE "
+                        "after 150 rounds is still a transient, docs/benchmarks.md)")
+    o.add_argument("--robots", type=int, default=21, help="robots (default 21, as the paper)")
+    o.add_argument("--objects", type=int, default=60, help="objects (default 60, as the paper)")
+    o.add_argument("--seed", type=int, default=0,
+                   help="scenario seed; the communication graph uses seed + 1 (default 0)")
+    o.add_argument("--json", action="store_true", help="print one JSON object per run")
+    o.add_argument("--plot", metavar="DIR", help="write a PNG per sweep into DIR")
+    return parser
+
+
+def _progress(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run_g2o(args) -> int:
+    from pathlib import Path
+
+    from dran_edge.experiments.dgs import run_g2o_dgs
+    from dran_edge.errors import InputError
+    from dran_edge.formats.g2o import read_g2o, write_g2o
+    from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
+
+    g = read_g2o(args.dataset)
+    if args.robots < 1 or args.robots > g.num_vertices:
+        raise InputError(f"--robots must be in 1..{g.num_vertices}, got {args.robots}")
+    if args.method == "dran":
+        cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain)
+
+        def cb(k, fleet):  # progress on stderr; stdout stays the report
+            if k == 1:
+                _progress(f"initialisation done: {fleet.round - 1} rounds, "
+                          f"{fleet.traffic.bytes_total} bytes so far")
+            if k % 50 == 0:
+                _progress(f"DRAN round {k}: {fleet.traffic.bytes_total} bytes")
+
+        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb, **run_kw)
+    else:
+        res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY)
+    if args.out:
+        write_g2o(args.out, g, res["poses"])
+    report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots}
+    report.update({k: v for k, v in res.items() if k != "poses"})
+    if args.json:
+        print(json.dumps(report))
+    else:
+        for k, v in report.items():
+            print(f"{k:>24}: {v}")
+    return 0
+
+
+def run_objects_cmd(args) -> int:
+    from dran_edge.comms.bus import BusParams, random_connected_graph
+    from dran_edge.errors import ConfigError, InputError
+    from dran_edge.experiments.objects import SimParams, bench_config, make_scenario, run_objects
+
+    if args.rounds < 1:
+        raise InputError(f"--rounds must be at least 1, got {args.rounds}")
+    if args.history_every < 0:
+        raise InputError(f"--history-every must be 0 (off) or a round count, got {args.history_every}")
+    robust = args.outliers > 0 or args.robust
+    cfg = bench_config(robust, args.min_views)
+    for name in ("beta", "eta"):
+        if getattr(args, name) is not None:
+            try:  # AgentConfig's own range check, reported with the flag's name
+                cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
+            except ConfigError as exc:
+                raise InputError(f"--{name}: {exc}") from None
+    rows = []
+    for noise in args.noise:
+        base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
+                         outlier_ratio=args.outliers, outlier_kinds=args.outlier_kinds,
+                         outlier_ids=args.outlier_ids)
+        params = dataclasses.replace(base, sigma_rot_rad=base.sigma_rot_rad * noise,
+                                     sigma_trans_m=base.sigma_trans_m * noise)
+        sc = make_scenario(params)
+        for rho in args.rho:
+            graph = random_connected_graph(range(args.robots), rho, seed=args.seed + 1)
+            label = f"rho={rho:g} noise={noise:g}"
+
+            def progress(k, label=label):
+                if k % 50 == 0:
+                    _progress(f"{label}: round {k}/{args.rounds}")
+
+            out = run_objects(sc, cfg, graph, BusParams(loss_probability=args.loss),
+                              max_rounds=args.rounds, seed=args.seed,
+                              history_every=args.history_every, progress=progress)
+            row = {"rho": rho, "noise": noise, "loss": args.loss, "outliers": args.outliers,
+                   "outlier_ids": args.outlier_ids if args.outliers > 0 else None,
+                   "robust": robust, "min_views": cfg.object_min_views,
+                   "beta": cfg.beta, "eta": cfg.eta}
+            row.update({k: v for k, v in out.items() if k != "history" or args.history_every})
+            rows.append(row)
+            if args.json:
+                print(json.dumps(row), flush=True)
+            else:
+                print(f"rho={rho:.1f} noise={noise:g}: SR_cost={row['SR_cost']:.2f}% "
+                      f"SR_ATE={row['SR_ATE']:.2f}% CE={row['CE']:.3g} Bias={row['Bias']:.3g} "
+                      f"ATE={row['ATE']:.4f} bytes={row['bytes']} rounds={row['rounds']}"
+                      + (f" consensus_conflicts={row['consensus_conflicts']}" if robust else ""),
+                      flush=True)
+                for h in row.get("history", ()):
+                    print(f"  round {h['round']}: SR_cost={h['SR_cost']:.2f}% ATE={h['ATE']:.4f} "
+                          f"CE={h['CE']:.3g} bytes={h['bytes']}", flush=True)
+    if args.plot:
+        _plot(rows, args.plot)
+    return 0
+
+
+def _plot(rows: list, out_dir: str) -> None:
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    for key, other in (("rho", "noise"), ("noise", "rho")):
+        xs = sorted({r[key] for r in rows})
+        if len(xs) < 2:
+            continue
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        for ov in sorted({r[other] for r in rows}):
+            sel = [r for r in rows if r[other] == ov]
+            sel.sort(key=lambda r: r[key])
+            ax.plot([r[key] for r in sel], [r["SR_cost"] for r in sel], "o-", label=f"SR_cost {other}={ov:g}")
+            ax.plot([r[key] for r in sel], [r["SR_ATE"] for r in sel], "s--", label=f"SR_ATE {other}={ov:g}")
+        ax.set_xlabel(key)
+        ax.set_ylabel("success ratio (%)")
+        ax.legend(fontsize=7)
+        ax.grid(True, alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(Path(out_dir) / f"objects_sweep_{key}.png", dpi=120)
+        plt.close(fig)
+
+
+def run(args) -> int:
+    return run_g2o(args) if args.what == "g2o" else run_objects_cmd(args)

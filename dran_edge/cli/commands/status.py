@@ -1,0 +1,104 @@
+"""``dran-edge status``: ask the running daemon for its health."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+from pathlib import Path
+
+from dran_edge.errors import DranError
+
+HELP = "show the running daemon's health (neighbours, bytes, rounds, graph, drops)"
+
+
+def build_parser(prog: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=prog,
+        description="Connect to the daemon's status socket and print its health. The socket is "
+                    "<runtime dir>/status.sock (/run/dran-edge/status.sock under systemd).",
+    )
+    p.add_argument("--config", metavar="ROBOT.yaml", help="find the socket from this config")
+    p.add_argument("--socket", metavar="PATH", help="the status socket path")
+    p.add_argument("--json", action="store_true", help="print the raw JSON document")
+    return p
+
+
+def query_status(path: str | Path, timeout_s: float = 2.0) -> dict:
+    """The daemon's status document; DranError when nothing answers at ``path``."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout_s)
+    try:
+        s.connect(str(path))
+        chunks = []
+        while True:
+            data = s.recv(65536)
+            if not data:
+                break
+            chunks.append(data)
+    except OSError as exc:
+        raise DranError(f"no daemon answers at {path}: {exc.strerror or exc}") from None
+    finally:
+        s.close()
+    try:
+        return json.loads(b"".join(chunks))
+    except ValueError:
+        raise DranError(f"the daemon at {path} sent an unreadable status") from None
+
+
+def format_status(st: dict) -> str:
+    r = st.get("rounds", {})
+    g = st.get("graph") or {}
+    lines = [
+        f"robot      {st['robot']['name']} (id {st['robot']['id']}, fleet {st['robot']['fleet']})"
+        f"  state {st['state']}  pid {st.get('pid')}  boot epoch {st.get('boot_epoch')}",
+        f"uptime     {st.get('uptime_s', 0):.1f} s",
+        f"rounds     {r.get('ticks', 0)}  late {r.get('late', 0)}  missed {r.get('missed', 0)}"
+        f"  lag max {1e3 * r.get('lag_max_s', 0):.1f} ms  solve last/mean/max "
+        f"{1e3 * r.get('solve_last_s', 0):.1f}/{1e3 * r.get('solve_mean_s', 0):.1f}/"
+        f"{1e3 * r.get('solve_max_s', 0):.1f} ms  agent errors {r.get('agent_errors', 0)}",
+        f"graph      keyframes {g.get('keyframes', 0)}  objects {g.get('objects', 0)}"
+        f"  cost {g.get('cost', float('nan')):.4g}"
+        f"  consensus error {g.get('consensus_error', float('nan')):.3g}",
+    ]
+    nbrs = st.get("neighbours") or {}
+    if nbrs:
+        for name, n in sorted(nbrs.items()):
+            lines.append(f"neighbour  {name}: " + "  ".join(f"{k} {v}" for k, v in n.items()))
+    else:
+        lines.append("neighbours none reported")
+    t = st.get("transport") or {}
+    if t:
+        lines.append("transport  " + "  ".join(f"{k} {v}" for k, v in t.items()
+                                                 if k != "neighbours"))
+    ing = st.get("ingest")
+    if ing:
+        rej = ing.get("rejected_by_reason") or {}
+        lines.append(f"ingest     records {ing.get('records', 0)}  bytes {ing.get('bytes', 0)}"
+                     f"  frames {ing.get('frames', 0)}  rejected {ing.get('rejected', 0)}"
+                     + (" (" + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())) + ")"
+                        if rej else ""))
+    else:
+        lines.append("ingest     off")
+    q = st.get("queues", {})
+    lines.append(f"queues     observations dropped {q.get('observations_dropped', 0)}"
+                 f"  frames dropped {q.get('frames_dropped', 0)}"
+                 f"  journal pending {st.get('journal', {}).get('pending', 0)}")
+    lines.append(f"systemd    {st.get('systemd')}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.socket:
+        path = Path(args.socket)
+    elif args.config:
+        from dran_edge.config import load_config
+        from dran_edge.daemon.service import resolve_dirs
+
+        _, runtime = resolve_dirs(load_config(args.config))
+        path = runtime / "status.sock"
+    else:
+        path = Path("/run/dran-edge/status.sock")
+    st = query_status(path)
+    print(json.dumps(st, indent=2) if args.json else format_status(st))
+    return 0

@@ -1,0 +1,285 @@
+"""N DRAN agents in one process, talking through encoded datagrams over the in-process bus.
+
+Every message an agent emits is encoded by the wire codec (``dran_edge.comms.codec``) into
+self-contained datagrams and sent through the robot's endpoint of a ``dran_edge.comms.bus.Bus``
+— the same bus replay uses — so the graph, partitions, loss, latency and the byte counters
+(every byte of every datagram: header, entries and the 16-byte tag slot, per sender, receiver
+and kind) are the bus's. Datagrams are decoded again before the receiving agent sees them, so
+the agents face exactly what the radio would give them.
+
+Rounds are synchronous and are the bus's rounds: in round k every agent first absorbs the
+datagrams due by round k, then runs its round (``Tick``); its messages go to the neighbours
+whose link is up in round k (``Bus.neighbours``) and, with ``BusParams.latency_rounds = 1``
+(the default), are receivable in round k + 1. Initialisation rounds (``init_exchange``) are
+synchronous exchanges: sent and received in the same round (per-datagram latency 0), loss
+still applies. Everything random is the bus's (seeded per directed link by
+``BusParams.seed``), so the same seed gives the same run.
+
+This module is a shell around the pure core (it imports the codec and the bus); the agents stay
+pure.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+
+from dran_edge.dran.agent import Agent
+from dran_edge.comms import codec
+from dran_edge.comms.bus import Bus, BusParams
+from dran_edge.comms.delta import DeltaDecoder, DeltaEncoder
+from dran_edge.dran.consensus import metropolis_hastings_matrix
+from dran_edge.errors import DecodeError
+from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
+from dran_edge.messages import InitStage, NeighbourMessage
+
+log = logging.getLogger(__name__)
+
+ROUND_PERIOD_NS = 500_000_000  # 2 Hz, the robots' round rate (stamps only; nothing sleeps)
+
+
+def neighbour_weights(bus: Bus, round_: int = 0) -> list[dict]:
+    """Per robot (index into ``bus.robot_ids``): neighbour -> Metropolis–Hastings weight
+    (``consensus.metropolis_hastings_matrix``) on the bus's graph in ``round_``."""
+    ids = bus.robot_ids
+    index = {r: k for k, r in enumerate(ids)}
+    A = np.zeros((len(ids), len(ids)), dtype=bool)
+    for a, b in bus.edges(round_):
+        A[index[a], index[b]] = A[index[b], index[a]] = True
+    W = metropolis_hastings_matrix(A)
+    return [{ids[j]: W[i, j] for j in np.flatnonzero(A[i])} for i in range(len(ids))]
+
+
+@dataclass(frozen=True)
+class Traffic:
+    """What crossed the bus so far (a view of ``Bus.stats()`` plus the decode failures)."""
+
+    datagrams: int
+    """Datagrams handed to the bus (each recipient counts once)."""
+    bytes_total: int
+    """Every byte of those datagrams, including the ones the link model then lost."""
+    dropped: int
+    """Datagrams the link model lost (all reasons of ``Bus.lost``)."""
+    decode_errors: int
+    """Delivered datagrams the codec rejected."""
+    bytes_by_kind: dict
+    bytes_by_robot: dict
+    """Bytes sent per sender (string keys, as in ``Bus.stats()``)."""
+
+
+class Fleet:
+    """Agents (agent i is robot ``bus.robot_ids[i]``) and the datagram exchange between them."""
+
+    def __init__(self, agents: list[Agent], bus: Bus,
+                 max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES, fleet_id: int = 1,
+                 delta_every: int = 0):
+        """``delta_every > 0``: delta layout on every link (``dran_edge.comms.delta``), each key
+        sent absolute again after that many rounds; 0: absolute values only."""
+        self.agents = agents
+        self.bus = bus
+        self.ids = bus.robot_ids
+        self.endpoints = [bus.endpoint(r) for r in self.ids]
+        self.max_datagram_bytes = max_datagram_bytes
+        self.fleet_id = fleet_id
+        self.sequence = [0] * len(self.ids)
+        self.decode_errors = 0
+        self.estimates: list[EstimateUpdate | None] = [None] * len(agents)
+        self.step_ms: list[float] = []
+        self.delta_every = int(delta_every)
+        self._enc: dict = {}  # (sender index, receiver index) -> DeltaEncoder
+        self._dec: dict = {}  # (receiver index, sender id) -> DeltaDecoder
+
+    @property
+    def round(self) -> int:
+        return self.bus.round
+
+    @property
+    def traffic(self) -> Traffic:
+        st = self.bus.stats()
+        return Traffic(st["datagrams_sent"], st["bytes_total"], int(sum(st["lost"].values())),
+                       self.decode_errors, st["bytes_by_kind"], st["bytes_by_sender"])
+
+    def send(self, sender: int, message: NeighbourMessage, to, latency_rounds: int | None = None
+             ) -> None:
+        """Encode (once, or once per link with deltas), then hand every datagram to the bus for
+        every recipient in ``to`` whose link is up this round (agent indices)."""
+        up = set(self.bus.neighbours(self.ids[sender]))
+        ep = self.endpoints[sender]
+
+        def encode(enc=None):
+            grams = codec.encode_datagrams(message, fleet_id=self.fleet_id, boot_epoch=1,
+                                           first_sequence=self.sequence[sender],
+                                           max_datagram_bytes=self.max_datagram_bytes, delta=enc)
+            self.sequence[sender] += len(grams)
+            return grams
+
+        grams = None if self.delta_every else encode()
+        for q in to:
+            if self.ids[q] not in up:
+                continue
+            if self.delta_every:  # one encoding per link: each link has its own delta state
+                grams = encode(self._enc.setdefault((sender, q), DeltaEncoder(self.delta_every)))
+            for g in grams:
+                ep.send(self.ids[q], g.data, latency_rounds)
+
+    def _receive(self) -> list[list[NeighbourMessage]]:
+        inbox: list[list[NeighbourMessage]] = [[] for _ in self.ids]
+        for i, ep in enumerate(self.endpoints):
+            for sender, data in ep.receive():
+                dec = self._dec.setdefault((i, sender), DeltaDecoder()) if self.delta_every else None
+                try:
+                    inbox[i].append(codec.decode_datagram(data, dec))
+                except DecodeError:
+                    self.decode_errors += 1
+        return inbox
+
+    # ----------------------------------------------------------------- DRAN rounds
+    def step(self) -> bool:
+        """One synchronous round; returns True when every agent reports convergence."""
+        self.bus.advance()
+        rnd = self.bus.round
+        inbox = self._receive()
+        stamp = rnd * ROUND_PERIOD_NS
+        outgoing = []
+        for i, agent in enumerate(self.agents):
+            for msg in inbox[i]:
+                agent.handle(NeighbourData(stamp, msg))
+            idle = agent.counters.get("idle_rounds", 0)
+            t0 = time.perf_counter()
+            outs = agent.handle(Tick(stamp))
+            if agent.counters.get("idle_rounds", 0) == idle:  # not an idle turn of a schedule
+                self.step_ms.append(1e3 * (time.perf_counter() - t0))
+            for o in outs:
+                if isinstance(o, Outgoing):
+                    outgoing.append((i, o))
+                elif isinstance(o, EstimateUpdate):
+                    self.estimates[i] = o
+        for i, o in outgoing:
+            self.send(i, o.message, o.to)
+        return all(e is not None and e.converged for e in self.estimates)
+
+    # ----------------------------------------------------------------- initialisation rounds
+    def init_exchange(self, stage: InitStage, iteration: int, outgoing: dict) -> dict:
+        """``dist_init.Exchange`` over encoded datagrams: one bus round, delivered in it."""
+        self.bus.advance()
+        rnd = self.bus.round
+        for r, sends in outgoing.items():
+            for q, entries in sends:
+                msg = NeighbourMessage(r, rnd, rnd * ROUND_PERIOD_NS, init=tuple(entries))
+                self.send(r, msg, (q,), latency_rounds=0)
+        incoming: dict[int, list] = defaultdict(list)
+        for q, msgs in enumerate(self._receive()):
+            for m in msgs:
+                incoming[q].extend(m.init)
+        return incoming
+
+    def run(self, max_rounds: int, min_rounds: int = 1, patience: int = 3, callback=None) -> int:
+        """Rounds until every agent has reported convergence ``patience`` rounds in a row."""
+        streak = 0
+        for k in range(max_rounds):
+            done = self.step()
+            streak = streak + 1 if done else 0
+            if callback is not None:
+                callback(k + 1, self)
+            if k + 1 >= min_rounds and streak >= patience:
+                return k + 1
+        return max_rounds
+
+
+# --------------------------------------------------------------------------- Table 1 driver
+#: Table 1 defaults (docs/dran.md, "Inter-robot schedule"): robots of one colour of a greedy
+#: colouring update together (block Gauss–Seidel), block SOR ω on the trajectory, delta entries
+#: on the wire (absolute again every 20 rounds), and the cost-decrease stop.
+TABLE1_SOR_OMEGA = 1.9
+TABLE1_EPS_COST_REL = 1e-4
+TABLE1_DELTA_EVERY = 20
+
+
+def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
+    """``(AgentConfig, run_g2o_dran keyword arguments)`` of the Table 1 runs. ``plain``: Alg. 1
+    as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone."""
+    from dran_edge.config import AgentConfig
+
+    if plain:
+        return (AgentConfig(dim=dim, residual=residual, robust_kernel="none"),
+                {"schedule": "parallel", "delta_every": 0})
+    cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
+                      sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
+    return cfg, {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
+
+
+def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
+                 links: BusParams | None = None, partitions=(), callback=None,
+                 schedule: str = "parallel", delta_every: int = 0,
+                 initial_poses: np.ndarray | None = None) -> dict:
+    """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
+    converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
+    network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
+    (every robot every round) or "colour" (the robots of one colour of a greedy colouring per
+    round); ``delta_every``: see ``Fleet``. Returns the merged poses and the numbers the bench
+    reports. ``initial_poses`` (diagnostics): start DRAN from these instead of running the
+    distributed init (no init rounds or bytes)."""
+    import dataclasses
+    import types
+
+    from dran_edge.dran.agent import LocalProblem
+    from dran_edge.dran.dist_init import InitParams, distributed_chordal_init, greedy_colouring
+    from dran_edge.solver.objective import sesync_objective, sesync_weights
+    from dran_edge.dran.partition import partition_contiguous
+
+    t_start = time.perf_counter()
+    kappa, tau = sesync_weights(g.dim, g.information)
+    part = partition_contiguous(g.edges, g.num_vertices, num_robots)
+    bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
+              partitions=partitions)
+    W = neighbour_weights(bus)
+    fleet = Fleet([], bus, delta_every=delta_every)
+    if initial_poses is not None:
+        init = types.SimpleNamespace(poses=np.asarray(initial_poses, np.float64).copy())
+    else:
+        init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
+                                        part, fleet.init_exchange,
+                                        init_params or InitParams(gauss_seidel=True))
+    init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
+    F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
+    F_init = F(init.poses)
+    agents = []
+    colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
+    for r in range(num_robots):
+        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
+                                  colour=int(colour[r]), colours=int(colour.max()) + 1)
+        prob = LocalProblem.from_partition(g, part, r, init.poses, kappa, tau, cfg.residual)
+        agent = Agent(cfg, prob, weights=W[r])
+        # the init's last exchange left every robot with its neighbours' separators
+        for p in part.parts:
+            if p.robot_id == r:
+                continue
+            for v in p.vertices[np.isin(p.vertices, part.parts[r].anchors)].tolist():
+                agent.anchors[(p.robot_id, v)] = init.poses[v].copy()
+        agents.append(agent)
+    fleet.agents = agents
+    fleet.estimates = [None] * num_robots
+    rounds = fleet.run(max_rounds or config.k_max * (int(colour.max()) + 1), callback=callback)
+    merged = init.poses.copy()
+    for r, p in enumerate(part.parts):
+        merged[p.vertices] = agents[r].x
+    return {
+        "poses": merged,
+        "rounds": rounds,
+        "init_rounds": init_rounds,
+        "rounds_total": init_rounds + rounds,
+        "bytes_init": init_bytes,
+        "bytes_total": fleet.traffic.bytes_total,
+        "datagrams": fleet.traffic.datagrams,
+        "objective_init": F_init,
+        "objective_final": F(merged),
+        "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
+        "schedule": schedule,
+        "colours": int(colour.max()) + 1,
+        "delta_every": delta_every,
+        "wall_s": time.perf_counter() - t_start,
+    }

@@ -1,0 +1,2 @@
+"""Replay of recorded or simulated runs through the robot code, faster than real time.
+"""
