@@ -180,6 +180,216 @@ def _symbolic(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
     return flat, ptr, parent
 
 
+def _block_pattern(indptr: np.ndarray, indices: np.ndarray, nb: int, block: int):
+    """The block pattern, from one representative (top-left) entry per stored block: the entries
+    of each block column's first scalar column whose row starts a block. Returns (their positions
+    in A's CSC data, block row, block column)."""
+    first = np.arange(nb, dtype=np.int64) * block
+    lens = indptr[first + 1] - indptr[first]
+    rep_pos = np.repeat(indptr[first] - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
+    rep_pos += np.arange(int(lens.sum()))
+    rep_pos = rep_pos[indices[rep_pos] % block == 0]
+    brow = indices[rep_pos] // block
+    bcol = np.searchsorted(indptr[first], rep_pos, side="right") - 1
+    return rep_pos, brow, bcol
+
+
+def _postorder(parent: np.ndarray) -> np.ndarray:
+    """A postorder of the elimination tree (same fill; every chain of the tree becomes
+    contiguous, so that it can form a supernode), leaf children last, right before their parent,
+    so that they can join it."""
+    nb = parent.size
+    children: list[list[int]] = [[] for _ in range(nb)]
+    for k, p in enumerate(parent.tolist()):
+        if p >= 0:
+            children[p].append(k)
+    post: list[int] = []
+    for root in np.flatnonzero(parent < 0).tolist():
+        stack = [(root, False)]
+        while stack:
+            node, done = stack.pop()
+            if done:
+                post.append(node)
+                continue
+            stack.append((node, True))
+            kids = sorted(children[node], key=lambda c: not children[c])
+            stack.extend((c, False) for c in reversed(kids))
+    return np.asarray(post, dtype=np.int64)
+
+
+def _amalgamate(parent: np.ndarray, counts: np.ndarray, max_cols: int, relax_zeros: float,
+                small_cols: int) -> np.ndarray:
+    """Relaxed supernodes (amalgamation, Ashcraft & Grimes 1989): the column bounds of the
+    supernodes. Column k joins the current supernode [a, k) when k is the parent of each of its
+    roots (the columns whose parent lies outside it) and the explicit zeros stay few; leaf
+    siblings of the tree gather while they wait for their parent, and are split again if it does
+    not join them."""
+    nb = parent.size
+    is_leaf_col = np.ones(nb, dtype=bool)
+    is_leaf_col[parent[parent >= 0]] = False
+    parent_l = parent.tolist()
+    bounds = [0]
+    actual = 0
+    roots: list[int] = []
+
+    def close(a: int, k: int) -> None:
+        if len(roots) > 1:  # leaf siblings without their parent: singletons
+            bounds.extend(range(a + 1, k))
+        bounds.append(k)
+
+    for k in range(nb):
+        a = bounds[-1]
+        if k > a and k - a + 1 <= max_cols:
+            cols = k - a + 1
+            if all(parent_l[r] == k for r in roots):
+                new_ideal = cols * (cols - 1) // 2 + cols * int(counts[k])
+                new_actual = actual + int(counts[k])
+                if new_ideal - new_actual <= relax_zeros * new_ideal or cols <= small_cols:
+                    actual, roots = new_actual, [k]
+                    continue
+            elif (
+                is_leaf_col[k]
+                and parent_l[k] == parent_l[roots[0]]
+                and all(is_leaf_col[r] for r in roots)
+            ):
+                actual += int(counts[k])
+                roots.append(k)
+                continue
+        if k > a:
+            close(a, k)
+        actual, roots = int(counts[k]), [k]
+    close(bounds[-1], nb)
+    return np.unique(np.asarray(bounds, dtype=np.int64))
+
+
+@dataclass
+class _Fronts:
+    """The supernodal structure: a supernode is a chain k → k+1 → … → b−1 of the elimination
+    tree, and struct[k] ⊂ {k+1} ∪ struct[k+1] along a chain, so its rows below are exactly those
+    of its last column. Fronts are (pivot columns, rows below) in block indices."""
+
+    bounds: np.ndarray
+    owner: np.ndarray
+    rows_b: list
+    parent: np.ndarray
+    children: list
+    sizes: np.ndarray
+    ncols: np.ndarray
+    is_leaf: np.ndarray
+    start: np.ndarray
+    keys: np.ndarray
+    """Sorted keys s·nb + block row of every front's rows, for one search per lookup."""
+
+
+def _fronts(bounds: np.ndarray, s_rows: np.ndarray, s_ptr: np.ndarray, nb: int,
+            block: int) -> _Fronts:
+    nsn = bounds.size - 1
+    owner = np.repeat(np.arange(nsn), np.diff(bounds))
+    rows_b = [s_rows[s_ptr[b - 1] : s_ptr[b]] for b in bounds[1:].tolist()]
+    parent = np.array([owner[rb[0]] if rb.size else -1 for rb in rows_b], dtype=np.int64)
+    children: list[list[int]] = [[] for _ in range(nsn)]
+    for s_, p_ in enumerate(parent.tolist()):
+        if p_ >= 0:
+            children[p_].append(s_)
+    fronts_b = [np.concatenate([np.arange(bounds[s], bounds[s + 1]), rows_b[s]])
+                for s in range(nsn)]
+    sizes = np.array([fb.size for fb in fronts_b], dtype=np.int64)
+    return _Fronts(
+        bounds=bounds, owner=owner, rows_b=rows_b, parent=parent, children=children, sizes=sizes,
+        ncols=np.diff(bounds) * block, is_leaf=np.array([not c for c in children], dtype=bool),
+        start=np.concatenate([[0], np.cumsum(sizes)]),
+        keys=np.repeat(np.arange(nsn), sizes) * nb + np.concatenate(fronts_b),
+    )
+
+
+def _assembly(fr: _Fronts, indptr, indices, rep_pos, brow, bcol, pos, nb: int, block: int):
+    """Where each stored entry of A goes: the front of the supernode owning its column, when its
+    row is at or below that supernode's first column (the rest is the transpose). Returns
+    (source positions in A's data, flat destinations in the fronts, per-supernode pointers)."""
+    prb, pcb = pos[brow], pos[bcol]
+    s_of = fr.owner[pcb]
+    sel = np.flatnonzero(prb >= fr.bounds[s_of])
+    sel = sel[np.argsort(s_of[sel], kind="stable")]
+    s_b = s_of[sel]
+    lrow_b = np.searchsorted(fr.keys, s_b * nb + prb[sel]) - fr.start[s_b]
+    lcol_b = pcb[sel] - fr.bounds[s_b]
+    # every stored block is dense and the scalar columns of a block column share their rows,
+    # so element (r, c) of the block whose top-left entry is at p0 sits at
+    # indptr[col0 + c] + (p0 − indptr[col0]) + r
+    rr, cc = np.divmod(np.arange(block * block), block)
+    col0 = bcol[sel] * block
+    src = indptr[col0[:, None] + cc] + (rep_pos[sel] - indptr[col0])[:, None] + rr
+    if rep_pos.size * block * block != indices.size or not np.array_equal(
+        indices[src], (brow[sel] * block)[:, None] + rr
+    ):
+        raise ValueError("the pattern is not made of dense block×block blocks")
+    f_b = (fr.sizes[s_b] * block)[:, None]
+    # A's entries lie in the pivot columns (c < k), where _front_pos is r·k + c
+    row_len = np.where(fr.is_leaf[s_b][:, None], f_b, fr.ncols[s_b][:, None])
+    a_dst = ((lrow_b[:, None] * block + rr) * row_len + lcol_b[:, None] * block + cc).ravel()
+    sn_ptr = np.searchsorted(s_b, np.arange(fr.parent.size + 1)) * (block * block)
+    return src.ravel(), a_dst, sn_ptr
+
+
+def _parent_positions(fr: _Fronts, nb: int, block: int):
+    """Where each supernode's rows sit in its parent's front: (scalar rows per supernode, the
+    parent-front positions of each update matrix's lower triangle), vectorised over the
+    supernodes with the same number of rows."""
+    nsn = fr.parent.size
+    ar = np.arange(block)
+    lens = np.array([rb.size for rb in fr.rows_b], dtype=np.int64)
+    par_rep = np.repeat(fr.parent, lens)
+    all_rows = np.concatenate(fr.rows_b) if nsn else np.zeros(0, np.int64)
+    loc_all = np.zeros(all_rows.size, dtype=np.int64)
+    has_par = par_rep >= 0
+    loc_all[has_par] = (
+        np.searchsorted(fr.keys, par_rep[has_par] * nb + all_rows[has_par])
+        - fr.start[par_rep[has_par]]
+    )
+    cuts = np.cumsum(lens * block)[:-1]
+    rows_split = np.split((all_rows[:, None] * block + ar).ravel(), cuts)
+    loc_sc = (loc_all[:, None] * block + ar).ravel()
+    loc_start = np.concatenate([[0], np.cumsum(lens * block)])
+    m_s = lens * block
+    rel_of: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * nsn
+    for m in np.unique(m_s[fr.parent >= 0]).tolist():
+        members = np.flatnonzero((m_s == m) & (fr.parent >= 0))
+        loc = loc_sc[loc_start[members][:, None] + np.arange(m)]
+        par = fr.parent[members][:, None]
+        rel = _update_positions(loc, fr.ncols[par], fr.sizes[par] * block)
+        for i, s_ in enumerate(members.tolist()):
+            rel_of[s_] = rel[i]
+    return rows_split, rel_of
+
+
+def _leaf_groups(supernodes: list, children: list) -> list:
+    """Leaves (most supernodes of a pose graph: single poses of odometry chains) depend on
+    nothing; those of one shape are factorised together as a batch, one numpy call each."""
+    shapes: dict[tuple[int, int], list[int]] = {}
+    for s, sn in enumerate(supernodes):
+        if not children[s]:
+            shapes.setdefault((sn.c1 - sn.c0, sn.rows.size), []).append(s)
+    groups = []
+    for (k, m), members in sorted(shapes.items()):
+        f = k + m
+        base = np.arange(len(members)) * f * f
+        sns = [supernodes[s] for s in members]
+        groups.append(
+            _LeafGroup(
+                k=k,
+                m=m,
+                cols=np.stack([np.arange(sn.c0, sn.c1) for sn in sns]),
+                rows=np.stack([sn.rows for sn in sns]),
+                src=np.concatenate([sn.a_src for sn in sns]),
+                dst=np.concatenate([b + sn.a_dst for b, sn in zip(base, sns)]),
+                diag=np.concatenate([b + sn.diag for b, sn in zip(base, sns)]),
+                parents=[sn.parent for sn in sns],
+                rels=[sn.rel for sn in sns],
+            )
+        )
+    return groups
+
+
 class SymbolicCholesky:
     """The analysis of one block-structured sparsity pattern (see the module docstring)."""
 
@@ -203,201 +413,41 @@ class SymbolicCholesky:
         nb = n // block
         indptr = np.asarray(indptr, dtype=np.int64)
         indices = np.asarray(indices, dtype=np.int64)
-        # the block pattern, from one representative (top-left) entry per stored block: the
-        # entries of each block column's first scalar column whose row starts a block
-        first = np.arange(nb, dtype=np.int64) * block
-        lens = indptr[first + 1] - indptr[first]
-        rep_pos = np.repeat(indptr[first] - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-        rep_pos += np.arange(int(lens.sum()))
-        rep_pos = rep_pos[indices[rep_pos] % block == 0]
-        brow = indices[rep_pos] // block
-        bcol = np.searchsorted(indptr[first], rep_pos, side="right") - 1
+        rep_pos, brow, bcol = _block_pattern(indptr, indices, nb, block)
         order = _block_order(nb, brow, bcol)
-        # elimination tree, then a postorder of it (same fill; every chain of the tree becomes
-        # contiguous, so that it can form a supernode)
-        parent = _etree(nb, brow, bcol, order)
-        children: list[list[int]] = [[] for _ in range(nb)]
-        for k, p in enumerate(parent.tolist()):
-            if p >= 0:
-                children[p].append(k)
-        post: list[int] = []
-        for root in np.flatnonzero(parent < 0).tolist():
-            stack = [(root, False)]
-            while stack:
-                node, done = stack.pop()
-                if done:
-                    post.append(node)
-                    continue
-                stack.append((node, True))
-                # leaf children last, right before their parent, so that they can join it
-                kids = sorted(children[node], key=lambda c: not children[c])
-                stack.extend((c, False) for c in reversed(kids))
-        order = order[np.asarray(post, dtype=np.int64)]
+        order = order[_postorder(_etree(nb, brow, bcol, order))]
         s_rows, s_ptr, parent = _symbolic(nb, brow, bcol, order)
-        counts = np.diff(s_ptr)
-        # relaxed supernodes (amalgamation, Ashcraft & Grimes 1989): merge k into the current
-        # supernode [a, k) when k is the parent of each of its roots (the columns whose parent
-        # lies outside it) and the explicit zeros stay few; leaf siblings of the tree gather
-        # while they wait for their parent, and are split again if it does not join them
-        is_leaf_col = np.ones(nb, dtype=bool)
-        is_leaf_col[parent[parent >= 0]] = False
-        parent_l = parent.tolist()
-        bounds = [0]
-        actual = 0
-        roots: list[int] = []
-
-        def close(a: int, k: int) -> None:
-            if len(roots) > 1:  # leaf siblings without their parent: singletons
-                bounds.extend(range(a + 1, k))
-            bounds.append(k)
-
-        for k in range(nb):
-            a = bounds[-1]
-            if k > a and k - a + 1 <= max_cols:
-                cols = k - a + 1
-                if all(parent_l[r] == k for r in roots):
-                    new_ideal = cols * (cols - 1) // 2 + cols * int(counts[k])
-                    new_actual = actual + int(counts[k])
-                    if new_ideal - new_actual <= relax_zeros * new_ideal or cols <= small_cols:
-                        actual, roots = new_actual, [k]
-                        continue
-                elif (
-                    is_leaf_col[k]
-                    and parent_l[k] == parent_l[roots[0]]
-                    and all(is_leaf_col[r] for r in roots)
-                ):
-                    actual += int(counts[k])
-                    roots.append(k)
-                    continue
-            if k > a:
-                close(a, k)
-            actual, roots = int(counts[k]), [k]
-        close(bounds[-1], nb)
-        bounds_arr = np.unique(np.asarray(bounds, dtype=np.int64))
-        nsn = bounds_arr.size - 1
-        owner = np.repeat(np.arange(nsn), np.diff(bounds_arr))
-        # supernodal structures: a supernode is a chain k → k+1 → … → b−1 of the elimination
-        # tree, and struct[k] ⊂ {k+1} ∪ struct[k+1] along a chain, so its rows below are exactly
-        # those of its last column
-        sn_rows_b = [s_rows[s_ptr[b - 1] : s_ptr[b]] for b in bounds_arr[1:].tolist()]
-        sn_parent = np.array([owner[rb[0]] if rb.size else -1 for rb in sn_rows_b], dtype=np.int64)
-        sn_children: list[list[int]] = [[] for _ in range(nsn)]
-        for s_, p_ in enumerate(sn_parent.tolist()):
-            if p_ >= 0:
-                sn_children[p_].append(s_)
-        ar = np.arange(block)
-        fronts_b = [
-            np.concatenate([np.arange(bounds_arr[s], bounds_arr[s + 1]), sn_rows_b[s]])
-            for s in range(nsn)
-        ]
-        # where each stored entry of A goes: the front of the supernode owning its column, when
-        # its row is at or below that supernode's first column (the rest is the transpose).
-        # Positions inside fronts are found by one search in the sorted keys s·nb + block row.
+        bounds = _amalgamate(parent, np.diff(s_ptr), max_cols, relax_zeros, small_cols)
+        fr = _fronts(bounds, s_rows, s_ptr, nb, block)
         pos = np.empty(nb, dtype=np.int64)
         pos[order] = np.arange(nb)
-        sizes = np.array([fb.size for fb in fronts_b], dtype=np.int64)
-        ncols = np.diff(bounds_arr) * block
-        is_leaf = np.array([not c for c in sn_children], dtype=bool)
-        front_start = np.concatenate([[0], np.cumsum(sizes)])
-        front_keys = np.repeat(np.arange(nsn), sizes) * nb + np.concatenate(fronts_b)
-        prb, pcb = pos[brow], pos[bcol]
-        s_of = owner[pcb]
-        sel = np.flatnonzero(prb >= bounds_arr[s_of])
-        sel = sel[np.argsort(s_of[sel], kind="stable")]
-        s_b = s_of[sel]
-        lrow_b = np.searchsorted(front_keys, s_b * nb + prb[sel]) - front_start[s_b]
-        lcol_b = pcb[sel] - bounds_arr[s_b]
-        # every stored block is dense and the scalar columns of a block column share their rows,
-        # so element (r, c) of the block whose top-left entry is at p0 sits at
-        # indptr[col0 + c] + (p0 − indptr[col0]) + r
-        rr, cc = np.divmod(np.arange(block * block), block)
-        col0 = bcol[sel] * block
-        src = indptr[col0[:, None] + cc] + (rep_pos[sel] - indptr[col0])[:, None] + rr
-        if rep_pos.size * block * block != indices.size or not np.array_equal(
-            indices[src], (brow[sel] * block)[:, None] + rr
-        ):
-            raise ValueError("the pattern is not made of dense block×block blocks")
-        f_b = (sizes[s_b] * block)[:, None]
-        # A's entries lie in the pivot columns (c < k), where _front_pos is r·k + c
-        row_len = np.where(is_leaf[s_b][:, None], f_b, ncols[s_b][:, None])
-        a_dst = ((lrow_b[:, None] * block + rr) * row_len + lcol_b[:, None] * block + cc).ravel()
-        take = src.ravel()
-        sn_ptr = np.searchsorted(s_b, np.arange(nsn + 1)) * (block * block)
-        # where each supernode's rows sit in its parent's front
-        lens = np.array([rb.size for rb in sn_rows_b], dtype=np.int64)
-        par_rep = np.repeat(sn_parent, lens)
-        all_rows = np.concatenate(sn_rows_b) if nsn else np.zeros(0, np.int64)
-        loc_all = np.zeros(all_rows.size, dtype=np.int64)
-        has_par = par_rep >= 0
-        loc_all[has_par] = (
-            np.searchsorted(front_keys, par_rep[has_par] * nb + all_rows[has_par])
-            - front_start[par_rep[has_par]]
-        )
-        cuts = np.cumsum(lens * block)[:-1]
-        rows_split = np.split((all_rows[:, None] * block + ar).ravel(), cuts)
-        # the parent-front positions of each update matrix's lower triangle, vectorised over the
-        # supernodes with the same number of rows
-        loc_sc = (loc_all[:, None] * block + ar).ravel()
-        loc_start = np.concatenate([[0], np.cumsum(lens * block)])
-        m_s = lens * block
-        rel_of: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * nsn
-        for m in np.unique(m_s[sn_parent >= 0]).tolist():
-            members = np.flatnonzero((m_s == m) & (sn_parent >= 0))
-            loc = loc_sc[loc_start[members][:, None] + np.arange(m)]
-            par = sn_parent[members][:, None]
-            rel = _update_positions(loc, ncols[par], sizes[par] * block)
-            for i, s_ in enumerate(members.tolist()):
-                rel_of[s_] = rel[i]
+        take, a_dst, sn_ptr = _assembly(fr, indptr, indices, rep_pos, brow, bcol, pos, nb, block)
+        rows_split, rel_of = _parent_positions(fr, nb, block)
         # diagonal of each pivot block in its front: i·(f + 1) in a leaf's square front,
         # i·(k + 1) in the F11 segment of the others, for i < k
+        ncols = fr.ncols
         kk = np.arange(int(ncols.sum())) - np.repeat(np.cumsum(ncols) - ncols, ncols)
-        stride = np.where(is_leaf, sizes * block, ncols) + 1
+        stride = np.where(fr.is_leaf, fr.sizes * block, ncols) + 1
         diag_split = np.split(kk * np.repeat(stride, ncols), np.cumsum(ncols)[:-1])
-        supernodes = []
-        for s_, (a_, b_, p_) in enumerate(
-            zip(bounds_arr[:-1].tolist(), bounds_arr[1:].tolist(), sn_parent.tolist())
-        ):
-            supernodes.append(
-                _Supernode(
-                    c0=a_ * block,
-                    c1=b_ * block,
-                    rows=rows_split[s_],
-                    parent=p_,
-                    rel=rel_of[s_],
-                    a_src=take[sn_ptr[s_] : sn_ptr[s_ + 1]],
-                    a_dst=a_dst[sn_ptr[s_] : sn_ptr[s_ + 1]],
-                    diag=diag_split[s_],
-                )
+        self._supernodes = [
+            _Supernode(
+                c0=a_ * block,
+                c1=b_ * block,
+                rows=rows_split[s_],
+                parent=p_,
+                rel=rel_of[s_],
+                a_src=take[sn_ptr[s_] : sn_ptr[s_ + 1]],
+                a_dst=a_dst[sn_ptr[s_] : sn_ptr[s_ + 1]],
+                diag=diag_split[s_],
             )
-        self._supernodes = supernodes
-        self._perm = (order[:, None] * block + ar).ravel()  # permuted scalar index -> original
-        self.num_supernodes = nsn
-        # Leaves (most supernodes of a pose graph: single poses of odometry chains) depend on
-        # nothing; those of one shape are factorised together as a batch, one numpy call each.
-        shapes: dict[tuple[int, int], list[int]] = {}
-        for s in range(nsn):
-            if not sn_children[s]:
-                sn = supernodes[s]
-                shapes.setdefault((sn.c1 - sn.c0, sn.rows.size), []).append(s)
-        self._leaf_groups = []
-        for (k, m), members in sorted(shapes.items()):
-            f = k + m
-            base = np.arange(len(members)) * f * f
-            sns = [supernodes[s] for s in members]
-            self._leaf_groups.append(
-                _LeafGroup(
-                    k=k,
-                    m=m,
-                    cols=np.stack([np.arange(sn.c0, sn.c1) for sn in sns]),
-                    rows=np.stack([sn.rows for sn in sns]),
-                    src=np.concatenate([sn.a_src for sn in sns]),
-                    dst=np.concatenate([b + sn.a_dst for b, sn in zip(base, sns)]),
-                    diag=np.concatenate([b + sn.diag for b, sn in zip(base, sns)]),
-                    parents=[sn.parent for sn in sns],
-                    rels=[sn.rel for sn in sns],
-                )
+            for s_, (a_, b_, p_) in enumerate(
+                zip(bounds[:-1].tolist(), bounds[1:].tolist(), fr.parent.tolist())
             )
-        self._internal = [s for s in range(nsn) if sn_children[s]]
+        ]
+        self._perm = (order[:, None] * block + np.arange(block)).ravel()  # permuted -> original
+        self.num_supernodes = bounds.size - 1
+        self._leaf_groups = _leaf_groups(self._supernodes, fr.children)
+        self._internal = [s for s in range(self.num_supernodes) if fr.children[s]]
 
     def factorize(self, data: np.ndarray, shift: float = 0.0) -> NumericCholesky:
         """Factorise the matrix with the analysed pattern and values ``data`` (CSC order), plus
