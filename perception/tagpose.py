@@ -206,8 +206,6 @@ def estimate_tag_poses(
     """Poses of the detections ``det``; ``tag_size_m (n,)`` per detection, NaN for tags without a
     known size (rejected as ``unknown_tag``). ``image_size`` is ``(width, height)``; ``depth_mm``
     an aligned uint16 depth image in millimetres, or None."""
-    import cv2
-
     p = params or TagPoseParams()
     n = len(det)
     size = np.asarray(tag_size_m, dtype=np.float64).reshape(n)
@@ -234,49 +232,15 @@ def estimate_tag_poses(
     if m == 0:
         return result()
 
-    # both IPPE solutions per tag, lower reprojection error first; OpenCV reports the RMS per
-    # coordinate, ours is per corner (x sqrt 2). One solution only -> repeated.
     K = np.asarray(K, dtype=np.float64)
-    T2 = np.zeros((m, 2, 4, 4))
-    T2[..., 3, 3] = 1.0
-    rms2 = np.empty((m, 2))
-    for row, i in enumerate(idx):
-        k_sol, rvecs, tvecs, e = cv2.solvePnPGeneric(UNIT_CORNERS * (size[i] / 2), uv[i], K, None,
-                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        order = (0, 0) if k_sol < 2 else ((0, 1) if e[0, 0] <= e[1, 0] else (1, 0))
-        for k, j in enumerate(order):
-            T2[row, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
-            T2[row, k, :3, 3] = tvecs[j][:, 0]
-            rms2[row, k] = e[j, 0] * 1.4142135623730951
     idx_a = np.asarray(idx)
+    T2, rms2 = _ippe_solutions(K, uv[idx_a], size[idx_a])
     floor = p.corner_sigma_px / 2
     ambiguous = [max(a, floor) / max(b, floor) < p.ambiguity_ratio for b, a in rms2.tolist()]
     method_m = ["reprojection"] * m
     reject_m = [OK] * m
-    swap = [False] * m
     if depth_mm is not None and any(ambiguous):
-        # depth is consulted only for ambiguous tags (the others are decided by reprojection)
-        amb = np.flatnonzero(ambiguous)
-        dres, dcount = _depth_residual(T2[amb], size[idx_a[amb]], K, depth_mm)
-        enough = np.all(dcount >= p.depth_min_points, axis=1)
-        # depth decides only when its preference exceeds its own noise: the median of n
-        # samples of |N(0, s)| has a spread of about 1.25 s / sqrt(n).
-        z = np.abs(T2[amb, 0, 2, 3])
-        noise = 3 * 1.25 * p.depth_sigma_coeff_per_m * z * z / np.sqrt(np.maximum(dcount.min(1), 1))
-        gap = np.abs(dres[:, 0] - dres[:, 1])
-        use = enough & (gap > np.maximum(noise, p.depth_decisive_m))
-        choice = np.argmin(dres, axis=1)
-        for a, row in enumerate(amb.tolist()):
-            if use[a]:
-                swap[row] = bool(choice[a] == 1)
-                method_m[row] = "depth"
-                ambiguous[row] = False
-                if dres[a, choice[a]] > p.depth_max_residual_m:
-                    reject_m[row] = REJECT_DEPTH
-    if any(swap):
-        flip = np.asarray(swap)
-        T2[flip] = T2[flip][:, ::-1]
-        rms2[flip] = rms2[flip][:, ::-1]
+        _decide_by_depth(T2, rms2, size[idx_a], K, depth_mm, p, ambiguous, method_m, reject_m)
     Tb = T2[:, 0]
     P = UNIT_CORNERS * (size[idx_a, None, None] / 2)
     if p.refine_iterations:
@@ -292,23 +256,8 @@ def estimate_tag_poses(
         # 4 corners: sum r^2 = 4 rms^2 over 8 - 6 = 2 degrees of freedom
         birge = np.maximum(1.0, 2.0 * rms2[:, 0] ** 2 / sigma_m ** 2)
         cov_m *= birge[:, None, None]
-    if any(ambiguous):
-        d = geo.se3_log(geo.se3_between(Tb, T2[:, 1]))  # (m, 6)
-        angle = np.linalg.norm(d[:, 3:], axis=-1)
-        for row in range(m):
-            if ambiguous[row]:
-                if angle[row] < p.ambiguity_merge_angle_rad:
-                    cov_m[row] += np.outer(d[row], d[row])
-                elif reject_m[row] == OK:
-                    reject_m[row] = REJECT_AMBIGUOUS
-    max_range_sq = p.max_range_m ** 2
-    rb = rms2[:, 0].tolist()
-    for row, (x, y, z_) in enumerate(Tb[:, :3, 3].tolist()):
-        if reject_m[row] == OK:
-            if x * x + y * y + z_ * z_ > max_range_sq:
-                reject_m[row] = REJECT_RANGE
-            elif not rb[row] <= p.max_reproj_px:
-                reject_m[row] = REJECT_REPROJ
+    _merge_or_reject_ambiguous(Tb, T2[:, 1], cov_m, p, ambiguous, reject_m)
+    _check_range_and_reprojection(Tb, rms2[:, 0], p, reject_m)
     T_both[idx_a] = T2
     rms_both[idx_a] = rms2
     cov[idx_a] = cov_m
@@ -317,3 +266,78 @@ def estimate_tag_poses(
         reject[i] = reject_m[row]
         method[i] = method_m[row]
     return result()
+
+
+def _ippe_solutions(K: np.ndarray, uv: np.ndarray, size: np.ndarray):
+    """Both IPPE solutions per tag, lower reprojection error first: ``(T (m, 2, 4, 4), rms (m,
+    2))``. OpenCV reports the RMS per coordinate, ours is per corner (x sqrt 2). One solution
+    only -> repeated."""
+    import cv2
+
+    m = size.shape[0]
+    T2 = np.zeros((m, 2, 4, 4))
+    T2[..., 3, 3] = 1.0
+    rms2 = np.empty((m, 2))
+    for row in range(m):
+        k_sol, rvecs, tvecs, e = cv2.solvePnPGeneric(UNIT_CORNERS * (size[row] / 2), uv[row], K,
+                                                     None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        order = (0, 0) if k_sol < 2 else ((0, 1) if e[0, 0] <= e[1, 0] else (1, 0))
+        for k, j in enumerate(order):
+            T2[row, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
+            T2[row, k, :3, 3] = tvecs[j][:, 0]
+            rms2[row, k] = e[j, 0] * 1.4142135623730951
+    return T2, rms2
+
+
+def _decide_by_depth(T2, rms2, size, K, depth_mm, p: TagPoseParams, ambiguous: list,
+                     method_m: list, reject_m: list) -> None:
+    """Depth is consulted only for ambiguous tags (the others are decided by reprojection); it
+    decides only when its preference exceeds its own noise: the median of n samples of
+    |N(0, s)| has a spread of about 1.25 s / sqrt(n). Swaps ``T2``/``rms2`` rows in place."""
+    amb = np.flatnonzero(ambiguous)
+    dres, dcount = _depth_residual(T2[amb], size[amb], K, depth_mm)
+    enough = np.all(dcount >= p.depth_min_points, axis=1)
+    z = np.abs(T2[amb, 0, 2, 3])
+    noise = 3 * 1.25 * p.depth_sigma_coeff_per_m * z * z / np.sqrt(np.maximum(dcount.min(1), 1))
+    gap = np.abs(dres[:, 0] - dres[:, 1])
+    use = enough & (gap > np.maximum(noise, p.depth_decisive_m))
+    choice = np.argmin(dres, axis=1)
+    swap = [False] * len(ambiguous)
+    for a, row in enumerate(amb.tolist()):
+        if use[a]:
+            swap[row] = bool(choice[a] == 1)
+            method_m[row] = "depth"
+            ambiguous[row] = False
+            if dres[a, choice[a]] > p.depth_max_residual_m:
+                reject_m[row] = REJECT_DEPTH
+    if any(swap):
+        flip = np.asarray(swap)
+        T2[flip] = T2[flip][:, ::-1]
+        rms2[flip] = rms2[flip][:, ::-1]
+
+
+def _merge_or_reject_ambiguous(Tb, T_alt, cov_m, p: TagPoseParams, ambiguous: list,
+                               reject_m: list) -> None:
+    """An ambiguous tag whose two solutions are close keeps the best with their difference
+    added to its covariance; one whose solutions are far apart is rejected."""
+    if not any(ambiguous):
+        return
+    d = geo.se3_log(geo.se3_between(Tb, T_alt))  # (m, 6)
+    angle = np.linalg.norm(d[:, 3:], axis=-1)
+    for row, amb in enumerate(ambiguous):
+        if amb:
+            if angle[row] < p.ambiguity_merge_angle_rad:
+                cov_m[row] += np.outer(d[row], d[row])
+            elif reject_m[row] == OK:
+                reject_m[row] = REJECT_AMBIGUOUS
+
+
+def _check_range_and_reprojection(Tb, rms, p: TagPoseParams, reject_m: list) -> None:
+    max_range_sq = p.max_range_m ** 2
+    rb = rms.tolist()
+    for row, (x, y, z_) in enumerate(Tb[:, :3, 3].tolist()):
+        if reject_m[row] == OK:
+            if x * x + y * y + z_ * z_ > max_range_sq:
+                reject_m[row] = REJECT_RANGE
+            elif not rb[row] <= p.max_reproj_px:
+                reject_m[row] = REJECT_REPROJ
