@@ -22,9 +22,8 @@ from dran_edge.config import AgentConfig
 from dran_edge.dran.consensus import metropolis_hastings_matrix
 from dran_edge.events import NeighbourData, Outgoing, Tick
 from dran_edge.messages import NeighbourMessage
+from dran_edge.experiments.fleet import ROUND_PERIOD_NS
 from dran_edge.experiments.objects import SimParams, make_scenario
-
-ROUND_PERIOD_NS = 500_000_000  # 2 Hz
 
 
 class DranNode:
