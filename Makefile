@@ -10,10 +10,15 @@ PY     := $(VENV)/bin/python
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 STAMP  := $(VENV)/.dran-edge-installed
-EXTRAS := perception,realsense,comms,systemd,eval,test
+# Extras that install everywhere the project claims to support (x86-64 and aarch64 Linux,
+# CPython >= 3.10). The camera drivers (DRIVERS: extras realsense, oak) are tried one by one by
+# tools/install_drivers.py after them: one without a wheel for this Python/architecture is
+# reported (with what to do instead) and never aborts the install; its tests skip.
+EXTRAS ?= perception,comms,systemd,eval,test
+DRIVERS ?= realsense
 DEMO_DIR ?= demo-run
 
-.PHONY: help setup test test-all demo bench clean
+.PHONY: help setup test test-all demo bench bundle clean
 
 help:
 	@echo "make demo      simulate a 6-robot mission, replay it through the robot code, score it"
@@ -21,16 +26,18 @@ help:
 	@echo "make test-all  also run tests marked slow"
 	@echo "make bench     run the benchmarks that need no dataset (all: docs/benchmarks.md)"
 	@echo "make setup     only install (.venv, system packages, draft ZeroMQ)"
+	@echo "make bundle    offline installer for an aarch64 robot (dist/; docs/bundle.md)"
 	@echo "make clean     remove .venv and build outputs"
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/patches/*.patch
+$(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/deb_src_entries.py tools/install_drivers.py tools/patches/*.patch
 	bash tools/setup_system.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -U pip setuptools wheel
 	bash tools/build_zmq_draft.sh $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e '.[$(EXTRAS)]'
+	$(PY) tools/install_drivers.py '-e .' $(DRIVERS)
 	touch $@
 
 test: setup

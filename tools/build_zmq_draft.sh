@@ -76,52 +76,10 @@ mkdir -p "$CACHE"
 fetch_with_apt() {
     local apt="$CACHE/apt"
     mkdir -p "$apt/lists/partial" "$apt/archives/partial" "$apt/cache" "$CACHE/src"
-    # deb-src twins of the machine's Debian/Ubuntu entries (one-line and deb822 formats).
-    "$PY" - "$apt/sources.list.d" <<'EOF'
-import glob, os, re, sys
-out_dir = sys.argv[1]
-os.makedirs(out_dir, exist_ok=True)
-entries = []
-def official(uri):
-    return re.search(r"debian|ubuntu", uri) is not None
-for path in ["/etc/apt/sources.list"] + sorted(glob.glob("/etc/apt/sources.list.d/*.list")):
-    if not os.path.exists(path):
-        continue
-    for line in open(path, encoding="utf-8", errors="replace"):
-        line = line.split("#", 1)[0].strip()
-        m = re.match(r"^deb\s+(\[[^\]]*\]\s+)?(\S+)\s+(\S+)\s*(.*)$", line)
-        if m and official(m.group(2)):
-            entries.append(f"deb-src {m.group(1) or ''}{m.group(2)} {m.group(3)} {m.group(4)}".strip())
-for path in sorted(glob.glob("/etc/apt/sources.list.d/*.sources")):
-    text = open(path, encoding="utf-8", errors="replace").read()
-    for para in re.split(r"\n\s*\n", text):
-        fields, key = {}, None
-        for raw in para.splitlines():
-            if raw.lstrip().startswith("#"):
-                continue
-            if raw[:1] in (" ", "\t") and key:
-                fields[key] += "\n" + raw
-                continue
-            if ":" in raw:
-                key, _, val = raw.partition(":")
-                key = key.strip().lower()
-                fields[key] = val.strip()
-        if "deb" not in fields.get("types", "").split() or fields.get("enabled", "yes") == "no":
-            continue
-        uris = [u for u in fields.get("uris", "").split() if official(u)]
-        if not uris:
-            continue
-        opts = ""
-        if "signed-by" in fields and not fields["signed-by"].startswith("\n"):
-            opts = f"[signed-by={fields['signed-by'].split()[0]}] "
-        for uri in uris:
-            for suite in fields.get("suites", "").split():
-                entries.append(f"deb-src {opts}{uri} {suite} {fields.get('components', '')}".strip())
-if not entries:
-    sys.exit("no Debian/Ubuntu apt source configured on this machine")
-with open(os.path.join(out_dir, "dran-deb-src.list"), "w") as f:
-    f.write("\n".join(dict.fromkeys(entries)) + "\n")
-EOF
+    # deb-src twins of the distribution's own archive entries (not third-party repositories
+    # such as ROS's, whose URLs may contain "ubuntu" too): tools/deb_src_entries.py.
+    "$PY" "$HERE/deb_src_entries.py" "$apt/sources.list.d" \
+        || die "no Debian/Ubuntu archive entry found to derive deb-src lines from"
     local opts=(-o "Dir::Etc::SourceList=/dev/null" -o "Dir::Etc::SourceParts=$apt/sources.list.d"
                 -o "Dir::State::Lists=$apt/lists" -o "Dir::Cache=$apt/cache"
                 -o "Dir::Cache::Archives=$apt/archives" -o "Debug::NoLocking=1")

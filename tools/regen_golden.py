@@ -1,44 +1,85 @@
 #!/usr/bin/env python3
-"""Regenerate the golden summary of the tiny replay (tests/data/golden/tiny_replay.json).
+"""Regenerate the golden replay (tests/data/golden/): the recorded tiny run and its summary.
+
+- ``tests/data/golden/tiny_run/`` is a tiny 3-robot run *as robots record it*: each robot's
+  ``ingest.bin`` holds its odometry, keyframes, loops and the tag observations its perception
+  found (no frames). Replaying it needs no perception, so it replays to the same numbers on
+  every architecture (tests/test_replay.py::test_matches_the_golden_summary).
+- ``tests/data/golden/tiny_replay.json`` is the golden summary of that replay.
 
 Run this only when a change to the simulator, the perception pipeline, the agent or the replay
-is *meant* to change the numbers; review the diff it prints before committing. The test
-(tests/test_replay.py) never rewrites the golden file.
+is *meant* to change the numbers; review the diff it prints before committing. The tests never
+rewrite these files. ``--resimulate`` rewrites the recorded run itself from the simulator (its
+observations then come from this machine's perception: do it on x86-64, where it was made);
+without it only the summary is recomputed from the stored run.
 
-    .venv/bin/python tools/regen_golden.py [--check]
+    .venv/bin/python tools/regen_golden.py [--check] [--resimulate]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 GOLDEN = ROOT / "tests" / "data" / "golden" / "tiny_replay.json"
+GOLDEN_RUN = ROOT / "tests" / "data" / "golden" / "tiny_run"
+#: Replay options of the golden summary (and of the tests that compare with it).
+SETTLE_ROUNDS = 10
 
 
-def tiny_run(directory: Path) -> dict:
-    """Simulate the tiny mission into ``directory`` and replay it; returns the report."""
-    from dran_edge.replay.run import ReplayOptions, replay_run
+def simulate_tiny(directory: Path) -> Path:
+    """Simulate the tiny mission with rendered frames into ``directory/run``; returns it."""
     from dran_edge.sim.writer import write_run
     from dran_edge.sim.mission import SimParams, generate_mission
 
     params = SimParams(**json.loads(GOLDEN.with_suffix(".params.json").read_text()))
-    write_run(generate_mission(params), directory / "run", frames="render", workers=1)
-    return replay_run(directory / "run", ReplayOptions(workers=1, settle_rounds=10)).report
+    return write_run(generate_mission(params), directory / "run", frames="render", workers=1)
+
+
+def replay_tiny(run: Path, redetect: bool = False) -> dict:
+    """Replay ``run`` with the golden options; returns the report."""
+    from dran_edge.replay.run import ReplayOptions, replay_run
+
+    opt = ReplayOptions(workers=1, settle_rounds=SETTLE_ROUNDS, redetect=redetect)
+    return replay_run(run, opt).report
+
+
+def tiny_run(directory: Path) -> dict:
+    """Simulate the tiny mission into ``directory/run`` and replay it; returns the report."""
+    return replay_tiny(simulate_tiny(directory))
+
+
+def store_recorded_run(run: Path, dest: Path = GOLDEN_RUN) -> None:
+    """Copy ``run`` to ``dest`` as robots record it: without frames and outputs."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    shutil.copytree(run, dest, ignore=shutil.ignore_patterns("frames", "out", "eval"))
+
+
+def replay_stored(directory: Path, src: Path = GOLDEN_RUN) -> dict:
+    """Replay a copy of the stored recorded run (the tests never write into tests/data)."""
+    run = directory / "stored"
+    shutil.copytree(src, run)
+    return replay_tiny(run)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--check", action="store_true", help="compare only; do not write")
+    ap.add_argument("--resimulate", action="store_true",
+                    help="rewrite the recorded run from the simulator first")
     args = ap.parse_args(argv)
     from dran_edge.replay.run import compare_summary, golden_summary
 
     with tempfile.TemporaryDirectory() as tmp:
-        summary = golden_summary(tiny_run(Path(tmp)))
+        if args.resimulate and not args.check:
+            store_recorded_run(simulate_tiny(Path(tmp)))
+        summary = golden_summary(replay_stored(Path(tmp)))
     old = json.loads(GOLDEN.read_text()) if GOLDEN.exists() else None
     diffs = compare_summary(summary, old) if old is not None else ["(no golden file yet)"]
     for d in diffs:

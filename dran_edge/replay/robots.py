@@ -192,6 +192,8 @@ class RobotSpec:
 
     run_dir: str
     name: str
+    drop_recorded_observations: bool = False
+    """Leave out ingest.bin's observation records (perception re-detects them from frames)."""
 
 
 @dataclass
@@ -247,6 +249,8 @@ class RobotRunner:
             core = make_core(cfg, info)
             events, rejected = decode_ingest(run.read_ingest(info.name),
                                              str(run.ingest_path(info.name)))
+            if spec.drop_recorded_observations:
+                events = [ev for ev in events if not isinstance(ev, ObservationBatch)]
             timeline, release = [], 0
             for order, ev in enumerate(events):
                 release = max(release, event_stamp(ev))

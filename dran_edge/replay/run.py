@@ -52,6 +52,7 @@ import numpy as np
 from dran_edge import geometry as geo
 from dran_edge.formats import run_dir as rd
 from dran_edge.errors import InputError
+from dran_edge.events import ObservationBatch
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +107,9 @@ class ReplayOptions:
     """Seed of the bus's loss model."""
     evaluate: bool = True
     """Score against the run's mocap (when it has one) and put the metrics in report.json."""
+    redetect: bool = False
+    """Ignore the observations recorded in ``ingest.bin`` and re-run perception on the recorded
+    frames (a robot with recorded observations and no frames is then an error)."""
     udp_wait_s: float = 5.0
     """UDP only: the longest a round waits for the datagrams of the previous round. The wait
     ends as soon as every one has arrived, so only a datagram really lost costs the whole wait.
@@ -130,22 +134,48 @@ class ReplayOptions:
 PERCEPTION_WINDOW_S = 15.0
 
 
-def _perceive_window(args: tuple[str, str, str, int, int]) -> tuple[str, int, list[bytes], int]:
-    """One robot's frames with stamps in [lo, hi) -> observation batches as ingest records."""
-    config_path, calib_dir, name, lo, hi = args
+#: Where a robot's tag observations come from in a replay (report.json ``observation_sources``).
+OBSERVATION_SOURCES = ("recorded", "redetected", "none")
+
+
+def observation_sources(run: rd.Run, redetect: bool = False) -> dict[str, str]:
+    """Per robot name: ``recorded`` (its ingest.bin holds observation records: replay uses
+    them), ``redetected`` (perception runs on its frames: it has frames and either no recorded
+    observations or ``redetect``), or ``none``."""
+    from dran_edge.replay.robots import decode_ingest
+
+    out: dict[str, str] = {}
+    for info in run.mission.robots:
+        cfg = run.load_config(info.name)
+        has_frames = cfg.camera.source == "recorded" and run.frames_dir(info.name) is not None
+        events, _ = decode_ingest(run.read_ingest(info.name), str(run.ingest_path(info.name)))
+        has_recorded = any(isinstance(ev, ObservationBatch) for ev in events)
+        if redetect and has_recorded and not has_frames:
+            raise InputError(f"--redetect: robot {info.name} has recorded observations but no "
+                             "frames to detect them again from", path=str(run.robot_dir(info.name)))
+        if has_frames and (redetect or not has_recorded):
+            out[info.name] = "redetected"
+        else:
+            out[info.name] = "recorded" if has_recorded else "none"
+    return out
+
+
+def perceive_frames(config_path: str | Path, calib_dir: str | Path, name: str,
+                    lo_ns: int = 0, hi_ns: int = 2**63 - 1) -> tuple[list[bytes], int]:
+    """One robot's recorded frames with stamps in [lo_ns, hi_ns) through the perception
+    pipeline -> (observation batches encoded as ingest records, frames read). The daemon
+    journals exactly these records; the simulator writes them into ingest.bin."""
     from dran_edge.comms.ingest import encode_event
     from dran_edge.config import load_config
     from dran_edge.perception.calib import load_calibration
     from dran_edge.perception.pipeline import ObservationPipeline
     from dran_edge.perception.sources import RecordedFramesSource
-    from dran_edge.replay.robots import set_blas_threads
 
-    set_blas_threads(1)  # one perception process per core already
     cfg = load_config(config_path)
     pipeline = ObservationPipeline(load_calibration(calib_dir, name))
     records, frames = [], 0
     source = RecordedFramesSource(cfg.resolve(cfg.camera.recording))
-    source.rows = [row for row in source.rows if lo <= row[0] < hi]
+    source.rows = [row for row in source.rows if lo_ns <= row[0] < hi_ns]
     try:
         for frame in source:
             frames += 1
@@ -154,6 +184,16 @@ def _perceive_window(args: tuple[str, str, str, int, int]) -> tuple[str, int, li
                 records.append(encode_event(batch))
     finally:
         source.close()
+    return records, frames
+
+
+def _perceive_window(args: tuple[str, str, str, int, int]) -> tuple[str, int, list[bytes], int]:
+    """One robot's frames with stamps in [lo, hi) -> observation batches as ingest records."""
+    config_path, calib_dir, name, lo, hi = args
+    from dran_edge.replay.robots import set_blas_threads
+
+    set_blas_threads(1)  # one perception process per core already
+    records, frames = perceive_frames(config_path, calib_dir, name, lo, hi)
     return name, lo, records, frames
 
 
@@ -161,14 +201,15 @@ class _Perception:
     """Recorded frames through the pipeline in worker processes, window by window, ahead of
     the rounds; ``ready_until(t)`` hands over every window that starts at or before ``t``."""
 
-    def __init__(self, run: rd.Run, opt: ReplayOptions, start_ns: int, end_ns: int):
+    def __init__(self, run: rd.Run, opt: ReplayOptions, start_ns: int, end_ns: int,
+                 sources: dict[str, str]):
         self.jobs: list[tuple] = []
         self.frames: dict[str, int] = {}
         step = int(PERCEPTION_WINDOW_S * 1e9)
         robots = []
         for info in run.mission.robots:
             cfg = run.load_config(info.name)
-            if cfg.camera.source != "recorded" or run.frames_dir(info.name) is None:
+            if sources[info.name] != "redetected":
                 continue
             calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
             robots.append((str(run.config_path(info.name)), str(calib), info.name))
@@ -261,7 +302,10 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
     period_ns = int(round(period_s * 1e9))
     by_id = {r.id: r for r in mission.robots}
     name_of = {r.name: r.id for r in mission.robots}
-    specs = [RobotSpec(str(run.root), by_id[i].name) for i in ids]
+    sources = observation_sources(run, opt.redetect)
+    specs = [RobotSpec(str(run.root), by_id[i].name,
+                       drop_recorded_observations=sources[by_id[i].name] == "redetected")
+             for i in ids]
     workers = 1 if opt.transport == "udp" else max(1, min(len(ids), opt.workers or
                                                          os.cpu_count() or 1))
     if workers > 1:
@@ -282,7 +326,7 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
     mission_rounds = max(1, int(math.ceil((last_stamp - mission.start_ns) / period_ns)))
     total_rounds = mission_rounds + opt.settle_rounds
     perception = _Perception(run, opt, mission.start_ns,
-                             mission.start_ns + mission_rounds * period_ns)
+                             mission.start_ns + mission_rounds * period_ns, sources)
     rounds_rows = []
     bytes_total = 0
     expected: Counter = Counter()
@@ -353,6 +397,7 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
         "transport": opt.transport,
         "options": {k: v for k, v in asdict(opt).items() if k not in ("workers",)},
         "frames_processed": sum(perception.frames.values()),
+        "observation_sources": {n: sources[n] for n in sorted(sources)},
         "observations": sum(r.observations for r in res),
         "ingest_rejected": dict(sum((r.rejected for r in res), Counter())),
         "converged_robots": rounds_rows[-1]["converged_robots"] if rounds_rows else 0,
@@ -583,7 +628,7 @@ def write_merged_g2o(run: rd.Run, results: dict) -> bool:
 # ---------------------------------------------------------------------------------- golden
 #: Keys of report.json kept in a golden summary (wall-clock fields are never among them).
 GOLDEN_KEYS = ("robots", "mission_s", "rounds", "mission_rounds", "bytes_total",
-               "frames_processed", "observations", "ingest_rejected", "keyframes",
+               "frames_processed", "observation_sources", "observations", "ingest_rejected", "keyframes",
                "objects_known", "converged_robots", "final_cost", "final_consensus_error",
                "sr_ate", "sr_cost", "ate_m", "ce", "bias")
 

@@ -7,7 +7,10 @@ What each robot's folder gets is what a real robot records:
   ``frames="none"`` mode also OBSERVATIONS records drawn directly from the geometry.
 - ``frames/``: 640 x 480 colour PNG + 16-bit depth PNG (millimetres) rendered by
   :mod:`dran_edge.perception.render` from the robot's camera at each frame stamp, with the
-  tags the camera can see (facing, in range, in the image, not hidden behind another box).
+  tags the camera can see (facing, in range, in the image, not hidden behind another box);
+  and, as the robot's daemon journals its perception output, the OBSERVATIONS records the
+  perception pipeline finds in those frames go into ``ingest.bin`` (replay uses them unless
+  ``--redetect``).
 - ``robot.yaml``: the robot's config (recorded camera, loopback neighbour addresses).
 
 And the run gets ``calib/`` (tag map and cameras in the perception formats), ``mocap.csv``
@@ -82,7 +85,10 @@ def _robot_config(m: sim.Mission, r: sim.RobotMission, frames: bool) -> dict:
     return config_to_dict(cfg)
 
 
-def _ingest_bytes(m: sim.Mission, r: sim.RobotMission, frames_mode: str) -> bytes:
+def _ingest_bytes(m: sim.Mission, r: sim.RobotMission, frames_mode: str,
+                  perceived: list[bytes] = ()) -> bytes:
+    """The robot's ingest records in stamp order; ``perceived``: observation records of the
+    perception pipeline on its frames (placed after the bridge's records of the same stamp)."""
     from dran_edge.comms import ingest
     from dran_edge.events import (
         Keyframe,
@@ -112,8 +118,16 @@ def _ingest_bytes(m: sim.Mission, r: sim.RobotMission, frames_mode: str) -> byte
             batch = ObservationBatch(stamp, tuple(ObjectObservation(stamp, oid, T, C)
                                                   for oid, T, C in obs))
             records.append((stamp, 4, ingest.encode_event(batch)))
+    for rec in perceived:
+        records.append((_record_stamp(rec), 4, rec))
     records.sort(key=lambda x: (x[0], x[1]))
     return b"".join(rec for _, _, rec in records)
+
+
+def _record_stamp(record: bytes) -> int:
+    from dran_edge.comms.ingest import decode_record
+
+    return int(decode_record(record).stamp_ns)
 
 
 def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
@@ -164,10 +178,23 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
     return len(colour_names)
 
 
-def _render_job(args: tuple) -> int:
+def _perceive(robot_dir: Path, name: str) -> list[bytes]:
+    """The perception pipeline on the robot's written frames, as on the robot."""
+    from dran_edge.replay.run import perceive_frames
+
+    records, _ = perceive_frames(robot_dir / "robot.yaml", robot_dir.parents[1] / "calib", name)
+    return records
+
+
+def _render_job(args: tuple) -> tuple[int, list[bytes]]:
     params, robot_index, frames_dir = args
+    from dran_edge.replay.robots import set_blas_threads
+
+    set_blas_threads(1)  # one rendering process per core already
     m = sim.generate_mission(params)
-    return render_robot_frames(m, m.robots[robot_index], Path(frames_dir))
+    r = m.robots[robot_index]
+    n = render_robot_frames(m, r, Path(frames_dir))
+    return n, _perceive(Path(frames_dir).parent, r.name)
 
 
 def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
@@ -216,6 +243,7 @@ def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
                 for i, r in enumerate(m.robots)]
         workers = workers or min(len(jobs), os.cpu_count() or 1)
         done = 0
+        perceived: list[list[bytes]] = []
         if workers <= 1:
             for r, job in zip(m.robots, jobs):
                 def tick(n: int) -> None:
@@ -224,12 +252,16 @@ def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
                     if progress:
                         progress(done, total)
                 render_robot_frames(m, r, Path(job[2]), tick)
+                perceived.append(_perceive(Path(job[2]).parent, r.name))
         else:
             with ProcessPoolExecutor(max_workers=workers) as pool:
-                for n in pool.map(_render_job, jobs):
+                for n, recs in pool.map(_render_job, jobs):
                     done += n
+                    perceived.append(recs)
                     if progress:
                         progress(done, total)
+        for r, recs in zip(m.robots, perceived):
+            (root / "robots" / r.name / "ingest.bin").write_bytes(_ingest_bytes(m, r, frames, recs))
     log.info("wrote run %s (%d robots, %s frames)", root, len(m.robots), frames)
     return root
 

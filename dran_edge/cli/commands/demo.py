@@ -70,8 +70,8 @@ def run(args: argparse.Namespace) -> int:
     print("[2/3] replaying it through the robot code ...", flush=True)
     res = replay_run(out, ReplayOptions(evaluate=False), progress=bar)
     r = res.report
-    print(f"      {r['rounds']} rounds, {r['frames_processed']} frames, {r['observations']} tag "
-          f"observations, {r['bytes_total'] / 1e6:.3f} MB exchanged; "
+    print(f"      {r['rounds']} rounds, {r['observations']} tag observations (recorded by the "
+          f"simulated robots' perception), {r['bytes_total'] / 1e6:.3f} MB exchanged; "
           f"{r['replay_wall_s']:.1f} s ({r['realtime_factor']:.1f}x real time)", flush=True)
     print("[3/3] scoring against the ground truth ...", flush=True)
     report = evaluate_run(out, EvalOptions(plots=not args.no_plots))

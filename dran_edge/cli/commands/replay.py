@@ -14,8 +14,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         prog=prog,
         description=(
             "Start every robot of RUN_DIR with the same agent code the daemon runs, feed it the "
-            "recorded ingest bytes through the same decoders and the recorded frames through "
-            "the AprilTag perception pipeline, and let the robots talk over the in-process bus "
+            "recorded ingest bytes through the same decoders (tag observations the robot "
+            "recorded included; frames go through the AprilTag perception pipeline only for a "
+            "robot without recorded observations, or with --redetect), and let the robots talk over the in-process bus "
             "(default) or loopback UDP RADIO/DISH. Runs as fast as compute allows unless "
             "--speed is given. Writes RUN_DIR/out/ (trajectories, object maps, merged g2o, "
             "rounds.csv, report.json; docs/run-format.md) and prints a summary. "
@@ -38,6 +39,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="extra rounds after the recorded data ends (default 20)")
     p.add_argument("--workers", type=int, default=None,
                    help="perception worker processes (default: one per core)")
+    p.add_argument("--redetect", action="store_true",
+                   help="ignore the tag observations recorded in ingest.bin and run perception "
+                        "on the recorded frames again (results may differ slightly across CPU "
+                        "architectures; the recorded ones replay bit for bit)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bus loss model (default 0)")
     p.add_argument("--no-eval", action="store_true",
                    help="do not score against the run's mocap")
@@ -73,6 +78,14 @@ def _fmt(v, spec: str) -> str:
     return "n/a" if v is None else format(v, spec)
 
 
+def _sources(sources: dict) -> str:
+    """``recorded: dingo1, dingo2; redetected: dingo3``."""
+    by: dict[str, list[str]] = {}
+    for name, src in sources.items():
+        by.setdefault(src, []).append(name)
+    return "; ".join(f"{src}: {', '.join(names)}" for src, names in sorted(by.items())) or "none"
+
+
 def run(args: argparse.Namespace) -> int:
     import json
 
@@ -82,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         transport=args.transport, loss=args.loss, latency_rounds=args.latency,
         partitions=tuple(PartitionSpec.parse(p) for p in args.partition), speed=args.speed,
         settle_rounds=args.settle_rounds, workers=args.workers, seed=args.seed,
-        evaluate=not args.no_eval)
+        evaluate=not args.no_eval, redetect=args.redetect)
     res = replay_run(args.run_dir, opt, progress=ProgressBar())
     r = res.report
     if args.json:
@@ -91,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"replayed {r['robots']} robots, {r['mission_s']:g} s mission in "
           f"{r['replay_wall_s']:.1f} s ({_fmt(r.get('realtime_factor'), '.1f')}x real time) over "
           f"{r['transport']}: {r['rounds']} rounds, {r['bytes_total'] / 1e6:.3f} MB sent, "
-          f"{r['frames_processed']} frames, {r['observations']} tag observations")
+          f"{r['frames_processed']} frames, {r['observations']} tag observations "
+          f"({_sources(r.get('observation_sources', {}))})")
     if "sr_ate" in r:
         print(f"SR_ATE {_fmt(r.get('sr_ate'), '.1f')} %   SR_cost {_fmt(r.get('sr_cost'), '.1f')} %"
               f"   ATE {_fmt(r.get('ate_m'), '.3f')} m   CE {_fmt(r.get('ce'), '.4f')}"
