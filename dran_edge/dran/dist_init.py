@@ -53,10 +53,10 @@ Exchange = Callable[[InitStage, int, dict], dict]
 
 
 #: Default over-relaxation of the Gauss–Seidel block updates (both stages). Measured on the
-#: Table 1 graphs (docs/benchmarks.md, "Distributed initialisation"): with it (and the 1e-3
-#: stage tolerances) the 50 + 50 iteration init lands 0.01–4.2 % above the centralized chordal
-#: objective, where ω = 1 with 1e-2 tolerances left it 2.5–38 % above (CSAIL 31.53 vs 31.48,
-#: was 34.30; parking-garage 1.47 vs 1.42, was 1.90).
+#: Table 1 graphs (docs/notes/benchmarks-history.md, "Distributed initialisation"): with it
+#: (and the 1e-3 stage tolerances) the 50 + 50 iteration init lands 0.01–4.2 % above the
+#: centralized chordal objective, where ω = 1 with 1e-2 tolerances left it 2.5–38 % above
+#: (CSAIL 31.53 vs 31.48, was 34.30; parking-garage 1.47 vs 1.42, was 1.90).
 GS_SOR = 1.8
 
 

@@ -226,11 +226,11 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     consensus-conflict kernel is off (``conflict_reach_m`` 0): with the exclusion all but one of
     the 1956 wrong views of scenario seeds 0-7 wait for corroboration, and on drifted copies of
     one object the kernel only slowed the fleet (seed 5: +24 % ATE where the run ended;
-    docs/benchmarks.md, "Tenth session"). The kernel on copies far from the association
-    check's centre (``centre_reach_m``, 16 m, the agent default) stays on: a lone wrong view
-    cleared by the exclusion can start a phantom in the first round, and least squares would
-    average it into the relays before the check drops it ("Thirteenth session"). ``min_views``
-    overrides the min views."""
+    docs/notes/benchmarks-history.md, "Tenth session"). The kernel on copies far from the
+    association check's centre (``centre_reach_m``, 16 m, the agent default) stays on: a lone
+    wrong view cleared by the exclusion can start a phantom in the first round, and least
+    squares would average it into the relays before the check drops it ("Thirteenth
+    session"). ``min_views`` overrides the min views."""
     return AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
                        object_robust_threshold=1.0, conflict_reach_m=0.0 if robust else 16.0,
                        object_min_views=min_views if min_views is not None else 2 if robust else 1)
@@ -255,7 +255,8 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     # solves the same seed's scenario without them (same trajectories, noise and start; see
     # make_scenario), so SR_cost and SR_ATE say how close the fleet gets, despite the outliers,
     # to what a centralized solver gets without them. Over all factors the centralized LM has
-    # no gating, and the wrong ids drag it metres away (ATE* 3–23 m at 20 %, docs/benchmarks.md).
+    # no gating, and the wrong ids drag it metres away (ATE* 3–23 m at 20 %,
+    # docs/notes/benchmarks-history.md).
     ref_sc = sc
     if sc.params.outlier_ratio > 0:
         ref_sc = make_scenario(dataclasses.replace(sc.params, outlier_ratio=0.0), sc.problems[0].residual)

@@ -2,6 +2,7 @@
 g2o graphs (the tier-3 cost of one LM trial).
 
     .venv/bin/python tools/bench/bench_cholesky.py [DATA_DIR] [--repeat N] [--baseline FILE]
+    .venv/bin/python tools/bench/bench_cholesky.py --quick   # two small generated graphs, seconds
 
 For each graph: A = JᵀJ of the geodesic residual with SE-Sync weights at the chordal
 initialisation (vertex 0 fixed), μ = 1e-6·max diag(A). Times (best of --repeat) of
@@ -21,12 +22,12 @@ shared, oversubscribed machine disturbs far less than wall time; F of both resul
 from __future__ import annotations
 
 import argparse
-import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see bench_g2o.py
+import _common  # one BLAS thread, before numpy (see bench_g2o.py)
 
 import importlib.util
 
@@ -41,14 +42,7 @@ from dran_edge.solver.objective import sesync_objective, sesync_weights
 from dran_edge.solver.centralized import initial_poses, pose_graph
 from dran_edge.solver.sparse_cholesky import SymbolicCholesky
 
-FILES = {
-    "parking-garage": "parking-garage.g2o",
-    "sphere2500": "sphere2500.g2o",
-    "torus3D": "torus3D.g2o",
-    "CSAIL": "CSAIL.g2o",
-    "intel": "input_INTEL_g2o.g2o",
-    "manhattan": "input_M3500_g2o.g2o",
-}
+FILES = {name: fname for name, (fname, _) in _common.G2O_GRAPHS.items()}
 
 
 def _best(fn, repeat):
@@ -160,31 +154,41 @@ def _ab(name: str, path: Path, base, repeat: int) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    default = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "g2o"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("data_dir", nargs="?", default=str(default) if default.exists() else None)
+    ap.add_argument("data_dir", nargs="?", default=_common.default_g2o_dir())
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--baseline", help="another sparse_cholesky.py to compare against (A/B)")
+    ap.add_argument("--quick", action="store_true",
+                    help="two small generated graphs, one run each: checks the script, not speed")
     args = ap.parse_args(argv)
+    if args.quick:
+        with tempfile.TemporaryDirectory() as tmp:
+            files = {k: f for k, (f, _) in _common.quick_g2o_graphs(tmp).items()}
+            return _run(args, tmp, files, ["quick-se3"], 1)
     if args.data_dir is None:
         ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
-    print(f"# best of {args.repeat}; times in ms")
+    return _run(args, args.data_dir, FILES, ["parking-garage", "sphere2500", "torus3D"],
+                args.repeat)
+
+
+def _run(args, data_dir: str, files: dict[str, str], ab_names: list[str], repeat: int) -> int:
+    print(f"# best of {repeat}; times in ms")
     print(
         f"{'dataset':15s} {'n':>6s} {'nnz(A)':>8s} | {'superlu':>8s} {'solve':>6s} {'resid':>7s} | "
         f"{'analyse':>8s} {'chol':>7s} {'solve':>6s} {'resid':>7s} | {'speed-up':>8s}"
     )
-    for name, fname in FILES.items():
-        print(_one(name, Path(args.data_dir) / fname, args.repeat), flush=True)
+    for name, fname in files.items():
+        print(_one(name, Path(data_dir) / fname, repeat), flush=True)
     print("speed-up = SuperLU factorisation time / our numeric factorisation time (same matrix)")
     if args.baseline:
         base = _load_baseline(args.baseline)
-        print(f"\n# A/B against {args.baseline}: CPU time (process_time), best of {args.repeat}")
+        print(f"\n# A/B against {args.baseline}: CPU time (process_time), best of {repeat}")
         print(
             f"{'dataset':15s} {'sn b':>5s} {'sn o':>5s} | {'analyse b/o ms':>13s} | "
             f"{'factor b/o ms':>13s} {'b/o':>6s} | {'solve b/o':>11s} | {'Δx':>7s}"
         )
-        for name in ("parking-garage", "sphere2500", "torus3D"):
-            for line in _ab(name, Path(args.data_dir) / FILES[name], base, args.repeat):
+        for name in ab_names:
+            for line in _ab(name, Path(data_dir) / files[name], base, repeat):
                 print(line, flush=True)
     return 0
 

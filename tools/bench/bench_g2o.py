@@ -1,8 +1,10 @@
 """Benchmark: our centralised Schur-LM vs GTSAM's Levenberg-Marquardt on the paper's six g2o graphs.
 
     .venv/bin/python tools/bench/bench_g2o.py [DATA_DIR] [--only NAME ...] [--repeat N]
+    .venv/bin/python tools/bench/bench_g2o.py --quick     # two small generated graphs, seconds
 
-DATA_DIR defaults to ../shared/data/g2o when it exists. For every graph, in the same process:
+DATA_DIR defaults to ../shared/data/g2o when it exists. GTSAM's arm runs when gtsam is installed
+(``--no-gtsam`` skips it; ``--quick`` skips it when it is missing). For every graph, in the same process:
 read it, compute the chordal initialisation once, then time (best of --repeat runs)
 
 Our linear solver is 'auto' (supernodal Cholesky on the 3D graphs, SuperLU on the 2D ones).
@@ -26,12 +28,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 # Our frontal matrices are small: one BLAS thread per process (threaded OpenBLAS oversubscribes
-# a busy 2-core machine badly). Must be set before numpy loads; GTSAM is not affected.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# a busy 2-core machine badly). _common sets it; it must come before numpy. GTSAM is not affected.
+import _common
 
 import numpy as np
 
@@ -41,14 +44,7 @@ from dran_edge.solver.objective import sesync_objective, sesync_weights
 from dran_edge.solver.centralized import initial_poses, pose_graph
 
 # F* of the data README (exact LM, ‖grad‖ ≤ 2e-4); the paper prints them rounded.
-DATASETS = {
-    "parking-garage": ("parking-garage.g2o", 1.26252443),
-    "sphere2500": ("sphere2500.g2o", 1687.00581),
-    "torus3D": ("torus3D.g2o", 24227.0456),
-    "CSAIL": ("CSAIL.g2o", 31.4703317),
-    "intel": ("input_INTEL_g2o.g2o", 393.652541),
-    "manhattan": ("input_M3500_g2o.g2o", 193.862258),
-}
+DATASETS = _common.G2O_GRAPHS
 
 
 def _gtsam_problem(gtsam, g, T0, kappa, tau):
@@ -98,23 +94,36 @@ def _ours(g, T0, residual, cost_tol, hessian):
 
 
 def main(argv: list[str] | None = None) -> int:
-    default = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "g2o"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("data_dir", nargs="?", default=str(default) if default.exists() else None)
+    ap.add_argument("data_dir", nargs="?", default=_common.default_g2o_dir())
     ap.add_argument("--only", nargs="+", choices=list(DATASETS), help="a subset of the graphs")
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per solver (best is kept)")
     ap.add_argument("--no-gtsam", action="store_true", help="skip GTSAM")
+    ap.add_argument("--quick", action="store_true",
+                    help="two small generated graphs, one run each: checks the script, not speed")
     args = ap.parse_args(argv)
+    if args.quick:
+        with tempfile.TemporaryDirectory() as tmp:
+            return _run(args, tmp, _common.quick_g2o_graphs(tmp), 1, gtsam_required=False)
     if args.data_dir is None:
         ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
+    graphs = {k: DATASETS[k] for k in args.only or DATASETS}
+    return _run(args, args.data_dir, graphs, args.repeat, gtsam_required=True)
+
+
+def _run(args, data_dir: str, graphs: dict[str, tuple[str, float]], repeat: int,
+         gtsam_required: bool) -> int:
     gtsam = None
     if not args.no_gtsam:
         try:
             import gtsam
         except ImportError:
-            print("gtsam is not installed (pip install gtsam); use --no-gtsam", file=sys.stderr)
-            return 3
-    print(f"# cpu: {os.cpu_count()} cores; numpy {np.__version__}; best of {args.repeat} runs")
+            if gtsam_required:
+                print("gtsam is not installed (pip install gtsam); use --no-gtsam",
+                      file=sys.stderr)
+                return 3
+            print("# gtsam is not installed: its columns stay empty")
+    print(f"# cpu: {os.cpu_count()} cores; numpy {np.__version__}; best of {repeat} runs")
     head = (
         f"{'dataset':15s} {'n':>5s} {'m':>5s} {'F_init':>11s} | {'geo s':>6s} {'it':>3s} "
         f"{'F geo':>12s} {'relF*':>8s} | {'gtsam s':>7s} {'it':>3s} {'F gtsam':>12s} "
@@ -123,24 +132,23 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(head)
     print("-" * len(head))
-    for name in args.only or DATASETS:
-        fname, F_star = DATASETS[name]
-        g = read_g2o(Path(args.data_dir) / fname)
+    for name, (fname, F_star) in graphs.items():
+        g = read_g2o(Path(data_dir) / fname)
         kappa, tau = sesync_weights(g.dim, g.information)
 
         def F(T, g=g, kappa=kappa, tau=tau):
             return sesync_objective(T, g.edges, g.measurements, kappa, tau)
 
         T0 = initial_poses(g, "chordal")
-        geo_runs = [_ours(g, T0, "geodesic", 1e-5, "gauss_newton") for _ in range(args.repeat)]
+        geo_runs = [_ours(g, T0, "geodesic", 1e-5, "gauss_newton") for _ in range(repeat)]
         t_geo = min(r[0] for r in geo_runs)
         res_geo = geo_runs[0][1]
-        cho_runs = [_ours(g, T0, "chordal", 1e-8, "exact") for _ in range(args.repeat)]
+        cho_runs = [_ours(g, T0, "chordal", 1e-8, "exact") for _ in range(repeat)]
         t_cho = min(r[0] for r in cho_runs)
         res_cho = cho_runs[0][1]
         if gtsam is not None:
             graph, values = _gtsam_problem(gtsam, g, T0, kappa, tau)
-            gt_runs = [_gtsam_run(gtsam, graph, values, g) for _ in range(args.repeat)]
+            gt_runs = [_gtsam_run(gtsam, graph, values, g) for _ in range(repeat)]
             t_gt = min(r[0] for r in gt_runs)
             it_gt, F_gt = gt_runs[0][1], F(gt_runs[0][2])
             gt_txt = f"{t_gt:7.3f} {it_gt:3d} {F_gt:12.6f} {(F_gt - F_star) / F_star:8.1e} | {t_geo / t_gt:5.2f}"

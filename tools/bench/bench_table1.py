@@ -1,56 +1,71 @@
 """Table 1 of the paper: DRAN and our DGS baseline on the six g2o benchmarks, 5 robots.
 
 Usage: .venv/bin/python tools/bench/bench_table1.py DATA_DIR [--robots 5] [--only NAME ...] [--json OUT]
+       .venv/bin/python tools/bench/bench_table1.py --quick    # a small generated graph, seconds
 
 Prints a Table-1-like table with the paper's columns next to ours: objective (SE-Sync convention)
 at the distributed initialisation and at the end, rounds and total transmitted bytes (every byte
 of every datagram, initialisation included) for DRAN and DGS. The gap is to our own centralized
 optimum F* (the SE-Sync optimum to 3e-9, docs/benchmarks.md, centralised solver), not to the paper's
-rounded column. DRAN runs with the Table 1 setup of ``multiagent.table1_setup`` (colour schedule,
+rounded column. DRAN runs with the Table 1 setup of ``experiments.fleet.table1_setup`` (colour schedule,
 block SOR, delta entries; ``--plain`` for Alg. 1 as printed); DGS uses the same wire layout.
 """
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see docs/benchmarks.md
-
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
+
+import _common  # one BLAS thread, before numpy (docs/benchmarks.md)
 
 from dran_edge.experiments.dgs import run_g2o_dgs
 from dran_edge.formats.g2o import read_g2o
 from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 
-# name: (file, F* (ours, centralized), paper DGS F, paper DRAN F, paper DGS MB, paper DRAN MB)
+# name: (paper DGS F, paper DRAN F, paper DGS MB, paper DRAN MB); files and F* in _common
 PAPER = {
-    "parking-garage": ("parking-garage.g2o", 1.26252443, 1.33, 1.289, 5.41, 1.23),
-    "sphere2500": ("sphere2500.g2o", 1687.00581, 1689, 1687, 13.73, 1.34),
-    "torus3D": ("torus3D.g2o", 24227.0456, 24246, 24227, 9.14, 3.23),
-    "CSAIL": ("CSAIL.g2o", 31.4703317, 31.49, 31.47, 11.857, 0.01),
-    "intel": ("input_INTEL_g2o.g2o", 393.652541, 428.89, 393.7, 0.06, 0.54),
-    "manhattan": ("input_M3500_g2o.g2o", 193.862258, 242.05, 194.0, 152.31, 13.47),
+    "parking-garage": (1.33, 1.289, 5.41, 1.23),
+    "sphere2500": (1689, 1687, 13.73, 1.34),
+    "torus3D": (24246, 24227, 9.14, 3.23),
+    "CSAIL": (31.49, 31.47, 11.857, 0.01),
+    "intel": (428.89, 393.7, 0.06, 0.54),
+    "manhattan": (242.05, 194.0, 152.31, 13.47),
 }
+NO_PAPER = (float("nan"),) * 4  # a generated graph (--quick) has no paper column
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("data_dir")
+    ap.add_argument("data_dir", nargs="?", default=_common.default_g2o_dir())
     ap.add_argument("--robots", type=int, default=5)
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--json", help="append one JSON line per run to this file")
     ap.add_argument("--max-rounds", type=int, default=None,
                     help="cap on DRAN rounds (default: K_max = 500 local steps per robot)")
     ap.add_argument("--plain", action="store_true", help="DRAN as Alg. 1 prints it (see module doc)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a small generated graph, 3 robots, 20 DRAN rounds: checks the script only")
     args = ap.parse_args(argv)
+    if args.quick:  # the SE(2) graph only unless --only names the other: 1 s instead of 3
+        args.robots, args.max_rounds = 3, args.max_rounds or 20
+        with tempfile.TemporaryDirectory() as tmp:
+            graphs = _common.quick_g2o_graphs(tmp)
+            only = args.only or ["quick-se2"]
+            return _run(args, tmp, {k: v for k, v in graphs.items() if k in only})
+    if args.data_dir is None:
+        ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
+    graphs = {k: v for k, v in _common.G2O_GRAPHS.items() if not args.only or k in args.only}
+    return _run(args, args.data_dir, graphs)
+
+
+def _run(args, data_dir: str, graphs: dict[str, tuple[str, float]]) -> int:
     rows = []
-    for name, (fname, F_star, dgs_F, dran_F, dgs_MB, dran_MB) in PAPER.items():
-        if args.only and name not in args.only:
-            continue
-        g = read_g2o(Path(args.data_dir) / fname)
+    for name, (fname, F_star) in graphs.items():
+        dgs_F, dran_F, dgs_MB, dran_MB = PAPER.get(name, NO_PAPER)
+        g = read_g2o(Path(data_dir) / fname)
         cfg, run_kw = table1_setup(g.dim, "chordal", plain=args.plain)
         dran = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, **run_kw)
         dgs = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY)

@@ -9,7 +9,8 @@ import os
 import sys
 
 # One BLAS thread: the local steps are small dense products, and OpenBLAS's thread pool on a
-# busy 2-core machine made them ~75x slower (measured, docs/benchmarks.md). Must precede numpy.
+# busy 2-core machine made them ~75x slower (measured, docs/notes/benchmarks-history.md).
+# Must precede numpy.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 HELP = "run the paper's experiments: Table 1 on a g2o graph, or the object simulation sweeps"
@@ -81,8 +82,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "or no view of another object lies within 0.5 m of it "
                         "(default: 2 with --outliers, which rejects lone wrong tag ids; else 1)")
     o.add_argument("--beta", type=float, default=None,
-                   help="consensus penalty β (default: the paper's 1.0; docs/benchmarks.md "
-                        "measures smaller ones on this unit-information simulation)")
+                   help="consensus penalty β (default: the paper's 1.0; "
+                        "docs/notes/benchmarks-history.md measures smaller ones on this "
+                        "unit-information simulation)")
     o.add_argument("--eta", type=float, default=None,
                    help="dual step η (default: the paper's 0.1)")
     o.add_argument("--rounds", type=int, default=150,
@@ -90,7 +92,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "meets the stopping rule)")
     o.add_argument("--history-every", type=int, default=0, metavar="N",
                    help="also report the metrics every N rounds (JSON key 'history'; the ATE "
-                        "after 150 rounds is still a transient, docs/benchmarks.md)")
+                        "after 150 rounds is still a transient, docs/notes/benchmarks-history.md)")
     o.add_argument("--robots", type=int, default=21, help="robots (default 21, as the paper)")
     o.add_argument("--objects", type=int, default=60, help="objects (default 60, as the paper)")
     o.add_argument("--seed", type=int, default=0,

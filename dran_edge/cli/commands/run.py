@@ -34,8 +34,8 @@ def run(args: argparse.Namespace) -> int:
     import os
 
     # One BLAS thread: the round's matrices are small, and OpenBLAS worker threads spinning on a
-    # shared CPU made the Schur step 30-70x slower here (docs/benchmarks.md). Must be set before
-    # numpy loads OpenBLAS, i.e. before the imports below.
+    # shared CPU made the Schur step 30-70x slower here (docs/notes/benchmarks-history.md).
+    # Must be set before numpy loads OpenBLAS, i.e. before the imports below.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     from dran_edge.config import load_config
