@@ -301,17 +301,15 @@ def fleet_id(fleet: str) -> int:
 
 
 def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | None:
-    """RADIO/DISH to the configured neighbours, authenticated with the fleet key (issue 4)."""
+    """RADIO/DISH to the configured neighbours, authenticated by ``comms.auth``'s key policy."""
     if cfg.comms.transport == "none":
         return None
-    from dran_edge.comms.auth import AuthPolicy, load_fleet_key
+    from dran_edge.comms.auth import AuthPolicy
+    from dran_edge.comms.keys import credentials_from_config
     from dran_edge.comms.link import NeighbourLink
     from dran_edge.comms.radio import RadioParams, RadioTransport
 
-    key_path = cfg.resolve(cfg.comms.key_file)
-    if key_path is None:
-        raise DranError("comms.transport is 'udp' but comms.key_file is not set")
-    key = load_fleet_key(key_path)
+    key = credentials_from_config(cfg)
     neighbours = {}
     for n in cfg.neighbours:
         host, port = parse_address(n.address, "address")

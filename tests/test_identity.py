@@ -9,8 +9,8 @@ import pytest
 
 pytest.importorskip("cryptography")
 
-from dran_edge.comms import auth, codec  # noqa: E402
-from dran_edge.comms.auth import (  # noqa: E402
+from dran_edge.comms import auth, codec
+from dran_edge.comms.auth import (
     AuthPolicy,
     Ed25519Signer,
     Reject,
@@ -18,8 +18,9 @@ from dran_edge.comms.auth import (  # noqa: E402
     Signer,
     Verifier,
 )
-from dran_edge.errors import ConfigError  # noqa: E402
-from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry  # noqa: E402
+
+from dran_edge.errors import ConfigError
+from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 
 FLEET = 7
 SEEDS = {r: bytes([r]) * 32 for r in (1, 2, 3)}
@@ -190,3 +191,27 @@ def test_links_over_the_bus_with_identities():
             got = link.poll()
             assert sorted(m.sender_id for m in got) == sorted({1, 2, 3} - {r})
     assert all(sum(link.verifier.counts.rejected.values()) == 0 for link in links.values())
+
+
+def test_fleet_key_pair_export_check_commands(tmp_path, capsys):
+    from dran_edge.cli import main
+
+    for r in (1, 2):
+        assert main(["fleet-key", "pair", str(tmp_path / f"r{r}.key"), "--robot-id", str(r)]) == 0
+    pubs = [auth.load_public_key_file(tmp_path / f"r{r}.key.pub")[1] for r in (1, 2)]
+    # rotation: a second key pair of robot 1 exported next to the first gives both keys
+    (tmp_path / "new").mkdir()
+    assert main(["fleet-key", "pair", str(tmp_path / "new" / "r1.key"), "--robot-id", "1"]) == 0
+    new1 = auth.load_public_key_file(tmp_path / "new" / "r1.key.pub")[1]
+    out = tmp_path / "fleet.pub"
+    assert main(["fleet-key", "export", str(out), "--fleet", "f", str(tmp_path),
+                 str(tmp_path / "new" / "r1.key.pub")]) == 0
+    assert auth.load_fleet_public_keys(out) == ("f", {1: (pubs[0], new1), 2: (pubs[1],)})
+    capsys.readouterr()
+    assert main(["fleet-key", "check", str(tmp_path / "r2.key")]) == 0
+    assert pubs[1].hex() in capsys.readouterr().out
+    assert main(["fleet-key", "check", str(out)]) == 0
+    assert "1: 2 keys, 2: 1 key" in capsys.readouterr().out
+    os.chmod(tmp_path / "r2.key", 0o644)
+    assert main(["fleet-key", "check", str(tmp_path / "r2.key")]) == 2
+    assert "chmod 600" in capsys.readouterr().err
