@@ -1,9 +1,16 @@
-"""Datagram authentication: HMAC-SHA256 tags, fleet key files, and the drop-and-count verifier.
+"""Datagram authentication: fleet HMAC tags or per-robot Ed25519 signatures, key files, and
+the drop-and-count verifier.
 
-docs/wire-format.md. UDP RADIO/DISH has no security mechanism of its own (no CURVE, no peer
-identity), so every neighbour datagram carries a tag in the codec's last ``TAG_BYTES`` = 16
-bytes: HMAC-SHA256 (RFC 2104) over everything before the tag, truncated to 128 bits as in
-RFC 4868 (HMAC-SHA-256-128). One secret key per fleet.
+UDP RADIO/DISH has no security mechanism of its own (no CURVE, no peer identity), so every
+neighbour datagram ends in an authentication trailer over everything before it. Two key
+policies (docs/wire-format.md, "Authentication"; a fleet uses one):
+
+- ``hmac``: one secret key per fleet; the trailer is HMAC-SHA256 (RFC 2104) truncated to 128
+  bits as in RFC 4868 (HMAC-SHA-256-128), ``TAG_BYTES`` = 16. Any key holder can sign as any
+  robot.
+- ``ed25519``: one key pair per robot; the trailer is the sender's Ed25519 signature
+  (RFC 8032), ``SIGNATURE_BYTES`` = 64, flagged in the header. Receivers hold only their
+  neighbours' public keys, so a robot (or a thief of its secret) can sign only as itself.
 
 ``Verifier.check`` is the only door into the agent for a datagram. It drops (and counts
 under a ``Reject`` reason) anything malformed, from another fleet, from a robot that is not
@@ -22,70 +29,41 @@ from __future__ import annotations
 import enum
 import hmac
 import os
-import stat
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from dran_edge.comms.codec import MAGIC, SCHEMA_VERSION, TAG_BYTES, decode_datagram, decode_header
+from dran_edge.comms.codec import (
+    MAGIC,
+    SCHEMA_VERSION,
+    SIGNATURE_BYTES,
+    TAG_BYTES,
+    decode_datagram,
+    decode_header,
+)
+
+# Key files live in comms/keys.py; re-exported here, where callers have always found them.
+from dran_edge.comms.keys import (  # noqa: F401
+    ED25519_KEY_BYTES,
+    KEY_MAX_BYTES,
+    KEY_MIN_BYTES,
+    POLICIES,
+    RobotIdentity,
+    _ed25519,
+    load_fleet_key,
+    load_fleet_public_keys,
+    load_public_key_file,
+    load_robot_key,
+    parse_public_key,
+    public_key_of,
+    public_key_path,
+    write_fleet_key,
+    write_fleet_public_keys,
+    write_robot_key,
+)
+
 from dran_edge.errors import ConfigError, DecodeError
 from dran_edge.messages import NeighbourMessage
-
-#: Accepted key lengths in bytes (the key file holds them hex-encoded).
-KEY_MIN_BYTES = 32
-KEY_MAX_BYTES = 64
-
-
-# --------------------------------------------------------------------------- keys
-def load_fleet_key(path: str | os.PathLike) -> bytes:
-    """Read a fleet key file: one line of 64..128 hex digits (32..64 bytes); '#' comments allowed.
-
-    Refuses (``ConfigError`` naming the file and its mode) a key that the group or others
-    may read or write: ``chmod 600`` it.
-    """
-    path = os.fspath(path)
-    try:
-        st = os.stat(path)
-    except OSError as exc:
-        raise ConfigError(f"cannot read the fleet key: {exc.strerror}", path=path) from None
-    if not stat.S_ISREG(st.st_mode):
-        raise ConfigError("the fleet key must be a regular file", path=path)
-    mode = stat.S_IMODE(st.st_mode)
-    if mode & 0o077:
-        raise ConfigError(
-            f"fleet key has mode {mode:04o}; expected no group/other access "
-            f"(run: chmod 600 {path})",
-            path=path,
-        )
-    with open(path, encoding="ascii", errors="replace") as f:
-        lines = [ln.split("#", 1)[0].strip() for ln in f]
-    digits = "".join(ln for ln in lines if ln)
-    try:
-        key = bytes.fromhex(digits)
-    except ValueError:
-        raise ConfigError("expected the key as hexadecimal digits", path=path) from None
-    if not KEY_MIN_BYTES <= len(key) <= KEY_MAX_BYTES:
-        raise ConfigError(
-            f"expected a key of {KEY_MIN_BYTES}..{KEY_MAX_BYTES} bytes, got {len(key)}", path=path
-        )
-    return key
-
-
-def write_fleet_key(path: str | os.PathLike, key: bytes | None = None) -> bytes:
-    """Create a new key file (mode 0600, refuses to overwrite); returns the key."""
-    key = os.urandom(KEY_MIN_BYTES) if key is None else key
-    if not KEY_MIN_BYTES <= len(key) <= KEY_MAX_BYTES:
-        raise ConfigError(
-            f"expected a key of {KEY_MIN_BYTES}..{KEY_MAX_BYTES} bytes, got {len(key)}"
-        )
-    try:
-        fd = os.open(os.fspath(path), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        raise ConfigError(
-            "fleet key file exists; not overwriting it", path=os.fspath(path)
-        ) from None
-    with os.fdopen(fd, "w") as f:
-        f.write("# dran-edge fleet key (HMAC-SHA256); keep mode 0600\n" + key.hex() + "\n")
-    return key
 
 
 def next_boot_epoch(state_path: str | os.PathLike, *, now_s: float | None = None) -> int:
@@ -121,7 +99,10 @@ def compute_tag(key: bytes, datagram: bytes) -> bytes:
 
 
 class Signer:
-    """Fills the tag slot of encoded datagrams with the fleet key."""
+    """Fills the tag slot of encoded datagrams with the fleet key (the hmac policy)."""
+
+    #: Datagrams for this signer are encoded with ``codec.encode_datagrams(signed=False)``.
+    signed = False
 
     def __init__(self, key: bytes):
         if not KEY_MIN_BYTES <= len(key) <= KEY_MAX_BYTES:
@@ -136,6 +117,30 @@ class Signer:
         return bytes(datagram[:-TAG_BYTES]) + compute_tag(self._key, datagram)
 
 
+class Ed25519Signer:
+    """Fills the signature slot of datagrams encoded with ``signed=True`` (the ed25519 policy)."""
+
+    signed = True
+
+    def __init__(self, secret: bytes):
+        if len(secret) != ED25519_KEY_BYTES:
+            raise ConfigError(f"expected a {ED25519_KEY_BYTES}-byte Ed25519 secret, got {len(secret)}")
+        self._private = _ed25519().Ed25519PrivateKey.from_private_bytes(bytes(secret))
+
+    def sign(self, datagram: bytes) -> bytes:
+        if len(datagram) < SIGNATURE_BYTES:
+            raise ValueError(f"datagram of {len(datagram)} bytes has no signature slot")
+        body = bytes(datagram[:-SIGNATURE_BYTES])
+        return body + self._private.sign(body)
+
+
+def make_signer(credentials: bytes | RobotIdentity) -> Signer | Ed25519Signer:
+    """The signer of a fleet HMAC key (bytes) or of a robot's identity."""
+    if isinstance(credentials, RobotIdentity):
+        return Ed25519Signer(credentials.secret)
+    return Signer(credentials)
+
+
 # --------------------------------------------------------------------------- verifier
 class Reject(str, enum.Enum):
     """Why a datagram was dropped (counter names)."""
@@ -147,6 +152,9 @@ class Reject(str, enum.Enum):
     WRONG_FLEET = "wrong_fleet"
     UNKNOWN_SENDER = "unknown_sender"
     NOT_NEIGHBOUR = "not_neighbour"
+    #: the datagram's trailer is of the other key policy (an HMAC tag where this robot expects
+    #: Ed25519 signatures, or the reverse): a robot configured with another ``comms.auth``
+    WRONG_AUTH = "wrong_auth"
     BAD_TAG = "bad_tag"
     REPLAYED = "replayed"
     STALE = "stale"
@@ -192,16 +200,44 @@ class VerifierCounts:
 
 
 class Verifier:
-    """Authenticates and decodes datagrams for one robot; drops and counts the rest."""
+    """Authenticates and decodes datagrams for one robot; drops and counts the rest.
 
-    def __init__(self, key: bytes, policy: AuthPolicy):
-        Signer(key)  # validates the length
-        self._key = bytes(key)
+    ``credentials``: the fleet HMAC key (bytes; hmac policy) or a ``RobotIdentity`` (ed25519
+    policy: only its ``public_keys`` are used here), or directly a mapping robot id -> public
+    keys. Under ed25519 every robot the policy accepts must have a public key."""
+
+    def __init__(self, credentials: bytes | RobotIdentity | Mapping, policy: AuthPolicy):
         self.policy = policy
+        self._key: bytes | None = None
+        self._public: dict[int, tuple] = {}
+        self._invalid_signature: type[Exception] = Exception
+        if isinstance(credentials, (RobotIdentity, Mapping)):
+            keys = (credentials.public_keys if isinstance(credentials, RobotIdentity)
+                    else credentials)
+            missing = sorted((policy.neighbours | policy.relay_from) - set(keys))
+            if missing:
+                raise ConfigError(
+                    f"no Ed25519 public key for robot(s) {missing} (neighbours and "
+                    "allow_relay_from need one: comms.public_keys_file or neighbours[].public_keys)"
+                )
+            from cryptography.exceptions import InvalidSignature
+
+            self._invalid_signature = InvalidSignature
+            Public = _ed25519().Ed25519PublicKey
+            self._public = {int(r): tuple(Public.from_public_bytes(bytes(k)) for k in ks)
+                            for r, ks in keys.items()}
+        else:
+            Signer(credentials)  # validates the length
+            self._key = bytes(credentials)
         self._windows: dict[int, _Window] = {}
         self.counts = VerifierCounts()
         #: The claimed sender of the last datagram examined (None if its header did not parse).
         self.last_claimed_sender: int | None = None
+
+    @property
+    def signed(self) -> bool:
+        """True under the ed25519 policy."""
+        return self._key is None
 
     def check(self, datagram: bytes, delta_for=None
               ) -> tuple[NeighbourMessage | None, Reject | None]:
@@ -216,6 +252,20 @@ class Verifier:
         else:
             self.counts.rejected[reason.value] += 1
         return msg, reason
+
+    def _authentic(self, datagram: bytes, sender: int) -> bool:
+        if self._key is not None:
+            tag = bytes(datagram[-TAG_BYTES:])
+            return hmac.compare_digest(tag, compute_tag(self._key, datagram))
+        body = bytes(datagram[:-SIGNATURE_BYTES])
+        signature = bytes(datagram[-SIGNATURE_BYTES:])
+        for public in self._public.get(sender, ()):
+            try:
+                public.verify(signature, body)
+                return True
+            except self._invalid_signature:
+                pass
+        return False
 
     def _check(self, datagram: bytes, delta_for=None
                ) -> tuple[NeighbourMessage | None, Reject | None]:
@@ -234,8 +284,9 @@ class Verifier:
             return None, Reject.UNKNOWN_SENDER
         if h.sender_id not in p.neighbours and h.sender_id not in p.relay_from:
             return None, Reject.NOT_NEIGHBOUR
-        tag = bytes(datagram[-TAG_BYTES:])
-        if not hmac.compare_digest(tag, compute_tag(self._key, datagram)):
+        if h.signed != self.signed:
+            return None, Reject.WRONG_AUTH
+        if not self._authentic(datagram, h.sender_id):
             return None, Reject.BAD_TAG
         verdict = self._window_verdict(h.sender_id, h.boot_epoch, h.sequence)
         if verdict is not None:
@@ -277,3 +328,24 @@ class Verifier:
     def peer_state(self) -> dict[int, tuple[int, int]]:
         """Per accepted sender: (boot epoch, highest sequence)."""
         return {s: (w.epoch, w.top) for s, w in self._windows.items()}
+
+    def windows_state(self) -> list[list]:
+        """The replay windows as JSON-ready ``[sender, epoch, top, seen bitmap as hex]`` rows,
+        for a receiver that restarts (``restore_windows``)."""
+        return [[s, w.epoch, w.top, format(w.seen, "x")] for s, w in sorted(self._windows.items())]
+
+    def restore_windows(self, rows: list) -> int:
+        """Take back windows saved by ``windows_state``; a saved window only ever raises the
+        one held (newer epoch, or same epoch and higher top). Malformed rows raise ValueError.
+        Returns the number of senders restored."""
+        n = 0
+        for row in rows:
+            sender, epoch, top, seen = int(row[0]), int(row[1]), int(row[2]), int(str(row[3]), 16)
+            if min(sender, epoch, top, seen) < 0:
+                raise ValueError(f"negative value in a saved replay window: {row!r}")
+            held = self._windows.get(sender)
+            if held is None or (epoch, top) > (held.epoch, held.top):
+                mask = (1 << self.policy.replay_window) - 1
+                self._windows[sender] = _Window(epoch, top, (seen & mask) | 1)
+                n += 1
+        return n

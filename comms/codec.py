@@ -8,8 +8,9 @@ headline metric (Table 1), so the layout is built for size:
 
 - header: magic ``DR``, version, flags (4 bytes), then LEB128 varints: fleet id (u16),
   sender id (u16), boot epoch (u32), sequence (u32), round, stamp_ns, three entry counts;
-- an id section (varints) for all entries, then one packed value block, then the 16-byte
-  authentication-tag slot (zeros here; ``dran_edge.comms.auth`` fills and checks it);
+- an id section (varints) for all entries, then one packed value block, then the
+  authentication trailer: a 16-byte HMAC tag slot, or with flag bit 2 (``signed=True``) a
+  64-byte Ed25519 signature slot (zeros here; ``dran_edge.comms.auth`` fills and checks it);
 - SE(3) pose = float32 translation (12 bytes) + "smallest three" unit quaternion with 23-bit
   components (9 bytes): 21 bytes. SE(2) pose = float32 x, y + 24-bit angle: 11 bytes.
   Worst-case round-trip error: ~3.8e-6 m at 100 m, ~4.4e-7 rad (``tests/test_codec.py``
@@ -37,6 +38,8 @@ from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, ObjectEnt
 MAGIC = b"DR"
 SCHEMA_VERSION = 2
 TAG_BYTES = 16
+#: Trailer of a datagram with the signed flag: an Ed25519 signature (RFC 8032).
+SIGNATURE_BYTES = 64
 HARD_CAP_BYTES = 4096
 DEFAULT_MAX_DATAGRAM_BYTES = 1200
 #: Smallest allowed ``max_datagram_bytes``: header + tag + the largest single entry with room.
@@ -51,7 +54,10 @@ _FLAG_DIM3 = 0x01
 #: Delta layout (docs/wire-format.md, ``dran_edge.comms.delta``): separator and init entries may
 #: carry a quantised change instead of a value; separator stamps chain from entry to entry.
 _FLAG_DELTA = 0x02
-_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA
+#: Per-robot identity (docs/wire-format.md, "Authentication"): the trailer is the sender's
+#: 64-byte Ed25519 signature instead of the fleet's 16-byte HMAC tag.
+_FLAG_SIGNED = 0x04
+_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA | _FLAG_SIGNED
 _INIT_DELTA_BIT = 0x80
 _STAGES = frozenset(int(s) for s in InitStage)
 
@@ -279,6 +285,18 @@ class Header:
     body_offset: int
     #: Delta layout (flag 0x02).
     delta: bool = False
+    #: Ed25519-signed (flag 0x04): the trailer is ``SIGNATURE_BYTES`` long, else ``TAG_BYTES``.
+    signed: bool = False
+
+    @property
+    def trailer_bytes(self) -> int:
+        """Length of the authentication trailer (HMAC tag or Ed25519 signature)."""
+        return SIGNATURE_BYTES if self.signed else TAG_BYTES
+
+
+def trailer_bytes(data: bytes) -> int:
+    """Length of ``data``'s authentication trailer from its flags byte (16 if unreadable)."""
+    return SIGNATURE_BYTES if len(data) > 3 and data[3] & _FLAG_SIGNED else TAG_BYTES
 
 
 def decode_header(data: bytes) -> Header:
@@ -301,7 +319,13 @@ def decode_header(data: bytes) -> Header:
         raise DecodeError(f"unknown schema version {version}, this build reads {SCHEMA_VERSION}")
     if flags & ~_FLAGS_KNOWN:
         raise DecodeError(f"unknown flag bits 0x{flags & ~_FLAGS_KNOWN:02x}")
-    end = size - TAG_BYTES
+    trailer = SIGNATURE_BYTES if flags & _FLAG_SIGNED else TAG_BYTES
+    if size < _HEADER_MIN_BYTES + trailer:
+        raise DecodeError(
+            f"truncated datagram: {size} bytes, header and signature need at least "
+            f"{_HEADER_MIN_BYTES + trailer}"
+        )
+    end = size - trailer
     pos = HEADER_FIXED_BYTES
     fleet_id, pos = _read_varint(data, pos, end)
     sender_id, pos = _read_varint(data, pos, end)
@@ -342,6 +366,7 @@ def decode_header(data: bytes) -> Header:
         n_init,
         pos,
         bool(flags & _FLAG_DELTA),
+        bool(flags & _FLAG_SIGNED),
     )
 
 
@@ -377,7 +402,7 @@ class _Ids:
 
 def _walk_ids(data: bytes, h: Header) -> _Ids:
     """Parse the id section and check the value block's length against the counts."""
-    end = len(data) - TAG_BYTES
+    end = len(data) - h.trailer_bytes
     pos = h.body_offset
     P = pose_bytes(h.dim)
     DP = dl.value_bytes(geo.dof(h.dim))
@@ -454,7 +479,7 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
 
 def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
     return {
-        KIND_HEADER: h.body_offset + TAG_BYTES,
+        KIND_HEADER: h.body_offset + h.trailer_bytes,
         KIND_SEPARATOR: ids.sep_end - h.body_offset + ids.sep_value_bytes,
         KIND_OBJECT: ids.obj_end - ids.sep_end + ids.obj_value_bytes,
         KIND_INIT: ids.end - ids.obj_end + ids.init_value_bytes,
@@ -723,6 +748,7 @@ def encode_datagrams(
     first_sequence: int,
     max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
     delta: dl.DeltaEncoder | None = None,
+    signed: bool = False,
 ) -> list[EncodedDatagram]:
     """Encode ``message`` into datagrams of at most ``max_datagram_bytes`` each.
 
@@ -731,6 +757,8 @@ def encode_datagrams(
     datagram (a heartbeat). The tag slot is zero; sign with ``auth.Signer``. With ``delta``
     (the sending side of the one link this message goes over) the delta layout (flag 0x02) is
     used: separator and init entries become quantised changes where ``delta`` allows.
+    ``signed``: flag 0x04 and a ``SIGNATURE_BYTES`` slot for ``auth.Ed25519Signer`` instead of
+    the ``TAG_BYTES`` HMAC slot (docs/wire-format.md).
     """
     if not MIN_DATAGRAM_BYTES <= max_datagram_bytes <= HARD_CAP_BYTES:
         raise EncodeError(
@@ -751,7 +779,12 @@ def encode_datagrams(
     dim = _message_dim(message)
     kinds, ids, values = _entry_records(message, dim, delta)
     n = len(kinds)
-    flags = (_FLAG_DIM3 if dim == 3 else 0) | (_FLAG_DELTA if delta is not None else 0)
+    flags = (
+        (_FLAG_DIM3 if dim == 3 else 0)
+        | (_FLAG_DELTA if delta is not None else 0)
+        | (_FLAG_SIGNED if signed else 0)
+    )
+    trailer = SIGNATURE_BYTES if signed else TAG_BYTES
     ident = (
         _FIXED.pack(MAGIC, SCHEMA_VERSION, flags)
         + _varint(fleet_id)
@@ -761,7 +794,7 @@ def encode_datagrams(
     when = _varint(int(message.round)) + _varint(int(message.stamp_ns))
     # The sequence is reserved at 5 varint bytes (u32) and the counts at 2 each (< 16384
     # entries per datagram, guaranteed by the size cap), so packing never overshoots.
-    budget = max_datagram_bytes - len(ident) - 5 - len(when) - 6 - TAG_BYTES
+    budget = max_datagram_bytes - len(ident) - 5 - len(when) - 6 - trailer
     groups: list[tuple[int, int]] = []
     start = 0
     used = 0
@@ -790,9 +823,9 @@ def encode_datagrams(
             + _varint(n_obj)
             + _varint(n_init)
         )
-        data = b"".join([head, *ids[a:b], *values[a:b], bytes(TAG_BYTES)])
+        data = b"".join([head, *ids[a:b], *values[a:b], bytes(trailer)])
         by_kind = dict.fromkeys(KINDS, 0)
-        by_kind[KIND_HEADER] = len(head) + TAG_BYTES
+        by_kind[KIND_HEADER] = len(head) + trailer
         for i in range(a, b):
             by_kind[kinds[i]] += len(ids[i]) + len(values[i])
         assert len(data) <= max_datagram_bytes
@@ -815,11 +848,15 @@ class ByteCount:
 
 
 def encoded_size(
-    message: NeighbourMessage, *, max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES
+    message: NeighbourMessage,
+    *,
+    max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
+    signed: bool = False,
 ) -> ByteCount:
     """Datagrams and bytes ``message`` takes (sequence/epoch values do not change the size)."""
     grams = encode_datagrams(
-        message, fleet_id=0, boot_epoch=0, first_sequence=0, max_datagram_bytes=max_datagram_bytes
+        message, fleet_id=0, boot_epoch=0, first_sequence=0,
+        max_datagram_bytes=max_datagram_bytes, signed=signed,
     )
     return ByteCount(
         len(grams), sum(len(g.data) for g in grams), sum_kinds(g.bytes_by_kind for g in grams)

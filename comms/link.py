@@ -4,6 +4,8 @@ The daemon (over ``radio.RadioTransport``), simulation/replay (over ``bus.BusEnd
 the loopback harness all send and receive ``NeighbourMessage`` s through this one class, so
 the bytes on the wire and their accounting are the same everywhere.
 
+- ``key``: the fleet's HMAC key (bytes) or this robot's ``auth.RobotIdentity`` (its Ed25519
+  secret and the fleet's public keys); the key policy decides the datagrams' trailer.
 - ``send_message(msg, to)`` encodes the message once (datagrams numbered from this robot's
   sequence counter), signs each datagram, and hands it to the transport for every robot in
   ``to`` (the same datagram to each: replay windows are per receiver).
@@ -22,7 +24,7 @@ from __future__ import annotations
 
 from typing import Iterable
 
-from dran_edge.comms.auth import AuthPolicy, Reject, Signer, Verifier
+from dran_edge.comms.auth import AuthPolicy, Reject, RobotIdentity, Verifier, make_signer
 from dran_edge.comms.codec import DEFAULT_MAX_DATAGRAM_BYTES, encode_datagrams
 from dran_edge.comms.counters import CommCounters
 from dran_edge.comms.delta import DeltaDecoder, DeltaEncoder
@@ -37,7 +39,7 @@ class NeighbourLink:
         self,
         transport: Transport,
         *,
-        key: bytes,
+        key: bytes | RobotIdentity,
         policy: AuthPolicy,
         boot_epoch: int,
         max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
@@ -48,7 +50,7 @@ class NeighbourLink:
         self.policy = policy
         self.boot_epoch = int(boot_epoch)
         self.max_datagram_bytes = int(max_datagram_bytes)
-        self._signer = Signer(key)
+        self._signer = make_signer(key)
         self.verifier = Verifier(key, policy)
         self._next_sequence = int(first_sequence)
         #: Link-level counters: bytes per neighbour and kind, rejections by reason.
@@ -64,6 +66,18 @@ class NeighbourLink:
     @property
     def next_sequence(self) -> int:
         return self._next_sequence
+
+    def to_state(self) -> dict:
+        """What a restarted robot needs back: the receivers' replay windows (so a datagram
+        captured before the restart is not accepted again) and our next sequence number."""
+        return {"next_sequence": self._next_sequence, "windows": self.verifier.windows_state()}
+
+    def restore(self, state: dict | None) -> int:
+        """Take back ``to_state``'s replay windows (the sending side starts a new boot epoch,
+        so its sequence restarts at 0). Returns the number of senders restored."""
+        if not state:
+            return 0
+        return self.verifier.restore_windows(state.get("windows") or [])
 
     def send_message(self, message: NeighbourMessage, to: Iterable[int]) -> list[bytes]:
         """Encode, sign and send ``message`` to each robot in ``to``; returns the datagrams."""
@@ -88,6 +102,7 @@ class NeighbourLink:
             first_sequence=self._next_sequence,
             max_datagram_bytes=self.max_datagram_bytes,
             delta=enc,
+            signed=self._signer.signed,
         )
         self._next_sequence += len(grams)
         return grams

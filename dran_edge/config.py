@@ -319,10 +319,19 @@ class Neighbour(_Checked):
     """Its name (for logs and status)."""
     address: str = _f(None)
     """Its DISH endpoint ``ip:port`` (IPv6 as ``[addr]:port``)."""
+    public_keys: tuple[str, ...] = _f(())
+    """With ``comms.auth: ed25519``: its Ed25519 public key(s), 64 hex digits each (two while
+    it rotates its key pair); adds to ``comms.public_keys_file``."""
 
     def _check(self) -> None:
         if self.address is not None:
             parse_address(self.address, "address")
+        for i, text in enumerate(self.public_keys):
+            if not re.fullmatch(r"[0-9A-Fa-f]{64}", text):
+                raise ConfigError(
+                    f"public_keys[{i}]: expected an Ed25519 public key as 64 hex digits, "
+                    f"got {text[:80]!r}"
+                )
 
 
 def parse_address(text: str, key: str) -> tuple[str, int]:
@@ -352,14 +361,27 @@ class CommsSection(_Checked):
     """Address the DISH binds to."""
     port: int = _f(5600, lo=1, hi=65535)
     """UDP port the DISH binds to."""
+    auth: str = _f("hmac", choices=("hmac", "ed25519"))
+    """Key policy (docs/wire-format.md, "Authentication"): ``hmac``, one secret key shared by
+    the fleet (any holder can sign as any robot); ``ed25519``, one key pair per robot (a robot
+    can sign only as itself). Every robot of a fleet uses the same policy."""
     key_file: str = _f("")
-    """Per-fleet HMAC key file (mode 0600, owned by the daemon's user); relative to the config."""
+    """Secret key file (mode 0600, owned by the daemon's user); relative to the config. ``hmac``:
+    the fleet key (``dran-edge fleet-key new``); ``ed25519``: this robot's secret key
+    (``dran-edge fleet-key pair``)."""
+    public_keys_file: str = _f("")
+    """With ``auth: ed25519``: the fleet's public keys (``dran-edge fleet-key export``), the same
+    file on every robot; relative to the config. Needed unless every neighbour lists its
+    ``public_keys``."""
     datagram_max_bytes: int = _f(1200, lo=256, hi=4096)
     """Largest datagram we send, bytes (the codec's hard cap is 4096; libzmq UDP breaks ~8 KB)."""
     period_s: float = _f(0.5, lo=0.01, hi=60.0)
     """Round period: one DRAN round and one exchange per period, seconds (2 Hz default)."""
     allow_relay_from: tuple[int, ...] = _f((), lo=0, hi=65535)
     """Robots not configured as neighbours whose relayed datagrams are still accepted."""
+    heartbeat_period_s: float = _f(2.0, lo=0.0)
+    """A neighbour sent nothing for this long gets an entry-less datagram (a heartbeat), so it
+    can tell a quiet robot from a dead link (0: off), seconds."""
     delta_every: int = _f(20, lo=0, hi=10_000)
     """> 0: send separators and object estimates as quantised changes against per-neighbour
     state (the delta layout, docs/wire-format.md), each sent whole again at least every this

@@ -127,6 +127,7 @@ def test_replay_window_and_restarted_neighbour():
         "wrong_fleet": 0,
         "unknown_sender": 0,
         "not_neighbour": 0,
+        "wrong_auth": 0,
         "bad_tag": 0,
         "replayed": 4,
         "stale": 2,

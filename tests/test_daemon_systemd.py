@@ -155,8 +155,11 @@ def test_unit_files_verify_and_keep_the_camera_reachable(tmp_path, name, instanc
     assert res.returncode == 0, res.stdout + res.stderr
 
 
-def test_two_daemons_exchange_over_loopback_udp(tmp_path):
-    """Two robot processes, RADIO/DISH on 127.0.0.1, authenticated with a fleet key."""
+@pytest.mark.parametrize("policy", ["hmac", "ed25519"])
+def test_two_daemons_exchange_over_loopback_udp(tmp_path, policy):
+    """Two robot processes, RADIO/DISH on 127.0.0.1, authenticated with a fleet key or with
+    per-robot key pairs and the fleet's public-key file (made by the fleet-key command)."""
+    from dran_edge.cli.app import main
     from dran_edge.comms.auth import write_fleet_key
     from dran_edge.comms.ingest import encode_event
 
@@ -171,7 +174,13 @@ def test_two_daemons_exchange_over_loopback_udp(tmp_path):
     except Exception as exc:
         pytest.skip(f"no draft/hardened ZeroMQ here: {exc}")
     key = tmp_path / "fleet.key"
-    write_fleet_key(key)
+    if policy == "hmac":
+        write_fleet_key(key)
+    else:
+        for r in (1, 2):
+            assert main(["fleet-key", "pair", str(tmp_path / f"r{r}.key"), "--robot-id", str(r)]) == 0
+        assert main(["fleet-key", "export", str(tmp_path / "fleet.pub"), "--fleet", "testfleet",
+                     str(tmp_path)]) == 0
     ports = []
     for _ in range(2):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -186,7 +195,9 @@ def test_two_daemons_exchange_over_loopback_udp(tmp_path):
             cfg = write_config(
                 d, robot={"id": me + 1, "name": f"r{me + 1}"},
                 comms={"transport": "udp", "bind_address": "127.0.0.1", "port": ports[me],
-                       "key_file": str(key)})
+                       "key_file": str(key if policy == "hmac" else tmp_path / f"r{me + 1}.key"),
+                       "auth": policy,
+                       "public_keys_file": str(tmp_path / "fleet.pub") if policy != "hmac" else ""})
             text = cfg.read_text() + (f"neighbours:\n- {{id: {other + 1}, name: r{other + 1}, "
                                       f"address: '127.0.0.1:{ports[other]}'}}\n")
             cfg.write_text(text)

@@ -170,12 +170,20 @@ class CheckpointStore:
         return None
 
 
-def next_boot_epoch(directory: str | Path) -> int:
-    """Increment and durably store the boot epoch (neighbours accept our sequence restart)."""
+def next_boot_epoch(directory: str | Path, clock_floor_s: float | None = None) -> int:
+    """Increment and durably store the boot epoch (neighbours accept our sequence restart).
+
+    With ``clock_floor_s`` (the wall clock, seconds) the epoch is at least that: neighbours keep
+    our replay window across their own restarts (docs/wire-format.md), so a robot whose state
+    directory was wiped must still come back with a larger epoch than they hold; the clock gives
+    one, the counter keeps it increasing when the clock is wrong or steps back."""
     path = Path(directory) / "boot_epoch"
     try:
         epoch = int(path.read_text().strip()) + 1
     except (FileNotFoundError, ValueError):
         epoch = 1
+    if clock_floor_s is not None:
+        epoch = max(epoch, int(clock_floor_s))
+    epoch &= 0xFFFFFFFF
     atomic_write(path, f"{epoch}\n".encode())
     return epoch

@@ -21,8 +21,11 @@ Threads and what they own:
 
 Crash safety: :mod:`dran_edge.daemon.journal` + :mod:`dran_edge.daemon.checkpoint`. On start the daemon loads
 the newest checkpoint (the core's state, journal position, counters), re-applies the journal
-after that position, and bumps the boot epoch (neighbours then accept our restarted sequence
-numbers).
+after that position, and bumps the boot epoch (at least the wall clock's seconds; neighbours
+then accept our restarted sequence numbers). The link's replay windows (per sender: boot
+epoch, highest sequence, bitmap) are written to ``replay_windows.json`` after every tick that
+accepted a datagram and restored at start, so a datagram captured before a restart (even a
+kill -9) is not accepted again (docs/wire-format.md, "Acceptance rules").
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from dran_edge.daemon.checkpoint import CheckpointStore, next_boot_epoch
+from dran_edge.daemon.checkpoint import CheckpointStore, atomic_write, next_boot_epoch
 from dran_edge.comms.ingest import KIND_OBSERVATIONS, Record, encode_event
 from dran_edge.config import RobotConfig, config_to_dict, parse_address
 from dran_edge.errors import DependencyError, DranError
@@ -262,34 +265,75 @@ def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
 
 
 class LinkTransport:
-    """The daemon's neighbour link: comms' authenticated ``NeighbourLink`` over RADIO/DISH."""
+    """The daemon's neighbour link: comms' authenticated ``NeighbourLink`` over RADIO/DISH.
 
-    def __init__(self, link: Any):
+    ``neighbours`` (id -> name) are listed in the status from the start ("never heard" until a
+    datagram of theirs is accepted). ``heartbeat_period_s`` > 0: ``heartbeat`` sends an
+    entry-less message to each neighbour this link sent nothing for that long (counted)."""
+
+    def __init__(self, link: Any, neighbours: dict[int, str] | None = None,
+                 heartbeat_period_s: float = 0.0):
         self.link = link
+        self.neighbours = dict(neighbours or {})
+        self.heartbeat_period_s = float(heartbeat_period_s)
+        self._last_sent_ns: dict[int, int] = {}
+        self.heartbeats_sent = 0
+        self.heartbeats_received = 0
 
     def send(self, message: Any, to: tuple[int, ...]) -> None:
         self.link.send_message(message, to)
+        now = time.time_ns()
+        for j in to:
+            self._last_sent_ns[j] = now
+
+    def heartbeat(self, now_ns: int, round_: int = 0) -> int:
+        """Send a heartbeat to every neighbour not sent anything for ``heartbeat_period_s``."""
+        if self.heartbeat_period_s <= 0:
+            return 0
+        from dran_edge.messages import NeighbourMessage
+
+        due = tuple(j for j in self.neighbours
+                    if now_ns - self._last_sent_ns.get(j, -(1 << 62))
+                    >= self.heartbeat_period_s * 1e9)
+        if due:
+            self.send(NeighbourMessage(self.link.policy.self_id, max(0, int(round_)), now_ns), due)
+            self.heartbeats_sent += len(due)
+        return len(due)
 
     def receive(self) -> list:
         now = time.time_ns()
-        return [NeighbourData(now, m) for m in self.link.poll(now)]
+        out = []
+        for m in self.link.poll(now):
+            if not (m.separators or m.objects or m.init):
+                self.heartbeats_received += 1
+            out.append(NeighbourData(now, m))
+        return out
 
     def stats(self) -> dict:
         snap = self.link.counters.snapshot()
         now = time.time_ns()
         neighbours = {}
-        for peer, c in snap["peers"].items():
+        peers = snap["peers"]  # keyed by str(robot id) or "unknown"
+        names = {str(j): name for j, name in self.neighbours.items()}
+        for peer in sorted(set(names) | set(peers), key=lambda p: (not p.isdigit(), p.zfill(6))):
+            c = peers.get(peer, {})
             heard = c.get("last_heard_ns")
             neighbours[peer] = {
+                "name": names.get(peer, ""),
                 "bytes_sent": c.get("bytes_sent", 0), "bytes_received": c.get("bytes_received", 0),
                 "datagrams_rejected": c.get("datagrams_rejected", 0),
                 "last_heard_s_ago": None if not heard else round((now - heard) * 1e-9, 1),
             }
         return {**snap["totals"], "neighbours": neighbours,
-                "next_sequence": self.link.next_sequence}
+                "next_sequence": self.link.next_sequence,
+                "heartbeats_sent": self.heartbeats_sent,
+                "heartbeats_received": self.heartbeats_received}
 
     def to_state(self) -> dict:
-        return {"next_sequence": self.link.next_sequence}
+        return self.link.to_state()
+
+    def restore(self, state: dict | None) -> int:
+        return self.link.restore(state)
 
     def close(self) -> None:
         self.link.transport.close()
@@ -301,17 +345,15 @@ def fleet_id(fleet: str) -> int:
 
 
 def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | None:
-    """RADIO/DISH to the configured neighbours, authenticated with the fleet key (docs/wire-format.md)."""
+    """RADIO/DISH to the configured neighbours, authenticated by ``comms.auth``'s key policy."""
     if cfg.comms.transport == "none":
         return None
-    from dran_edge.comms.auth import AuthPolicy, load_fleet_key
+    from dran_edge.comms.auth import AuthPolicy
+    from dran_edge.comms.keys import credentials_from_config
     from dran_edge.comms.link import NeighbourLink
     from dran_edge.comms.radio import RadioParams, RadioTransport
 
-    key_path = cfg.resolve(cfg.comms.key_file)
-    if key_path is None:
-        raise DranError("comms.transport is 'udp' but comms.key_file is not set")
-    key = load_fleet_key(key_path)
+    key = credentials_from_config(cfg)
     neighbours = {}
     for n in cfg.neighbours:
         host, port = parse_address(n.address, "address")
@@ -328,7 +370,8 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
     link = NeighbourLink(RadioTransport(params), key=key, policy=policy, boot_epoch=boot_epoch,
                          max_datagram_bytes=cfg.comms.datagram_max_bytes,
                          delta_every=cfg.comms.delta_every)
-    return LinkTransport(link)
+    return LinkTransport(link, {n.id: n.name for n in cfg.neighbours},
+                         cfg.comms.heartbeat_period_s)
 
 
 def default_perception_factory(cfg: RobotConfig, frames: DropOldestQueue
@@ -390,7 +433,7 @@ class Daemon:
         cfg = self.cfg
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self.runtime_dir.mkdir(parents=True, exist_ok=True)
-        self.boot_epoch = next_boot_epoch(self.state_dir)
+        self.boot_epoch = next_boot_epoch(self.state_dir, clock_floor_s=time.time())
         self.checkpoints = CheckpointStore(self.state_dir)
         saved = self.checkpoints.load()
         if saved is not None and saved.get("robot_id") != cfg.robot.id:
@@ -431,6 +474,7 @@ class Daemon:
                                                                  sort_keys=False))
             self._record_file = open(robot_dir / "ingest.bin", "ab")
         self.transport = self.transport_factory(cfg, self.boot_epoch)
+        self._restore_windows(saved)
         self.frames = DropOldestQueue(cfg.camera.queue_size)
         self.observations = DropOldestQueue(cfg.camera.queue_size)
         produce = self.perception_factory(cfg, self.frames)
@@ -526,6 +570,8 @@ class Daemon:
         self.stats.round_max_s = max(self.stats.round_max_s, dt)
         self.stats.round_total_s += dt
         self._dispatch(outputs)
+        self._heartbeat()
+        self._save_windows()
         self.journal.sync()
         if self._record_file is not None:
             self._record_file.flush()
@@ -571,6 +617,65 @@ class Daemon:
                 self.last_estimate = out
             elif isinstance(out, Health):
                 self.agent_health = dict(out.counters)
+
+    def _heartbeat(self) -> None:
+        beat = getattr(self.transport, "heartbeat", None)
+        if beat is None:
+            return
+        est = self.last_estimate
+        try:
+            self.counters["heartbeats_sent"] += beat(time.time_ns(), est.round if est else 0)
+        except Exception:
+            self.counters["send_errors"] += 1
+            log.exception("heartbeat send failed")
+
+    # ------------------------------------------------------------------ replay windows
+    @property
+    def windows_path(self) -> Path:
+        return self.state_dir / "replay_windows.json"
+
+    def _restore_windows(self, saved: dict | None) -> None:
+        """Replay windows back from the checkpoint and from ``replay_windows.json`` (the newer
+        of the two per sender wins: restoring only ever raises a window)."""
+        restore = getattr(self.transport, "restore", None)
+        if restore is None:
+            return
+        sources = [(saved or {}).get("transport")]
+        try:
+            sources.append(json.loads(self.windows_path.read_text()))
+        except FileNotFoundError:
+            pass
+        except (OSError, ValueError) as exc:
+            log.error("ignoring %s: %s", self.windows_path, exc)
+        n = 0
+        for state in sources:
+            if isinstance(state, dict):
+                try:
+                    n += restore(state)
+                except (TypeError, ValueError, IndexError) as exc:
+                    log.error("ignoring saved replay windows: %s", exc)
+        if n:
+            log.info("replay windows restored for %d sender(s)", n)
+        self._saved_windows = self._windows_rows()
+
+    def _windows_rows(self) -> list | None:
+        to_state = getattr(self.transport, "to_state", None)
+        return None if to_state is None else to_state().get("windows")
+
+    def _save_windows(self) -> None:
+        """Write the replay windows when a tick moved them (atomic and fsynced, like the
+        checkpoint), so that even a kill -9 loses no accepted (epoch, sequence)."""
+        rows = self._windows_rows()
+        if rows is None or rows == getattr(self, "_saved_windows", None):
+            return
+        try:
+            atomic_write(self.windows_path, json.dumps({"windows": rows}).encode())
+        except OSError:
+            self.counters["window_save_errors"] += 1
+            log.exception("could not save the replay windows")
+            return
+        self._saved_windows = rows
+        self.counters["window_saves"] += 1
 
     def _maybe_watchdog(self, now: float) -> None:
         interval = self.notifier.watchdog_interval_s

@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
 """Comms benchmark: codec + auth cost against baselines, precision, loopback RADIO/DISH.
 
-    .venv/bin/python tools/bench/bench_comms.py [--quick] [--json]
+    .venv/bin/python tools/bench/bench_comms.py [--quick] [--json] [--auth-only]
 
 1. One full round of a robot with 50 separators and 20 objects (SE(3)): encode + sign +
    decode + verify with our codec, side by side with two baselines on the same message in
    the same process: JSON + HMAC-SHA256 and pickle + HMAC-SHA256 (each encode, sign, verify,
    decode). Median over many repetitions; bytes on the wire for each.
+1b. Authentication of one robot's round under each key policy (``comms.auth``): fleet HMAC
+   against per-robot Ed25519 signatures (``bench_auth``).
 2. Codec precision: worst round-trip error of 20 000 random poses within ±100 m.
 3. Loopback RADIO→DISH with 6 neighbours at 2 Hz (one centre robot, six neighbours, each its
    own DISH, all in this process; every neighbour answers each round message with a small
@@ -142,6 +144,62 @@ def bench_codec(reps):
     }
     res["bytes_by_kind"] = codec.encoded_size(msg).bytes_by_kind
     return res
+
+
+def bench_auth(reps, degree=3):
+    """Authentication cost of one robot's round under each key policy: it signs its round
+    message for each of ``degree`` neighbours (one encoding per link, as the delta layout
+    sends) and verifies each neighbour's round message. Two rounds: the heavy one above
+    (50 separators + 20 objects, 2 datagrams) and a light one (10 + 5, 1 datagram). Only the
+    trailer work is timed (encoding and decoding are the codec's, the same for both); median
+    over ``reps`` of the wall time and of the process CPU time (robust to other load)."""
+    from dran_edge.comms.auth import Ed25519Signer, RobotIdentity, public_key_of
+
+    rng = np.random.default_rng(2)
+    seeds = {r: bytes([r + 1]) * 32 for r in range(degree + 1)}
+    public = {r: (public_key_of(sd),) for r, sd in seeds.items()}
+    policy = AuthPolicy(fleet_id=1, self_id=0, fleet_robots=frozenset(seeds),
+                        neighbours=frozenset(range(1, degree + 1)), replay_window=4096)
+    out = {"degree": degree}
+    for name, (n_sep, n_obj) in (("heavy", (50, 20)), ("light", (10, 5))):
+        for pol in ("hmac", "ed25519"):
+            signed = pol == "ed25519"
+            if signed:
+                signers = {r: Ed25519Signer(sd) for r, sd in seeds.items()}
+                verifier = Verifier(RobotIdentity(seeds[0], public), policy)
+            else:
+                signers = {r: Signer(KEY) for r in seeds}
+                verifier = Verifier(KEY, policy)
+            own = [g.data for g in codec.encode_datagrams(
+                round_message(rng, 0, n_sep, n_obj), fleet_id=1, boot_epoch=1,
+                first_sequence=0, signed=signed)]
+            theirs = {r: [signers[r].sign(g.data) for g in codec.encode_datagrams(
+                round_message(rng, r, n_sep, n_obj), fleet_id=1, boot_epoch=1,
+                first_sequence=0, signed=signed)] for r in range(1, degree + 1)}
+
+            def one_round():
+                for _ in range(degree):
+                    for g in own:
+                        signers[0].sign(g)
+                for r, grams in theirs.items():
+                    for g in grams:
+                        assert verifier._authentic(g, r)
+
+            one_round()
+            wall, cpu = [], []
+            for _ in range(reps):
+                t0, c0 = time.perf_counter(), time.process_time()
+                one_round()
+                wall.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
+            out[f"{name}_{pol}"] = {
+                "datagrams_signed": degree * len(own),
+                "datagrams_verified": sum(map(len, theirs.values())),
+                "datagram_bytes": [len(g) for g in theirs[1]],
+                "wall_ms_median": 1e3 * statistics.median(wall),
+                "cpu_ms_median": 1e3 * statistics.median(cpu),
+            }
+    return out
 
 
 def bench_precision():
@@ -309,10 +367,17 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions and rounds")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--auth-only", action="store_true",
+                    help="only the authentication cost per round (section 1b)")
     a = ap.parse_args(argv)
+    if a.auth_only:
+        res = bench_auth(100 if a.quick else 500)
+        print(json.dumps(res, indent=2))
+        return 0
     reps = 200 if a.quick else 2000
     rounds = 10 if a.quick else 40
-    res = {"codec": bench_codec(reps), "precision": bench_precision()}
+    res = {"codec": bench_codec(reps), "auth": bench_auth(100 if a.quick else 500),
+           "precision": bench_precision()}
     try:
         res["radio"] = bench_radio(rounds, 2.0, 1.0 if a.quick else 2.0)
         res["udp_baseline"] = bench_radio(rounds, 2.0, 1.0 if a.quick else 2.0, plain_udp=True)
@@ -335,6 +400,18 @@ def main(argv=None) -> int:
         f"(ours: {c['pickle_hmac_ms'] / c['ours_ms']:.2f}x the time, {c['pickle_bytes'] / c['ours_bytes']:.1f}x smaller)"
     )
     print(f"  encode only   {c['encode_only_ms']:.3f} ms; bytes by kind {c['bytes_by_kind']}")
+    au = res["auth"]
+    print(f"== authentication of one round: sign own round message for {au['degree']} "
+          f"neighbours + verify {au['degree']} neighbours' (trailer work only, median)")
+    for name in ("heavy", "light"):
+        h, e = au[f"{name}_hmac"], au[f"{name}_ed25519"]
+        print(
+            f"  {name:5s} ({e['datagrams_signed']} signed + {e['datagrams_verified']} verified, "
+            f"datagrams {e['datagram_bytes']} B signed / {h['datagram_bytes']} B hmac): "
+            f"ed25519 {e['wall_ms_median']:.3f} ms wall, {e['cpu_ms_median']:.3f} ms CPU; "
+            f"hmac {h['wall_ms_median']:.3f} ms wall, {h['cpu_ms_median']:.3f} ms CPU "
+            f"(ed25519 {e['cpu_ms_median'] / max(h['cpu_ms_median'], 1e-9):.0f}x)"
+        )
     p = res["precision"]
     print(
         f"== precision over {p['poses']} poses within ±100 m: position {p['max_position_error_m']:.2e} m, "

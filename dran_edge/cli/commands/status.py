@@ -46,6 +46,15 @@ def query_status(path: str | Path, timeout_s: float = 2.0) -> dict:
         raise DranError(f"the daemon at {path} sent an unreadable status") from None
 
 
+def _neighbour_line(peer: str, n: dict) -> str:
+    """One neighbour: who, when last heard ("never heard" until a datagram is accepted), bytes."""
+    ago = n.get("last_heard_s_ago")
+    heard = "never heard" if ago is None else f"heard {ago:.1f} s ago"
+    who = f"{n['name']} (id {peer})" if n.get("name") else f"id {peer}"
+    rest = "  ".join(f"{k} {v}" for k, v in n.items() if k not in ("name", "last_heard_s_ago"))
+    return f"neighbour  {who}: {heard}  {rest}"
+
+
 def format_status(st: dict) -> str:
     r = st.get("rounds", {})
     g = st.get("graph") or {}
@@ -63,10 +72,11 @@ def format_status(st: dict) -> str:
     ]
     nbrs = st.get("neighbours") or {}
     if nbrs:
-        for name, n in sorted(nbrs.items()):
-            lines.append(f"neighbour  {name}: " + "  ".join(f"{k} {v}" for k, v in n.items()))
+        for peer, n in nbrs.items():
+            lines.append(_neighbour_line(peer, n))
     else:
-        lines.append("neighbours none reported")
+        lines.append("neighbours none configured" if st.get("transport")
+                     else "neighbours none (no radio: comms.transport none)")
     t = st.get("transport") or {}
     if t:
         lines.append("transport  " + "  ".join(f"{k} {v}" for k, v in t.items()
