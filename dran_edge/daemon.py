@@ -250,7 +250,8 @@ def resolve_dirs(cfg: RobotConfig, environ: dict | None = None) -> tuple[Path, P
 
 def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
     """The robot's core: an :class:`~dran_edge.online_agent.OnlineAgent`, from ``state`` (its
-    :meth:`~dran_edge.online_agent.OnlineAgent.to_state`) when given."""
+    :meth:`~dran_edge.online_agent.OnlineAgent.to_state`) when given; a fresh one anchored at
+    ``robot.T_world_odom`` when the config has it."""
     try:
         from dran_edge.online_agent import OnlineAgent
     except ImportError as exc:
@@ -258,7 +259,12 @@ def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
                               ) from None
     if state is not None:
         return OnlineAgent.from_state(cfg.agent, state)
-    return OnlineAgent(cfg.agent)
+    T_world_odom = None
+    if cfg.robot.T_world_odom:
+        from dran_edge import geometry as geo
+
+        T_world_odom = geo.se3_from_xyz_quat_xyzw(np.asarray(cfg.robot.T_world_odom, np.float64))
+    return OnlineAgent(cfg.agent, T_world_odom)
 
 
 class LinkTransport:

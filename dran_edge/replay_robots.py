@@ -211,6 +211,28 @@ class RobotResult:
     observations: int
 
 
+def robot_result(rid: int, name: str, core, last: EstimateUpdate | None, *,
+                 first_seen: dict | None = None, health: dict | None = None,
+                 rejected: Counter | None = None, observations: int = 0) -> RobotResult:
+    """What the replay's outputs need of one robot's core (its local graph and odometry-only
+    estimate, when the core has them) and of its last estimate. ``dran-edge rehearse`` builds
+    it from a daemon's checkpointed core."""
+    graph = None
+    g = getattr(core, "local_graph", None)
+    if g is not None and hasattr(g, "factor_arrays"):
+        from dran_edge.local_graph import OBJ
+
+        try:  # without the marginalisation prior (it would pin old nodes in g2o)
+            fa = g.factor_arrays(include_prior=False)
+        except TypeError:
+            fa = g.factor_arrays()
+        graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(), "factors": fa,
+                 "obj_base": OBJ}
+    initial = core.initial_estimate() if hasattr(core, "initial_estimate") else None
+    return RobotResult(rid, name, last, initial, dict(first_seen or {}), graph,
+                       dict(health or {}), Counter(rejected or {}), observations)
+
+
 @dataclass
 class _Robot:
     info: rd.RunRobot
@@ -329,23 +351,10 @@ class RobotRunner:
         return {rid: r.transport.pull() for rid, r in self.robots.items()}
 
     def results(self) -> dict[int, RobotResult]:
-        out = {}
-        for rid, r in self.robots.items():
-            graph = None
-            g = getattr(r.core, "local_graph", None)
-            if g is not None and hasattr(g, "factor_arrays"):
-                from dran_edge.local_graph import OBJ
-
-                try:  # without the marginalisation prior (it would pin old nodes in g2o)
-                    fa = g.factor_arrays(include_prior=False)
-                except TypeError:
-                    fa = g.factor_arrays()
-                graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(), "factors": fa,
-                         "obj_base": OBJ}
-            initial = r.core.initial_estimate() if hasattr(r.core, "initial_estimate") else None
-            out[rid] = RobotResult(rid, r.info.name, r.last, initial, r.first_seen, graph,
-                                   r.health, r.rejected, r.observations)
-        return out
+        return {rid: robot_result(rid, r.info.name, r.core, r.last, first_seen=r.first_seen,
+                                  health=r.health, rejected=r.rejected,
+                                  observations=r.observations)
+                for rid, r in self.robots.items()}
 
     def close(self) -> None:
         for r in self.robots.values():
