@@ -25,6 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("dran_edge.commands.check_config", "validate a robot config file"),
     "simulate": ("dran_edge.commands.simulate", "simulate a multi-robot mission as a run directory"),
     "replay": ("dran_edge.commands.replay", "replay a recorded run through the robot code"),
+    "rehearse": ("dran_edge.commands.rehearse",
+                 "run a recorded mission through real daemons, one per robot, with faults"),
     "detect": ("dran_edge.commands.detect", "detect AprilTags in images, recordings or a camera"),
     "eval": ("dran_edge.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
     "fleet-key": ("dran_edge.commands.fleet_key", "create or check the fleet key (HMAC) file"),

@@ -331,7 +331,14 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
                         fleet_robots=frozenset(ids | set(cfg.comms.allow_relay_from)
                                                | {cfg.robot.id}),
                         neighbours=frozenset(ids), relay_from=frozenset(cfg.comms.allow_relay_from))
-    link = NeighbourLink(RadioTransport(params), key=key, policy=policy, boot_epoch=boot_epoch,
+    radio: Any = RadioTransport(params)
+    drop_file = os.environ.get("DRAN_EDGE_DROP_FILE")
+    if drop_file:  # set by `dran-edge rehearse` only (docs/rehearsal.md)
+        from dran_edge.rehearsal.drop_hook import DropHookTransport
+
+        log.warning("rehearsal drop hook on: datagram loss by %s", drop_file)
+        radio = DropHookTransport(radio, drop_file, seed=cfg.robot.id * 7919 + boot_epoch)
+    link = NeighbourLink(radio, key=key, policy=policy, boot_epoch=boot_epoch,
                          max_datagram_bytes=cfg.comms.datagram_max_bytes,
                          delta_every=cfg.comms.delta_every)
     return LinkTransport(link)
