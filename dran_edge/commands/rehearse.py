@@ -60,6 +60,7 @@ def _fmt(v, spec: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import signal
 
     from dran_edge import run_dir as rd
     from dran_edge.commands.replay import ProgressBar
@@ -74,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
                                 mission_s=mission.duration_s)
     opt = RehearsalOptions(speed=args.speed, net=args.net, settle_rounds=args.settle_rounds,
                            faults=tuple(faults), out_dir=args.out, evaluate=not args.no_eval)
+    def on_term(signum, _frame):  # the daemons and namespaces are cleaned up on the way out
+        raise KeyboardInterrupt(f"received signal {signum}")
+
+    signal.signal(signal.SIGTERM, on_term)
     res = rehearse(args.run_dir, opt, progress=ProgressBar())
     r = res.report
     if args.json:

@@ -44,7 +44,8 @@ class Fault:
     robots: tuple[int, ...]
     at_s: float
     end_s: float | None = None
-    """kill: restart time (None: never restarted); partition/silent/loss: when it ends."""
+    """kill: restart time (None: never restarted); partition/silent/loss: when it ends (loss:
+    None, until the end)."""
     probability: float = 0.0
     step_s: float = 0.0
 
@@ -54,7 +55,8 @@ class Fault:
             return (f"kill -9 {who} at {self.at_s:g} s" +
                     (f", restart at {self.end_s:g} s" if self.end_s is not None else ""))
         if self.kind == "loss":
-            return f"loss {self.probability:g} on {who} from {self.at_s:g} s to {self.end_s:g} s"
+            until = "the end" if self.end_s is None else f"{self.end_s:g} s"
+            return f"loss {self.probability:g} on {who} from {self.at_s:g} s to {until}"
         if self.kind == "clock_step":
             return f"clock step of {self.step_s:+g} s on {who} at {self.at_s:g} s"
         return f"{self.kind} {who} from {self.at_s:g} s to {self.end_s:g} s"
@@ -125,7 +127,8 @@ def fault_from_dict(d: Any, ids: dict[str, int], where: str, mission_s: float) -
         p = _number(d["probability"], f"{where}.probability")
         if not 0.0 < p <= 1.0:
             raise InputError(f"{where}.probability: expected 0 < p <= 1, got {p}")
-        f = Fault(kind, ends, at, _number(d.get("end_s", mission_s + 1e6), f"{where}.end_s"), p)
+        end = d.get("end_s")
+        f = Fault(kind, ends, at, None if end is None else _number(end, f"{where}.end_s"), p)
     else:
         f = Fault(kind, (_robot(d["robot"], ids, f"{where}.robot"),), at,
                   step_s=_number(d["step_s"], f"{where}.step_s"))

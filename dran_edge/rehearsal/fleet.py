@@ -562,11 +562,12 @@ def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> Rehears
             if progress:
                 progress("mission s", int((min(now, end_ns) - fleet.mission.start_ns) // 10**9),
                          int(math.ceil((end_ns - fleet.mission.start_ns) / 1e9)))
-        if now >= end_ns and not todo:
+        if now >= end_ns:
             break
         time.sleep(step_s)
-    for a in todo:  # faults after the end of the mission still act (e.g. a late restart)
-        fleet.apply(a)
+    for a in todo:  # what is still pending at the end ends now (a late restart happens)
+        if a.what == "end":
+            fleet.apply(a)
     drained = _drain(fleet, opt.drain_timeout_s)
     rows.append(_round_row(len(rows), fleet.mission_ns(), fleet.poll()))
     exit_codes = fleet.stop_all()
