@@ -484,7 +484,8 @@ def _clock_env(d: _Daemon) -> dict:
     if not lib:
         return {}
     return {"LD_PRELOAD": lib, "FAKETIME_TIMESTAMP_FILE": str(d.state_dir.parent / "faketime"),
-            "FAKETIME_NO_CACHE": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1"}
+            "FAKETIME_CACHE_DURATION": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1",
+            "FAKETIME_FORCE_MONOTONIC_FIX": "1"}
 
 
 FAKETIME_PATHS = ("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1",
