@@ -299,6 +299,11 @@ class RobotSection(_Checked):
     """Robot name (letters, digits, ``_.-``; <= 15 characters)."""
     fleet: str = _f(None)
     """Fleet name; also the RADIO/DISH group, so <= 15 characters."""
+    T_world_odom: tuple[float, ...] = _f(())
+    """The robot's first VIO frame in the fleet's world, ``[x, y, z, qx, qy, qz, qw]`` (metres,
+    unit quaternion), when known (e.g. from mocap at the start, as a recorded run's
+    mission.yaml has it); the robot then anchors its first keyframe there. Empty: unknown, only
+    the robot whose id is below all its neighbours' carries the gauge prior."""
 
     def _check(self) -> None:
         for key in ("name", "fleet"):
@@ -307,6 +312,13 @@ class RobotSection(_Checked):
                 raise ConfigError(
                     f"{key}: expected 1-15 characters of [A-Za-z0-9_.-], got {value!r}"
                 )
+        pose = self.T_world_odom
+        if pose and (len(pose) != 7 or not all(math.isfinite(v) for v in pose)):
+            raise ConfigError(f"T_world_odom: expected 7 finite numbers [x, y, z, qx, qy, qz, "
+                              f"qw] or [], got {list(pose)}")
+        if pose and abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) > 1e-3:
+            raise ConfigError(f"T_world_odom: expected a unit quaternion (norm within 1e-3 of "
+                              f"1), got {list(pose[3:])}")
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import yaml
 
-from dran_edge.cli.commands.status import query_status
+from dran_edge.daemon.status import query_status
 
 
 def write_config(tmp: Path, **overrides) -> Path:

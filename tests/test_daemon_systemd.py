@@ -15,7 +15,7 @@ import pytest
 from daemon_helpers import NotifyListener, start_daemon, stop, wait_status, write_config
 
 from dran_edge.comms import ingest as I
-from dran_edge.cli.commands.status import query_status
+from dran_edge.daemon.status import query_status
 
 REPO = Path(__file__).resolve().parents[1]
 WATCHDOG_USEC = 2_000_000  # systemd would kill us after 2 s without a ping

@@ -3,7 +3,7 @@
 Every module belongs to a layer: ``dran_edge`` top-level modules (errors, geometry, config,
 events, messages) form the base; then solver < dran < robot (the pure core); then the adapters comms,
 perception and formats; then evaluation and sim; then daemon; then replay and experiments; then
-cli. A module may import from its own package and from packages of strictly lower layers, never
+rehearsal; then cli. A module may import from its own package and from packages of strictly lower layers, never
 from a sibling of its own layer or from above. The pure core imports only numpy, scipy and the
 standard library (``dran_edge.config``, the strict YAML loader, may also import yaml).
 
@@ -34,6 +34,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("evaluation", "sim"),
     ("daemon",),
     ("replay", "experiments"),
+    ("rehearsal",),
     ("cli",),
 ]
 LAYER_OF = {pkg: level for level, group in enumerate(LAYERS) for pkg in group}
@@ -41,7 +42,7 @@ CORE = {"base", "solver", "dran", "robot"}
 CORE_THIRD_PARTY = {"numpy", "scipy"}
 YAML_ALLOWED = {"dran_edge/config.py"}
 HARDWARE = {"pyrealsense2", "depthai", "zmq", "systemd"}
-BASE_MODULES = {"errors", "config", "events", "messages", "geometry", "__version__"}
+BASE_MODULES = {"errors", "config", "events", "messages", "geometry", "blas", "__version__"}
 
 
 def _source_files() -> list[pathlib.Path]:

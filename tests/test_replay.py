@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dran_edge.comms.ingest import encode_event
+from dran_edge.perception.recorded import perceive_frames
 from dran_edge.replay import run as rp
 from dran_edge.errors import InputError
 
@@ -114,7 +116,8 @@ def redetected(tiny):
     out = {}
     for name in ("dingo1", "dingo2", "dingo3"):
         d = run / "robots" / name
-        records, frames = rp.perceive_frames(d / "robot.yaml", run / "calib", name)
+        batches, frames = perceive_frames(d / "robot.yaml", run / "calib", name)
+        records = [encode_event(b) for b in batches]
         assert frames == 60
         out[name] = _observations(b"".join(records))
     return out

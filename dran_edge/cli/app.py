@@ -22,16 +22,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("dran_edge.cli.commands.bench", "run the paper's experiments (Table 1, object simulation)"),
     "run": ("dran_edge.cli.commands.run", "run the robot daemon (what systemd starts)"),
     "status": ("dran_edge.cli.commands.status", "show the running daemon's health"),
-    "check-config": ("dran_edge.cli.commands.check_config",
-                     "load a robot config and everything it names, as 'run' does"),
-    "check-fleet": ("dran_edge.cli.commands.check_fleet",
-                    "check a directory of robot configs for consistency"),
+    "check-config": ("dran_edge.cli.commands.check_config", "validate a robot config file"),
     "simulate": ("dran_edge.cli.commands.simulate", "simulate a multi-robot mission as a run directory"),
     "replay": ("dran_edge.cli.commands.replay", "replay a recorded run through the robot code"),
+    "rehearse": ("dran_edge.cli.commands.rehearse",
+                 "run a recorded mission through real daemons, one per robot, with faults"),
     "detect": ("dran_edge.cli.commands.detect", "detect AprilTags in images, recordings or a camera"),
     "eval": ("dran_edge.cli.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
-    "fleet-key": ("dran_edge.cli.commands.fleet_key",
-                  "create or check the datagram keys (fleet HMAC key, robot key pairs)"),
+    "fleet-key": ("dran_edge.cli.commands.fleet_key", "create or check the fleet key (HMAC) file"),
 }
 
 EXIT_USAGE = 2

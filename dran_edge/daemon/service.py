@@ -253,7 +253,8 @@ def resolve_dirs(cfg: RobotConfig, environ: dict | None = None) -> tuple[Path, P
 
 def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
     """The robot's core: an :class:`~dran_edge.robot.core.RobotCore`, from ``state`` (its
-    :meth:`~dran_edge.robot.core.RobotCore.to_state`) when given."""
+    :meth:`~dran_edge.robot.core.RobotCore.to_state`) when given; a fresh one anchored at
+    ``robot.T_world_odom`` when the config has it."""
     try:
         from dran_edge.robot.core import RobotCore
     except ImportError as exc:
@@ -261,7 +262,12 @@ def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
                               ) from None
     if state is not None:
         return RobotCore.from_state(cfg.agent, state)
-    return RobotCore(cfg.agent)
+    T_world_odom = None
+    if cfg.robot.T_world_odom:
+        from dran_edge import geometry as geo
+
+        T_world_odom = geo.se3_from_xyz_quat_xyzw(np.asarray(cfg.robot.T_world_odom, np.float64))
+    return RobotCore(cfg.agent, T_world_odom)
 
 
 class LinkTransport:
@@ -367,7 +373,14 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
                         fleet_robots=frozenset(ids | set(cfg.comms.allow_relay_from)
                                                | {cfg.robot.id}),
                         neighbours=frozenset(ids), relay_from=frozenset(cfg.comms.allow_relay_from))
-    link = NeighbourLink(RadioTransport(params), key=key, policy=policy, boot_epoch=boot_epoch,
+    radio: Any = RadioTransport(params)
+    drop_file = os.environ.get("DRAN_EDGE_DROP_FILE")
+    if drop_file:  # set by `dran-edge rehearse` only (docs/rehearsal.md)
+        from dran_edge.comms.drop_hook import DropHookTransport
+
+        log.warning("rehearsal drop hook on: datagram loss by %s", drop_file)
+        radio = DropHookTransport(radio, drop_file, seed=cfg.robot.id * 7919 + boot_epoch)
+    link = NeighbourLink(radio, key=key, policy=policy, boot_epoch=boot_epoch,
                          max_datagram_bytes=cfg.comms.datagram_max_bytes,
                          delta_every=cfg.comms.delta_every)
     return LinkTransport(link, {n.id: n.name for n in cfg.neighbours},

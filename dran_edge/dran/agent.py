@@ -804,6 +804,10 @@ class Agent:
         out.append(self._estimate(stamp_ns, phi2))
         return out
 
+    def current_estimate(self, stamp_ns: int) -> EstimateUpdate:
+        """The estimate as the last round left it (e.g. of an agent restored from a checkpoint)."""
+        return self._estimate(stamp_ns, self.last_norms[2])
+
     def _estimate(self, stamp_ns: int, phi2: float) -> EstimateUpdate:
         p = self.problem
         D = p.dim + 1

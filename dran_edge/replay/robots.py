@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from dran_edge.blas import set_blas_threads
 from dran_edge.formats import run_dir as rd
 from dran_edge.errors import DranError, InputError
 from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
@@ -35,58 +36,6 @@ log = logging.getLogger(__name__)
 #: HMAC key of replayed links. A run never stores the fleet's secret; replay signs and verifies
 #: with this fixed key so the authentication code path runs as on the robot.
 REPLAY_KEY = bytes(range(32))
-
-
-_BLAS_SET = ("openblas_set_num_threads", "openblas_set_num_threads64_",
-             "scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads")
-_BLAS_GET = ("openblas_get_num_threads", "openblas_get_num_threads64_",
-             "scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads")
-
-
-def set_blas_threads(n: int | None) -> dict[str, int]:
-    """Set the thread count of every OpenBLAS loaded in this process (numpy's and scipy's
-    bundled copies); returns the previous counts by library path (``n=None``: only read them).
-
-    Why: the replay already runs one process per core. OpenBLAS's own threads on top of that
-    oversubscribe the cores, and the small dense products of a DRAN round then spend their
-    time in thread hand-offs — measured 8x slower per round on the 2-core reference machine
-    (docs/benchmarks.md, "Replay"). Linux only (reads /proc/self/maps); elsewhere a no-op.
-    """
-    import ctypes
-
-    previous: dict[str, int] = {}
-    try:
-        with open("/proc/self/maps", encoding="utf-8") as f:
-            paths = sorted({line.split()[-1] for line in f
-                            if "openblas" in line.lower() and ".so" in line})
-    except OSError:
-        return previous
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        getter = next((getattr(lib, name) for name in _BLAS_GET if hasattr(lib, name)), None)
-        setter = next((getattr(lib, name) for name in _BLAS_SET if hasattr(lib, name)), None)
-        if getter is not None:
-            getter.restype = ctypes.c_int
-            previous[path] = int(getter())
-        if setter is not None and n is not None:
-            setter.argtypes = [ctypes.c_int]
-            setter(int(n))
-    return previous
-
-
-def restore_blas_threads(previous: dict[str, int]) -> None:
-    """Undo :func:`set_blas_threads` (per library)."""
-    import ctypes
-
-    for path, n in previous.items():
-        lib = ctypes.CDLL(path)
-        setter = next((getattr(lib, name) for name in _BLAS_SET if hasattr(lib, name)), None)
-        if setter is not None:
-            setter.argtypes = [ctypes.c_int]
-            setter(int(n))
 
 
 def fleet_id(fleet: str) -> int:
@@ -213,6 +162,28 @@ class RobotResult:
     observations: int
 
 
+def robot_result(rid: int, name: str, core, last: EstimateUpdate | None, *,
+                 first_seen: dict | None = None, health: dict | None = None,
+                 rejected: Counter | None = None, observations: int = 0) -> RobotResult:
+    """What the replay's outputs need of one robot's core (its local graph and odometry-only
+    estimate, when the core has them) and of its last estimate. ``dran-edge rehearse`` builds
+    it from a daemon's checkpointed core."""
+    graph = None
+    g = getattr(core, "local_graph", None)
+    if g is not None and hasattr(g, "factor_arrays"):
+        from dran_edge.robot.keyframe_graph import OBJ
+
+        try:  # without the marginalisation prior (it would pin old nodes in g2o)
+            fa = g.factor_arrays(include_prior=False)
+        except TypeError:
+            fa = g.factor_arrays()
+        graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(), "factors": fa,
+                 "obj_base": OBJ}
+    initial = core.initial_estimate() if hasattr(core, "initial_estimate") else None
+    return RobotResult(rid, name, last, initial, dict(first_seen or {}), graph,
+                       dict(health or {}), Counter(rejected or {}), observations)
+
+
 @dataclass
 class _Robot:
     info: rd.RunRobot
@@ -333,23 +304,10 @@ class RobotRunner:
         return {rid: r.transport.pull() for rid, r in self.robots.items()}
 
     def results(self) -> dict[int, RobotResult]:
-        out = {}
-        for rid, r in self.robots.items():
-            graph = None
-            g = getattr(r.core, "local_graph", None)
-            if g is not None and hasattr(g, "factor_arrays"):
-                from dran_edge.robot.keyframe_graph import OBJ
-
-                try:  # without the marginalisation prior (it would pin old nodes in g2o)
-                    fa = g.factor_arrays(include_prior=False)
-                except TypeError:
-                    fa = g.factor_arrays()
-                graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(), "factors": fa,
-                         "obj_base": OBJ}
-            initial = r.core.initial_estimate() if hasattr(r.core, "initial_estimate") else None
-            out[rid] = RobotResult(rid, r.info.name, r.last, initial, r.first_seen, graph,
-                                   r.health, r.rejected, r.observations)
-        return out
+        return {rid: robot_result(rid, r.info.name, r.core, r.last, first_seen=r.first_seen,
+                                  health=r.health, rejected=r.rejected,
+                                  observations=r.observations)
+                for rid, r in self.robots.items()}
 
     def close(self) -> None:
         for r in self.robots.values():

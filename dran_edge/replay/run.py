@@ -160,41 +160,17 @@ def observation_sources(run: rd.Run, redetect: bool = False) -> dict[str, str]:
     return out
 
 
-def perceive_frames(config_path: str | Path, calib_dir: str | Path, name: str,
-                    lo_ns: int = 0, hi_ns: int = 2**63 - 1) -> tuple[list[bytes], int]:
-    """One robot's recorded frames with stamps in [lo_ns, hi_ns) through the perception
-    pipeline -> (observation batches encoded as ingest records, frames read). The daemon
-    journals exactly these records; the simulator writes them into ingest.bin."""
-    from dran_edge.comms.ingest import encode_event
-    from dran_edge.config import load_config
-    from dran_edge.perception.calib import load_calibration
-    from dran_edge.perception.pipeline import ObservationPipeline
-    from dran_edge.perception.sources import RecordedFramesSource
-
-    cfg = load_config(config_path)
-    pipeline = ObservationPipeline(load_calibration(calib_dir, name))
-    records, frames = [], 0
-    source = RecordedFramesSource(cfg.resolve(cfg.camera.recording))
-    source.rows = [row for row in source.rows if lo_ns <= row[0] < hi_ns]
-    try:
-        for frame in source:
-            frames += 1
-            batch = pipeline.process(frame)
-            if batch.observations:
-                records.append(encode_event(batch))
-    finally:
-        source.close()
-    return records, frames
-
-
 def _perceive_window(args: tuple[str, str, str, int, int]) -> tuple[str, int, list[bytes], int]:
     """One robot's frames with stamps in [lo, hi) -> observation batches as ingest records."""
     config_path, calib_dir, name, lo, hi = args
-    from dran_edge.replay.robots import set_blas_threads
+    from dran_edge.blas import set_blas_threads
+
+    from dran_edge.comms.ingest import encode_event
+    from dran_edge.perception.recorded import perceive_frames
 
     set_blas_threads(1)  # one perception process per core already
-    records, frames = perceive_frames(config_path, calib_dir, name, lo, hi)
-    return name, lo, records, frames
+    batches, frames = perceive_frames(config_path, calib_dir, name, lo, hi)
+    return name, lo, [encode_event(b) for b in batches], frames
 
 
 class _Perception:
@@ -260,7 +236,7 @@ class ReplayResult:
 def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
                progress: Callable[[str, int, int], None] | None = None) -> ReplayResult:
     """Replay the run at ``run_dir`` and write ``run_dir/out`` (see the module docstring)."""
-    from dran_edge.replay.robots import restore_blas_threads, set_blas_threads
+    from dran_edge.blas import restore_blas_threads, set_blas_threads
 
     blas = set_blas_threads(1)
     cpu0 = _cpu_s()

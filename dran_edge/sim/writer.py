@@ -180,15 +180,16 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
 
 def _perceive(robot_dir: Path, name: str) -> list[bytes]:
     """The perception pipeline on the robot's written frames, as on the robot."""
-    from dran_edge.replay.run import perceive_frames
+    from dran_edge.comms.ingest import encode_event
+    from dran_edge.perception.recorded import perceive_frames
 
-    records, _ = perceive_frames(robot_dir / "robot.yaml", robot_dir.parents[1] / "calib", name)
-    return records
+    batches, _ = perceive_frames(robot_dir / "robot.yaml", robot_dir.parents[1] / "calib", name)
+    return [encode_event(b) for b in batches]
 
 
 def _render_job(args: tuple) -> tuple[int, list[bytes]]:
     params, robot_index, frames_dir = args
-    from dran_edge.replay.robots import set_blas_threads
+    from dran_edge.blas import set_blas_threads
 
     set_blas_threads(1)  # one rendering process per core already
     m = sim.generate_mission(params)

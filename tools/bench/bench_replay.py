@@ -60,7 +60,8 @@ def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
 
     from dran_edge.formats import run_dir as rd
     from dran_edge.events import Tick
-    from dran_edge.replay.robots import RobotRunner, RobotSpec, restore_blas_threads, set_blas_threads
+    from dran_edge.blas import restore_blas_threads, set_blas_threads
+    from dran_edge.replay.robots import RobotRunner, RobotSpec
 
     mission = rd.open_run(run).mission
     cpu = {"default": [], "1 thread": []}

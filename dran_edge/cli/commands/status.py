@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 from pathlib import Path
 
-from dran_edge.errors import DranError
+from dran_edge.daemon.status import query_status
 
 HELP = "show the running daemon's health (neighbours, bytes, rounds, graph, drops)"
 
@@ -22,28 +21,6 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--socket", metavar="PATH", help="the status socket path")
     p.add_argument("--json", action="store_true", help="print the raw JSON document")
     return p
-
-
-def query_status(path: str | Path, timeout_s: float = 2.0) -> dict:
-    """The daemon's status document; DranError when nothing answers at ``path``."""
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(timeout_s)
-    try:
-        s.connect(str(path))
-        chunks = []
-        while True:
-            data = s.recv(65536)
-            if not data:
-                break
-            chunks.append(data)
-    except OSError as exc:
-        raise DranError(f"no daemon answers at {path}: {exc.strerror or exc}") from None
-    finally:
-        s.close()
-    try:
-        return json.loads(b"".join(chunks))
-    except ValueError:
-        raise DranError(f"the daemon at {path} sent an unreadable status") from None
 
 
 def _neighbour_line(peer: str, n: dict) -> str:

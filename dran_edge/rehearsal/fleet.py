@@ -1,0 +1,761 @@
+"""``dran-edge rehearse``: a fleet of real ``dran-edge run`` processes through a recorded run.
+
+:func:`rehearse` (docs/rehearsal.md):
+
+1. **Network and configs.** One network namespace per robot (:mod:`.netns`; loopback
+   addresses where namespaces are not permitted). Each robot gets a config written from the
+   run's ``robot.yaml``: its address and port, its neighbours' addresses (the run's
+   communication graph), a fresh fleet key, the ingest socket, its own state directory,
+   ``robot.T_world_odom`` from mission.yaml (as replay hands it to the core) and
+   ``comms.period_s`` divided by ``speed`` (a round per half second of *mission* time, as
+   in replay).
+2. **Daemons.** ``dran-edge run --config ... --record ...`` per robot, started inside its
+   namespace; the rehearsal waits until every status socket answers.
+3. **Feeding.** Each robot's ``ingest.bin`` records go through its real ingest socket when
+   the mission clock (``speed`` x wall time since the start) passes their stamp, as the VINS
+   bridge would send them: while the daemon is down they wait in a queue and go out on
+   reconnection. Runs with recorded frames get perception's observation records (the replay's
+   pipeline, run here before the start) merged by stamp.
+4. **Faults** (:mod:`.faults`) act when the mission clock reaches them.
+5. **End.** After the data, ``settle_rounds`` more rounds of mission time, then until every
+   daemon has journalled and applied what it was sent; SIGTERM (each checkpoints and stops).
+6. **Outputs.** Each robot's final checkpoint is loaded into its core and written in replay's
+   output format (``OUT/out``), scored by :func:`dran_edge.evaluation.score.evaluate_run` like
+   ``dran-edge eval``; ``OUT/rehearsal.json`` has the metrics, per-robot daemon counters, the
+   status timeline and the fault checks (nothing accepted lost; rejoin).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dran_edge.formats import run_dir as rd
+from dran_edge.errors import DranError, InputError
+from dran_edge.rehearsal import faults as fl
+from dran_edge.comms.drop_hook import write_rules
+from dran_edge.rehearsal.netns import make_net
+
+log = logging.getLogger(__name__)
+
+REPORT_FORMAT = "dran-edge-rehearse/1"
+#: Files and folders of the run the rehearsal's directory links to (it writes out/ and eval/).
+_RUN_PARTS = ("mission.yaml", "calib", "robots")
+
+
+@dataclass(frozen=True)
+class RehearsalOptions:
+    """How to rehearse a run."""
+
+    speed: float = 1.0
+    """Mission seconds per wall second (1: mission pace)."""
+    net: str = "auto"
+    """``auto`` (namespaces if permitted, else loopback), ``netns`` or ``loopback``."""
+    settle_rounds: int = 20
+    """Rounds of mission time after the data ends (as replay's settle rounds)."""
+    faults: tuple[fl.Fault, ...] = ()
+    out_dir: str | None = None
+    """Where to write (default RUN/rehearsal); replaced if it holds a previous rehearsal."""
+    evaluate: bool = True
+    start_timeout_s: float = 120.0
+    """How long the daemons may take to come up."""
+    drain_timeout_s: float = 60.0
+    """How long the end waits for the daemons to apply what they were sent."""
+    poll_s: float = 0.5
+    """Wall seconds between status polls of every daemon."""
+
+    def __post_init__(self) -> None:
+        if not self.speed > 0 or not math.isfinite(self.speed):
+            raise InputError(f"--speed: expected a number > 0, got {self.speed}")
+        if self.settle_rounds < 0:
+            raise InputError(f"--settle-rounds: expected >= 0, got {self.settle_rounds}")
+
+
+# ------------------------------------------------------------------------------ one robot
+@dataclass
+class _Daemon:
+    """One robot's daemon process and what the rehearsal knows about it."""
+
+    id: int
+    name: str
+    k: int
+    config: Path
+    state_dir: Path
+    runtime_dir: Path
+    record_dir: Path
+    log_path: Path
+    drop_file: Path
+    records: list[bytes]
+    release_ns: np.ndarray
+    proc: subprocess.Popen | None = None
+    next_record: int = 0
+    queue: list[int] = field(default_factory=list)
+    sock: socket.socket | None = None
+    connections: list[dict] = field(default_factory=list)
+    """Per connection: pid of the daemon, indices sent on it, records it reported accepted."""
+    samples: list[dict] = field(default_factory=list)
+    last_status: dict | None = None
+    starts: int = 0
+    clock_offset_s: float = 0.0
+
+    @property
+    def ingest_path(self) -> Path:
+        return self.runtime_dir / "ingest.sock"
+
+    @property
+    def status_path(self) -> Path:
+        return self.runtime_dir / "status.sock"
+
+
+def _ingest_records(run: rd.Run, name: str) -> tuple[list[bytes], np.ndarray, Counter]:
+    """The robot's records (raw bytes) and release stamps: a record goes out once the mission
+    clock passes its stamp and every earlier record's (file order is kept, as replay does)."""
+    from dran_edge.comms.ingest import IngestDecodeError, iter_records
+    from dran_edge.replay.robots import event_stamp
+
+    raws, stamps, rejected = [], [], Counter()
+    release = 0
+    for item in iter_records(run.read_ingest(name)):
+        if isinstance(item, IngestDecodeError):
+            rejected[item.reason] += 1
+            continue
+        release = max(release, event_stamp(item.event))
+        raws.append(item.raw)
+        stamps.append(release)
+    return raws, np.asarray(stamps, np.int64), rejected
+
+
+def _perceived_records(run: rd.Run, name: str) -> list[tuple[int, bytes]]:
+    """Observation records of the robot's recorded frames, by replay's perception pipeline."""
+    from dran_edge.comms.ingest import iter_records
+    from dran_edge.replay.run import _perceive_window
+
+    cfg = run.load_config(name)
+    if cfg.camera.source != "recorded" or run.frames_dir(name) is None:
+        return []
+    calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
+    _, _, records, _ = _perceive_window((str(run.config_path(name)), str(calib), name, 0,
+                                         2**63 - 1))
+    out = []
+    for raw in records:
+        for item in iter_records(raw):
+            out.append((int(item.event.stamp_ns), item.raw))
+    return out
+
+
+def _config_dict(run: rd.Run, info: rd.RunRobot, ep, neighbours: list[tuple[int, str, Any]],
+                 key_file: Path, d: _Daemon, period_s: float) -> dict:
+    from dran_edge.config import config_to_dict
+
+    cfg = config_to_dict(run.load_config(info.name))
+    cfg["neighbours"] = [{"id": j, "name": nm, "address": nep.dish} for j, nm, nep in neighbours]
+    if info.T_world_odom is not None:
+        from dran_edge import geometry as geo
+
+        cfg["robot"]["T_world_odom"] = [round(float(v), 12) for v in
+                                        geo.se3_to_xyz_quat_xyzw(info.T_world_odom)]
+    cfg["comms"].update(transport="udp", bind_address=ep.address, port=ep.port,
+                        key_file=str(key_file), period_s=period_s)
+    cfg["ingest"].update(enabled=True, socket_path=str(d.ingest_path))
+    cfg["camera"].update(source="none", recording="", calib_dir="", tags_file="")
+    cfg["daemon"].update(state_dir=str(d.state_dir), runtime_dir=str(d.runtime_dir),
+                         checkpoint_period_s=max(0.5, 4 * period_s), status_period_s=5.0)
+    return cfg
+
+
+# ------------------------------------------------------------------------------ the fleet
+class Fleet:
+    """The daemons of one rehearsal, their network, feeding and faults (module docstring)."""
+
+    def __init__(self, run_dir: str | Path, opt: RehearsalOptions):
+        import yaml
+
+        from dran_edge.comms.auth import write_fleet_key
+        from dran_edge.config import load_config
+
+        self.opt = opt
+        self.src = rd.open_run(run_dir)
+        self.mission = self.src.mission
+        self.out = (Path(opt.out_dir) if opt.out_dir else self.src.root / "rehearsal").resolve()
+        _prepare_out(self.out, self.src)
+        self.run = rd.open_run(self.out)
+        infos = sorted(self.mission.robots, key=lambda r: r.id)
+        self.names = {r.id: r.name for r in infos}
+        configs = {r.id: self.src.load_config(r.name) for r in infos}
+        periods = {c.comms.period_s for c in configs.values()}
+        if len(periods) != 1:
+            raise InputError(f"robots of one run must share comms.period_s, got "
+                             f"{sorted(periods)}", path=str(self.src.root))
+        self.period_s = periods.pop()
+        self.net, self.net_note = make_net(len(infos), opt.net)
+        self._tmp = Path(tempfile.mkdtemp(prefix="dre-"))  # short paths for the sockets
+        try:
+            key_file = self.out / "fleet.key"
+            write_fleet_key(key_file)
+            self.daemons: dict[int, _Daemon] = {}
+            for k, info in enumerate(infos):
+                base = self.out / "daemons" / info.name
+                base.mkdir(parents=True, exist_ok=True)
+                raws, release, rejected = _ingest_records(self.src, info.name)
+                perceived = _perceived_records(self.src, info.name)
+                if perceived:
+                    merged = sorted([(int(s), i, r) for i, (s, r) in enumerate(zip(release, raws))]
+                                    + [(s, len(raws) + i, r) for i, (s, r) in enumerate(perceived)])
+                    release = np.array([m[0] for m in merged], np.int64)
+                    raws = [m[2] for m in merged]
+                d = _Daemon(info.id, info.name, k, base / "robot.yaml", base / "state",
+                            self._tmp / str(k), base / "record", base / "daemon.log",
+                            base / "drop.json", raws, release)
+                d.rejected_in_file = rejected  # type: ignore[attr-defined]
+                self.daemons[info.id] = d
+            for k, info in enumerate(infos):
+                d = self.daemons[info.id]
+                nbrs = [(j, self.names[j], self.net.endpoints[self.daemons[j].k])
+                        for j in self.mission.neighbours(info.id)]
+                cfg = _config_dict(self.src, info, self.net.endpoints[k], nbrs, key_file, d,
+                                   self.period_s / opt.speed)
+                d.config.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
+                load_config(d.config)  # what the daemon will load: fail here, not in it
+                write_rules(d.drop_file, {})
+            self.loss: dict[tuple[int, int], float] = {}
+            self.silenced: set[int] = set()
+            self.fault_log: list[dict] = []
+            self.t0_wall: float | None = None
+        except BaseException:
+            self.close()
+            raise
+
+    # -------------------------------------------------------------------- clocks
+    def mission_ns(self) -> int:
+        assert self.t0_wall is not None
+        return self.mission.start_ns + int((time.monotonic() - self.t0_wall) * self.opt.speed
+                                           * 1e9)
+
+    def mission_s(self) -> float:
+        return (self.mission_ns() - self.mission.start_ns) * 1e-9
+
+    # -------------------------------------------------------------------- processes
+    def start(self, d: _Daemon) -> None:
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "STATE_DIRECTORY",
+                            "RUNTIME_DIRECTORY", "INVOCATION_ID", "JOURNAL_STREAM", "LISTEN_FDS")}
+        env["DRAN_EDGE_DROP_FILE"] = str(d.drop_file)
+        env["OPENBLAS_NUM_THREADS"] = "1"
+        env.update(_clock_env(d))
+        argv = [sys.executable, "-m", "dran_edge.cli.app", "run", "--config", str(d.config),
+                "--record", str(d.record_dir)]
+        with open(d.log_path, "ab") as logf:
+            logf.write(f"--- start {d.starts + 1} ---\n".encode())
+            logf.flush()
+            d.proc = subprocess.Popen(self.net.wrap(d.k, argv), env=env, stdout=logf,
+                                      stderr=subprocess.STDOUT, start_new_session=True)
+        d.starts += 1
+        d.last_status = None
+
+    def wait_up(self, ds: list[_Daemon], timeout_s: float) -> None:
+        from dran_edge.daemon.status import query_status
+
+        end = time.monotonic() + timeout_s
+        waiting = list(ds)
+        while waiting:
+            for d in list(waiting):
+                if d.proc is not None and d.proc.poll() is not None:
+                    raise DranError(f"the daemon of {d.name} exited ({d.proc.returncode}) while "
+                                    f"starting; see {d.log_path}:\n{_tail(d.log_path)}")
+                try:
+                    st = query_status(d.status_path, timeout_s=1.0)
+                except DranError:
+                    continue
+                if st.get("state") == "running" and st.get("pid") == d.proc.pid:
+                    waiting.remove(d)
+            if waiting and time.monotonic() > end:
+                raise DranError(f"daemons not up after {timeout_s:g} s: "
+                                f"{', '.join(d.name for d in waiting)} (logs in {self.out}/daemons)")
+            time.sleep(0.1)
+
+    def kill(self, d: _Daemon) -> None:
+        if d.proc is not None and d.proc.poll() is None:
+            os.kill(d.proc.pid, signal.SIGKILL)
+            d.proc.wait(timeout=30)
+        self._disconnect(d)
+
+    def stop_all(self, timeout_s: float = 60.0) -> dict[str, int | None]:
+        for d in self.daemons.values():
+            if d.proc is not None and d.proc.poll() is None:
+                d.proc.send_signal(signal.SIGTERM)
+        codes = {}
+        end = time.monotonic() + timeout_s
+        for d in self.daemons.values():
+            if d.proc is None:
+                continue
+            try:
+                codes[d.name] = d.proc.wait(timeout=max(0.1, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                os.kill(d.proc.pid, signal.SIGKILL)
+                codes[d.name] = d.proc.wait(timeout=10)
+                log.error("%s did not stop on SIGTERM within %g s: killed", d.name, timeout_s)
+            self._disconnect(d)
+        return codes
+
+    # -------------------------------------------------------------------- feeding
+    def feed(self, d: _Daemon, now_ns: int) -> None:
+        end = int(np.searchsorted(d.release_ns, now_ns, side="right"))
+        if end > d.next_record:
+            d.queue.extend(range(d.next_record, end))
+            d.next_record = end
+        if not d.queue or d.proc is None or d.proc.poll() is not None:
+            return
+        if d.sock is None:
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.settimeout(5.0)
+            try:
+                s.connect(str(d.ingest_path))
+            except OSError:
+                s.close()
+                return  # not up yet: the records wait, as the bridge's queue does
+            d.sock = s
+            d.connections.append({"pid": d.proc.pid, "sent": [], "accepted": 0})
+        batch = d.queue
+        try:
+            d.sock.sendall(b"".join(d.records[i] for i in batch))
+        except OSError:
+            self._disconnect(d)
+            return
+        d.connections[-1]["sent"].extend(batch)
+        d.queue = []
+
+    def _disconnect(self, d: _Daemon) -> None:
+        if d.sock is not None:
+            d.sock.close()
+            d.sock = None
+
+    # -------------------------------------------------------------------- status
+    def poll(self) -> dict[int, dict]:
+        from dran_edge.daemon.status import query_status
+
+        t = self.mission_s()
+        out = {}
+        for d in self.daemons.values():
+            if d.proc is None or d.proc.poll() is not None:
+                continue
+            try:
+                st = query_status(d.status_path, timeout_s=1.0)
+            except DranError:
+                continue
+            if st.get("pid") != d.proc.pid:
+                continue
+            d.last_status = st
+            if d.connections and d.connections[-1]["pid"] == d.proc.pid:
+                d.connections[-1]["accepted"] = int((st.get("ingest") or {}).get("records", 0))
+            d.samples.append(_sample(t, st))
+            out[d.id] = st
+        return out
+
+    # -------------------------------------------------------------------- faults
+    def apply(self, a: fl.Action) -> None:
+        f = a.fault
+        d = {r: self.daemons[r] for r in f.robots}
+        entry = {"t_s": round(self.mission_s(), 3), "at_s": a.t_s, "action": a.what,
+                 "fault": f.describe(self.names), "index": a.index}
+        if f.kind == "kill":
+            (dm,) = d.values()
+            if a.what == "start":
+                self.kill(dm)
+            else:
+                self.start(dm)
+        elif f.kind == "partition":
+            start = a.what == "start"
+            if self.net.kind == "netns":
+                if start:
+                    self.net.partition([x.k for x in d.values()])
+                else:
+                    self.net.heal()
+                entry["by"] = "network"
+            else:
+                entry["by"] = "drop hook"
+                for i in self.daemons:
+                    for j in self.daemons:
+                        if (i in f.robots) != (j in f.robots):
+                            self.loss[(i, j)] = 1.0 if start else 0.0
+                self._write_drops()
+        elif f.kind == "silent":
+            (dm,) = d.values()
+            on = a.what == "start"
+            if self.net.silence(dm.k, on):
+                entry["by"] = "network"
+            else:
+                entry["by"] = "drop hook"
+                for j in self.daemons:
+                    if j != dm.id:
+                        self.loss[(dm.id, j)] = 1.0 if on else 0.0
+                        self.loss[(j, dm.id)] = 1.0 if on else 0.0
+                self._write_drops()
+        elif f.kind == "loss":
+            i, j = f.robots
+            p = f.probability if a.what == "start" else 0.0
+            self.loss[(i, j)] = self.loss[(j, i)] = p
+            entry["by"] = "drop hook"
+            self._write_drops()
+        elif f.kind == "clock_step":
+            (dm,) = d.values()
+            entry.update(_clock_step(dm, f.step_s))
+        self.fault_log.append(entry)
+        log.info("fault: %s %s at %.1f s", a.what, entry["fault"], entry["t_s"])
+
+    def _write_drops(self) -> None:
+        for i, d in self.daemons.items():
+            write_rules(d.drop_file, {j: p for (a, j), p in self.loss.items() if a == i})
+
+    # -------------------------------------------------------------------- cleanup
+    def close(self) -> None:
+        for d in getattr(self, "daemons", {}).values():
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGKILL)
+                d.proc.wait(timeout=10)
+            self._disconnect(d)
+        net = getattr(self, "net", None)
+        if net is not None:
+            net.close()
+        tmp = getattr(self, "_tmp", None)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+# ------------------------------------------------------------------------------ helpers
+def _prepare_out(out: Path, src: rd.Run) -> None:
+    """``out`` as a run directory: links to the run's inputs, room for out/ and eval/."""
+    if out.exists() and any(out.iterdir()):
+        if not (out / "rehearsal.json").exists() and not (out / "daemons").exists():
+            raise InputError("exists and is not a previous rehearsal; choose another --out",
+                             path=str(out))
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    parts = list(_RUN_PARTS)
+    if src.mission.mocap_file:
+        parts.append(src.mission.mocap_file)
+    for part in parts:
+        target = (src.root / part).resolve()
+        if target.exists():
+            link = out / part
+            link.parent.mkdir(parents=True, exist_ok=True)
+            link.symlink_to(target)
+
+
+def _tail(path: Path, n: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
+    except OSError:
+        return ""
+
+
+def _sample(t_s: float, st: dict) -> dict:
+    g = st.get("graph") or {}
+    r = st.get("rounds") or {}
+    tr = st.get("transport") or {}
+    heard = {str(k): v.get("last_heard_s_ago") for k, v in (st.get("neighbours") or {}).items()}
+    return {"t_s": round(t_s, 3), "pid": st.get("pid"), "boot_epoch": st.get("boot_epoch"),
+            "records": (st.get("ingest") or {}).get("records", 0),
+            "pending": (st.get("journal") or {}).get("pending", 0),
+            "ticks": r.get("ticks", 0), "late": r.get("late", 0), "missed": r.get("missed", 0),
+            "round": g.get("round"), "keyframes": g.get("keyframes"), "objects": g.get("objects"),
+            "cost": g.get("cost"), "consensus_error": g.get("consensus_error"),
+            "converged": g.get("converged"), "bytes_sent": tr.get("bytes_sent", 0),
+            "heard_s_ago": heard}
+
+
+def _clock_env(d: _Daemon) -> dict:
+    """libfaketime for a robot whose wall clock the faults may step (docs/rehearsal.md)."""
+    lib = getattr(d, "faketime_lib", None)
+    if not lib:
+        return {}
+    return {"LD_PRELOAD": lib, "FAKETIME_TIMESTAMP_FILE": str(d.state_dir.parent / "faketime"),
+            "FAKETIME_CACHE_DURATION": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1",
+            "FAKETIME_FORCE_MONOTONIC_FIX": "1"}
+
+
+FAKETIME_PATHS = ("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1",
+                  "/usr/lib/aarch64-linux-gnu/faketime/libfaketime.so.1",
+                  "/usr/lib/faketime/libfaketime.so.1", "/usr/local/lib/faketime/libfaketime.so.1")
+
+
+def find_faketime() -> str | None:
+    return next((p for p in FAKETIME_PATHS if Path(p).exists()), None)
+
+
+def _clock_step(d: _Daemon, step_s: float) -> dict:
+    if not getattr(d, "faketime_lib", None):
+        return {"by": "skipped", "reason": "libfaketime is not installed (a robot's wall clock "
+                                           "cannot be stepped alone without it)"}
+    d.clock_offset_s += step_s
+    _write_faketime(d)
+    return {"by": "libfaketime", "offset_s": d.clock_offset_s}
+
+
+def _write_faketime(d: _Daemon) -> None:
+    path = d.state_dir.parent / "faketime"
+    tmp = path.with_name("faketime.tmp")
+    tmp.write_text(f"{d.clock_offset_s:+.3f}\n")
+    os.replace(tmp, path)
+
+
+# ------------------------------------------------------------------------------ the run
+@dataclass
+class RehearsalResult:
+    report: dict
+    out_dir: Path
+
+
+def rehearse(run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(),
+             progress=None) -> RehearsalResult:
+    """Rehearse the run at ``run_dir`` (module docstring); writes ``OUT/rehearsal.json``."""
+    wall0 = time.perf_counter()
+    fleet = Fleet(run_dir, opt)
+    try:
+        if any(f.kind == "clock_step" for f in opt.faults):
+            lib = find_faketime()
+            for f in opt.faults:
+                if f.kind == "clock_step" and lib:
+                    d = fleet.daemons[f.robots[0]]
+                    d.faketime_lib = lib  # type: ignore[attr-defined]
+                    _write_faketime(d)
+        return _run(fleet, opt, wall0, progress)
+    finally:
+        fleet.close()
+
+
+def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> RehearsalResult:
+    ds = list(fleet.daemons.values())
+    for d in ds:
+        fleet.start(d)
+    fleet.wait_up(ds, opt.start_timeout_s)
+    last_release = max((int(d.release_ns[-1]) for d in ds if len(d.release_ns)), default=0)
+    data_end_ns = max(last_release, fleet.mission.start_ns + int(fleet.mission.duration_s * 1e9))
+    end_ns = data_end_ns + int(opt.settle_rounds * fleet.period_s * 1e9)
+    todo = fl.actions(list(opt.faults))
+    fleet.t0_wall = time.monotonic()
+    step_s = min(0.05, 0.25 * fleet.period_s / opt.speed)
+    next_poll = 0.0
+    rows: list[dict] = []
+    while True:
+        now = fleet.mission_ns()
+        while todo and fleet.mission.start_ns + int(todo[0].t_s * 1e9) <= now:
+            fleet.apply(todo.pop(0))
+        for d in ds:
+            fleet.feed(d, now)
+        if time.monotonic() >= next_poll:
+            next_poll = time.monotonic() + opt.poll_s
+            rows.append(_round_row(len(rows), now, fleet.poll()))
+            if progress:
+                progress("mission s", int((min(now, end_ns) - fleet.mission.start_ns) // 10**9),
+                         int(math.ceil((end_ns - fleet.mission.start_ns) / 1e9)))
+        if now >= end_ns:
+            break
+        time.sleep(step_s)
+    for a in todo:  # what is still pending at the end ends now (a late restart happens)
+        if a.what == "end":
+            fleet.apply(a)
+    drained = _drain(fleet, opt.drain_timeout_s)
+    rows.append(_round_row(len(rows), fleet.mission_ns(), fleet.poll()))
+    exit_codes = fleet.stop_all()
+    rehearsal_wall = time.perf_counter() - wall0
+    return _finish(fleet, opt, rows, drained, exit_codes, rehearsal_wall)
+
+
+def _drain(fleet: Fleet, timeout_s: float) -> bool:
+    """Wait until each live daemon accepted and applied every record sent on its connection."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        for d in fleet.daemons.values():
+            fleet.feed(d, 2**63 - 1)
+        fleet.poll()
+        done = True
+        for d in fleet.daemons.values():
+            if d.proc is None or d.proc.poll() is not None:
+                continue
+            st = d.last_status or {}
+            sent = len(d.connections[-1]["sent"]) if d.connections else 0
+            if d.queue or d.connections[-1]["accepted"] < sent or \
+                    (st.get("journal") or {}).get("pending", 1) != 0:
+                done = False
+        if done:
+            return True
+        time.sleep(0.2)
+    log.warning("daemons did not apply everything they were sent within %g s", timeout_s)
+    return False
+
+
+def _round_row(k: int, stamp_ns: int, statuses: dict[int, dict]) -> dict:
+    """One row of rounds.csv from a status poll of the fleet (a sample, not an aligned round)."""
+    costs, cerr, conv, sent = [], [], 0, 0
+    for st in statuses.values():
+        g = st.get("graph") or {}
+        if isinstance(g.get("cost"), (int, float)) and math.isfinite(g["cost"]):
+            costs.append(g["cost"])
+        if isinstance(g.get("consensus_error"), (int, float)):
+            cerr.append(g["consensus_error"])
+        conv += bool(g.get("converged"))
+        sent += int((st.get("transport") or {}).get("bytes_sent", 0))
+    return {"round": k, "stamp_ns": stamp_ns, "bytes_total": sent, "bytes_round": 0,
+            "cost": float(np.sum(costs)) if costs else math.nan,
+            "consensus_error": float(np.max(cerr)) if cerr else math.nan,
+            "converged_robots": conv, "datagrams_lost": 0}
+
+
+def _record_counts(d: _Daemon) -> Counter:
+    """Multiset of the raw records the daemon applied, from its ``--record`` stream (a record
+    re-applied from the journal after a crash appears twice there)."""
+    from dran_edge.comms.ingest import IngestDecodeError, iter_records
+
+    path = d.record_dir / "robots" / d.name / "ingest.bin"
+    if not path.exists():
+        return Counter()
+    return Counter(item.raw for item in iter_records(path.read_bytes())
+                   if not isinstance(item, IngestDecodeError))
+
+
+def _accounting(d: _Daemon) -> dict:
+    """Nothing accepted is lost: every record a daemon reported as accepted (its status'
+    ``ingest.records`` at the last poll on that connection) was applied, by that daemon or,
+    after a crash, by its successor from the journal."""
+    applied = _record_counts(d)
+    applied_set = set(applied)
+    sent_total = sum(len(c["sent"]) for c in d.connections)
+    accepted_lost, unconfirmed = 0, 0
+    for c in d.connections:
+        acc = min(c["accepted"], len(c["sent"]))
+        accepted_lost += sum(1 for i in c["sent"][:acc] if d.records[i] not in applied_set)
+        unconfirmed += len(c["sent"]) - acc
+    fed = set(d.records[: d.next_record])
+    never_applied = sum(1 for r in fed if r not in applied_set)
+    return {"records_in_run": len(d.records), "records_sent": sent_total,
+            "connections": len(d.connections),
+            "accepted_reported": sum(min(c["accepted"], len(c["sent"])) for c in d.connections),
+            "accepted_lost": accepted_lost,
+            "sent_unconfirmed_at_kill": unconfirmed,
+            "applied_distinct": len(applied_set & fed),
+            "applied_twice": sum(1 for n in applied.values() if n > 1),
+            "never_applied": never_applied,
+            "queued_unsent": len(d.queue)}
+
+
+def _collect(fleet: Fleet) -> dict:
+    """Each robot's final checkpoint -> its core -> replay's RobotResult."""
+    from dran_edge.daemon.checkpoint import CheckpointStore
+    from dran_edge.config import load_config
+    from dran_edge.daemon.service import default_agent_factory
+    from dran_edge.replay.robots import robot_result
+
+    results = {}
+    for rid, d in fleet.daemons.items():
+        cfg = load_config(d.config)
+        state = CheckpointStore(d.state_dir).load()
+        if state is None:
+            log.warning("%s left no checkpoint", d.name)
+            continue
+        core = default_agent_factory(cfg, state)
+        last = core.agent.current_estimate(fleet.mission.start_ns)
+        results[rid] = robot_result(rid, d.name, core, last,
+                                    health=dict(state.get("counters", {})))
+    return results
+
+
+def _finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
+            exit_codes: dict, wall_s: float) -> RehearsalResult:
+    from dran_edge.replay.run import _json_clean, _metrics, write_outputs
+
+    run = fleet.run
+    run.out_dir.mkdir(exist_ok=True)
+    results = _collect(fleet)
+    write_outputs(run, results, rows)
+    robots = {}
+    for rid, d in fleet.daemons.items():
+        last = d.samples[-1] if d.samples else {}
+        robots[d.name] = {
+            "id": rid, "starts": d.starts, "exit_code": exit_codes.get(d.name),
+            "address": fleet.net.endpoints[d.k].dish, "netns": fleet.net.endpoints[d.k].netns,
+            "ticks": last.get("ticks"), "late": last.get("late"), "missed": last.get("missed"),
+            "keyframes": len(results[rid].last.keyframe_stamps_ns) if rid in results else 0,
+            "objects": len(results[rid].last.object_ids) if rid in results else 0,
+            "ingest": _accounting(d),
+            "rejected_in_file": dict(getattr(d, "rejected_in_file", {})),
+        }
+    report: dict[str, Any] = {
+        "format": REPORT_FORMAT,
+        "run": str(fleet.src.root),
+        "robots": len(fleet.daemons),
+        "mission_s": float(fleet.mission.duration_s),
+        "speed": opt.speed,
+        "period_s": fleet.period_s,
+        "daemon_period_s": fleet.period_s / opt.speed,
+        "net": fleet.net.kind,
+        "net_note": fleet.net_note,
+        "rehearsal_wall_s": round(wall_s, 3),
+        "drained": drained,
+        "options": {k: v for k, v in asdict(opt).items() if k != "faults"},
+        "faults": [f.describe(fleet.names) for f in opt.faults],
+        "fault_log": fleet.fault_log,
+        "per_robot": robots,
+        "accepted_lost": sum(r["ingest"]["accepted_lost"] for r in robots.values()),
+        "rejoin": _rejoin(fleet),
+    }
+    if opt.evaluate and fleet.mission.mocap_file:
+        report.update(_metrics(run))
+    timeline = {d.name: d.samples for d in fleet.daemons.values()}
+    (fleet.out / "timeline.json").write_text(json.dumps(_json_clean(timeline)) + "\n")
+    (fleet.out / "rehearsal.json").write_text(json.dumps(_json_clean(report), indent=2) + "\n")
+    return RehearsalResult(report, fleet.out)
+
+
+def _rejoin(fleet: Fleet) -> list[dict]:
+    """For each restart or healed partition/silence: when the robot's neighbours heard it
+    again and it heard them (mission seconds after the fault ended), from the status polls."""
+    out = []
+    for entry in fleet.fault_log:
+        if entry["action"] != "end":
+            continue
+        f = next(a.fault for a in fl.actions(list(fleet.opt.faults)) if a.index ==
+                 entry["index"])
+        if f.kind not in ("kill", "partition", "silent"):
+            continue
+        t_end = entry["t_s"]
+        for rid in f.robots:
+            nbrs = fleet.mission.neighbours(rid)
+            if f.kind == "partition":
+                nbrs = [j for j in nbrs if j not in f.robots]
+            heard_by = {}
+            for j in nbrs:
+                heard_by[fleet.names[j]] = _first_heard(fleet.daemons[j].samples, rid, t_end,
+                                                        fleet.opt.speed)
+            hears = {fleet.names[j]: _first_heard(fleet.daemons[rid].samples, j, t_end,
+                                                  fleet.opt.speed) for j in nbrs}
+            out.append({"fault": entry["fault"], "robot": fleet.names[rid], "ended_s": t_end,
+                        "heard_by_s": heard_by, "hears_s": hears})
+    return out
+
+
+def _first_heard(samples: list[dict], peer: int, after_s: float, speed: float
+                 ) -> float | None:
+    """Mission seconds after ``after_s`` at which a status sample first shows ``peer`` heard
+    since then (the daemons' ``last_heard_s_ago`` is wall time: times ``speed``)."""
+    for s in samples:
+        if s["t_s"] <= after_s:
+            continue
+        ago = (s.get("heard_s_ago") or {}).get(str(peer))
+        if ago is not None and s["t_s"] - ago * speed > after_s - 1e-6:
+            return round(s["t_s"] - after_s, 3)
+    return None
