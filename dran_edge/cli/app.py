@@ -13,6 +13,7 @@ import logging
 import sys
 from typing import Sequence
 
+from dran_edge.cli import progress
 from dran_edge.errors import DranError
 
 # name -> (module, one-line help). Order is the order shown in --help.
@@ -22,17 +23,31 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("dran_edge.cli.commands.bench", "run the paper's experiments (Table 1, object simulation)"),
     "run": ("dran_edge.cli.commands.run", "run the robot daemon (what systemd starts)"),
     "status": ("dran_edge.cli.commands.status", "show the running daemon's health"),
-    "check-config": ("dran_edge.cli.commands.check_config", "validate a robot config file"),
+    "check-config": ("dran_edge.cli.commands.check_config",
+                     "load a robot config and everything it names, as 'run' does"),
+    "check-fleet": ("dran_edge.cli.commands.check_fleet",
+                    "check a directory of robot configs for consistency"),
     "simulate": ("dran_edge.cli.commands.simulate", "simulate a multi-robot mission as a run directory"),
     "replay": ("dran_edge.cli.commands.replay", "replay a recorded run through the robot code"),
     "rehearse": ("dran_edge.cli.commands.rehearse",
                  "run a recorded mission through real daemons, one per robot, with faults"),
     "detect": ("dran_edge.cli.commands.detect", "detect AprilTags in images, recordings or a camera"),
     "eval": ("dran_edge.cli.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
-    "fleet-key": ("dran_edge.cli.commands.fleet_key", "create or check the fleet key (HMAC) file"),
+    "fleet-key": ("dran_edge.cli.commands.fleet_key",
+                  "create or check the datagram keys (fleet HMAC key, robot key pairs)"),
 }
 
 EXIT_USAGE = 2
+
+
+def add_common_options(parser: argparse.ArgumentParser) -> None:
+    """What every command takes: ``-v``/``--verbose`` (more log output, twice for debug) and
+    ``-q``/``--quiet`` (errors only, no progress on stderr). The result on stdout is the same."""
+    group = parser.add_argument_group("output")
+    group.add_argument("-v", "--verbose", action="count", default=0,
+                       help="more log output on stderr (-vv: debug)")
+    group.add_argument("-q", "--quiet", action="store_true",
+                       help="only errors on stderr: no progress, no warnings")
 
 
 def _top_parser() -> argparse.ArgumentParser:
@@ -73,14 +88,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
+    module = importlib.import_module(COMMANDS[ns.command][0])
+    parser = module.build_parser(f"dran-edge {ns.command}")
+    add_common_options(parser)
+    args = parser.parse_args(ns.args)
+    verbose = ns.verbose + args.verbose
     logging.basicConfig(
-        level=logging.WARNING - 10 * min(ns.verbose, 2),
+        level=logging.ERROR if args.quiet else logging.WARNING - 10 * min(verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    module = importlib.import_module(COMMANDS[ns.command][0])
-    parser = module.build_parser(f"dran-edge {ns.command}")
-    args = parser.parse_args(ns.args)
+    progress.set_quiet(args.quiet)
     try:
         return int(module.run(args) or 0)
     except DranError as exc:

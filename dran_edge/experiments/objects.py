@@ -303,7 +303,7 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
         if history_every and k % history_every == 0:
             history.append(snapshot())
         if progress is not None:
-            progress(k)
+            progress("rounds", k, max_rounds)
 
     rounds = fleet.run(max_rounds, callback=cb)
     out = snapshot()

@@ -199,13 +199,13 @@ def _render_job(args: tuple) -> tuple[int, list[bytes]]:
 
 
 def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
-              workers: int | None = None, progress: Callable[[int, int], None] | None = None
+              workers: int | None = None, progress: Callable[[str, int, int], None] | None = None
               ) -> Path:
     """Write ``m`` as a run directory at ``out_dir`` (which must be empty or not exist).
 
     ``frames``: ``render`` (PNG frames through the renderer; replay runs the perception
     pipeline) or ``none`` (no frames; tag observations go into ``ingest.bin`` directly).
-    ``progress(done, total)`` is called as frames are written.
+    ``progress("rendering", done, total)`` is called as frames are written.
     """
     if frames not in FRAME_MODES:
         raise InputError(f"frames: expected one of {FRAME_MODES}, got {frames!r}")
@@ -251,7 +251,7 @@ def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
                     nonlocal done
                     done += n
                     if progress:
-                        progress(done, total)
+                        progress("rendering", done, total)
                 render_robot_frames(m, r, Path(job[2]), tick)
                 perceived.append(_perceive(Path(job[2]).parent, r.name))
         else:
@@ -260,7 +260,7 @@ def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
                     done += n
                     perceived.append(recs)
                     if progress:
-                        progress(done, total)
+                        progress("rendering", done, total)
         for r, recs in zip(m.robots, perceived):
             (root / "robots" / r.name / "ingest.bin").write_bytes(_ingest_bytes(m, r, frames, recs))
     log.info("wrote run %s (%d robots, %s frames)", root, len(m.robots), frames)

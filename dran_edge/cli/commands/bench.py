@@ -6,7 +6,8 @@ import argparse
 import dataclasses
 import json
 import os
-import sys
+
+from dran_edge.cli.progress import ProgressBar, note
 
 # One BLAS thread: the local steps are small dense products, and OpenBLAS's thread pool on a
 # busy 2-core machine made them ~75x slower (measured, docs/notes/benchmarks-history.md).
@@ -49,7 +50,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "docs/dran.md)")
     g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
                    help="residual of the local problems (chordal optimises the reported F exactly)")
-    g.add_argument("--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
+    g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     o = sub.add_parser("objects", help="object simulation sweeps",
                        description="The paper's object simulation (Sec. 6.2): robots on trajectories "
@@ -102,10 +103,6 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     return parser
 
 
-def _progress(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 def run_g2o(args) -> int:
     from pathlib import Path
 
@@ -120,12 +117,13 @@ def run_g2o(args) -> int:
     if args.method == "dran":
         cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain)
 
+        bar = ProgressBar()
+
         def cb(k, fleet):  # progress on stderr; stdout stays the report
             if k == 1:
-                _progress(f"initialisation done: {fleet.round - 1} rounds, "
-                          f"{fleet.traffic.bytes_total} bytes so far")
-            if k % 50 == 0:
-                _progress(f"DRAN round {k}: {fleet.traffic.bytes_total} bytes")
+                note(f"initialisation done: {fleet.round - 1} rounds, "
+                     f"{fleet.traffic.bytes_total} bytes so far")
+            bar("DRAN rounds", k, args.max_rounds or k)
 
         res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb, **run_kw)
     else:
@@ -160,6 +158,7 @@ def run_objects_cmd(args) -> int:
             except ConfigError as exc:
                 raise InputError(f"--{name}: {exc}") from None
     rows = []
+    bar = ProgressBar()
     for noise in args.noise:
         base = SimParams(num_robots=args.robots, num_objects=args.objects, seed=args.seed,
                          outlier_ratio=args.outliers, outlier_kinds=args.outlier_kinds,
@@ -171,9 +170,8 @@ def run_objects_cmd(args) -> int:
             graph = random_connected_graph(range(args.robots), rho, seed=args.seed + 1)
             label = f"rho={rho:g} noise={noise:g}"
 
-            def progress(k, label=label):
-                if k % 50 == 0:
-                    _progress(f"{label}: round {k}/{args.rounds}")
+            def progress(stage, done, total, label=label):
+                bar(f"{label} {stage}", done, total)
 
             out = run_objects(sc, cfg, graph, BusParams(loss_probability=args.loss),
                               max_rounds=args.rounds, seed=args.seed,

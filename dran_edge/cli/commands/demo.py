@@ -23,7 +23,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
             "metrics and where the report and plots are."
         ),
     )
-    p.add_argument("--out", default="demo-run", help="directory for the run (default demo-run)")
+    p.add_argument("-o", "--out", default="demo-run", help="directory for the run (default demo-run)")
     p.add_argument("--robots", type=int, default=6, help="robots (default 6)")
     p.add_argument("--objects", type=int, default=9, help="tagged boxes (default 9)")
     p.add_argument("--duration-s", type=float, default=180.0, help="mission length (default 180)")
@@ -43,7 +43,7 @@ def _is_demo_run(path: Path) -> bool:
 def run(args: argparse.Namespace) -> int:
     import math
 
-    from dran_edge.cli.commands.replay import ProgressBar
+    from dran_edge.cli.progress import ProgressBar
     from dran_edge.errors import InputError
     from dran_edge.evaluation.score import EvalOptions, evaluate_run, write_report
     from dran_edge.replay.run import ReplayOptions, replay_run
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"[1/3] simulating {args.robots} robots among {args.objects} AprilTag boxes for "
           f"{args.duration_s:g} s ...", flush=True)
     mission = generate_mission(params)
-    write_run(mission, out, frames=args.frames, progress=lambda d, t: bar("rendering", d, t))
+    write_run(mission, out, frames=args.frames, progress=bar)
     t1 = time.monotonic()
     print(f"      wrote {out} in {t1 - t0:.1f} s", flush=True)
     print("[2/3] replaying it through the robot code ...", flush=True)

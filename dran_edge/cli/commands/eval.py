@@ -53,7 +53,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="longest mocap occlusion interpolated across (default 0.1 s)")
     p.add_argument("--rpe-delta", type=float, default=1.0, metavar="S",
                    help="pose spacing of the relative pose error (default 1 s)")
-    p.add_argument("--out", metavar="DIR", help="(run) where to write (default RUN_DIR/eval)")
+    p.add_argument("-o", "--out", metavar="DIR", help="(run) where to write (default RUN_DIR/eval)")
     p.add_argument("--no-plots", action="store_true", help="(run) skip the PNG plots")
     p.add_argument("--no-centralized", action="store_true",
                    help="(run) do not solve merged.g2o centrally (no SR_ATE / SR_cost)")

@@ -27,7 +27,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (docs/run-format.md)")
-    p.add_argument("--out", default=None, metavar="DIR",
+    p.add_argument("-o", "--out", default=None, metavar="DIR",
                    help="where to write (default RUN_DIR/rehearsal; a previous rehearsal there "
                         "is replaced)")
     p.add_argument("--speed", type=float, default=1.0, metavar="X",
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     import signal
 
     from dran_edge.formats import run_dir as rd
-    from dran_edge.cli.commands.replay import ProgressBar
+    from dran_edge.cli.progress import ProgressBar
     from dran_edge.rehearsal.faults import faults_from_flags, load_faults
     from dran_edge.rehearsal.fleet import RehearsalOptions, rehearse
 

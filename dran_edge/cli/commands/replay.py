@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 
 HELP = "replay a recorded run through the robot code"
 
@@ -43,35 +41,13 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="ignore the tag observations recorded in ingest.bin and run perception "
                         "on the recorded frames again (results may differ slightly across CPU "
                         "architectures; the recorded ones replay bit for bit)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the bus loss model (default 0)")
+    p.add_argument("--loss-seed", type=int, default=0,
+                   help="seed of the bus loss model (default 0); --seed is the simulation's "
+                        "seed in 'simulate' and 'demo'")
     p.add_argument("--no-eval", action="store_true",
                    help="do not score against the run's mocap")
     p.add_argument("--json", action="store_true", help="print report.json instead of a summary")
     return p
-
-
-class ProgressBar:
-    """A one-line progress bar on stderr (plain lines every few seconds when not a terminal)."""
-
-    def __init__(self, stream=None):
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
-        self._last = 0.0
-        self._phase = None
-
-    def __call__(self, phase: str, done: int, total: int) -> None:
-        now = time.monotonic()
-        final = done >= total
-        if phase == self._phase and not final and now - self._last < (0.1 if self.tty else 5.0):
-            return
-        self._phase, self._last = phase, now
-        width = 30
-        fill = int(width * done / max(total, 1))
-        line = f"{phase:<11} [{'#' * fill}{'.' * (width - fill)}] {done}/{total}"
-        if self.tty:
-            print("\r" + line, end="\n" if final else "", file=self.stream, flush=True)
-        else:
-            print(line, file=self.stream, flush=True)
 
 
 def _fmt(v, spec: str) -> str:
@@ -94,8 +70,10 @@ def run(args: argparse.Namespace) -> int:
     opt = ReplayOptions(
         transport=args.transport, loss=args.loss, latency_rounds=args.latency,
         partitions=tuple(PartitionSpec.parse(p) for p in args.partition), speed=args.speed,
-        settle_rounds=args.settle_rounds, workers=args.workers, seed=args.seed,
+        settle_rounds=args.settle_rounds, workers=args.workers, seed=args.loss_seed,
         evaluate=not args.no_eval, redetect=args.redetect)
+    from dran_edge.cli.progress import ProgressBar
+
     res = replay_run(args.run_dir, opt, progress=ProgressBar())
     r = res.report
     if args.json:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 HELP = "simulate a multi-robot mission and write it as a run directory"
@@ -21,7 +20,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
             "graph and a ground-truth OptiTrack Motive CSV. The same seed gives the same run."
         ),
     )
-    p.add_argument("out", metavar="OUT_DIR", help="new (or empty) directory for the run")
+    p.add_argument("out_dir", nargs="?", metavar="OUT_DIR",
+                   help="new (or empty) directory for the run (or give it as -o/--out)")
+    p.add_argument("-o", "--out", metavar="OUT_DIR", help="the same as OUT_DIR")
     p.add_argument("--robots", type=int, default=6, help="number of robots (default 6)")
     p.add_argument("--objects", type=int, default=9, help="number of tagged boxes (default 9)")
     p.add_argument("--duration-s", type=float, default=180.0,
@@ -39,37 +40,25 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     return p
 
 
-def _progress(prefix: str):
-    tty = sys.stderr.isatty()
-    last = [0.0]
-
-    def show(done: int, total: int) -> None:
-        now = time.monotonic()
-        if done < total and now - last[0] < (0.2 if tty else 5.0):
-            return
-        last[0] = now
-        width = 30
-        fill = int(width * done / max(total, 1))
-        line = f"{prefix} [{'#' * fill}{'.' * (width - fill)}] {done}/{total}"
-        print(("\r" + line) if tty else line, end="" if tty and done < total else "\n",
-              file=sys.stderr, flush=True)
-
-    return show
-
-
 def run(args: argparse.Namespace) -> int:
     import math
 
+    from dran_edge.cli.progress import ProgressBar
     from dran_edge.sim.writer import write_run
     from dran_edge.sim.mission import SimParams, generate_mission
 
+    from dran_edge.errors import InputError
+
+    if (args.out_dir is None) == (args.out is None):
+        raise InputError("give the run directory once: OUT_DIR or -o/--out OUT_DIR")
+    args.out = args.out or args.out_dir
     arena = args.arena_m if args.arena_m is not None else max(6.0, 3.0 * math.sqrt(args.objects))
     params = SimParams(robots=args.robots, objects=args.objects, duration_s=args.duration_s,
                        seed=args.seed, frame_rate_hz=args.frame_rate_hz, arena_m=arena)
     t0 = time.monotonic()
     mission = generate_mission(params)
     write_run(mission, args.out, frames=args.frames, workers=args.workers,
-              progress=_progress("rendering frames"))
+              progress=ProgressBar())
     n_loops = sum(len(r.loops) for r in mission.robots)
     n_out = sum(int(r.loop_outlier.sum()) for r in mission.robots)
     n_resets = sum(len(r.reset_stamps_ns) for r in mission.robots)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 HELP = "optimise a g2o pose graph (centralised Schur-LM)"
@@ -22,7 +21,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     )
     parser.add_argument("input", metavar="IN.g2o", help="the pose graph to optimise")
     parser.add_argument(
-        "--out",
+        "-o", "--out",
         metavar="OUT.g2o",
         required=True,
         help="where to write the optimised graph (same format as the input)",
@@ -77,7 +76,6 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         "cholesky, superlu, or auto (cholesky for large 3D graphs; default)",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return parser
 
 
@@ -85,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     # The supernodal Cholesky makes many small BLAS calls: one BLAS thread (only effective when
     # numpy is not loaded yet, i.e. from the command line).
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from dran_edge.cli.progress import note
     from dran_edge.errors import InputError
     from dran_edge.formats.g2o import read_g2o, write_g2o
     from dran_edge.solver.lm import LMParams, LMStatus
@@ -101,18 +100,12 @@ def run(args: argparse.Namespace) -> int:
     graph = read_g2o(args.input)
 
     def progress(iteration: int, cost: float, mu: float) -> None:
-        if not args.quiet:
-            print(
-                f"  iteration {iteration:3d}  F = {2 * cost:.10g}  mu = {mu:.3g}", file=sys.stderr
-            )
+        note(f"  iteration {iteration:3d}  F = {2 * cost:.10g}  mu = {mu:.3g}")
 
-    if not args.quiet:
-        print(
-            f"{args.input}: {graph.num_vertices} vertices, {graph.num_edges} edges, "
-            f"SE({graph.dim}); init {args.init}, residual {args.residual}, "
-            f"weights {args.weights}",
-            file=sys.stderr,
-        )
+    note(
+        f"{args.input}: {graph.num_vertices} vertices, {graph.num_edges} edges, "
+        f"SE({graph.dim}); init {args.init}, residual {args.residual}, weights {args.weights}"
+    )
     params = LMParams(
         max_iterations=args.max_iterations,
         cost_tol=args.cost_tol,
