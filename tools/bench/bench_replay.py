@@ -2,6 +2,7 @@
 
     .venv/bin/python tools/bench/bench_replay.py [--robots 6] [--duration-s 180] [--workdir DIR]
     .venv/bin/python tools/bench/bench_replay.py --blas-ablation
+    .venv/bin/python tools/bench/bench_replay.py --quick      # 2 robots, 4 s, in a temporary folder
 
 Simulates the mission twice with the same seed into ``--workdir`` (kept between runs; the
 simulation itself is not timed): once with rendered camera frames (the replay runs the AprilTag
@@ -20,6 +21,7 @@ import json
 import math
 import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -97,7 +99,19 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--blas-ablation", action="store_true",
                     help="only time one robot's rounds with OpenBLAS's default threads vs 1")
+    ap.add_argument("--quick", action="store_true",
+                    help="2 robots, 4 s, one perception process, a temporary --workdir: checks "
+                         "the script, not speed")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.robots, args.duration_s, args.workers = 2, min(args.duration_s, 4.0), 1
+        with tempfile.TemporaryDirectory(prefix="bench_replay_") as tmp:
+            args.workdir = tmp
+            return _main(args)
+    return _main(args)
+
+
+def _main(args) -> int:
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     if args.blas_ablation:
