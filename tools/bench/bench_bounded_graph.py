@@ -17,7 +17,7 @@ for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/bench/bench_bounded_graph.py
     .venv/bin/python tools/bench/bench_bounded_graph.py --no-baseline   # RSS of the bounded graph
-    .venv/bin/python tools/bench/bench_bounded_graph.py --quick   # 160 keyframes, caps 60 / 240
+    .venv/bin/python tools/bench/bench_bounded_graph.py --quick   # 100 keyframes, caps 40 / 160
 
 The mission is generated in a child process and written as ingest records (docs/ingest.md);
 this process streams it back through the ingest decoder in 1 MiB chunks, as the daemon would,
@@ -126,11 +126,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
     ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
     ap.add_argument("--quick", action="store_true",
-                    help="160 keyframes, caps of 60 nodes / 240 edges: checks the script only")
+                    help="100 keyframes, caps of 40 nodes / 160 edges: checks the script only")
     args = ap.parse_args(argv)
     if args.quick:
-        args.keyframes, args.report_every = min(args.keyframes, 160), 80
-        args.max_nodes, args.max_edges = 60, 240
+        args.keyframes, args.report_every = min(args.keyframes, 100), 50
+        args.max_nodes, args.max_edges = 40, 160
     n = args.keyframes
     if args.write_mission:
         write_mission(args.write_mission, n, args.seed)

@@ -2,7 +2,7 @@
 
     .venv/bin/python tools/bench/bench_replay.py [--robots 6] [--duration-s 180] [--workdir DIR]
     .venv/bin/python tools/bench/bench_replay.py --blas-ablation
-    .venv/bin/python tools/bench/bench_replay.py --quick      # 2 robots, 4 s, in a temporary folder
+    .venv/bin/python tools/bench/bench_replay.py --quick      # 2 robots, 2 s, in a temporary folder
 
 Simulates the mission twice with the same seed into ``--workdir`` (kept between runs; the
 simulation itself is not timed): once with rendered camera frames (the replay runs the AprilTag
@@ -43,13 +43,14 @@ def _simulate(workdir: Path, frames: str, args) -> Path:
     return run
 
 
-def _replay(run: Path, workers: int | None) -> dict:
+def _replay(run: Path, workers: int | None, settle_rounds: int) -> dict:
     from dran_edge.replay.run import ReplayOptions, replay_run
 
     if (run / "out").exists():
         shutil.rmtree(run / "out")
     t0 = time.perf_counter()
-    rep = replay_run(run, ReplayOptions(evaluate=False, workers=workers)).report
+    opts = ReplayOptions(evaluate=False, workers=workers, settle_rounds=settle_rounds)
+    rep = replay_run(run, opts).report
     rep["bench_wall_s"] = time.perf_counter() - t0
     return rep
 
@@ -100,11 +101,11 @@ def main(argv=None) -> int:
     ap.add_argument("--blas-ablation", action="store_true",
                     help="only time one robot's rounds with OpenBLAS's default threads vs 1")
     ap.add_argument("--quick", action="store_true",
-                    help="2 robots, 4 s, one perception process, a temporary --workdir: checks "
-                         "the script, not speed")
+                    help="2 robots, 2 s, 2 settle rounds, one perception process, a temporary "
+                         "--workdir: checks the script, not speed")
     args = ap.parse_args(argv)
     if args.quick:
-        args.robots, args.duration_s, args.workers = 2, min(args.duration_s, 4.0), 1
+        args.robots, args.duration_s, args.workers = 2, min(args.duration_s, 2.0), 1
         with tempfile.TemporaryDirectory(prefix="bench_replay_") as tmp:
             args.workdir = tmp
             return _main(args)
@@ -112,6 +113,8 @@ def main(argv=None) -> int:
 
 
 def _main(args) -> int:
+    from dran_edge.replay.run import ReplayOptions
+
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     if args.blas_ablation:
@@ -119,7 +122,8 @@ def _main(args) -> int:
         return 0
     runs = {"full (frames -> perception -> agents)": _simulate(workdir, "render", args),
             "back-end only (observations in ingest.bin)": _simulate(workdir, "none", args)}
-    results = {name: _replay(run, args.workers) for name, run in runs.items()}
+    settle = 2 if args.quick else ReplayOptions().settle_rounds
+    results = {name: _replay(run, args.workers, settle) for name, run in runs.items()}
     print(f"machine: {os.cpu_count()} cores; mission {args.robots} robots x "
           f"{args.duration_s:g} s (seed {args.seed})")
     cores = os.cpu_count() or 1
