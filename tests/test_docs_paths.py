@@ -31,8 +31,10 @@ def mentioned_paths(text: str) -> list[str]:
             continue
         brace = re.search(r"\{([^}]*)\}", path)
         if brace:
-            out += [path[: brace.start()] + alt + path[brace.end():]
-                    for alt in brace.group(1).split(",")]
+            out += [
+                path[: brace.start()] + alt + path[brace.end() :]
+                for alt in brace.group(1).split(",")
+            ]
         else:
             out.append(path)
     return out
@@ -44,12 +46,19 @@ def resolve(path: str) -> Path:
 
 
 def test_the_pattern_finds_what_the_docs_write():
-    text = ("see `dran_edge/solver/lm.py`, `comms/bus.py`. Also robot/core.py and "
-            "dran_edge/{errors,config}.py, tests/test_lm.py::test_x, docs/<file>.md, "
-            "not shared/data/g2o nor foo/dran_edge/x.py")
+    text = (
+        "see `dran_edge/solver/lm.py`, `comms/bus.py`. Also robot/core.py and "
+        "dran_edge/{errors,config}.py, tests/test_lm.py::test_x, docs/<file>.md, "
+        "not shared/data/g2o nor foo/dran_edge/x.py"
+    )
     assert mentioned_paths(text) == [
-        "dran_edge/solver/lm.py", "comms/bus.py", "robot/core.py", "dran_edge/errors.py",
-        "dran_edge/config.py", "tests/test_lm.py"]
+        "dran_edge/solver/lm.py",
+        "comms/bus.py",
+        "robot/core.py",
+        "dran_edge/errors.py",
+        "dran_edge/config.py",
+        "tests/test_lm.py",
+    ]
     assert resolve("robot/core.py") == ROOT / "dran_edge" / "robot" / "core.py"
 
 
@@ -61,7 +70,7 @@ def test_every_path_a_doc_names_exists(doc):
 
 def test_the_readme_command_table_points_at_existing_docs():
     readme = (ROOT / "README.md").read_text()
-    table = readme[readme.index("## Commands"):readme.index("## On a robot")]
+    table = readme[readme.index("## Commands") : readme.index("## On a robot")]
     docs = re.findall(r"`([\w/.-]+\.md)`", table)
     assert docs, "the README's command table names no doc"
     assert [d for d in docs if not (ROOT / d).exists()] == []

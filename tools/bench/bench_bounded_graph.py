@@ -38,14 +38,14 @@ import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-from dran_edge.solver import lm  # noqa: E402
 from dran_edge.comms.ingest import IngestDecodeError, StreamDecoder, encode_event  # noqa: E402
+
 from dran_edge.config import AgentConfig, GraphBounds  # noqa: E402
 from dran_edge.events import Keyframe  # noqa: E402
-from dran_edge.solver.graph import PoseGraph  # noqa: E402
 from dran_edge.robot.keyframe_graph import KeyframeGraph  # noqa: E402
 from dran_edge.sim.vio import vio_mission  # noqa: E402
+from dran_edge.solver import lm  # noqa: E402
+from dran_edge.solver.graph import PoseGraph  # noqa: E402
 
 
 def rss_mb(field: str = "VmRSS") -> float:

@@ -31,10 +31,10 @@ import sys
 import time
 
 import numpy as np
-
-from dran_edge import geometry as geo
 from dran_edge.comms import codec
 from dran_edge.comms.auth import AuthPolicy, Signer, Verifier
+
+from dran_edge import geometry as geo
 from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 
 KEY = bytes(range(32))

@@ -27,8 +27,8 @@ from pathlib import Path
 
 
 def _simulate(workdir: Path, frames: str, args) -> Path:
-    from dran_edge.sim.writer import write_run
     from dran_edge.sim.mission import SimParams, generate_mission
+    from dran_edge.sim.writer import write_run
 
     tag = f"r{args.robots}_d{args.duration_s:g}_s{args.seed}_{frames}"
     run = workdir / tag
@@ -61,9 +61,14 @@ def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
 
     import numpy as np
 
-    from dran_edge.formats import run_dir as rd
     from dran_edge.events import Tick
-    from dran_edge.replay.robots import RobotRunner, RobotSpec, restore_blas_threads, set_blas_threads
+    from dran_edge.formats import run_dir as rd
+    from dran_edge.replay.robots import (
+        RobotRunner,
+        RobotSpec,
+        restore_blas_threads,
+        set_blas_threads,
+    )
 
     mission = rd.open_run(run).mission
     cpu = {"default": [], "1 thread": []}
