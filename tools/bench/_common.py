@@ -48,16 +48,23 @@ def quick_g2o_graphs(out_dir: str | Path) -> dict[str, tuple[str, float]]:
     from dran_edge.solver.objective import sesync_objective, sesync_weights
 
     out: dict[str, tuple[str, float]] = {}
-    specs = {"quick-se2": dict(dim=2, side=6, layers=1, loop_radius_m=1.5),
-             "quick-se3": dict(dim=3, side=4, layers=2, loop_radius_m=1.1)}
+    specs = {
+        "quick-se2": {"dim": 2, "side": 6, "layers": 1, "loop_radius_m": 1.5},
+        "quick-se3": {"dim": 3, "side": 4, "layers": 2, "loop_radius_m": 1.1},
+    }
     for name, spec in specs.items():
         graph, _ = synthetic_graph(sigma_t_m=0.05, sigma_r_rad=0.02, seed=1, **spec)
         path = Path(out_dir) / f"{name}.g2o"
         write_g2o(path, graph)
         g = read_g2o(path)  # what the script will read: the file's rounding included
-        res = solve(pose_graph(g, "chordal", "sesync"), initial_poses(g, "chordal"),
-                    LMParams(cost_tol=1e-10, hessian="exact"))
+        res = solve(
+            pose_graph(g, "chordal", "sesync"),
+            initial_poses(g, "chordal"),
+            LMParams(cost_tol=1e-10, hessian="exact"),
+        )
         kappa, tau = sesync_weights(g.dim, g.information)
-        out[name] = (path.name, float(sesync_objective(res.poses, g.edges, g.measurements,
-                                                         kappa, tau)))
+        out[name] = (
+            path.name,
+            float(sesync_objective(res.poses, g.edges, g.measurements, kappa, tau)),
+        )
     return out

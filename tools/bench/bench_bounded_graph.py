@@ -17,6 +17,7 @@ for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/bench/bench_bounded_graph.py
     .venv/bin/python tools/bench/bench_bounded_graph.py --no-baseline   # RSS of the bounded graph
+    .venv/bin/python tools/bench/bench_bounded_graph.py --quick   # 100 keyframes, caps 40 / 160
 
 The mission is generated in a child process and written as ingest records (docs/ingest.md);
 this process streams it back through the ingest decoder in 1 MiB chunks, as the daemon would,
@@ -37,14 +38,14 @@ import subprocess  # noqa: E402
 import tempfile  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-from dran_edge.solver import lm  # noqa: E402
 from dran_edge.comms.ingest import IngestDecodeError, StreamDecoder, encode_event  # noqa: E402
+
 from dran_edge.config import AgentConfig, GraphBounds  # noqa: E402
 from dran_edge.events import Keyframe  # noqa: E402
-from dran_edge.solver.graph import PoseGraph  # noqa: E402
 from dran_edge.robot.keyframe_graph import KeyframeGraph  # noqa: E402
 from dran_edge.sim.vio import vio_mission  # noqa: E402
+from dran_edge.solver import lm  # noqa: E402
+from dran_edge.solver.graph import PoseGraph  # noqa: E402
 
 
 def rss_mb(field: str = "VmRSS") -> float:
@@ -124,7 +125,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
     ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
+    ap.add_argument("--quick", action="store_true",
+                    help="100 keyframes, caps of 40 nodes / 160 edges: checks the script only")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.keyframes, args.report_every = min(args.keyframes, 100), 50
+        args.max_nodes, args.max_edges = 40, 160
     n = args.keyframes
     if args.write_mission:
         write_mission(args.write_mission, n, args.seed)
@@ -133,8 +139,11 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     tmp = tempfile.mkdtemp(prefix="bench_bounded_")
     path = os.path.join(tmp, "ingest.bin")
-    subprocess.run([sys.executable, __file__, "--keyframes", str(n), "--seed", str(args.seed),
-                    "--write-mission", path], check=True)
+    if args.quick:  # no child process: the RSS figures do not matter here
+        write_mission(path, n, args.seed)
+    else:
+        subprocess.run([sys.executable, __file__, "--keyframes", str(n), "--seed", str(args.seed),
+                        "--write-mission", path], check=True)
     mission = Truth(path)
     gen_s = time.perf_counter() - t0
     print(f"mission: {n} keyframes, {os.path.getsize(path) / 1e6:.1f} MB of ingest records, "

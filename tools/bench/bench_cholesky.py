@@ -22,24 +22,22 @@ shared, oversubscribed machine disturbs far less than wall time; F of both resul
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import _common  # one BLAS thread, before numpy (see bench_g2o.py)
-
-import importlib.util
-
 import numpy as np
 import scipy.sparse as sp
 
 import dran_edge.solver.sparse_cholesky as ours
-from dran_edge.solver import lm
 from dran_edge.formats.g2o import read_g2o
+from dran_edge.solver import lm
+from dran_edge.solver.centralized import initial_poses, pose_graph
 from dran_edge.solver.lm import LMParams, _factorize, build_plan, linearize
 from dran_edge.solver.objective import sesync_objective, sesync_weights
-from dran_edge.solver.centralized import initial_poses, pose_graph
 from dran_edge.solver.sparse_cholesky import SymbolicCholesky
 
 FILES = {name: fname for name, (fname, _) in _common.G2O_GRAPHS.items()}

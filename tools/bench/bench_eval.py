@@ -2,6 +2,7 @@
 bare ``csv`` + ``float`` pass over the same file.
 
     .venv/bin/python tools/bench/bench_eval.py [--duration-s 300] [--repeats 3]
+    .venv/bin/python tools/bench/bench_eval.py --quick     # 5 s of trajectory, one pass
 
 Data: a ground-robot track (wobbly circle, varying yaw rate) sampled by mocap at 120 Hz (the
 reference) and an estimate at 20 Hz whose stamps fall between mocap frames (a VIO clock is not
@@ -104,7 +105,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--quick", action="store_true",
+                    help="5 s of trajectory, one pass: checks the script, not speed")
     args = ap.parse_args()
+    if args.quick:
+        args.duration_s, args.repeats = min(args.duration_s, 5.0), 1
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         ref, est = make_files(d, args.duration_s, noise=True)

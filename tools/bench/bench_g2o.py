@@ -35,13 +35,12 @@ from pathlib import Path
 # Our frontal matrices are small: one BLAS thread per process (threaded OpenBLAS oversubscribes
 # a busy 2-core machine badly). _common sets it; it must come before numpy. GTSAM is not affected.
 import _common
-
 import numpy as np
 
 from dran_edge.formats.g2o import read_g2o
+from dran_edge.solver.centralized import initial_poses, pose_graph
 from dran_edge.solver.lm import LMParams, solve
 from dran_edge.solver.objective import sesync_objective, sesync_weights
-from dran_edge.solver.centralized import initial_poses, pose_graph
 
 # F* of the data README (exact LM, ‖grad‖ ≤ 2e-4); the paper prints them rounded.
 DATASETS = _common.G2O_GRAPHS

@@ -1,6 +1,7 @@
 """Perception throughput: full pipeline vs the bare detector on the same frames, same run.
 
     .venv/bin/python tools/bench/bench_perception.py [--frames 200] [--repeats 5]
+    .venv/bin/python tools/bench/bench_perception.py --quick     # 4 frames, one pass
 
 Frames: 640x480 renders of the example fleet's boxes (calib/), 1-3 boxes in view at 0.8-3 m,
 blur 0.5 px, aligned depth; two scenes: the renderer's smooth low-texture background (grey
@@ -69,7 +70,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--quick", action="store_true",
+                    help="4 frames per scene, one pass: checks the script, not speed")
     args = ap.parse_args()
+    if args.quick:
+        args.frames, args.repeats = min(args.frames, 4), 1
     calib = load_calibration(ROOT / "calib", "dingo1")
     params = PipelineParams(detector=DetectorParams(quad_decimate=2.0, nthreads=1))
     detector = TagDetector(params.detector)

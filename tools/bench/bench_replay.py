@@ -2,6 +2,7 @@
 
     .venv/bin/python tools/bench/bench_replay.py [--robots 6] [--duration-s 180] [--workdir DIR]
     .venv/bin/python tools/bench/bench_replay.py --blas-ablation
+    .venv/bin/python tools/bench/bench_replay.py --quick      # 2 robots, 2 s, in a temporary folder
 
 Simulates the mission twice with the same seed into ``--workdir`` (kept between runs; the
 simulation itself is not timed): once with rendered camera frames (the replay runs the AprilTag
@@ -20,13 +21,14 @@ import json
 import math
 import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 
 
 def _simulate(workdir: Path, frames: str, args) -> Path:
-    from dran_edge.sim.writer import write_run
     from dran_edge.sim.mission import SimParams, generate_mission
+    from dran_edge.sim.writer import write_run
 
     tag = f"r{args.robots}_d{args.duration_s:g}_s{args.seed}_{frames}"
     run = workdir / tag
@@ -41,13 +43,14 @@ def _simulate(workdir: Path, frames: str, args) -> Path:
     return run
 
 
-def _replay(run: Path, workers: int | None) -> dict:
+def _replay(run: Path, workers: int | None, settle_rounds: int) -> dict:
     from dran_edge.replay.run import ReplayOptions, replay_run
 
     if (run / "out").exists():
         shutil.rmtree(run / "out")
     t0 = time.perf_counter()
-    rep = replay_run(run, ReplayOptions(evaluate=False, workers=workers)).report
+    opts = ReplayOptions(evaluate=False, workers=workers, settle_rounds=settle_rounds)
+    rep = replay_run(run, opts).report
     rep["bench_wall_s"] = time.perf_counter() - t0
     return rep
 
@@ -58,10 +61,10 @@ def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
 
     import numpy as np
 
-    from dran_edge.formats import run_dir as rd
     from dran_edge.events import Tick
     from dran_edge.blas import restore_blas_threads, set_blas_threads
     from dran_edge.replay.robots import RobotRunner, RobotSpec
+    from dran_edge.formats import run_dir as rd
 
     mission = rd.open_run(run).mission
     cpu = {"default": [], "1 thread": []}
@@ -98,7 +101,21 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--blas-ablation", action="store_true",
                     help="only time one robot's rounds with OpenBLAS's default threads vs 1")
+    ap.add_argument("--quick", action="store_true",
+                    help="2 robots, 2 s, 2 settle rounds, one perception process, a temporary "
+                         "--workdir: checks the script, not speed")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.robots, args.duration_s, args.workers = 2, min(args.duration_s, 2.0), 1
+        with tempfile.TemporaryDirectory(prefix="bench_replay_") as tmp:
+            args.workdir = tmp
+            return _main(args)
+    return _main(args)
+
+
+def _main(args) -> int:
+    from dran_edge.replay.run import ReplayOptions
+
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     if args.blas_ablation:
@@ -106,7 +123,8 @@ def main(argv=None) -> int:
         return 0
     runs = {"full (frames -> perception -> agents)": _simulate(workdir, "render", args),
             "back-end only (observations in ingest.bin)": _simulate(workdir, "none", args)}
-    results = {name: _replay(run, args.workers) for name, run in runs.items()}
+    settle = 2 if args.quick else ReplayOptions().settle_rounds
+    results = {name: _replay(run, args.workers, settle) for name, run in runs.items()}
     print(f"machine: {os.cpu_count()} cores; mission {args.robots} robots x "
           f"{args.duration_s:g} s (seed {args.seed})")
     cores = os.cpu_count() or 1

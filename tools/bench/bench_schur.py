@@ -1,6 +1,7 @@
 """Table 2 ablation: one DRAN local step with and without the Schur complement, same problems.
 
 Usage: .venv/bin/python tools/bench/bench_schur.py [--steps 300] [--seed 0]
+       .venv/bin/python tools/bench/bench_schur.py --quick     # 5 steps per variant
 
 The problem is the size of one robot of the paper's real-world run: 112 trajectory poses, 165
 edges (111 odometry + 54 object observations), 9 objects, each object also tied to 2 neighbours'
@@ -90,8 +91,8 @@ def agent_round_ms(seed: int, rounds: int) -> tuple[float, float]:
     """The same robot as a real ``Agent`` (paper defaults, no robust kernel): its 9 objects'
     copies from 2 neighbours arrive as ``NeighbourData``; one ``Tick`` = one DRAN round (dual
     update, the local step with its acceptance test, outputs). Returns (median ms, p90 ms)."""
-    from dran_edge.dran.agent import Agent, LocalProblem
     from dran_edge.config import AgentConfig
+    from dran_edge.dran.agent import Agent, LocalProblem
     from dran_edge.events import NeighbourData, Tick
     from dran_edge.messages import NeighbourMessage, ObjectEntry
 
@@ -121,7 +122,7 @@ def agent_round_ms(seed: int, rounds: int) -> tuple[float, float]:
         t0 = time.perf_counter()
         agent.handle(Tick(k))
         times.append(1e3 * (time.perf_counter() - t0))
-    times = times[5:]  # the first rounds build the structure plan and the Cholesky analysis
+    times = times[5:] or times  # the first rounds build the structure plan and the analysis
     return float(np.median(times)), float(np.percentile(times, 90))
 
 
@@ -138,7 +139,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true",
+                    help="5 timed steps per variant, 10 to compare costs: checks the script only")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.steps = min(args.steps, 5)
+    conv_steps = 10 if args.quick else 30  # LM steps per variant before the costs are compared
     g_red, g_flat, poses = problem(args.seed)
     p_red, p_flat = build_plan(g_red), build_plan(g_flat)
     # both sparse variants factorise with the supernodal Cholesky the agent uses (analysed once)
@@ -153,7 +159,7 @@ def main(argv=None) -> int:
     u2, v2 = full_dense_step(lin, mu)
     print(f"max |reduced - full dense| step difference: {max(np.abs(u - u2).max(), np.abs(v - v2).max()):.2e}")
     times = {"schur": [], "full-dense": [], "full-sparse": []}
-    chunk = 25  # variants alternate in chunks, so they share the machine's load but not caches
+    chunk = min(25, args.steps)  # variants alternate in chunks: they share the load, not caches
     for _ in range(max(args.steps // chunk, 1)):
         for name in times:
             for _ in range(chunk):
@@ -186,12 +192,12 @@ def main(argv=None) -> int:
     for name, graph, plan, fac in (("schur", g_red, p_red, f_red), ("full-dense", g_red, p_red, None),
                                    ("full-sparse", g_flat, p_flat, f_flat)):
         P = poses.copy()
-        for _ in range(30):
+        for _ in range(conv_steps):
             lin = linearize(graph, plan, P)
             u, v = (full_dense_step(lin, mu) if name == "full-dense"
                     else schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, fac))
             P = retract(plan, P, u, v)
-        print(f"{name:<12} local cost after 30 steps {evaluate_cost(graph, P):.10g}")
+        print(f"{name:<12} local cost after {conv_steps} steps {evaluate_cost(graph, P):.10g}")
     return 0
 
 

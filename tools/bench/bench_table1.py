@@ -22,8 +22,8 @@ from pathlib import Path
 import _common  # one BLAS thread, before numpy (docs/benchmarks.md)
 
 from dran_edge.experiments.dgs import run_g2o_dgs
-from dran_edge.formats.g2o import read_g2o
 from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
+from dran_edge.formats.g2o import read_g2o
 
 # name: (paper DGS F, paper DRAN F, paper DGS MB, paper DRAN MB); files and F* in _common
 PAPER = {

@@ -1,6 +1,7 @@
 """Covariance consistency of tag poses: NEES over many rendered frames with known poses.
 
     .venv/bin/python tools/bench/nees_perception.py [--frames 300]
+    .venv/bin/python tools/bench/nees_perception.py --quick     # 12 frames per condition
 
 For each imaging condition (grey noise, blur), a calibration set and a disjoint test set of
 single-tag renders (16 cm tag, 0.5-3 m, yaw +-60 deg, pitch +-30 deg, any roll) are detected.
@@ -105,7 +106,11 @@ def run(frames: int, noise: float, blur: float, seed: int = 5) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--quick", action="store_true",
+                    help="12 frames per condition: checks the script; the statistics mean nothing")
     args = ap.parse_args()
+    if args.quick:
+        args.frames = min(args.frames, 12)
     for noise, blur in ((2.0, 0.0), (3.0, 0.8), (8.0, 1.2)):
         r = run(args.frames, noise, blur)
         print(f"noise {noise:g} blur {blur:g} px: test frames {r['n_test']}, sigma from residuals "
