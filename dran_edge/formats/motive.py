@@ -243,25 +243,19 @@ def _parse_table(
     return values, blank
 
 
-def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
-    """Read a Motive CSV export (with header rows) into a :class:`MotiveTake`.
-
-    ``up_axis`` is the export's vertical axis: ``"y"`` (Motive's default; converted to our
-    Z-up) or ``"z"`` (the export already used a Z-up axis convention; kept as is).
-    Raises InputError (with the line number) for anything that is not a Motive 1.2x rigid-body
-    export: missing header rows, unknown rotation type or units, malformed or partial cells.
-    """
-    path = str(path)
-    R_up = _up_rotation(up_axis)
+def _read_text(path: str) -> str:
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")
+        return Path(path).read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputError("Motive CSV file not found", path=path) from None
     except UnicodeDecodeError as exc:
         raise InputError(f"expected a text (UTF-8) Motive CSV, got undecodable bytes: {exc}",
                          path=path) from None
-    lines = text.splitlines()
-    rows = list(csv.reader(lines[:40]))
+
+
+def _check_metadata(rows: list[list[str]], path: str) -> dict[str, str]:
+    """The first row's key/value metadata, checked: format 1.2x (newer: a warning), a known
+    rotation type and length unit, global coordinates."""
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
         got = ",".join(rows[0])[:60] if rows else "an empty file"
         raise InputError(
@@ -282,13 +276,13 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
                              path=path, line=1)
         log.warning("%s: Motive CSV format version %s is newer than 1.2x; reading it as 1.2x",
                     path, version)
-    rotation_type = meta.get("Rotation Type", "Quaternion")
+    rotation_type = meta.setdefault("Rotation Type", "Quaternion")
     if rotation_type not in ROTATION_TYPES:
         raise InputError(
             f"expected Rotation Type one of {', '.join(ROTATION_TYPES)}, got {rotation_type!r}",
             path=path, line=1,
         )
-    units = meta.get("Length Units", "Meters")
+    units = meta.setdefault("Length Units", "Meters")
     if units not in LENGTH_UNITS_M:
         raise InputError(
             f"expected Length Units one of {', '.join(LENGTH_UNITS_M)}, got {units!r}",
@@ -298,10 +292,28 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
     if space != "Global":
         raise InputError(f"expected Coordinate Space 'Global' (world poses), got {space!r}",
                          path=path, line=1)
-    scale_m = LENGTH_UNITS_M[units]
+    return meta
 
-    # Header rows by content: Type / Name / ID (second cell), then the component row, then
-    # the axis row that starts with "Frame". Line numbers are 1-based.
+
+@dataclass
+class _Header:
+    """The header rows of a Motive CSV: cells of the Type / Name / ID / component rows and the
+    axis row, by column; 0-based row indices of the Name, ID and axis rows."""
+
+    cells: dict[str, list[str]]
+    axis: list[str]
+    i_name: int
+    i_id: int
+    i_axis: int
+
+    @property
+    def width(self) -> int:
+        return len(self.axis)
+
+
+def _find_header(rows: list[list[str]], path: str) -> _Header:
+    """Header rows by content: Type / Name / ID (second cell), then the component row, then the
+    axis row that starts with "Frame". Line numbers in messages are 1-based."""
     find = {}
     i_axis = None
     for i, row in enumerate(rows[1:40], start=1):
@@ -316,12 +328,11 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
             "within the first 40 lines; got none (was the CSV exported with headers?)",
             path=path,
         )
-    i_comp = i_axis - 1
     width = len(rows[i_axis])
-    header_rows = {"Type": find["Type"], "Name": find["Name"], "component": i_comp}
+    header_rows = {"Type": find["Type"], "Name": find["Name"], "component": i_axis - 1}
     if "ID" in find:
         header_rows["ID"] = find["ID"]
-    hdr = {}
+    cells = {}
     for key, i in header_rows.items():
         row = rows[i]
         if len(row) != width:
@@ -330,42 +341,41 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
                 f"'Frame,Time (Seconds),...' row",
                 path=path, line=i + 1,
             )
-        hdr[key] = [c.strip() for c in row]
+        cells[key] = [c.strip() for c in row]
     axis = [c.strip() for c in rows[i_axis]]
     if width < 2 or not axis[1].startswith("Time"):
         raise InputError(f"expected 'Frame,Time (Seconds)' to start the axis row, got "
                          f"{','.join(axis[:2])!r}", path=path, line=i_axis + 1)
+    return _Header(cells, axis, find["Name"], find.get("ID", find["Name"]), i_axis)
 
-    # Rigid-body columns grouped by name.
+
+def _rigid_body_columns(h: _Header, path: str
+                        ) -> tuple[dict[str, dict[tuple[str, str], int]], dict[str, str]]:
+    """Rigid-body columns grouped by name: ``{name: {(component, axis): column}}``, and each
+    body's Motive ID."""
     layout: dict[str, dict[tuple[str, str], int]] = {}
     ids: dict[str, str] = {}
-    for c in range(2, width):
-        if hdr["Type"][c] != "Rigid Body":
+    for c in range(2, h.width):
+        if h.cells["Type"][c] != "Rigid Body":
             continue
-        name = hdr["Name"][c]
+        name = h.cells["Name"][c]
         if not name:
             raise InputError(f"rigid body column {c + 1} has no name", path=path,
-                             line=find["Name"] + 1)
-        bid = hdr["ID"][c] if "ID" in hdr else ""
+                             line=h.i_name + 1)
+        bid = h.cells["ID"][c] if "ID" in h.cells else ""
         if ids.setdefault(name, bid) != bid:
             raise InputError(f"two rigid bodies are named {name!r} (IDs {ids[name]!r} and "
-                             f"{bid!r}); names must be unique", path=path, line=find["ID"] + 1)
-        key = (hdr["component"][c], axis[c])
+                             f"{bid!r}); names must be unique", path=path, line=h.i_id + 1)
+        key = (h.cells["component"][c], h.axis[c])
         if key in layout.setdefault(name, {}):
             raise InputError(f"rigid body {name!r} has two '{key[0]} {key[1]}' columns",
-                             path=path, line=i_axis + 1)
+                             path=path, line=h.i_axis + 1)
         layout[name][key] = c
+    return layout, ids
 
-    rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
-    # Data rows: every line after the axis row (trailing blank lines ignored).
-    first = i_axis + 1
-    data_lines = lines[first:]
-    while data_lines and not data_lines[-1].strip(","):
-        data_lines.pop()
-    n = len(data_lines)
-    column_names = ["Frame", "Time"] + [
-        f"{hdr['Name'][c]} {hdr['component'][c]} {axis[c]}".strip() for c in range(2, width)]
-    table, blank_all = _parse_table(data_lines, width, first + 1, path, column_names)
+
+def _frames_and_times(table: np.ndarray, blank_all: np.ndarray, first: int, path: str):
+    """The Frame and Time columns: every row has both, times strictly increase."""
     fr_t, blank = table[:, :2], blank_all[:, :2]
     if blank.any():
         r = int(np.argwhere(blank)[0][0])
@@ -378,52 +388,90 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
         r = int(back[0]) + 1
         raise InputError(f"expected increasing times, got {time_s[r]:.6f} s after "
                          f"{time_s[r - 1]:.6f} s", path=path, line=first + r + 1)
+    return frame, time_s
 
-    bodies: dict[str, MotiveBody] = {}
-    for name, cols in layout.items():
-        need = [("Rotation", a) for a in rot_axes] + [("Position", a) for a in _AXES]
-        missing = [f"{c} {a}" for c, a in need if (c, a) not in cols]
-        if missing:
-            raise InputError(
-                f"rigid body {name!r} lacks the columns {', '.join(missing)} needed for "
-                f"Rotation Type {rotation_type}",
-                path=path, line=i_axis + 1,
-            )
-        sel = [cols[k] for k in need]
-        values, blank = table[:, sel], blank_all[:, sel]
-        occluded = blank.all(axis=1)
-        partial = blank.any(axis=1) & ~occluded
-        if partial.any():
-            r = int(np.flatnonzero(partial)[0])
-            raise InputError(f"rigid body {name!r}: some rotation/position cells are blank "
-                             "and some are not (expected all blank when occluded)",
-                             path=path, line=first + r + 1)
-        valid = ~occluded
-        nr = len(rot_axes)
-        rot = values[:, :nr]
-        pos_m = values[:, nr:] * scale_m
-        R = np.full((n, 3, 3), np.nan)
-        if valid.any():
-            if rotation_type == "Quaternion":
-                q = rot[valid]
-                norm = np.linalg.norm(q, axis=-1)
-                off = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
-                if off.size:
-                    r = int(np.flatnonzero(valid)[off[0]])
-                    raise InputError(f"rigid body {name!r}: expected a unit quaternion, got "
-                                     f"norm {norm[off[0]]:.6f}", path=path,
-                                     line=first + r + 1)
-                R[valid] = geo.rotmat_from_quat_xyzw(q)
-            else:
-                R[valid] = _euler_to_rotmat(rot[valid], rotation_type)
-        T = geo.se3_from_rt(R_up @ R, pos_m @ R_up.T)
-        T[~valid] = np.nan
-        mme = np.full(n, np.nan)
-        if ("Mean Marker Error", "") in cols:
-            c = cols[("Mean Marker Error", "")]
-            mme = np.where(blank_all[:, c] | ~valid, np.nan, table[:, c] * scale_m)
-        bodies[name] = MotiveBody(name, ids.get(name, ""), T, valid, mme)
 
+def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
+                rotation_type: str, scale_m: float, R_up: np.ndarray, first: int,
+                i_axis: int, path: str, body_id: str) -> MotiveBody:
+    """One rigid body's track: all its rotation/position cells blank (occluded) or none."""
+    rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
+    need = [("Rotation", a) for a in rot_axes] + [("Position", a) for a in _AXES]
+    missing = [f"{c} {a}" for c, a in need if (c, a) not in cols]
+    if missing:
+        raise InputError(
+            f"rigid body {name!r} lacks the columns {', '.join(missing)} needed for "
+            f"Rotation Type {rotation_type}",
+            path=path, line=i_axis + 1,
+        )
+    sel = [cols[k] for k in need]
+    values, blank = table[:, sel], blank_all[:, sel]
+    occluded = blank.all(axis=1)
+    partial = blank.any(axis=1) & ~occluded
+    if partial.any():
+        r = int(np.flatnonzero(partial)[0])
+        raise InputError(f"rigid body {name!r}: some rotation/position cells are blank "
+                         "and some are not (expected all blank when occluded)",
+                         path=path, line=first + r + 1)
+    n = table.shape[0]
+    valid = ~occluded
+    nr = len(rot_axes)
+    rot = values[:, :nr]
+    pos_m = values[:, nr:] * scale_m
+    R = np.full((n, 3, 3), np.nan)
+    if valid.any():
+        if rotation_type == "Quaternion":
+            q = rot[valid]
+            norm = np.linalg.norm(q, axis=-1)
+            off = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+            if off.size:
+                r = int(np.flatnonzero(valid)[off[0]])
+                raise InputError(f"rigid body {name!r}: expected a unit quaternion, got "
+                                 f"norm {norm[off[0]]:.6f}", path=path,
+                                 line=first + r + 1)
+            R[valid] = geo.rotmat_from_quat_xyzw(q)
+        else:
+            R[valid] = _euler_to_rotmat(rot[valid], rotation_type)
+    T = geo.se3_from_rt(R_up @ R, pos_m @ R_up.T)
+    T[~valid] = np.nan
+    mme = np.full(n, np.nan)
+    if ("Mean Marker Error", "") in cols:
+        c = cols[("Mean Marker Error", "")]
+        mme = np.where(blank_all[:, c] | ~valid, np.nan, table[:, c] * scale_m)
+    return MotiveBody(name, body_id, T, valid, mme)
+
+
+def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
+    """Read a Motive CSV export (with header rows) into a :class:`MotiveTake`.
+
+    ``up_axis`` is the export's vertical axis: ``"y"`` (Motive's default; converted to our
+    Z-up) or ``"z"`` (the export already used a Z-up axis convention; kept as is).
+    Raises InputError (with the line number) for anything that is not a Motive 1.2x rigid-body
+    export: missing header rows, unknown rotation type or units, malformed or partial cells.
+    """
+    path = str(path)
+    R_up = _up_rotation(up_axis)
+    lines = _read_text(path).splitlines()
+    rows = list(csv.reader(lines[:40]))
+    meta = _check_metadata(rows, path)
+    rotation_type, units = meta["Rotation Type"], meta["Length Units"]
+    h = _find_header(rows, path)
+    layout, ids = _rigid_body_columns(h, path)
+    # Data rows: every line after the axis row (trailing blank lines ignored).
+    first = h.i_axis + 1
+    data_lines = lines[first:]
+    while data_lines and not data_lines[-1].strip(","):
+        data_lines.pop()
+    column_names = ["Frame", "Time"] + [
+        f"{h.cells['Name'][c]} {h.cells['component'][c]} {h.axis[c]}".strip()
+        for c in range(2, h.width)]
+    table, blank_all = _parse_table(data_lines, h.width, first + 1, path, column_names)
+    frame, time_s = _frames_and_times(table, blank_all, first, path)
+    bodies = {
+        name: _rigid_body(name, cols, table, blank_all, rotation_type, LENGTH_UNITS_M[units],
+                          R_up, first, h.i_axis, path, ids.get(name, ""))
+        for name, cols in layout.items()
+    }
     if not bodies:
         log.warning("%s: no rigid-body columns (only markers?)", path)
     return MotiveTake(
@@ -431,7 +479,7 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
         time_s=time_s,
         bodies=bodies,
         take_name=meta.get("Take Name", ""),
-        format_version=version,
+        format_version=meta.get("Format Version", ""),
         capture_frame_rate_hz=_float_or_nan(meta.get("Capture Frame Rate", "nan")),
         export_frame_rate_hz=_float_or_nan(meta.get("Export Frame Rate", "nan")),
         capture_start_time=meta.get("Capture Start Time", ""),
