@@ -293,36 +293,6 @@ class TagRenderer:
         cv2.fillConvexPoly(gray, np.round(uv * 16).astype(np.int32), level, cv2.LINE_AA, 4)
 
 
-_DEFAULT: TagRenderer | None = None
-
-
-def render_view(
-    K: np.ndarray,
-    width: int,
-    height: int,
-    T_camera_tag: Sequence[np.ndarray] | np.ndarray,
-    tag_ids: Sequence[int],
-    tag_sizes_m: Sequence[float] | float,
-    blur: float = 0.0,
-    noise: float = 0.0,
-    lighting: Lighting | None = None,
-    occlusion: Sequence[float] | float = 0.0,
-    rng: np.random.Generator | None = None,
-    depth: DepthModel | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Render one view with a shared module-level ``TagRenderer`` (see ``TagRenderer.render``).
-
-    ``blur`` is the Gaussian blur sigma in pixels, ``noise`` the grey-level noise sigma.
-    Not thread-safe (shared caches): threads should each create a ``TagRenderer``.
-    """
-    global _DEFAULT
-    if _DEFAULT is None:
-        _DEFAULT = TagRenderer()
-    return _DEFAULT.render(K, width, height, T_camera_tag, tag_ids, tag_sizes_m,
-                           blur_sigma_px=blur, noise_sigma=noise, lighting=lighting,
-                           occlusion=occlusion, rng=rng, depth=depth)
-
-
 def write_realsense_recording(path, frames, K: np.ndarray, fps: int = 30,
                               depth_unit_m: float = 0.001) -> int:
     """Write frames (``frame.Frame``) as a RealSense recording through pyrealsense2 itself.
