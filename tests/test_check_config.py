@@ -102,3 +102,77 @@ def test_ed25519_keys_are_checked(tmp_path, capsys):
     rc, _, errors = _check(_config(tmp_path, comms={**ed, "key_file": "other.key"},
                                    camera={"source": "none"}), capsys)
     assert rc == 2 and "not robot 1's" in errors[0]
+
+
+def _fleet(tmp_path, n=4, auth="hmac", edit=None):
+    """A ring fleet of ``n`` robots in ``tmp_path``; ``edit(i, cfg)`` changes robot i's dict."""
+    from dran_edge.commands.check_fleet import check_fleet
+
+    d = tmp_path / f"fleet-{auth}"
+    d.mkdir(exist_ok=True)
+    if auth == "hmac" and not (d / "fleet.key").exists():
+        keys.write_fleet_key(d / "fleet.key")
+    for i in range(1, n + 1):
+        if auth == "ed25519" and not (d / f"r{i}.key").exists():
+            keys.write_robot_key(d / f"r{i}.key", i)
+    if auth == "ed25519":
+        table = {i: (keys.load_public_key_file(d / f"r{i}.key.pub")[1],) for i in range(1, n + 1)}
+        keys.write_fleet_public_keys(d / "fleet.pub", "ring", table)
+    for i in range(1, n + 1):
+        nb = [(i % n) + 1, ((i - 2) % n) + 1]
+        cfg = {"robot": {"id": i, "name": f"r{i}", "fleet": "ring"},
+               "neighbours": [{"id": j, "name": f"r{j}", "address": f"10.0.0.{j}:5600"}
+                              for j in nb],
+               "comms": {"transport": "udp", "auth": auth,
+                         "key_file": "fleet.key" if auth == "hmac" else f"r{i}.key",
+                         **({"public_keys_file": "fleet.pub"} if auth == "ed25519" else {})}}
+        if edit is not None:
+            edit(i, cfg)
+        (d / f"r{i}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return check_fleet(d)
+
+
+@pytest.mark.parametrize("auth", ["hmac", "ed25519"])
+def test_check_fleet_consistent_ring_is_ok(tmp_path, auth):
+    rep = _fleet(tmp_path, auth=auth)
+    assert rep.errors == [] and len(rep.robots) == 4
+
+
+def test_check_fleet_finds_every_inconsistency(tmp_path):
+    def edit(i, cfg):
+        if i == 1:
+            cfg["robot"]["fleet"] = "other"  # fleet name
+            cfg["neighbours"].append({"id": 3, "name": "r3", "address": "10.0.0.3:5600"})
+        if i == 2:
+            cfg["neighbours"][0]["address"] = "10.0.0.9:5600"  # r3 at another address
+        if i == 4:
+            cfg["robot"]["id"] = 2  # duplicate id (and r4 vanishes)
+    rep = _fleet(tmp_path, edit=edit)
+    text = "\n".join(map(str, rep.errors))
+    assert "disagree on the fleet name" in text
+    assert "robot id 2 is used by 2 configs" in text
+    assert "does not list r1 (id 1) back" in text
+    assert "listed at different addresses" in text
+    assert "neighbour 4 (r4) is not a robot of this directory" in text
+
+
+def test_check_fleet_keys(tmp_path, capsys):
+    def mixed(i, cfg):
+        if i == 2:
+            cfg["comms"]["auth"] = "ed25519"
+    rep = _fleet(tmp_path, edit=mixed)
+    assert any("different key policies" in str(e) for e in rep.errors)
+    # ed25519: robot 3's key pair replaced but the fleet's public keys not exported again
+    rep = _fleet(tmp_path, auth="ed25519")
+    assert rep.errors == []
+    d = tmp_path / "fleet-ed25519"
+    for f in ("r3.key", "r3.key.pub"):
+        (d / f).unlink()
+    keys.write_robot_key(d / "r3.key", 3)
+    from dran_edge.commands.check_fleet import check_fleet
+
+    rep = check_fleet(d)
+    text = "\n".join(map(str, rep.errors))
+    assert text.count("that is not r3's own") == 2, text  # both of r3's neighbours
+    assert main(["check-fleet", str(d)]) == 2
+    assert "2 problems" in capsys.readouterr().err
