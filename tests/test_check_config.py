@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from dran_edge.comms import keys
 
 from dran_edge.cli import main
-from dran_edge.comms import keys
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
-from dran_edge.commands.status import format_status
 from dran_edge.comms.auth import AuthPolicy
 from dran_edge.comms.bus import Bus
 from dran_edge.comms.link import NeighbourLink
+
+from dran_edge.commands.status import format_status
 from dran_edge.daemon import LinkTransport
 from dran_edge.messages import NeighbourMessage, ObjectEntry
 

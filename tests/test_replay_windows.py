@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from daemon_helpers import write_config
-
 from dran_edge.comms import codec
 from dran_edge.comms.auth import AuthPolicy, Reject, Signer, Verifier
 from dran_edge.comms.bus import Bus, BusEndpoint
 from dran_edge.comms.link import NeighbourLink
+
 from dran_edge.config import load_config
 from dran_edge.daemon import Daemon, LinkTransport, fleet_id
 from dran_edge.messages import NeighbourMessage, ObjectEntry
