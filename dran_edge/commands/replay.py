@@ -100,5 +100,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"evaluation: {r['evaluation_error']}")
     if r.get("ingest_rejected"):
         print(f"ingest records rejected: {r['ingest_rejected']}")
+    for w in r.get("warnings", ()):  # also logged when found, before the first round
+        print(f"warning: {w}")
     print(f"outputs: {res.out_dir}/ (report.json, rounds.csv, merged.g2o, <robot>/trajectory.tum)")
     return 0
