@@ -40,9 +40,14 @@ def run(args: argparse.Namespace) -> int:
         os.environ.setdefault(var, "1")
     from dran_edge.config import load_config
     from dran_edge.daemon import Daemon
+    from dran_edge.errors import ConfigError
     from dran_edge.notify import setup_logging
 
-    cfg = load_config(args.config)
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (every problem at once: dran-edge check-config "
+                          f"{args.config})") from None
     level = logging.getLogger().level or logging.INFO
     where = setup_logging(min(level, logging.INFO))
     logging.getLogger(__name__).info("logging to %s", where)
