@@ -21,6 +21,7 @@ them; each field carries its unit in its name or docstring and its valid range i
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import ipaddress
 import math
@@ -562,51 +563,90 @@ def _err(message: str, key: str, lines: dict[str, int]) -> _LoadError:
     return _LoadError(message, lines.get(key))
 
 
+class _Skip(Exception):
+    """Collecting mode: this value failed and its errors are recorded; leave it out."""
+
+
+#: Collecting mode (``load_config_report``): a list that receives every error instead of the
+#: first one raising.
+_COLLECT: contextvars.ContextVar[list | None] = contextvars.ContextVar("_COLLECT", default=None)
+
+
+def _fail(exc: _LoadError) -> None:
+    """Raise ``exc``, or in collecting mode record it and leave the value out."""
+    errors = _COLLECT.get()
+    if errors is None:
+        raise exc
+    errors.append(exc)
+    raise _Skip
+
+
+def _required(cls: type, name: str, f: dataclasses.Field) -> bool:
+    has_default = f.default is not dataclasses.MISSING and f.default is not None
+    return (not has_default and f.default_factory is dataclasses.MISSING  # type: ignore[misc]
+            and (cls.__name__, name) not in _DERIVED)
+
+
 def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
     where = prefix or "top level"
     if not isinstance(data, dict):
-        raise _err(f"{where}: expected a mapping of keys, got {_describe(data)}", prefix, lines)
+        _fail(_err(f"{where}: expected a mapping of keys, got {_describe(data)}", prefix, lines))
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)
               if (cls.__name__, f.name) not in _SKIP_ON_LOAD}
     settable = {n for n in fields if (cls.__name__, n) not in _DERIVED}
     kwargs: dict[str, Any] = {}
+    failed: set[str] = set()
     for key, value in data.items():
-        path = f"{prefix}.{key}" if prefix else str(key)
-        if key not in settable:
-            known = ", ".join(sorted(settable))
-            reason = "is set from robot/neighbours, not here" if key in fields else "unknown key"
-            raise _err(f"{path}: {reason} (allowed here: {known})", path, lines)
-        f = fields[key]
-        converted = _convert(value, hints[key], path, lines)
-        if not dataclasses.is_dataclass(converted):
-            items = converted if isinstance(converted, tuple) else (converted,)
-            for i, item in enumerate(items):
-                if dataclasses.is_dataclass(item):
-                    continue
-                try:
-                    item_path = path if items is not converted else f"{path}[{i}]"
-                    _check_value(item, dict(f.metadata), item_path)
-                except ConfigError as exc:
-                    raise _err(str(exc), path, lines) from None
-        kwargs[key] = converted
+        try:
+            kwargs[key] = _build_key(key, value, prefix, lines, fields, settable, hints)
+        except _Skip:
+            failed.add(key)
     for name, f in fields.items():
-        if name in kwargs:
+        if name in kwargs or name in failed:
             continue
-        has_default = f.default is not dataclasses.MISSING and f.default is not None
-        if not has_default and f.default_factory is dataclasses.MISSING:  # type: ignore[misc]
-            if (cls.__name__, name) in _DERIVED:
-                continue
+        if _required(cls, name, f):
             path = f"{prefix}.{name}" if prefix else name
-            raise _err(f"{path}: required key is missing", prefix, lines)
+            try:
+                _fail(_err(f"{path}: required key is missing", prefix, lines))
+            except _Skip:
+                failed.add(name)
+    if failed & {n for n, f in fields.items() if _required(cls, n, f)}:
+        raise _Skip  # a required value failed: this section cannot be built
     try:
         return cls(**kwargs)
     except ConfigError as exc:
         # Cross-field check: the message starts with the field name; prefix the section.
         msg = str(exc)
         path = f"{prefix}.{msg}" if prefix else msg
-        raise _err(path, f"{prefix}.{msg.split(':', 1)[0]}" if prefix else msg.split(":", 1)[0],
-                   lines) from None
+        _fail(_err(path, f"{prefix}.{msg.split(':', 1)[0]}" if prefix else msg.split(":", 1)[0],
+                   lines))
+
+
+def _build_key(key: Any, value: Any, prefix: str, lines: dict[str, int], fields: dict,
+               settable: set, hints: dict) -> Any:
+    """One key of a section, converted and range-checked."""
+    path = f"{prefix}.{key}" if prefix else str(key)
+    if key not in settable:
+        known = ", ".join(sorted(settable))
+        reason = "is set from robot/neighbours, not here" if key in fields else "unknown key"
+        _fail(_err(f"{path}: {reason} (allowed here: {known})", path, lines))
+    f = fields[key]
+    try:
+        converted = _convert(value, hints[key], path, lines)
+    except _LoadError as exc:
+        _fail(exc)
+    if not dataclasses.is_dataclass(converted):
+        items = converted if isinstance(converted, tuple) else (converted,)
+        for i, item in enumerate(items):
+            if dataclasses.is_dataclass(item):
+                continue
+            try:
+                item_path = path if items is not converted else f"{path}[{i}]"
+                _check_value(item, dict(f.metadata), item_path)
+            except ConfigError as exc:
+                _fail(_err(str(exc), path, lines))
+    return converted
 
 
 def _line_map(text: str) -> dict[str, int]:
@@ -654,11 +694,10 @@ def config_from_dict(data: Any, *, source_path: str = "", lines: dict[str, int] 
     return dataclasses.replace(cfg, agent=agent, source_path=source_path)
 
 
-def load_config(path: str | Path) -> RobotConfig:
-    """Read and strictly validate one robot's YAML file."""
+def _read_yaml(path: Path) -> tuple[Any, dict[str, int]]:
+    """(parsed YAML, key path -> line) of a config file; ConfigError naming the file."""
     import yaml
 
-    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -675,7 +714,46 @@ def load_config(path: str | Path) -> RobotConfig:
         raise ConfigError(f"not valid YAML: {problem}", path=str(path), line=line) from None
     if data is None:
         raise ConfigError("the file is empty; expected at least a 'robot' section", path=str(path))
+    return data, lines
+
+
+def load_config(path: str | Path) -> RobotConfig:
+    """Read and strictly validate one robot's YAML file (the first problem raises)."""
+    path = Path(path)
+    data, lines = _read_yaml(path)
     return config_from_dict(data, source_path=str(path), lines=lines)
+
+
+def load_config_report(path: str | Path) -> tuple[RobotConfig | None, list[ConfigError]]:
+    """Like :func:`load_config`, but every problem of the file instead of the first: (the
+    config, or None when a required part failed; the errors in file order). A key with a
+    problem is left at its default, so the config returned is for further checks only."""
+    path = Path(path)
+    try:
+        data, lines = _read_yaml(path)
+    except ConfigError as exc:
+        return None, [exc]
+    errors: list = []
+    token = _COLLECT.set(errors)
+    try:
+        try:
+            cfg = _build(RobotConfig, data, "", lines)
+        except _Skip:
+            cfg = None
+    finally:
+        _COLLECT.reset(token)
+    out = []
+    for e in errors:
+        err = ConfigError(str(e), path=str(path), line=e.line)
+        #: the top-level section the problem is in ("comms", "neighbours", ...)
+        err.section = re.split(r"[.\[:]", str(e), maxsplit=1)[0]
+        out.append(err)
+    out.sort(key=lambda e: e.line or 0)
+    if cfg is None:
+        return None, out
+    agent = dataclasses.replace(
+        cfg.agent, robot_id=cfg.robot.id, neighbours=tuple(n.id for n in cfg.neighbours))
+    return dataclasses.replace(cfg, agent=agent, source_path=str(path)), out
 
 
 def config_to_dict(cfg: Any) -> Any:

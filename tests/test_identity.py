@@ -6,6 +6,8 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pytest.importorskip("cryptography")
 
@@ -215,3 +217,39 @@ def test_fleet_key_pair_export_check_commands(tmp_path, capsys):
     os.chmod(tmp_path / "r2.key", 0o644)
     assert main(["fleet-key", "check", str(tmp_path / "r2.key")]) == 2
     assert "chmod 600" in capsys.readouterr().err
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data())
+def test_mutated_signed_datagrams_never_accepted_never_raise(data):
+    genuine = _signed(_message(1, np.random.default_rng(5)), SEEDS[1], 0)
+    v = Verifier(PUBLIC, _policy(2, {1, 3}))
+    mutated = bytearray(genuine)
+    i = data.draw(st.integers(0, len(mutated) - 1))
+    op = data.draw(st.sampled_from(["flip", "cut", "extend"]))
+    if op == "flip":
+        mutated[i] ^= 1 << data.draw(st.integers(0, 7))
+    elif op == "cut":
+        del mutated[i:]
+    else:
+        mutated[i:i] = data.draw(st.binary(min_size=1, max_size=20))
+    msg, reason = v.check(bytes(mutated))
+    assert msg is None and reason is not None
+
+
+def test_rfc8032_vector_and_signed_golden_bytes():
+    """Ed25519Signer is RFC 8032 Ed25519 (test 1: empty message), and a signed heartbeat's bytes
+    are pinned (Ed25519 is deterministic): header with flags 0x05 (SE(3) | signed), then the
+    64-byte signature."""
+    seed = bytes.fromhex("9d61b19deffd5a60ba844af492ec2cc44449c5697b326919703bac031cae7f60")
+    assert auth.public_key_of(seed).hex() == (
+        "d75a980182b10ab7d54bfed3c964073a0ee172f3daa62325af021a68f707511a")
+    assert Ed25519Signer(seed).sign(bytes(64)).hex() == (
+        "e5564300c360ac729086e2cc806e828a84877f1eb8e5d974d873e06522490155"
+        "5fb8821590a33bacc61e39701cf9b46bd25bf5f0595bbe24655141438e7a100b")
+    (g,) = codec.encode_message(NeighbourMessage(1, 3, 1000), fleet_id=7, boot_epoch=5,
+                                first_sequence=2, signed=True)
+    assert Ed25519Signer(bytes([1]) * 32).sign(g).hex() == (
+        "445202050701050203e807000000"
+        "c9826bf6b3a2bcf91b1d1f70c526b529f008b37923d7b73cbd6c5e3779801d2b"
+        "2f36386c566d0f4d6d3e15e94f764e9def316f8c9228419bbb95c48243bf3b03")

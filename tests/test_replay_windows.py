@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from daemon_helpers import write_config
-
 from dran_edge.comms import codec
 from dran_edge.comms.auth import AuthPolicy, Reject, Signer, Verifier
 from dran_edge.comms.bus import Bus, BusEndpoint
 from dran_edge.comms.link import NeighbourLink
+
 from dran_edge.config import load_config
 from dran_edge.daemon.service import Daemon, LinkTransport, fleet_id
 from dran_edge.messages import NeighbourMessage, ObjectEntry
@@ -100,6 +100,8 @@ def test_daemon_refuses_a_replay_after_restart(tmp_path, clean_stop):
     assert d.counters["window_saves"] == 1
     if clean_stop:
         d.shutdown()
+        # the final checkpoint alone must carry the windows
+        (tmp_path / "state" / "replay_windows.json").unlink()
     else:
         _crash(d)
 

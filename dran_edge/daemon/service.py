@@ -790,7 +790,14 @@ class Daemon:
                 f"keyframes={graph.get('keyframes', 0)} objects={graph.get('objects', 0)} "
                 f"records={ingest.get('records', 0)} rejected={ingest.get('rejected', 0)} "
                 f"obs_dropped={s.get('queues', {}).get('observations_dropped', 0)} "
-                f"neighbours={len(s.get('neighbours') or {})}")
+                f"neighbours={self._heard_line(s.get('neighbours') or {})}")
+
+    @staticmethod
+    def _heard_line(neighbours: dict) -> str:
+        """``heard/configured``: neighbours heard within the last 10 s, of those listed."""
+        heard = sum(1 for n in neighbours.values()
+                    if n.get("last_heard_s_ago") is not None and n["last_heard_s_ago"] < 10.0)
+        return f"{heard}/{len(neighbours)}"
 
     # ------------------------------------------------------------------ shutdown
     def shutdown(self) -> None:

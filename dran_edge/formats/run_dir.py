@@ -275,6 +275,60 @@ def read_mission(path: str | Path) -> Mission:
                    tuple(sorted(edges)), mocap_file, mocap_start, up, sim)
 
 
+#: mission.yaml's start_ns this far from the recorded stamps is an error, not a warning: a
+#: replay ticking a day of empty rounds is a typo (a start_ns of 1), not a late start.
+CLOCK_ERROR_S = 86_400.0
+
+
+def check_mission_clock(m: Mission, span_ns: tuple[int, int] | None, period_s: float,
+                        path: str = "mission.yaml") -> list[str]:
+    """Check mission.yaml's clock against the recorded stamps ``span_ns`` = (first, last).
+
+    Raises InputError when ``start_ns`` lies after every record or more than a day before the
+    first one (the replay would tick through that many empty rounds); returns warnings when it
+    is off by more than two rounds (idle rounds before the first record, or records before the
+    start), when the records outlast ``duration_s`` or end well before it, and when
+    ``mocap.start_ns`` is more than a minute from the records (evaluation would align the
+    ground truth wrongly)."""
+    if span_ns is None:
+        return []
+    first, last = span_ns
+    warn: list[str] = []
+    early_s = (first - m.start_ns) * 1e-9
+    if m.start_ns > last:
+        raise InputError(f"start_ns {m.start_ns} is after every recorded stamp (records span "
+                         f"{first}..{last}); expected the mission start on the robots' clock",
+                         path=path)
+    if early_s > CLOCK_ERROR_S:
+        raise InputError(f"start_ns {m.start_ns} is {early_s:.3g} s before the first recorded "
+                         f"stamp {first}: the replay would tick {early_s / period_s:.3g} empty "
+                         f"rounds; expected the mission start on the robots' clock (the first "
+                         f"stamp, {first})", path=path)
+    tol_s = max(2.0, 2 * period_s)
+    if early_s > tol_s:
+        warn.append(f"{path}: start_ns is {early_s:.1f} s before the first recorded stamp: the "
+                    f"replay runs {int(early_s / period_s)} rounds with no input first "
+                    f"(set start_ns: {first} if that is not intended)")
+    elif early_s < -tol_s:
+        warn.append(f"{path}: start_ns is {-early_s:.1f} s after the first recorded stamp: the "
+                    f"records before it are all applied in the first round")
+    span_s = (last - m.start_ns) * 1e-9
+    if span_s > m.duration_s + max(tol_s, 0.1 * m.duration_s):
+        warn.append(f"{path}: the records run {span_s:.1f} s from start_ns, but duration_s is "
+                    f"{m.duration_s:g}: the replay runs {span_s:.1f} s of rounds")
+    elif span_s < 0.5 * m.duration_s - tol_s:
+        warn.append(f"{path}: the records end {span_s:.1f} s after start_ns, duration_s is "
+                    f"{m.duration_s:g}: the rest are rounds with no new input")
+    if m.mocap_start_ns is not None:
+        off_s = (m.mocap_start_ns - first) * 1e-9
+        if abs(off_s) > 60.0:
+            warn.append(f"{path}: mocap.start_ns is {off_s:+.3g} s from the first recorded stamp "
+                        f"{first}; the ground truth will not line up with the trajectories "
+                        f"(expected Motive's time 0 on the robots' clock; remove it to let "
+                        f"eval estimate the offset)")
+    return warn
+
+
 def mission_to_yaml_dict(m: Mission) -> dict:
     """The plain-data form of ``m`` written as ``mission.yaml``."""
     robots = []

@@ -242,6 +242,13 @@ class RobotRunner:
     def last_stamp(self) -> int:
         return max([r.events[-1][0] for r in self.robots.values() if r.events], default=0)
 
+    def stamp_span(self) -> tuple[int, int] | None:
+        """(first, last) recorded stamp over every robot's ingest records; None if none."""
+        have = [r.events for r in self.robots.values() if r.events]
+        if not have:
+            return None
+        return min(e[0][0] for e in have), max(e[-1][0] for e in have)
+
     def add_records(self, records: dict[int, bytes]) -> None:
         """More ingest records for some robots (perception's observation batches of a window).
 
@@ -319,7 +326,7 @@ def _worker_main(conn, specs: list[RobotSpec]) -> None:
     try:
         set_blas_threads(1)
         runner = RobotRunner(specs)
-        conn.send(("ok", runner.last_stamp()))
+        conn.send(("ok", runner.stamp_span()))
         while True:
             cmd, arg = conn.recv()
             if cmd == "step":
@@ -360,12 +367,17 @@ class WorkerPool:
             child.close()
             self._conns.append(parent)
             self._procs.append(p)
-        self._last = max(_unwrap(c.recv()) for c in self._conns)
+        spans = [s for s in (_unwrap(c.recv()) for c in self._conns) if s is not None]
+        self._span = (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
+        self._last = self._span[1] if spans else 0
         self._ids_of = [[ids[k] for k in range(len(specs)) if k % workers == w]
                         for w in range(workers)]
 
     def last_stamp(self) -> int:
         return self._last
+
+    def stamp_span(self) -> tuple[int, int] | None:
+        return self._span
 
     def add_records(self, records: dict[int, bytes]) -> None:
         for conn, ids in zip(self._conns, self._ids_of):

@@ -298,6 +298,14 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
                   params=BusParams(loss_probability=opt.loss, latency_rounds=opt.latency_rounds,
                                    seed=opt.seed),
                   partitions=parts)
+    try:
+        clock_warnings = rd.check_mission_clock(mission, robots.stamp_span(), period_s,
+                                                str(run.root / "mission.yaml"))
+    except InputError:
+        robots.close()
+        raise
+    for w in clock_warnings:
+        log.warning("%s", w)
     last_stamp = max(mission.start_ns + int(mission.duration_s * 1e9), robots.last_stamp())
     mission_rounds = max(1, int(math.ceil((last_stamp - mission.start_ns) / period_ns)))
     total_rounds = mission_rounds + opt.settle_rounds
@@ -382,6 +390,8 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
         "final_cost": rounds_rows[-1]["cost"] if rounds_rows else None,
         "final_consensus_error": rounds_rows[-1]["consensus_error"] if rounds_rows else None,
     }
+    if clock_warnings:
+        report["warnings"] = clock_warnings
     if bus is not None:
         report["datagrams_lost"] = {k: int(v) for k, v in bus.lost.items()}
     _write_report(out_dir, report)

@@ -180,10 +180,10 @@ def bench_auth(reps, degree=3):
                 round_message(rng, r, n_sep, n_obj), fleet_id=1, boot_epoch=1,
                 first_sequence=0, signed=signed)] for r in range(1, degree + 1)}
 
-            def one_round():
+            def one_round(own=own, signer=signers[0], theirs=theirs, verifier=verifier):
                 for _ in range(degree):
                     for g in own:
-                        signers[0].sign(g)
+                        signer.sign(g)
                 for r, grams in theirs.items():
                     for g in grams:
                         assert verifier._authentic(g, r)

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         partitions=tuple(PartitionSpec.parse(p) for p in args.partition), speed=args.speed,
         settle_rounds=args.settle_rounds, workers=args.workers, seed=args.loss_seed,
         evaluate=not args.no_eval, redetect=args.redetect)
-    from dran_edge.cli.progress import ProgressBar
+    from dran_edge.cli.app.progress import ProgressBar
 
     res = replay_run(args.run_dir, opt, progress=ProgressBar())
     r = res.report
@@ -92,5 +92,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"evaluation: {r['evaluation_error']}")
     if r.get("ingest_rejected"):
         print(f"ingest records rejected: {r['ingest_rejected']}")
+    for w in r.get("warnings", ()):  # also logged when found, before the first round
+        print(f"warning: {w}")
     print(f"outputs: {res.out_dir}/ (report.json, rounds.csv, merged.g2o, <robot>/trajectory.tum)")
     return 0

@@ -41,8 +41,13 @@ def run(args: argparse.Namespace) -> int:
     from dran_edge.config import load_config
     from dran_edge.daemon.service import Daemon
     from dran_edge.daemon.notify import setup_logging
+    from dran_edge.errors import ConfigError
 
-    cfg = load_config(args.config)
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (every problem at once: dran-edge check-config "
+                          f"{args.config})") from None
     level = logging.getLogger().level or logging.INFO
     where = setup_logging(min(level, logging.INFO))
     logging.getLogger(__name__).info("logging to %s", where)
