@@ -540,9 +540,13 @@ def rehearse(run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(),
 
 def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> RehearsalResult:
     ds = list(fleet.daemons.values())
+    phases = {"prepare": time.perf_counter() - wall0}
+    t = time.perf_counter()
     for d in ds:
         fleet.start(d)
     fleet.wait_up(ds, opt.start_timeout_s)
+    phases["start"] = time.perf_counter() - t
+    t = time.perf_counter()
     last_release = max((int(d.release_ns[-1]) for d in ds if len(d.release_ns)), default=0)
     data_end_ns = max(last_release, fleet.mission.start_ns + int(fleet.mission.duration_s * 1e9))
     end_ns = data_end_ns + int(opt.settle_rounds * fleet.period_s * 1e9)
@@ -569,11 +573,15 @@ def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> Rehears
     for a in todo:  # what is still pending at the end ends now (a late restart happens)
         if a.what == "end":
             fleet.apply(a)
+    phases["mission"] = time.perf_counter() - t
+    t = time.perf_counter()
     drained = _drain(fleet, opt.drain_timeout_s)
     rows.append(_round_row(len(rows), fleet.mission_ns(), fleet.poll()))
+    phases["drain"] = time.perf_counter() - t
+    t = time.perf_counter()
     exit_codes = fleet.stop_all()
-    rehearsal_wall = time.perf_counter() - wall0
-    return _finish(fleet, opt, rows, drained, exit_codes, rehearsal_wall)
+    phases["stop"] = time.perf_counter() - t
+    return _finish(fleet, opt, rows, drained, exit_codes, wall0, phases)
 
 
 def _drain(fleet: Fleet, timeout_s: float) -> bool:
@@ -675,13 +683,15 @@ def _collect(fleet: Fleet) -> dict:
 
 
 def _finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
-            exit_codes: dict, wall_s: float) -> RehearsalResult:
+            exit_codes: dict, wall0: float, phases: dict) -> RehearsalResult:
     from dran_edge.replay import _json_clean, _metrics, write_outputs
 
     run = fleet.run
     run.out_dir.mkdir(exist_ok=True)
+    t = time.perf_counter()
     results = _collect(fleet)
     write_outputs(run, results, rows)
+    phases["collect"] = time.perf_counter() - t
     robots = {}
     for rid, d in fleet.daemons.items():
         last = d.samples[-1] if d.samples else {}
@@ -704,7 +714,6 @@ def _finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool
         "daemon_period_s": fleet.period_s / opt.speed,
         "net": fleet.net.kind,
         "net_note": fleet.net_note,
-        "rehearsal_wall_s": round(wall_s, 3),
         "drained": drained,
         "options": {k: v for k, v in asdict(opt).items() if k != "faults"},
         "faults": [f.describe(fleet.names) for f in opt.faults],
@@ -713,8 +722,12 @@ def _finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool
         "accepted_lost": sum(r["ingest"]["accepted_lost"] for r in robots.values()),
         "rejoin": _rejoin(fleet),
     }
+    t = time.perf_counter()
     if opt.evaluate and fleet.mission.mocap_file:
         report.update(_metrics(run))
+    phases["evaluate"] = time.perf_counter() - t
+    report["rehearsal_wall_s"] = round(time.perf_counter() - wall0, 3)
+    report["phases_wall_s"] = {k: round(v, 3) for k, v in phases.items()}
     timeline = {d.name: d.samples for d in fleet.daemons.values()}
     (fleet.out / "timeline.json").write_text(json.dumps(_json_clean(timeline)) + "\n")
     (fleet.out / "rehearsal.json").write_text(json.dumps(_json_clean(report), indent=2) + "\n")
