@@ -41,6 +41,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the bus loss model (default 0)")
     p.add_argument("--no-eval", action="store_true",
                    help="do not score against the run's mocap")
+    p.add_argument("--mcap", metavar="FILE",
+                   help="also write the outputs and the mocap ground truth as an MCAP file for "
+                        "Foxglove (docs/viz.md; needs foxglove-sdk)")
     p.add_argument("--json", action="store_true", help="print report.json instead of a summary")
     return p
 
@@ -85,6 +88,12 @@ def run(args: argparse.Namespace) -> int:
         evaluate=not args.no_eval)
     res = replay_run(args.run_dir, opt, progress=ProgressBar())
     r = res.report
+    if args.mcap:
+        from dran_edge.viz.record import write_run_mcap
+
+        counts = write_run_mcap(res.out_dir.parent, args.mcap)
+        print(f"mcap: {args.mcap} ({len(counts)} topics, {sum(counts.values())} messages)",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
