@@ -36,7 +36,7 @@ SHELL_MODULES = {
     "replay_robots",  # replay's per-robot drivers (daemon code, transports)
     "dran_node",  # a DRAN agent as a comms.loopback node (simulation scenario inside)
 }
-SHELL_PACKAGES = {"commands", "rehearsal"}
+SHELL_PACKAGES = {"commands", "rehearsal", "viz"}
 CORE_THIRD_PARTY = {"numpy", "scipy", "yaml"}
 HARDWARE = {"pyrealsense2", "depthai", "zmq", "systemd"}
 
