@@ -235,6 +235,12 @@ class Fleet:
                 d.config.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
                 load_config(d.config)  # what the daemon will load: fail here, not in it
                 write_rules(d.drop_file, {})
+            # A daemon whose rehearsal died stops by itself: SIGTERM when the rehearsal's
+            # process ends (_stop_with_parent), and at the latest after the rounds the whole
+            # rehearsal could last.
+            wall_s = (opt.start_timeout_s + opt.drain_timeout_s + 120.0
+                      + (self.mission.duration_s + opt.settle_rounds * self.period_s) / opt.speed)
+            self.max_rounds = int(math.ceil(wall_s / (self.period_s / opt.speed)))
             self.loss: dict[tuple[int, int], float] = {}
             self.silenced: set[int] = set()
             self.fault_log: list[dict] = []
@@ -261,12 +267,13 @@ class Fleet:
         env["OPENBLAS_NUM_THREADS"] = "1"
         env.update(clock_env(d))
         argv = [sys.executable, "-m", "dran_edge.cli", "run", "--config", str(d.config),
-                "--record", str(d.record_dir)]
+                "--record", str(d.record_dir), "--max-rounds", str(self.max_rounds)]
         with open(d.log_path, "ab") as logf:
             logf.write(f"--- start {d.starts + 1} ---\n".encode())
             logf.flush()
             d.proc = subprocess.Popen(self.net.wrap(d.k, argv), env=env, stdout=logf,
-                                      stderr=subprocess.STDOUT, start_new_session=True)
+                                      stderr=subprocess.STDOUT, start_new_session=True,
+                                      preexec_fn=_stop_with_parent)
         d.starts += 1
         d.last_status = None
 
@@ -440,6 +447,17 @@ class Fleet:
 
 
 # ------------------------------------------------------------------------------ helpers
+def _stop_with_parent() -> None:
+    """In the child before exec: SIGTERM when the rehearsal's process dies (Linux prctl
+    PR_SET_PDEATHSIG; kept across ``ip netns exec``'s exec). Elsewhere a no-op."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _prepare_out(out: Path, src: rd.Run) -> None:
     """``out`` as a run directory: links to the run's inputs, room for out/ and eval/."""
     if out.exists() and any(out.iterdir()):
