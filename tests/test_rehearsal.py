@@ -208,3 +208,26 @@ def test_namespaces_partition_and_silence_drop_at_the_network(tmp_path):
         net.silence(1, False)
         assert reaches(1, 0)
     assert not _leftover_namespaces()
+
+
+def test_rehearse_cli_names_bad_faults_and_options(tmp_path, capsys):
+    from dran_edge.cli import main
+
+    run = tmp_path / "run"
+    from dran_edge.sim_writer import write_run
+    from dran_edge.simulate import SimParams, generate_mission
+
+    write_run(generate_mission(SimParams(robots=2, objects=4, duration_s=4, seed=1,
+                                         arena_m=6.0)), run, frames="none")
+    assert main(["rehearse", str(run), "--kill", "dingo9:1:2"]) == 2
+    assert "no robot 'dingo9'" in capsys.readouterr().err
+    assert main(["rehearse", str(run), "--partition", "dingo1:5"]) == 2
+    assert "--partition" in capsys.readouterr().err
+    assert main(["rehearse", str(run), "--speed", "0"]) == 2
+    assert "--speed" in capsys.readouterr().err
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "keep.txt").write_text("x")
+    assert main(["rehearse", str(run), "--out", str(tmp_path / "other")]) == 2
+    assert "not a previous rehearsal" in capsys.readouterr().err
+    assert (tmp_path / "other" / "keep.txt").exists()
+    assert not _leftover_namespaces()
