@@ -465,6 +465,14 @@ class DaemonSection(_Checked):
     """Checkpoint at most this often, seconds (and always on stop)."""
     status_period_s: float = _f(5.0, lo=0.1)
     """Send STATUS= to systemd and log a status line this often, seconds."""
+    foxglove: str = _f("")
+    """Publish the robot's estimate live (trajectory, object map, round statistics, neighbour
+    links) on a Foxglove WebSocket server at ``ip:port`` (docs/viz.md; needs foxglove-sdk);
+    "" = off."""
+
+    def _check(self) -> None:
+        if self.foxglove:
+            parse_address(self.foxglove, "foxglove")
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 Every module belongs to a layer: ``dran_edge`` top-level modules (errors, geometry, config,
 events, messages) form the base; then solver < dran < robot (the pure core); then the adapters comms,
-perception and formats; then evaluation and sim; then daemon; then replay and experiments; then
+perception and formats; then evaluation and sim; then viz; then daemon; then replay and experiments; then
 rehearsal; then cli. A module may import from its own package and from packages of strictly lower layers, never
 from a sibling of its own layer or from above. The pure core imports only numpy, scipy and the
 standard library (``dran_edge.config``, the strict YAML loader, may also import yaml).
@@ -32,6 +32,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("robot",),
     ("comms", "perception", "formats"),
     ("evaluation", "sim"),
+    ("viz",),
     ("daemon",),
     ("replay", "experiments"),
     ("rehearsal",),

@@ -439,6 +439,7 @@ class Daemon:
         self.perception: PerceptionWorker | None = None
         self.status_server: StatusServer | None = None
         self.transport: Transport | None = None
+        self.live: Any = None
         self._record_file = None
 
     # ------------------------------------------------------------------ start-up
@@ -503,6 +504,13 @@ class Daemon:
             self.ingest.start()
         self.status_server = StatusServer(self.runtime_dir / "status.sock", self.snapshot)
         self.status_server.start()
+        if cfg.daemon.foxglove:  # the live view (docs/viz.md)
+            from dran_edge.viz.live import LiveView
+
+            host, port = parse_address(cfg.daemon.foxglove, "daemon.foxglove")
+            self.live = LiveView(cfg.robot.name, host, port,
+                                 min_period_s=max(0.5, cfg.comms.period_s))
+            log.info("live view: Foxglove WebSocket server on ws://%s:%d", host, self.live.port)
         if self.perception is not None:
             self.perception.start()
         self._publish_status("running")
@@ -594,6 +602,12 @@ class Daemon:
         if ok:
             self._maybe_watchdog(now)
         self._publish_status("running")
+        if self.live is not None:
+            try:
+                self.live.publish(self.last_estimate, self._status)
+            except Exception:
+                self.counters["live_view_errors"] += 1
+                log.exception("live view: publishing failed; the daemon goes on")
         if now - self._last_status >= self.cfg.daemon.status_period_s:
             self._last_status = now
             line = self._status_line()
@@ -818,4 +832,6 @@ class Daemon:
                 self.transport.close()
             if self.status_server is not None:
                 self.status_server.stop()
+            if self.live is not None:
+                self.live.close()
         log.info("dran-edge stopped after %d rounds", self.stats.ticks)

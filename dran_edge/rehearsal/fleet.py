@@ -27,7 +27,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -39,7 +38,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,11 +48,12 @@ from dran_edge.formats import run_dir as rd
 from dran_edge.errors import DranError, InputError
 from dran_edge.rehearsal import faults as fl
 from dran_edge.comms.drop_hook import write_rules
+from dran_edge.rehearsal.clock import clock_env, clock_step, find_faketime, write_faketime
 from dran_edge.rehearsal.netns import make_net
+from dran_edge.rehearsal.report import RehearsalResult, finish, round_row, sample
 
 log = logging.getLogger(__name__)
 
-REPORT_FORMAT = "dran-edge-rehearse/1"
 #: Files and folders of the run the rehearsal's directory links to (it writes out/ and eval/).
 _RUN_PARTS = ("mission.yaml", "calib", "robots")
 
@@ -112,6 +112,10 @@ class _Daemon:
     last_status: dict | None = None
     starts: int = 0
     clock_offset_s: float = 0.0
+    faketime_lib: str | None = None
+    """libfaketime preloaded into this daemon (a robot with a clock step), else None."""
+    rejected_in_file: Counter = field(default_factory=Counter)
+    """Records of the run's ingest.bin that do not decode (never sent), by reason."""
 
     @property
     def ingest_path(self) -> Path:
@@ -220,8 +224,7 @@ class Fleet:
                     raws = [m[2] for m in merged]
                 d = _Daemon(info.id, info.name, k, base / "robot.yaml", base / "state",
                             self._tmp / str(k), base / "record", base / "daemon.log",
-                            base / "drop.json", raws, release)
-                d.rejected_in_file = rejected  # type: ignore[attr-defined]
+                            base / "drop.json", raws, release, rejected_in_file=rejected)
                 self.daemons[info.id] = d
             for k, info in enumerate(infos):
                 d = self.daemons[info.id]
@@ -232,6 +235,12 @@ class Fleet:
                 d.config.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
                 load_config(d.config)  # what the daemon will load: fail here, not in it
                 write_rules(d.drop_file, {})
+            # A daemon whose rehearsal died stops by itself: SIGTERM when the rehearsal's
+            # process ends (_stop_with_parent), and at the latest after the rounds the whole
+            # rehearsal could last.
+            wall_s = (opt.start_timeout_s + opt.drain_timeout_s + 120.0
+                      + (self.mission.duration_s + opt.settle_rounds * self.period_s) / opt.speed)
+            self.max_rounds = int(math.ceil(wall_s / (self.period_s / opt.speed)))
             self.loss: dict[tuple[int, int], float] = {}
             self.silenced: set[int] = set()
             self.fault_log: list[dict] = []
@@ -256,14 +265,15 @@ class Fleet:
                             "RUNTIME_DIRECTORY", "INVOCATION_ID", "JOURNAL_STREAM", "LISTEN_FDS")}
         env["DRAN_EDGE_DROP_FILE"] = str(d.drop_file)
         env["OPENBLAS_NUM_THREADS"] = "1"
-        env.update(_clock_env(d))
+        env.update(clock_env(d))
         argv = [sys.executable, "-m", "dran_edge.cli.app", "run", "--config", str(d.config),
-                "--record", str(d.record_dir)]
+                "--record", str(d.record_dir), "--max-rounds", str(self.max_rounds)]
         with open(d.log_path, "ab") as logf:
             logf.write(f"--- start {d.starts + 1} ---\n".encode())
             logf.flush()
             d.proc = subprocess.Popen(self.net.wrap(d.k, argv), env=env, stdout=logf,
-                                      stderr=subprocess.STDOUT, start_new_session=True)
+                                      stderr=subprocess.STDOUT, start_new_session=True,
+                                      preexec_fn=_stop_with_parent)
         d.starts += 1
         d.last_status = None
 
@@ -362,7 +372,7 @@ class Fleet:
             d.last_status = st
             if d.connections and d.connections[-1]["pid"] == d.proc.pid:
                 d.connections[-1]["accepted"] = int((st.get("ingest") or {}).get("records", 0))
-            d.samples.append(_sample(t, st))
+            d.samples.append(sample(t, st))
             out[d.id] = st
         return out
 
@@ -413,7 +423,7 @@ class Fleet:
             self._write_drops()
         elif f.kind == "clock_step":
             (dm,) = d.values()
-            entry.update(_clock_step(dm, f.step_s))
+            entry.update(clock_step(dm, f.step_s))
         self.fault_log.append(entry)
         log.info("fault: %s %s at %.1f s", a.what, entry["fault"], entry["t_s"])
 
@@ -437,6 +447,17 @@ class Fleet:
 
 
 # ------------------------------------------------------------------------------ helpers
+def _stop_with_parent() -> None:
+    """In the child before exec: SIGTERM when the rehearsal's process dies (Linux prctl
+    PR_SET_PDEATHSIG; kept across ``ip netns exec``'s exec). Elsewhere a no-op."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _prepare_out(out: Path, src: rd.Run) -> None:
     """``out`` as a run directory: links to the run's inputs, room for out/ and eval/."""
     if out.exists() and any(out.iterdir()):
@@ -463,63 +484,7 @@ def _tail(path: Path, n: int = 15) -> str:
         return ""
 
 
-def _sample(t_s: float, st: dict) -> dict:
-    g = st.get("graph") or {}
-    r = st.get("rounds") or {}
-    tr = st.get("transport") or {}
-    heard = {str(k): v.get("last_heard_s_ago") for k, v in (st.get("neighbours") or {}).items()}
-    return {"t_s": round(t_s, 3), "pid": st.get("pid"), "boot_epoch": st.get("boot_epoch"),
-            "records": (st.get("ingest") or {}).get("records", 0),
-            "pending": (st.get("journal") or {}).get("pending", 0),
-            "ticks": r.get("ticks", 0), "late": r.get("late", 0), "missed": r.get("missed", 0),
-            "round": g.get("round"), "keyframes": g.get("keyframes"), "objects": g.get("objects"),
-            "cost": g.get("cost"), "consensus_error": g.get("consensus_error"),
-            "converged": g.get("converged"), "bytes_sent": tr.get("bytes_sent", 0),
-            "heard_s_ago": heard}
-
-
-def _clock_env(d: _Daemon) -> dict:
-    """libfaketime for a robot whose wall clock the faults may step (docs/rehearsal.md)."""
-    lib = getattr(d, "faketime_lib", None)
-    if not lib:
-        return {}
-    return {"LD_PRELOAD": lib, "FAKETIME_TIMESTAMP_FILE": str(d.state_dir.parent / "faketime"),
-            "FAKETIME_CACHE_DURATION": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1",
-            "FAKETIME_FORCE_MONOTONIC_FIX": "1"}
-
-
-FAKETIME_PATHS = ("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1",
-                  "/usr/lib/aarch64-linux-gnu/faketime/libfaketime.so.1",
-                  "/usr/lib/faketime/libfaketime.so.1", "/usr/local/lib/faketime/libfaketime.so.1")
-
-
-def find_faketime() -> str | None:
-    return next((p for p in FAKETIME_PATHS if Path(p).exists()), None)
-
-
-def _clock_step(d: _Daemon, step_s: float) -> dict:
-    if not getattr(d, "faketime_lib", None):
-        return {"by": "skipped", "reason": "libfaketime is not installed (a robot's wall clock "
-                                           "cannot be stepped alone without it)"}
-    d.clock_offset_s += step_s
-    _write_faketime(d)
-    return {"by": "libfaketime", "offset_s": d.clock_offset_s}
-
-
-def _write_faketime(d: _Daemon) -> None:
-    path = d.state_dir.parent / "faketime"
-    tmp = path.with_name("faketime.tmp")
-    tmp.write_text(f"{d.clock_offset_s:+.3f}\n")
-    os.replace(tmp, path)
-
-
 # ------------------------------------------------------------------------------ the run
-@dataclass
-class RehearsalResult:
-    report: dict
-    out_dir: Path
-
-
 def rehearse(run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(),
              progress=None) -> RehearsalResult:
     """Rehearse the run at ``run_dir`` (module docstring); writes ``OUT/rehearsal.json``."""
@@ -531,8 +496,8 @@ def rehearse(run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(),
             for f in opt.faults:
                 if f.kind == "clock_step" and lib:
                     d = fleet.daemons[f.robots[0]]
-                    d.faketime_lib = lib  # type: ignore[attr-defined]
-                    _write_faketime(d)
+                    d.faketime_lib = lib
+                    write_faketime(d)
         return _run(fleet, opt, wall0, progress)
     finally:
         fleet.close()
@@ -540,9 +505,13 @@ def rehearse(run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(),
 
 def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> RehearsalResult:
     ds = list(fleet.daemons.values())
+    phases = {"prepare": time.perf_counter() - wall0}
+    t = time.perf_counter()
     for d in ds:
         fleet.start(d)
     fleet.wait_up(ds, opt.start_timeout_s)
+    phases["start"] = time.perf_counter() - t
+    t = time.perf_counter()
     last_release = max((int(d.release_ns[-1]) for d in ds if len(d.release_ns)), default=0)
     data_end_ns = max(last_release, fleet.mission.start_ns + int(fleet.mission.duration_s * 1e9))
     end_ns = data_end_ns + int(opt.settle_rounds * fleet.period_s * 1e9)
@@ -559,7 +528,7 @@ def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> Rehears
             fleet.feed(d, now)
         if time.monotonic() >= next_poll:
             next_poll = time.monotonic() + opt.poll_s
-            rows.append(_round_row(len(rows), now, fleet.poll()))
+            rows.append(round_row(len(rows), now, fleet.poll()))
             if progress:
                 progress("mission s", int((min(now, end_ns) - fleet.mission.start_ns) // 10**9),
                          int(math.ceil((end_ns - fleet.mission.start_ns) / 1e9)))
@@ -569,11 +538,15 @@ def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> Rehears
     for a in todo:  # what is still pending at the end ends now (a late restart happens)
         if a.what == "end":
             fleet.apply(a)
+    phases["mission"] = time.perf_counter() - t
+    t = time.perf_counter()
     drained = _drain(fleet, opt.drain_timeout_s)
-    rows.append(_round_row(len(rows), fleet.mission_ns(), fleet.poll()))
+    rows.append(round_row(len(rows), fleet.mission_ns(), fleet.poll()))
+    phases["drain"] = time.perf_counter() - t
+    t = time.perf_counter()
     exit_codes = fleet.stop_all()
-    rehearsal_wall = time.perf_counter() - wall0
-    return _finish(fleet, opt, rows, drained, exit_codes, rehearsal_wall)
+    phases["stop"] = time.perf_counter() - t
+    return finish(fleet, opt, rows, drained, exit_codes, wall0, phases)
 
 
 def _drain(fleet: Fleet, timeout_s: float) -> bool:
@@ -598,164 +571,3 @@ def _drain(fleet: Fleet, timeout_s: float) -> bool:
     log.warning("daemons did not apply everything they were sent within %g s", timeout_s)
     return False
 
-
-def _round_row(k: int, stamp_ns: int, statuses: dict[int, dict]) -> dict:
-    """One row of rounds.csv from a status poll of the fleet (a sample, not an aligned round)."""
-    costs, cerr, conv, sent = [], [], 0, 0
-    for st in statuses.values():
-        g = st.get("graph") or {}
-        if isinstance(g.get("cost"), (int, float)) and math.isfinite(g["cost"]):
-            costs.append(g["cost"])
-        if isinstance(g.get("consensus_error"), (int, float)):
-            cerr.append(g["consensus_error"])
-        conv += bool(g.get("converged"))
-        sent += int((st.get("transport") or {}).get("bytes_sent", 0))
-    return {"round": k, "stamp_ns": stamp_ns, "bytes_total": sent, "bytes_round": 0,
-            "cost": float(np.sum(costs)) if costs else math.nan,
-            "consensus_error": float(np.max(cerr)) if cerr else math.nan,
-            "converged_robots": conv, "datagrams_lost": 0}
-
-
-def _record_counts(d: _Daemon) -> Counter:
-    """Multiset of the raw records the daemon applied, from its ``--record`` stream (a record
-    re-applied from the journal after a crash appears twice there)."""
-    from dran_edge.comms.ingest import IngestDecodeError, iter_records
-
-    path = d.record_dir / "robots" / d.name / "ingest.bin"
-    if not path.exists():
-        return Counter()
-    return Counter(item.raw for item in iter_records(path.read_bytes())
-                   if not isinstance(item, IngestDecodeError))
-
-
-def _accounting(d: _Daemon) -> dict:
-    """Nothing accepted is lost: every record a daemon reported as accepted (its status'
-    ``ingest.records`` at the last poll on that connection) was applied, by that daemon or,
-    after a crash, by its successor from the journal."""
-    applied = _record_counts(d)
-    applied_set = set(applied)
-    sent_total = sum(len(c["sent"]) for c in d.connections)
-    accepted_lost, unconfirmed = 0, 0
-    for c in d.connections:
-        acc = min(c["accepted"], len(c["sent"]))
-        accepted_lost += sum(1 for i in c["sent"][:acc] if d.records[i] not in applied_set)
-        unconfirmed += len(c["sent"]) - acc
-    fed = set(d.records[: d.next_record])
-    never_applied = sum(1 for r in fed if r not in applied_set)
-    return {"records_in_run": len(d.records), "records_sent": sent_total,
-            "connections": len(d.connections),
-            "accepted_reported": sum(min(c["accepted"], len(c["sent"])) for c in d.connections),
-            "accepted_lost": accepted_lost,
-            "sent_unconfirmed_at_kill": unconfirmed,
-            "applied_distinct": len(applied_set & fed),
-            "applied_twice": sum(1 for n in applied.values() if n > 1),
-            "never_applied": never_applied,
-            "queued_unsent": len(d.queue)}
-
-
-def _collect(fleet: Fleet) -> dict:
-    """Each robot's final checkpoint -> its core -> replay's RobotResult."""
-    from dran_edge.daemon.checkpoint import CheckpointStore
-    from dran_edge.config import load_config
-    from dran_edge.daemon.service import default_agent_factory
-    from dran_edge.replay.robots import robot_result
-
-    results = {}
-    for rid, d in fleet.daemons.items():
-        cfg = load_config(d.config)
-        state = CheckpointStore(d.state_dir).load()
-        if state is None:
-            log.warning("%s left no checkpoint", d.name)
-            continue
-        core = default_agent_factory(cfg, state)
-        last = core.agent.current_estimate(fleet.mission.start_ns)
-        results[rid] = robot_result(rid, d.name, core, last,
-                                    health=dict(state.get("counters", {})))
-    return results
-
-
-def _finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
-            exit_codes: dict, wall_s: float) -> RehearsalResult:
-    from dran_edge.replay.run import _json_clean, _metrics, write_outputs
-
-    run = fleet.run
-    run.out_dir.mkdir(exist_ok=True)
-    results = _collect(fleet)
-    write_outputs(run, results, rows)
-    robots = {}
-    for rid, d in fleet.daemons.items():
-        last = d.samples[-1] if d.samples else {}
-        robots[d.name] = {
-            "id": rid, "starts": d.starts, "exit_code": exit_codes.get(d.name),
-            "address": fleet.net.endpoints[d.k].dish, "netns": fleet.net.endpoints[d.k].netns,
-            "ticks": last.get("ticks"), "late": last.get("late"), "missed": last.get("missed"),
-            "keyframes": len(results[rid].last.keyframe_stamps_ns) if rid in results else 0,
-            "objects": len(results[rid].last.object_ids) if rid in results else 0,
-            "ingest": _accounting(d),
-            "rejected_in_file": dict(getattr(d, "rejected_in_file", {})),
-        }
-    report: dict[str, Any] = {
-        "format": REPORT_FORMAT,
-        "run": str(fleet.src.root),
-        "robots": len(fleet.daemons),
-        "mission_s": float(fleet.mission.duration_s),
-        "speed": opt.speed,
-        "period_s": fleet.period_s,
-        "daemon_period_s": fleet.period_s / opt.speed,
-        "net": fleet.net.kind,
-        "net_note": fleet.net_note,
-        "rehearsal_wall_s": round(wall_s, 3),
-        "drained": drained,
-        "options": {k: v for k, v in asdict(opt).items() if k != "faults"},
-        "faults": [f.describe(fleet.names) for f in opt.faults],
-        "fault_log": fleet.fault_log,
-        "per_robot": robots,
-        "accepted_lost": sum(r["ingest"]["accepted_lost"] for r in robots.values()),
-        "rejoin": _rejoin(fleet),
-    }
-    if opt.evaluate and fleet.mission.mocap_file:
-        report.update(_metrics(run))
-    timeline = {d.name: d.samples for d in fleet.daemons.values()}
-    (fleet.out / "timeline.json").write_text(json.dumps(_json_clean(timeline)) + "\n")
-    (fleet.out / "rehearsal.json").write_text(json.dumps(_json_clean(report), indent=2) + "\n")
-    return RehearsalResult(report, fleet.out)
-
-
-def _rejoin(fleet: Fleet) -> list[dict]:
-    """For each restart or healed partition/silence: when the robot's neighbours heard it
-    again and it heard them (mission seconds after the fault ended), from the status polls."""
-    out = []
-    for entry in fleet.fault_log:
-        if entry["action"] != "end":
-            continue
-        f = next(a.fault for a in fl.actions(list(fleet.opt.faults)) if a.index ==
-                 entry["index"])
-        if f.kind not in ("kill", "partition", "silent"):
-            continue
-        t_end = entry["t_s"]
-        for rid in f.robots:
-            nbrs = fleet.mission.neighbours(rid)
-            if f.kind == "partition":
-                nbrs = [j for j in nbrs if j not in f.robots]
-            heard_by = {}
-            for j in nbrs:
-                heard_by[fleet.names[j]] = _first_heard(fleet.daemons[j].samples, rid, t_end,
-                                                        fleet.opt.speed)
-            hears = {fleet.names[j]: _first_heard(fleet.daemons[rid].samples, j, t_end,
-                                                  fleet.opt.speed) for j in nbrs}
-            out.append({"fault": entry["fault"], "robot": fleet.names[rid], "ended_s": t_end,
-                        "heard_by_s": heard_by, "hears_s": hears})
-    return out
-
-
-def _first_heard(samples: list[dict], peer: int, after_s: float, speed: float
-                 ) -> float | None:
-    """Mission seconds after ``after_s`` at which a status sample first shows ``peer`` heard
-    since then (the daemons' ``last_heard_s_ago`` is wall time: times ``speed``)."""
-    for s in samples:
-        if s["t_s"] <= after_s:
-            continue
-        ago = (s.get("heard_s_ago") or {}).get(str(peer))
-        if ago is not None and s["t_s"] - ago * speed > after_s - 1e-6:
-            return round(s["t_s"] - after_s, 3)
-    return None

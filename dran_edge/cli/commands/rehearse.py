@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 HELP = "run a recorded mission through real daemons, one per robot, with faults"
 
@@ -50,6 +51,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--clock-step", action="append", default=[], metavar="ROBOT:AT_S:STEP_S",
                    help="step ROBOT's wall clock by STEP_S at AT_S (needs libfaketime)")
     p.add_argument("--no-eval", action="store_true", help="do not score against the mocap")
+    p.add_argument("--mcap", metavar="FILE",
+                   help="also write the outputs and the mocap ground truth as an MCAP file for "
+                        "Foxglove (docs/viz.md; needs foxglove-sdk)")
     p.add_argument("--json", action="store_true", help="print rehearsal.json")
     return p
 
@@ -81,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_term)
     res = rehearse(args.run_dir, opt, progress=ProgressBar())
     r = res.report
+    if args.mcap:
+        from dran_edge.viz.record import write_run_mcap
+
+        counts = write_run_mcap(res.out_dir, args.mcap)
+        print(f"mcap: {args.mcap} ({len(counts)} topics, {sum(counts.values())} messages)",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(r, indent=2))
     else:

@@ -46,6 +46,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "seed in 'simulate' and 'demo'")
     p.add_argument("--no-eval", action="store_true",
                    help="do not score against the run's mocap")
+    p.add_argument("--mcap", metavar="FILE",
+                   help="also write the outputs and the mocap ground truth as an MCAP file for "
+                        "Foxglove (docs/viz.md; needs foxglove-sdk)")
     p.add_argument("--json", action="store_true", help="print report.json instead of a summary")
     return p
 
@@ -72,10 +75,15 @@ def run(args: argparse.Namespace) -> int:
         partitions=tuple(PartitionSpec.parse(p) for p in args.partition), speed=args.speed,
         settle_rounds=args.settle_rounds, workers=args.workers, seed=args.loss_seed,
         evaluate=not args.no_eval, redetect=args.redetect)
-    from dran_edge.cli.app.progress import ProgressBar
+    from dran_edge.cli.progress import ProgressBar, note
 
     res = replay_run(args.run_dir, opt, progress=ProgressBar())
     r = res.report
+    if args.mcap:
+        from dran_edge.viz.record import write_run_mcap
+
+        counts = write_run_mcap(res.out_dir.parent, args.mcap)
+        note(f"mcap: {args.mcap} ({len(counts)} topics, {sum(counts.values())} messages)")
     if args.json:
         print(json.dumps(r, indent=2))
         return 0

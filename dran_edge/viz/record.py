@@ -1,0 +1,168 @@
+"""A run's outputs as an MCAP file for Foxglove: paths, object maps, links, mocap ground truth.
+
+``write_run_mcap(RUN, PATH)`` reads what ``dran-edge replay`` or ``dran-edge rehearse`` wrote
+(``out/<robot>/trajectory.tum``, ``trajectory_init.tum``, ``objects.csv``, ``rounds.csv``;
+docs/run-format.md) and the run's mocap, and writes the topics of :mod:`.messages` with
+log times in mission time (the robots' clock):
+
+- ``/<robot>/path`` and ``/<robot>/path_init``: the final and the odometry-only estimate of
+  the keyframes up to each second of the mission (the final estimate revealed over time, not
+  what the robot believed then), one message per ``step_s``;
+- ``/<robot>/objects``: the robot's final object map (at the start and the end);
+- ``/links``: the communication graph between the robots' positions, per ``step_s``;
+- ``/mocap/<robot>``, ``/mocap/objects``: ground truth in the mocap world, which is the
+  estimates' world when the robots were anchored by mocap (the paper's protocol);
+- ``/fleet/rounds``: rounds.csv's rows as JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from dran_edge.formats import run_dir as rd
+from dran_edge.errors import DependencyError
+from dran_edge.viz import messages as vm
+
+
+def _foxglove():
+    try:
+        import foxglove
+    except ImportError:
+        raise DependencyError("writing MCAP files needs the foxglove-sdk package "
+                              "(pip install 'dran-edge[viz]')") from None
+    return foxglove
+
+
+def _channels(foxglove, ctx, names: list[str], with_mocap: bool) -> dict:
+    from foxglove.channels import PosesInFrameChannel, SceneUpdateChannel
+
+    ch = {}
+    for n in names:
+        ch[f"/{n}/path"] = PosesInFrameChannel(f"/{n}/path", context=ctx)
+        ch[f"/{n}/path_init"] = PosesInFrameChannel(f"/{n}/path_init", context=ctx)
+        ch[f"/{n}/objects"] = SceneUpdateChannel(f"/{n}/objects", context=ctx)
+        if with_mocap:
+            ch[f"/mocap/{n}"] = PosesInFrameChannel(f"/mocap/{n}", context=ctx)
+    ch["/links"] = SceneUpdateChannel("/links", context=ctx)
+    if with_mocap:
+        ch["/mocap/objects"] = SceneUpdateChannel("/mocap/objects", context=ctx)
+    ch["/fleet/rounds"] = foxglove.Channel("/fleet/rounds", message_encoding="json",
+                                           context=ctx)
+    return ch
+
+
+def _mocap(run: rd.Run):
+    """(time offset to add to mocap seconds -> robot ns, robot paths, object poses) or None."""
+    from dran_edge import geometry as geo
+    from dran_edge.formats import motive
+
+    m = run.mission
+    if not m.mocap_file or not (run.root / m.mocap_file).exists():
+        return None
+    take = motive.read_motive_csv(run.root / m.mocap_file, up_axis=m.mocap_up_axis)
+    start = m.mocap_start_ns if m.mocap_start_ns is not None else m.start_ns
+    paths = {}
+    for r in m.robots:
+        body = r.mocap_body or r.name
+        b = take.bodies.get(body)
+        if b is not None:  # as dran_edge.evaluation.score.body_ground_truth
+            T = b.T_world_marker @ geo.se3_inverse(r.T_body_marker)
+            paths[r.name] = (start + np.round(np.asarray(take.time_s)[b.valid] * 1e9
+                                              ).astype(np.int64), np.asarray(T)[b.valid])
+    objects = {}
+    for o in m.objects:
+        body = o.mocap_body or o.name
+        b = take.bodies.get(body)
+        if b is not None and b.valid.any():
+            first = int(np.argmax(b.valid))
+            objects[o.id] = b.T_world_marker[first] @ geo.se3_inverse(o.T_object_marker)
+    return paths, objects
+
+
+def write_run_mcap(run_dir: str | Path, path: str | Path, step_s: float = 1.0) -> dict:
+    """Write the MCAP file (module docstring); returns ``{topic: messages written}``."""
+    from dran_edge.formats.run_outputs import read_objects_csv, read_rounds_csv
+    from dran_edge.formats.tum import read_tum
+
+    foxglove = _foxglove()
+    run = rd.open_run(run_dir)
+    m = run.mission
+    robots = sorted(m.robots, key=lambda r: r.id)
+    names = [r.name for r in robots]
+    est, init, objs = {}, {}, {}
+    for r in robots:
+        d = run.out_dir / r.name
+        if (d / "trajectory.tum").exists():
+            t, T = read_tum(d / "trajectory.tum")
+            est[r.name] = (np.round(np.asarray(t) * 1e9).astype(np.int64), np.asarray(T))
+        if (d / "trajectory_init.tum").exists():
+            t, T = read_tum(d / "trajectory_init.tum")
+            init[r.name] = (np.round(np.asarray(t) * 1e9).astype(np.int64), np.asarray(T))
+        if (d / "objects.csv").exists():
+            objs[r.name] = read_objects_csv(d / "objects.csv")
+    gt = _mocap(run)
+    counts: dict[str, int] = {}
+    ctx = foxglove.Context()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    writer = foxglove.open_mcap(str(path), allow_overwrite=True, context=ctx)
+    try:
+        ch = _channels(foxglove, ctx, names, gt is not None)
+
+        def log(topic: str, msg, t_ns: int) -> None:
+            ch[topic].log(msg, log_time=int(t_ns))
+            counts[topic] = counts.get(topic, 0) + 1
+
+        end_ns = m.start_ns + int(m.duration_s * 1e9)
+        for src in (est, init):
+            for n, (t, _T) in src.items():
+                end_ns = max(end_ns, int(t[-1]))
+        edges = [(next(r.name for r in robots if r.id == a), next(r.name for r in robots
+                                                                   if r.id == b))
+                 for a, b in m.comm_graph]
+        step = int(step_s * 1e9)
+        for t_ns in range(m.start_ns + step, end_ns + step, step):
+            t_ns = min(t_ns, end_ns)
+            last = {}
+            for k, n in enumerate(names):
+                for topic, src in ((f"/{n}/path", est), (f"/{n}/path_init", init)):
+                    if n in src:
+                        t, T = src[n]
+                        upto = int(np.searchsorted(t, t_ns, side="right"))
+                        if upto:
+                            log(topic, vm.path_message(t_ns, T[:upto]), t_ns)
+                            if topic.endswith("/path"):
+                                last[n] = T[upto - 1][:3, 3]
+                if gt is not None and n in gt[0]:
+                    t, T = gt[0][n]
+                    upto = int(np.searchsorted(t, t_ns, side="right"))
+                    if upto:  # ground truth at 10 Hz at most, for the file's size
+                        stride = max(1, int(np.ceil(upto / max(1.0, (t_ns - t[0]) * 1e-8))))
+                        log(f"/mocap/{n}", vm.path_message(t_ns, T[:upto:stride]), t_ns)
+            log("/links", vm.links_message(t_ns, last, edges), t_ns)
+        for k, n in enumerate(names):
+            if n in objs and objs[n]:
+                ids = sorted(objs[n])
+                Ts = np.stack([objs[n][i] for i in ids])
+                for t_ns in (m.start_ns, end_ns):
+                    log(f"/{n}/objects", vm.objects_message(t_ns, n, k, ids, Ts), t_ns)
+        if gt is not None and gt[1]:
+            ids = sorted(gt[1])
+            Ts = np.stack([gt[1][i] for i in ids])
+            for t_ns in (m.start_ns, end_ns):
+                log("/mocap/objects", vm.objects_message(t_ns, "mocap", 7, ids, Ts, alpha=0.3),
+                    t_ns)
+        if (run.out_dir / "rounds.csv").exists():
+            rows = read_rounds_csv(run.out_dir / "rounds.csv")
+            for i in range(len(rows["round"])):
+                row = {k: (None if isinstance(v[i], float) and math.isnan(v[i]) else float(v[i]))
+                       for k, v in rows.items()}
+                t_ns = int(row.get("stamp_ns") or m.start_ns)
+                ch["/fleet/rounds"].log(json.dumps(row).encode(), log_time=t_ns)
+                counts["/fleet/rounds"] = counts.get("/fleet/rounds", 0) + 1
+    finally:
+        writer.close()
+    return counts
