@@ -128,12 +128,18 @@ cmake --install "$BUILD" >"$CACHE/cmake-install.log" 2>&1 \
     || die "libzmq install failed, see $CACHE/cmake-install.log"
 
 # ------------------------------------------------------------ pyzmq from source
+# Built as a wheel (kept in $CACHE/wheels: the offline bundle ships it, docs/bundle.md), then
+# installed from it.
 log "building $PYZMQ_SPEC from source against $PREFIX"
+rm -rf "$CACHE/wheels" && mkdir -p "$CACHE/wheels"
 ZMQ_PREFIX="$PREFIX" ZMQ_DRAFT_API=1 LDFLAGS="-Wl,-rpath,$PREFIX/lib ${LDFLAGS:-}" \
     PKG_CONFIG_PATH="$PREFIX/lib/pkgconfig" \
-    "$PY" -m pip install -q --disable-pip-version-check --no-cache-dir --force-reinstall \
-    --no-deps --no-binary pyzmq "$PYZMQ_SPEC" >"$CACHE/pyzmq-build.log" 2>&1 \
+    "$PY" -m pip wheel -q --disable-pip-version-check --no-cache-dir --no-deps \
+    --no-binary pyzmq -w "$CACHE/wheels" "$PYZMQ_SPEC" >"$CACHE/pyzmq-build.log" 2>&1 \
     || die "pyzmq build failed, see $CACHE/pyzmq-build.log"
+"$PY" -m pip install -q --disable-pip-version-check --no-index --force-reinstall --no-deps \
+    "$CACHE"/wheels/pyzmq-*.whl >>"$CACHE/pyzmq-build.log" 2>&1 \
+    || die "installing the built pyzmq wheel failed, see $CACHE/pyzmq-build.log"
 
 VERSIONS=$(verify) || die "the built pyzmq does not work with drafts (see above)"
 echo "libzmq=$SRC_VERSION patch=$PATCH_HASH libzmq_runtime+pyzmq=${VERSIONS// /+}" > "$STAMP"
