@@ -114,6 +114,12 @@ EOF
     ${SKIP[*]} ${SEL[*]}" > "$OUT/pytest.log" 2>&1 && ok=1 || ok=0
 tail -n 25 "$OUT/pytest.log" >&2
 note "pytest ($([ "${ARM64_CHECK_FULL:-0}" = 1 ] && echo full suite || echo "subset: ${SEL[*]}"), offline, emulated): $(tail -n1 "$OUT/pytest.log"), $((SECONDS - t4)) s"
+# what re-detection changes here against the x86-64 recording (the tolerance test's numbers)
+t5=$SECONDS
+offline sh -c "cd /opt/src && OPENBLAS_NUM_THREADS=1 nice -n 15 /opt/testenv/bin/python tools/redetect_diff.py" \
+    > "$OUT/redetect.log" 2>&1 || true
+note "re-detection of the tiny golden run here vs its x86-64 recording ($((SECONDS - t5)) s):"
+sed 's/^/    /' "$OUT/redetect.log" | tail -n 4 | tee -a "$RESULT" >&2
 note "total: $((SECONDS - t0)) s"
 [ "$ok" = 1 ] || die "tests failed (dist/arm64_check/pytest.log)"
 log "passed; summary in $RESULT"
