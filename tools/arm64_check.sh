@@ -20,7 +20,7 @@
 set -euo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-BUNDLE=${1:-$(ls -t "$REPO"/dist/dran-edge-*-aarch64.tar.gz 2>/dev/null | head -n1)}
+BUNDLE=${1:-$(ls -t "$REPO"/dist/dran-edge-*-aarch64.tar.gz 2>/dev/null | sed -n 1p)}
 ROOT=${ARM64_CHECK_ROOT:-/var/tmp/dran-arm64/check-root}
 OUT=$REPO/dist/arm64_check
 HOSTPY=${PYTHON:-$REPO/.venv/bin/python}

@@ -21,7 +21,7 @@ HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)   # tools/
 log() { echo "build_native_wheels: $*" >&2; }
 die() { log "ERROR: $*"; exit 1; }
 
-pin() { sed -n "s/^$1==\([^ ;#]*\).*/\1/p" "$PINS" | head -n1; }
+pin() { sed -n "s/^$1==\([^ ;#]*\).*/\1/p" "$PINS" | sed -n 1p; }
 STAMP_TEXT="pins=$(sha256sum "$PINS" | cut -c1-16) patch=$(sha256sum "$HERE/patches/"*.patch | sha256sum | cut -c1-16) build=$(sha256sum "$0" "$HERE/build_zmq_draft.sh" | sha256sum | cut -c1-16)"
 if [ -f "$OUT/.stamp" ] && [ "$(cat "$OUT/.stamp")" = "$STAMP_TEXT" ]; then
     log "up to date ($STAMP_TEXT)"
@@ -45,7 +45,7 @@ mkdir -p "$BUILD"
 [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q -U pip setuptools wheel
 PYV=$("$VENV/bin/python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
-ldd --version | head -n1 > "$OUT/.glibc"
+ldd --version 2>&1 | sed -n 1p > "$OUT/.glibc"
 log "python $PYV, $(cat "$OUT/.glibc")"
 
 t1=$SECONDS

@@ -57,7 +57,7 @@ have=$(pyver "$PYTHON") || die "--python $PYTHON does not run"
 "$PYTHON" -c 'import sys; assert sys.version_info >= (3, 10)' || die "dran-edge needs Python >= 3.10"
 "$PYTHON" -c 'import venv, ensurepip' 2>/dev/null \
     || die "$PYTHON has no venv/ensurepip module (Debian/Ubuntu: apt-get install python$python-venv)"
-say "Python $have ($PYTHON), $(ldd --version 2>/dev/null | head -n1)"
+say "Python $have ($PYTHON), $(ldd --version 2>&1 | sed -n 1p)"
 
 # ------------------------------------------------------------------ venv + wheels, offline
 VENV=$PREFIX/.venv
@@ -127,7 +127,7 @@ else
     say "skeleton configs load ($ETC/fleet/*.yaml)"
     TODO+=("choose this robot's config: ln -s fleet/<robot>.yaml $ETC/robot.yaml (or install.sh --robot <robot>); edit its neighbours' addresses")
 fi
-key=$(sed -n 's/^ *key_file: *\([^ #]*\).*/\1/p' "$ETC/robot.yaml" 2>/dev/null | head -n1)
+key=$(sed -n 's/^ *key_file: *\([^ #]*\).*/\1/p' "$ETC/robot.yaml" 2>/dev/null | sed -n 1p)
 key=${key:-$ETC/fleet.key}
 [ -f "$key" ] || TODO+=("fleet key: on ONE machine '$VENV/bin/dran-edge fleet-key new fleet.key', then on every robot: install -m 0600 -o dran -g dran fleet.key $key")
 TODO+=("calibration: measure this robot's camera and the tag map into $ETC/cameras/<robot>/ and $ETC/tags.yaml (docs/calibration.md); the skeleton holds the example fleet's values")
