@@ -41,6 +41,19 @@ t0=$SECONDS
 # ------------------------------------------------------------------ C parts in the arm64 root
 bash "$REPO/tools/arm64_root.sh" create "$ROOT" "$SUITE" "$MIRROR"
 t_root=$((SECONDS - t0))
+# libzmq (C++, the longest compile) cross-compiled here at native speed when an aarch64 cross
+# compiler is installed (apt-get install g++-aarch64-linux-gnu), at the path it has in the root
+BV=/var/tmp/dran-native-build/venv
+if [ "$(uname -m)" != aarch64 ] && command -v aarch64-linux-gnu-g++ >/dev/null &&
+   ! grep -q "patch=$(sha256sum "$REPO"/tools/patches/libzmq-udp-engine-hardening.patch | cut -c1-16)" \
+       "$ROOT$BV/opt/libzmq/.dran-stamp" 2>/dev/null; then
+    tx=$SECONDS
+    [ -e "$BV" ] && [ ! -L "$BV/bin/python" ] && die "$BV exists on this machine and is not ours"
+    mkdir -p "$BV/bin" && ln -sf "$(command -v python3)" "$BV/bin/python"
+    DRAN_ZMQ_CROSS=aarch64-linux-gnu nice -n 10 bash "$REPO/tools/build_zmq_draft.sh" "$BV"
+    mkdir -p "$ROOT$BV/opt" && rm -rf "$ROOT$BV/opt/libzmq" && cp -a "$BV/opt/libzmq" "$ROOT$BV/opt/"
+    log "libzmq cross-compiled for aarch64 in $((SECONDS - tx)) s"
+fi
 rm -rf "$ROOT/build/src" && mkdir -p "$ROOT/build/src"
 cp -r "$REPO/tools" "$ROOT/build/src/tools"
 t1=$SECONDS

@@ -49,6 +49,8 @@ ldd --version 2>&1 | sed -n 1p > "$OUT/.glibc"
 log "python $PYV, $(cat "$OUT/.glibc")"
 
 t1=$SECONDS
+# libzmq cross-compiled on the host (build_bundle.sh) when its stamp says so: build only pyzmq
+if grep -q "cross=" "$VENV/opt/libzmq/.dran-stamp" 2>/dev/null; then export DRAN_ZMQ_PREBUILT=1; fi
 DRAN_PYZMQ_SPEC="pyzmq==$(pin pyzmq)" bash "$HERE/build_zmq_draft.sh" "$VENV"
 log "libzmq + pyzmq: $((SECONDS - t1)) s"
 
