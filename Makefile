@@ -56,5 +56,10 @@ bench: setup
 	$(PY) tools/bench/bench_schur.py
 	$(PY) tools/bench/bench_perception.py
 
+# Offline installer for an aarch64 robot (root: builds the C parts in an arm64 root under
+# qemu; BUNDLE_PY=3.11 by default, docs/bundle.md). Not part of setup/test.
+bundle:
+	PYTHON="$$(test -x $(PY) && echo $(PY) || command -v $(PYTHON))" bash tools/bundle/build_bundle.sh
+
 clean:
 	rm -rf $(VENV) build dist *.egg-info .pytest_cache .hypothesis $(DEMO_DIR)

@@ -81,6 +81,35 @@ def test_run_keeps_absolute_deadlines(tmp_path):
     assert d.stats.missed == 0
 
 
+def test_overlong_rounds_are_skipped_and_counted_not_queued(tmp_path):
+    """A round that takes longer than the period (a slow core, a big graph): the loop does not
+    run the missed rounds back to back to catch up (no backlog of ticks), it skips the whole
+    periods missed and counts them (status 'missed'), and keeps its absolute deadlines."""
+    import time
+
+    from dran_edge.events import Tick
+
+    d = make(tmp_path)  # period 0.05 s
+    d.start()
+    handle = d.agent.handle
+    ticks_handled = []
+
+    def slow(event):
+        if isinstance(event, Tick):
+            ticks_handled.append(time.monotonic())
+            time.sleep(0.12)  # 2.4 periods
+        return handle(event)
+
+    d.agent.handle = slow
+    d.run(max_ticks=6)
+    assert d.stats.ticks == 6 == len(ticks_handled)
+    # every period between the first and the last round was either run or counted as missed
+    periods = (ticks_handled[-1] - ticks_handled[0]) / 0.05
+    assert d.stats.missed >= 5 and abs(d.stats.ticks - 1 + d.stats.missed - periods) <= 1.5
+    # no catch-up burst: consecutive rounds start at least one slow round apart
+    assert min(np.diff(ticks_handled)) >= 0.12
+
+
 def test_drop_oldest_queue_counts():
     q = DropOldestQueue(3)
     for i in range(10):

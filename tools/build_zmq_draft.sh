@@ -22,6 +22,11 @@
 #                        (offline robots: copy the tree fetched on another machine)
 #   DRAN_PYZMQ_SPEC      pip requirement for pyzmq (default: pyzmq>=25)
 #   DRAN_ZMQ_JOBS        parallel compile jobs (default: nproc)
+#   DRAN_ZMQ_CROSS       a cross-compiler triplet (e.g. aarch64-linux-gnu): build only libzmq,
+#                        with ${triplet}-gcc/g++, for that architecture (no pyzmq, no check);
+#                        the offline bundle builds the robot's libzmq so (docs/bundle.md)
+#   DRAN_ZMQ_PREBUILT=1  VENV/opt/libzmq already holds a libzmq built by this script (its
+#                        .dran-stamp has our patch hash): build only pyzmq against it
 # docs/zeromq.md describes the robot-side (Ubuntu 20.04/22.04, aarch64) procedure.
 set -euo pipefail
 
@@ -65,11 +70,19 @@ EOF
 }
 
 # ------------------------------------------------------------ fast path: already built
-if [ -f "$STAMP" ] && grep -q "patch=$PATCH_HASH" "$STAMP" && verify >/dev/null 2>&1; then
+if [ -z "${DRAN_ZMQ_CROSS:-}" ] && [ -f "$STAMP" ] && grep -q "patch=$PATCH_HASH" "$STAMP" &&
+   verify >/dev/null 2>&1; then
     log "up to date ($(cat "$STAMP"))"
     exit 0
 fi
 
+if [ "${DRAN_ZMQ_PREBUILT:-0}" = 1 ]; then
+    grep -q "patch=$PATCH_HASH" "$STAMP" 2>/dev/null && ls "$PREFIX"/lib/libzmq.so* >/dev/null 2>&1 \
+        || die "DRAN_ZMQ_PREBUILT=1 but $PREFIX holds no libzmq built with our patch ($STAMP)"
+    SRC_VERSION=$(sed -n 's/^libzmq=\([^ ]*\).*/\1/p' "$STAMP")
+    mkdir -p "$CACHE"
+    log "using the prebuilt libzmq $SRC_VERSION in $PREFIX"
+else
 mkdir -p "$CACHE"
 
 # ------------------------------------------------------------ libzmq source
@@ -117,7 +130,17 @@ fi
 BUILD="$CACHE/build"
 rm -rf "$BUILD" "$PREFIX"
 log "building libzmq with drafts ($JOBS jobs)"
-cmake -S "$SRC" -B "$BUILD" -DCMAKE_BUILD_TYPE=Release -DCMAKE_INSTALL_PREFIX="$PREFIX" \
+CROSS_ARGS=()
+if [ -n "${DRAN_ZMQ_CROSS:-}" ]; then
+    CROSS_ARGS=(-DCMAKE_SYSTEM_NAME=Linux "-DCMAKE_SYSTEM_PROCESSOR=${DRAN_ZMQ_CROSS%%-*}"
+                "-DCMAKE_C_COMPILER=$DRAN_ZMQ_CROSS-gcc" "-DCMAKE_CXX_COMPILER=$DRAN_ZMQ_CROSS-g++")
+    # libzmq's feature checks run test programs: through qemu-user with the cross sysroot
+    if command -v "qemu-${DRAN_ZMQ_CROSS%%-*}-static" >/dev/null; then
+        CROSS_ARGS+=("-DCMAKE_CROSSCOMPILING_EMULATOR=qemu-${DRAN_ZMQ_CROSS%%-*}-static;-L;/usr/$DRAN_ZMQ_CROSS")
+    fi
+    command -v "$DRAN_ZMQ_CROSS-g++" >/dev/null || die "no $DRAN_ZMQ_CROSS-g++ (apt-get install g++-${DRAN_ZMQ_CROSS%%-*}-linux-gnu)"
+fi
+cmake -S "$SRC" -B "$BUILD" "${CROSS_ARGS[@]}" -DCMAKE_BUILD_TYPE=Release -DCMAKE_INSTALL_PREFIX="$PREFIX" \
     -DCMAKE_INSTALL_LIBDIR=lib -DENABLE_DRAFTS=ON -DBUILD_TESTS=OFF -DBUILD_STATIC=OFF \
     -DWITH_DOCS=OFF -DWITH_LIBSODIUM=OFF -DENABLE_CURVE=OFF -DWITH_PERF_TOOL=OFF \
     -DENABLE_CPACK=OFF >"$CACHE/cmake-configure.log" 2>&1 \
@@ -126,14 +149,26 @@ cmake --build "$BUILD" -j "$JOBS" >"$CACHE/cmake-build.log" 2>&1 \
     || die "libzmq build failed, see $CACHE/cmake-build.log"
 cmake --install "$BUILD" >"$CACHE/cmake-install.log" 2>&1 \
     || die "libzmq install failed, see $CACHE/cmake-install.log"
+if [ -n "${DRAN_ZMQ_CROSS:-}" ]; then
+    echo "libzmq=$SRC_VERSION patch=$PATCH_HASH cross=$DRAN_ZMQ_CROSS" > "$STAMP"
+    log "done (libzmq only, for $DRAN_ZMQ_CROSS): $(cat "$STAMP")"
+    exit 0
+fi
 
+fi
 # ------------------------------------------------------------ pyzmq from source
+# Built as a wheel (kept in $CACHE/wheels: the offline bundle ships it, docs/bundle.md), then
+# installed from it.
 log "building $PYZMQ_SPEC from source against $PREFIX"
+rm -rf "$CACHE/wheels" && mkdir -p "$CACHE/wheels"
 ZMQ_PREFIX="$PREFIX" ZMQ_DRAFT_API=1 LDFLAGS="-Wl,-rpath,$PREFIX/lib ${LDFLAGS:-}" \
     PKG_CONFIG_PATH="$PREFIX/lib/pkgconfig" \
-    "$PY" -m pip install -q --disable-pip-version-check --no-cache-dir --force-reinstall \
-    --no-deps --no-binary pyzmq "$PYZMQ_SPEC" >"$CACHE/pyzmq-build.log" 2>&1 \
+    "$PY" -m pip wheel -q --disable-pip-version-check --no-cache-dir --no-deps \
+    --no-binary pyzmq -w "$CACHE/wheels" "$PYZMQ_SPEC" >"$CACHE/pyzmq-build.log" 2>&1 \
     || die "pyzmq build failed, see $CACHE/pyzmq-build.log"
+"$PY" -m pip install -q --disable-pip-version-check --no-index --force-reinstall --no-deps \
+    "$CACHE"/wheels/pyzmq-*.whl >>"$CACHE/pyzmq-build.log" 2>&1 \
+    || die "installing the built pyzmq wheel failed, see $CACHE/pyzmq-build.log"
 
 VERSIONS=$(verify) || die "the built pyzmq does not work with drafts (see above)"
 echo "libzmq=$SRC_VERSION patch=$PATCH_HASH libzmq_runtime+pyzmq=${VERSIONS// /+}" > "$STAMP"
