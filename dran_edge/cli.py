@@ -26,6 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("dran_edge.commands.simulate", "simulate a multi-robot mission as a run directory"),
     "replay": ("dran_edge.commands.replay", "replay a recorded run through the robot code"),
     "detect": ("dran_edge.commands.detect", "detect AprilTags in images, recordings or a camera"),
+    "import-bag": ("dran_edge.commands.import_bag",
+                   "import ROS 1 / ROS 2 bags (.bag, .db3, .mcap) as a run directory"),
+    "export": ("dran_edge.commands.export",
+               "export a run's mocap as TUM/EuRoC/KITTI files, or the run as ROS bags"),
     "eval": ("dran_edge.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
     "fleet-key": ("dran_edge.commands.fleet_key", "create or check the fleet key (HMAC) file"),
 }
