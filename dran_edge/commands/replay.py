@@ -100,5 +100,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"evaluation: {r['evaluation_error']}")
     if r.get("ingest_rejected"):
         print(f"ingest records rejected: {r['ingest_rejected']}")
-    print(f"outputs: {res.out_dir}/ (report.json, rounds.csv, merged.g2o, <robot>/trajectory.tum)")
+    print(f"outputs: {res.out_dir}/ (report.json, rounds.csv, merged.g2o, <robot>/<robot>.tum)")
     return 0

@@ -1,0 +1,1 @@
+"""Scoring estimates against ground truth: metrics, alignment, reports."""
