@@ -28,6 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "detect": ("dran_edge.commands.detect", "detect AprilTags in images, recordings or a camera"),
     "import-bag": ("dran_edge.commands.import_bag",
                    "import ROS 1 / ROS 2 bags (.bag, .db3, .mcap) as a run directory"),
+    "merge-records": ("dran_edge.commands.merge_records",
+                      "combine robots' 'run --record' directories into one run"),
     "export": ("dran_edge.commands.export",
                "export a run's mocap as TUM/EuRoC/KITTI files, or the run as ROS bags"),
     "eval": ("dran_edge.commands.eval", "score a run or a trajectory against OptiTrack mocap"),

@@ -603,6 +603,17 @@ class Daemon:
             raise ValueError(f"the core's state uses the daemon's checkpoint keys {sorted(clash)}")
         return {**own, **core}
 
+    def _write_record_mission(self) -> None:
+        """mission.yaml of the recording (dran_edge/formats/recorded.py): replay and eval read
+        the record directory as it is."""
+        from dran_edge.formats.recorded import write_recorded_mission
+
+        try:
+            path = write_recorded_mission(self.record_dir)
+            log.info("recording: wrote %s", path)
+        except Exception:  # a recording without mission.yaml can still be merged later
+            log.exception("recording: could not write mission.yaml in %s", self.record_dir)
+
     def checkpoint(self) -> None:
         t = time.perf_counter()
         try:
@@ -689,6 +700,7 @@ class Daemon:
             self.journal.close()
             if self._record_file is not None:
                 self._record_file.close()
+                self._write_record_mission()
             if self.transport is not None:
                 self.transport.close()
             if self.status_server is not None:
