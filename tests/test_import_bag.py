@@ -291,3 +291,51 @@ def test_list_shows_topics(tmp_path, capsys):
     assert main(["import-bag", "--list", str(bag)]) == 0
     out = capsys.readouterr().out
     assert "/odom" in out and "nav_msgs/msg/Odometry" in out and out.rstrip().endswith("3")
+
+
+@pytest.mark.parametrize("fmt", run_bag.FORMATS)
+def test_max_rate_keeps_colour_depth_pairs_and_peeks_stamps(tmp_path, fmt):
+    """max_rate_hz drops frames before decoding them (the stamp is read from the serialised
+    header) and keeps colour and depth of a stamp together, whichever arrives first."""
+    from dran_edge.formats.bags import peek_header_stamp_ns
+
+    msgs = run_bag._Msgs(run_bag._typestore(fmt))
+    rows = _odometry_rows(msgs, n=25)
+    for k in range(25):  # 10 Hz frames; depth arrives before colour for odd k
+        s = T0 + k * 100_000_000 + 7
+        c = msgs.image(s, np.full((16, 16), k, np.uint8), "mono8")
+        d = msgs.image(s, np.full((16, 16), 1000 + k, np.uint16), "16UC1")
+        rows.append(("/cam", "sensor_msgs/msg/Image", s + (2 if k % 2 else 1), c))
+        rows.append(("/depth", "sensor_msgs/msg/Image", s + (1 if k % 2 else 2), d))
+    ts = msgs.ts
+    raw = (ts.serialize_ros1 if fmt == "ros1" else ts.serialize_cdr)(rows[-1][3],
+                                                                     "sensor_msgs/msg/Image")
+    assert peek_header_stamp_ns(raw, fmt != "ros1") == T0 + 24 * 100_000_000 + 7
+    bag = _bag(tmp_path, fmt, rows, msgs)
+    calib = tmp_path / "calib"
+    (calib / "cameras").mkdir(parents=True)
+    (calib / "tags.yaml").write_text("format: dran-edge-tags/1\nfamily: tag36h11\nobjects: []\n")
+    (calib / "cameras" / "r1.yaml").write_text(yaml.safe_dump({
+        "format": "dran-edge-camera/1", "robot": "r1", "width": 16, "height": 16,
+        "intrinsics": {"fx": 10.0, "fy": 10.0, "cx": 8.0, "cy": 8.0},
+        "T_body_camera": {"xyz": [0, 0, 0], "quat_xyzw": [0, 0, 0, 1]}}))
+    m = {"format": "dran-edge-bag-map/1", "calib": str(calib), "robots": [
+        {"id": 1, "name": "r1", "odometry": "/odom",
+         "image": {"topic": "/cam", "depth": "/depth", "max_rate_hz": 3.0}}]}
+    s = import_bags([bag], read_mapping(_write_mapping(tmp_path / "m.yaml", m)), tmp_path / "o")
+    r = s["robots"]["r1"]
+    # at most 3 per second: frames at least 1/3 s apart, i.e. every 4th of the 10 Hz stream
+    assert r["written"]["frames"] == 7 and r["written"]["frames_dropped_by_rate"] == 18
+    assert r["skipped"] == {}
+    import cv2
+
+    lines = (tmp_path / "o" / "robots" / "r1" / "frames" / "frames.csv").read_text().split()[1:]
+    ks = []
+    for line in lines:
+        stamp, c, d, _ = line.split(",")
+        k = (int(stamp) - T0 - 7) // 100_000_000
+        ks.append(k)
+        f = tmp_path / "o" / "robots" / "r1" / "frames"
+        assert cv2.imread(str(f / c), cv2.IMREAD_UNCHANGED)[0, 0] == k
+        assert cv2.imread(str(f / d), cv2.IMREAD_UNCHANGED)[0, 0] == 1000 + k
+    assert ks == list(range(0, 25, 4))

@@ -21,6 +21,7 @@ import csv
 import heapq
 import json
 import shutil
+import struct
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
@@ -124,6 +125,8 @@ class RobotSink:
         self._frames_csv = None
         self._frame_n = 0
         self._last_frame_ns = 0
+        self._last_keep_ns = 0
+        self._decided: OrderedDict[int, bool] = OrderedDict()
         self.camera: dict | None = None
         self.frame_size: tuple[int, int] | None = None
 
@@ -221,10 +224,28 @@ class RobotSink:
             return None
         return self._kf_receive[best] - self.r.clock_offset_ns
 
+    def keep_frame(self, role: str, s: int) -> bool:
+        """Whether the frame at ``s`` passes ``max_rate_hz``: decided once per stamp (by the
+        first of its colour/depth images to arrive), so a pair is kept or dropped together,
+        before any pixel is decoded."""
+        if s in self._decided:
+            return self._decided[s]
+        rate = self.r.image.max_rate_hz
+        keep = not rate or not self._last_keep_ns or \
+            s - self._last_keep_ns >= int(1e9 / rate) - 1000
+        if keep:
+            self._last_keep_ns = s
+        self._decided[s] = keep
+        while len(self._decided) > 256:
+            self._decided.popitem(last=False)
+        if not keep:  # counted once per frame (colour + depth), at its first image
+            self.counts["frames_dropped_by_rate"] += 1
+        return keep
+
     def _image(self, role: str, msg: Any, s: int) -> None:
-        img = rm.image_file(msg, depth=role == "depth")
-        if not self._monotonic(role, s):
+        if not self._monotonic(role, s) or not self.keep_frame(role, s):
             return
+        img = rm.image_file(msg, depth=role == "depth")
         slot = self._pending.setdefault(s, _Pending())
         if role == "image":
             slot.colour = img
@@ -242,10 +263,6 @@ class RobotSink:
             self._write_frame(s, slot)
 
     def _write_frame(self, s: int, slot: _Pending) -> None:
-        rate = self.r.image.max_rate_hz
-        if rate and self._last_frame_ns and s - self._last_frame_ns < int(1e9 / rate) - 1000:
-            self.counts["frames_dropped_by_rate"] += 1
-            return
         if s <= self._last_frame_ns:
             self.skipped["non_monotonic:frames"] += 1
             return
@@ -417,12 +434,17 @@ def _read_one(reader, path: Path, wanted, sinks, mocap, found, stats, progress) 
             done += 1
             owner, role = wanted[conn.topic]
             found.add((conn.topic, str(path)))
+            target = sinks.get(owner)
+            if role in ("image", "depth") and target.r.image.max_rate_hz \
+                    and target.mapping.clock == "header":
+                s = peek_header_stamp_ns(raw, reader.is2)
+                if s is not None and not target.keep_frame(role, s + target.r.clock_offset_ns):
+                    continue  # dropped by max_rate_hz: never deserialised
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception:  # rosbags raises several types for a damaged message
                 stats["undecodable"][conn.topic] += 1
                 continue
-            target = sinks.get(owner)
             try:
                 if target is not None:
                     target.handle(role, msg, receive_ns)
@@ -440,6 +462,22 @@ def _read_one(reader, path: Path, wanted, sinks, mocap, found, stats, progress) 
                               "seconds": round(time.monotonic() - t_start, 3)})
     finally:
         reader.close()
+
+
+def peek_header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int | None:
+    """header.stamp of a serialised message that starts with a std_msgs/Header, without
+    deserialising it: ROS 1 ``seq u32, secs u32, nsecs u32``; ROS 2 CDR ``4-byte
+    encapsulation, sec i32, nanosec u32`` (little- or big-endian). None if too short."""
+    if ros2:
+        if len(raw) < 12:
+            return None
+        fmt = "<iI" if raw[1] & 1 else ">iI"
+        sec, nsec = struct.unpack_from(fmt, raw, 4)
+    else:
+        if len(raw) < 12:
+            return None
+        sec, nsec = struct.unpack_from("<II", raw, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def _first_note(sink, reason: str, text: str) -> None:
