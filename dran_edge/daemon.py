@@ -151,6 +151,29 @@ class PerceptionWorker:
                 self.out.put(batch)
 
 
+#: At most this many (newest) keyframes in the status document's ``estimate`` section.
+STATUS_MAX_KEYFRAMES = 5000
+
+
+def _estimate_section(est) -> dict | None:
+    """The latest estimate for the ROS 2 bridge (dran_edge/ros/bridge2.py): keyframes as rows
+    ``[stamp_ns, x, y, z, qx, qy, qz, qw]`` (world frame, newest STATUS_MAX_KEYFRAMES) and
+    objects as ``[object_id, x, y, z, qx, qy, qz, qw]``."""
+    if est is None or len(est.keyframe_stamps_ns) == 0:
+        return None
+    from dran_edge import geometry as geo
+
+    order = np.argsort(np.asarray(est.keyframe_stamps_ns))[-STATUS_MAX_KEYFRAMES:]
+    v = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_body)[order])
+    kf = [[int(s)] + [round(float(x), 9) for x in row]
+          for s, row in zip(np.asarray(est.keyframe_stamps_ns)[order].tolist(), v)]
+    objs = []
+    if len(est.object_ids):
+        w = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_object))
+        objs = [[int(i)] + [round(float(x), 9) for x in row] for i, row in zip(est.object_ids, w)]
+    return {"round": int(est.round), "keyframes": kf, "objects": objs}
+
+
 class StatusServer:
     """Unix stream socket: each connection gets the latest status as one JSON document."""
 
@@ -671,6 +694,7 @@ class Daemon:
                 "batches": self.perception.batches, "errors": self.perception.errors},
             "counters": dict(self.counters),
             "agent": self.agent_health,
+            "estimate": _estimate_section(est),
             "systemd": self.notifier.backend,
         }
 

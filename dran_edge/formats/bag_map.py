@@ -31,6 +31,8 @@ class ImageMap:
     depth_unit_m: float = 0.001
     max_rate_hz: float | None = None
     """Keep at most this many frames per second (None: every frame)."""
+    encode: str = "png"
+    """How raw sensor_msgs/Image frames are stored: png (compressed) or pnm (PGM/PPM, fast)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,13 +126,17 @@ def _topic(n: rd._Node, key: str, required: bool = False) -> str | None:
 
 
 def _image(n: rd._Node) -> ImageMap:
-    n.check({"topic"}, {"camera_info", "depth", "T_body_camera", "depth_unit_m", "max_rate_hz"})
+    n.check({"topic"}, {"camera_info", "depth", "T_body_camera", "depth_unit_m", "max_rate_hz",
+                        "encode"})
+    enc = n.get("encode", "str", "png")
+    if enc not in ("png", "pnm"):
+        raise n._err(f"{n.key('encode')}: expected png or pnm, got {enc!r}", n.key("encode"))
     rate = n.get("max_rate_hz", "float")
     unit = n.get("depth_unit_m", "float", 0.001)
     if (rate is not None and rate <= 0) or unit <= 0:
         raise n._err(f"{n.where}: max_rate_hz and depth_unit_m must be > 0", n.where)
     return ImageMap(_topic(n, "topic", True), _topic(n, "camera_info"), _topic(n, "depth"),
-                    n.get("T_body_camera", "pose"), unit, rate)
+                    n.get("T_body_camera", "pose"), unit, rate, enc)
 
 
 def _loops(n: rd._Node) -> LoopMap:

@@ -245,7 +245,7 @@ class RobotSink:
     def _image(self, role: str, msg: Any, s: int) -> None:
         if not self._monotonic(role, s) or not self.keep_frame(role, s):
             return
-        img = rm.image_file(msg, depth=role == "depth")
+        img = rm.image_file(msg, depth=role == "depth", encode=self.r.image.encode)
         slot = self._pending.setdefault(s, _Pending())
         if role == "image":
             slot.colour = img

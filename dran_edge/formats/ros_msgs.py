@@ -261,8 +261,18 @@ def _png(array: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def raw_image(msg: Any, depth: bool = False) -> EncodedImage:
-    """sensor_msgs/Image -> PNG (lossless). Colour: mono8/bgr8/rgb8(+alpha); depth: 16UC1/mono16."""
+def _pnm(array: np.ndarray) -> bytes:
+    """Binary PGM (grey, 8 or 16 bit) or PPM (colour): lossless, no compression, fast."""
+    h, w = array.shape[:2]
+    if array.ndim == 3:  # BGR -> the RGB order of PPM
+        return b"P6\n%d %d\n255\n" % (w, h) + np.ascontiguousarray(array[..., ::-1]).tobytes()
+    if array.dtype == np.uint16:
+        return b"P5\n%d %d\n65535\n" % (w, h) + array.astype(">u2").tobytes()
+    return b"P5\n%d %d\n255\n" % (w, h) + array.tobytes()
+
+
+def decode_image(msg: Any, depth: bool = False) -> np.ndarray:
+    """sensor_msgs/Image -> array: colour BGR (H, W, 3) or grey (H, W) uint8; depth uint16."""
     enc = str(msg.encoding)
     w, h = int(msg.width), int(msg.height)
     allowed = DEPTH_ENCODINGS if depth else COLOUR_ENCODINGS
@@ -272,16 +282,28 @@ def raw_image(msg: Any, depth: bool = False) -> EncodedImage:
                            f"supported (expected one of {', '.join(allowed)})")
     if depth:
         rows = _packed(msg, 2)
-        arr = rows.view(">u2" if msg.is_bigendian else "<u2").reshape(h, w).astype(np.uint16)
-        return EncodedImage(_png(arr), ".png", w, h)
+        return rows.view(">u2" if msg.is_bigendian else "<u2").reshape(h, w).astype(np.uint16)
     channels = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}[enc]
-    arr = _packed(msg, channels).reshape(h, w, channels) if channels > 1 else \
-        _packed(msg, 1).reshape(h, w)
+    arr = _packed(msg, channels).reshape((h, w, channels) if channels > 1 else (h, w))
     if enc.startswith("rgb"):
         arr = arr[..., [2, 1, 0]]
     elif channels == 4:
         arr = arr[..., :3]
-    return EncodedImage(_png(np.ascontiguousarray(arr)), ".png", w, h)
+    return np.ascontiguousarray(arr)
+
+
+def raw_image(msg: Any, depth: bool = False, encode: str = "png") -> EncodedImage:
+    """sensor_msgs/Image -> a lossless image file. Colour: mono8/bgr8/rgb8(+alpha); depth:
+    16UC1/mono16. ``encode``: ``png`` (compressed, ~50-100 ms for 640x480 on a small CPU) or
+    ``pnm`` (PGM/PPM, uncompressed, a memory copy)."""
+    arr = decode_image(msg, depth)
+    return _encoded(arr, encode, int(msg.width), int(msg.height))
+
+
+def _encoded(arr: np.ndarray, encode: str, w: int, h: int) -> EncodedImage:
+    if encode == "pnm":
+        return EncodedImage(_pnm(arr), ".ppm" if arr.ndim == 3 else ".pgm", w, h)
+    return EncodedImage(_png(arr), ".png", w, h)
 
 
 def compressed_image(msg: Any, depth: bool = False) -> EncodedImage:
@@ -307,11 +329,11 @@ def compressed_image(msg: Any, depth: bool = False) -> EncodedImage:
                        "not supported (expected PNG" + ("" if depth else " or JPEG") + " data)")
 
 
-def image_file(msg: Any, depth: bool = False) -> EncodedImage:
-    """Image or CompressedImage -> the bytes of a frames/ file."""
+def image_file(msg: Any, depth: bool = False, encode: str = "png") -> EncodedImage:
+    """Image or CompressedImage -> the bytes of a frames/ file (``encode``: raw images only)."""
     if hasattr(msg, "format") and not hasattr(msg, "encoding"):
         return compressed_image(msg, depth)
-    return raw_image(msg, depth)
+    return raw_image(msg, depth, encode)
 
 
 # ------------------------------------------------------------------------------ camera info
