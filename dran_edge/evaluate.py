@@ -606,7 +606,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
     }
     report = json_safe(report)
     report["_"] = {"robots": robots, "aligned": aligned, "rounds": rounds, "objects": obj_plot,
-                   "round_cost_ref": round_cost_ref}
+                   "round_cost_ref": round_cost_ref,
+                   "comm_graph": list(mission.comm_graph)}
     return report
 
 
@@ -808,31 +809,61 @@ def _trajectories(plt, report, data, eval_dir):
     return p
 
 
+def round_panels(rounds: dict, ref: dict | None, n_robots: int, n_links: int
+                 ) -> list[tuple[str, str, np.ndarray]]:
+    """(title, y label, values) of rounds.png's panels, each saying what it plots.
+
+    The consensus panel is rounds.csv's ``consensus_error``: per round, the largest of the
+    robots' own consensus residuals — not the paper's CE of the summary (docs/eval.md). The
+    cost is SR_cost when report.json gives ``cost_init`` and ``cost_centralized``, else the
+    raw sum of the robots' local costs (which grows with the graphs). Bytes per round are
+    shown per robot and per communication link, besides the cumulative total.
+    """
+    panels = []
+    if "cost" in rounds and ref is not None:
+        panels.append(("SR_cost per round (paper Sec. 6.2)", "SR_cost (%)",
+                       metrics.sr_cost(ref["F_init"], rounds["cost"], ref["F_star"])))
+    elif "cost" in rounds:
+        panels.append(("sum of the robots' local costs (grows as the graphs grow; "
+                       "not F/F*)", "cost (SE-Sync objective units)", rounds["cost"]))
+    if "consensus_error" in rounds:
+        panels.append(("largest robot's own consensus residual per round (not the "
+                       "summary's CE)", "max_i residual_i", rounds["consensus_error"]))
+    if "bias" in rounds:
+        panels.append(("Bias per round", "Bias", rounds["bias"]))
+    if "bytes_round" in rounds:
+        b = np.asarray(rounds["bytes_round"], dtype=np.float64)
+        panels.append(("bytes sent per round: per robot (mean) and per link (mean)",
+                       "bytes / round", np.stack([b / max(n_robots, 1), b / max(n_links, 1)])))
+    if "bytes_total" in rounds:
+        panels.append(("bytes sent by all robots, cumulative", "bytes (total)",
+                       rounds["bytes_total"]))
+    return panels
+
+
 def _rounds(plt, report, data, eval_dir):
     rounds = data["rounds"]
     if rounds is None or len(rounds.get("round", [])) == 0:
         return None
-    ref = data["round_cost_ref"]
     r = rounds["round"]
-    panels = []
-    if "cost" in rounds and ref is not None:
-        panels.append(("SR_cost (%)", metrics.sr_cost(ref["F_init"], rounds["cost"],
-                                                       ref["F_star"])))
-    elif "cost" in rounds:
-        panels.append(("cost", rounds["cost"]))
-    for col, label in (("consensus_error", "consensus error (CE)"), ("bias", "Bias"),
-                       ("bytes_total", "bytes sent (total)")):
-        if col in rounds:
-            panels.append((label, rounds[col]))
+    n_links = len(data.get("comm_graph") or ()) or 1
+    panels = round_panels(rounds, data["round_cost_ref"], len(report.get("robots") or {}) or 1,
+                          n_links)
     if not panels:
         return None
-    fig, axes = plt.subplots(len(panels), 1, figsize=(7, 2.3 * len(panels)), sharex=True,
+    fig, axes = plt.subplots(len(panels), 1, figsize=(7.5, 2.5 * len(panels)), sharex=True,
                              squeeze=False)
-    for ax, (label, y) in zip(axes[:, 0], panels):
-        ax.plot(r, y, lw=1.4)
+    for ax, (title, label, y) in zip(axes[:, 0], panels):
+        if np.ndim(y) == 2:
+            ax.plot(r, y[0], lw=1.4, label="per robot")
+            ax.plot(r, y[1], lw=1.0, ls="--", label="per link")
+            ax.legend(fontsize=7, loc="best")
+        else:
+            ax.plot(r, y, lw=1.4)
+        ax.set_title(title, fontsize=8)
         ax.set_ylabel(label, fontsize=8)
         ax.grid(alpha=0.3)
-        if label.startswith("consensus") and np.nanmin(y) > 0:
+        if title.startswith("largest") and np.nanmin(y) > 0:
             ax.set_yscale("log")
     axes[-1, 0].set_xlabel("round")
     p = eval_dir / "rounds.png"
