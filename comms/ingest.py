@@ -128,7 +128,10 @@ def _frame(kind: int, payload: bytes, flags: int = 0) -> bytes:
 
 
 def _floats(values, n: int, what: str) -> list[float]:
-    out = [float(v) for v in np.asarray(values, dtype=np.float64).reshape(-1)]
+    if isinstance(values, tuple):  # the bag importer's poses: no numpy round trip
+        out = [float(v) for v in values]
+    else:
+        out = [float(v) for v in np.asarray(values, dtype=np.float64).reshape(-1)]
     if len(out) != n:
         raise ValueError(f"{what}: expected {n} numbers, got {len(out)}")
     return out

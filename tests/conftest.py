@@ -11,3 +11,27 @@ import os
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+
+
+import pytest  # noqa: E402
+
+#: The small simulated mission the bag and trajectory-format tests share (3 robots, 16 s,
+#: rendered frames at 1 Hz, so the replay runs the AprilTag pipeline).
+SMALL_SIM = dict(robots=3, objects=3, duration_s=16.0, seed=5, arena_m=5.0, frame_rate_hz=1.0,
+                 mocap_rate_hz=10.0)
+SMALL_REPLAY = dict(workers=1, settle_rounds=5)
+
+
+@pytest.fixture(scope="session")
+def small_sim_run(tmp_path_factory):
+    """(run_dir, replay report) of SMALL_SIM, simulated and replayed once per session.
+
+    Tests must not write into run_dir (copy it first)."""
+    from dran_edge.replay.run import ReplayOptions, replay_run
+    from dran_edge.sim.writer import write_run
+    from dran_edge.sim.mission import SimParams, generate_mission
+
+    run = tmp_path_factory.mktemp("small_sim") / "run"
+    write_run(generate_mission(SimParams(**SMALL_SIM)), run, frames="render", workers=1)
+    report = replay_run(run, ReplayOptions(**SMALL_REPLAY)).report
+    return run, report

@@ -196,7 +196,7 @@ def test_eval_run_errors(tmp_path):
     make_run(tmp_path / "c")
     for p in (tmp_path / "c" / "out").rglob("trajectory.tum"):
         p.unlink()
-    with pytest.raises(InputError, match=r"no robot has out/<name>/trajectory.tum"):
+    with pytest.raises(InputError, match=r"no robot has out/<name>/<name>.tum"):
         evaluate.evaluate_run(tmp_path / "c", evaluate.EvalOptions(plots=False))
     make_run(tmp_path / "d")
     with pytest.raises(InputError, match="time ranges do not overlap"):

@@ -58,10 +58,10 @@ def test_outputs_exist_and_are_readable(tiny):
     assert on_disk["rounds"] == report["rounds"]
     for name in ("dingo1", "dingo2", "dingo3"):
         assert report["keyframes"][name] > 5
-        stamps, T = read_tum(run / "out" / name / "trajectory.tum")
+        stamps, T = read_tum(run / "out" / name / f"{name}.tum")
         assert len(stamps) == report["keyframes"][name]
         assert stamps[0] * 1e9 >= 1.7e18
-        s0, _ = read_tum(run / "out" / name / "trajectory_init.tum")
+        s0, _ = read_tum(run / "out" / name / f"{name}_init.tum")
         assert len(s0) == len(stamps)
         assert report["objects_known"][name] >= 1
     assert (run / "out" / "merged.g2o").exists()
@@ -265,7 +265,7 @@ def test_delta_layout_default_saves_bytes_at_the_same_accuracy(tiny, tmp_path):
     assert 0 < report["bytes_total"] < 0.8 * rep["bytes_total"]
     assert rep["rounds"] == report["rounds"]
     for robot in (run / "out").iterdir():
-        if (robot / "trajectory.tum").exists():
-            a = np.loadtxt(robot / "trajectory.tum")
-            b = np.loadtxt(plain / "out" / robot.name / "trajectory.tum")
+        if (robot / f"{robot.name}.tum").exists():
+            a = np.loadtxt(robot / f"{robot.name}.tum")
+            b = np.loadtxt(plain / "out" / robot.name / f"{robot.name}.tum")
             assert a.shape == b.shape and np.abs(a[:, 1:4] - b[:, 1:4]).max() < 0.01  # metres

@@ -21,7 +21,7 @@ def test_simulate_then_replay_through_the_cli(tmp_path, capsys):
     report = json.loads(captured.out)
     assert report["robots"] == 2 and report["rounds"] == 24 + 4
     assert report["frames_processed"] == 0 and report["observations"] > 0
-    assert (run / "out" / "dingo1" / "trajectory.tum").exists()
+    assert (run / "out" / "dingo1" / "dingo1.tum").exists()
     # a second simulate into the same directory is refused (exit 2, names the directory)
     rc = main(["simulate", str(run), "--robots", "2", "--duration-s", "5"])
     err = capsys.readouterr().err

@@ -154,6 +154,29 @@ class PerceptionWorker:
                 self.out.put(batch)
 
 
+#: At most this many (newest) keyframes in the status document's ``estimate`` section.
+STATUS_MAX_KEYFRAMES = 5000
+
+
+def _estimate_section(est) -> dict | None:
+    """The latest estimate for the ROS 2 bridge (dran_edge/ros/bridge2.py): keyframes as rows
+    ``[stamp_ns, x, y, z, qx, qy, qz, qw]`` (world frame, newest STATUS_MAX_KEYFRAMES) and
+    objects as ``[object_id, x, y, z, qx, qy, qz, qw]``."""
+    if est is None or len(est.keyframe_stamps_ns) == 0:
+        return None
+    from dran_edge import geometry as geo
+
+    order = np.argsort(np.asarray(est.keyframe_stamps_ns))[-STATUS_MAX_KEYFRAMES:]
+    v = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_body)[order])
+    kf = [[int(s)] + [round(float(x), 9) for x in row]
+          for s, row in zip(np.asarray(est.keyframe_stamps_ns)[order].tolist(), v)]
+    objs = []
+    if len(est.object_ids):
+        w = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_object))
+        objs = [[int(i)] + [round(float(x), 9) for x in row] for i, row in zip(est.object_ids, w)]
+    return {"round": int(est.round), "keyframes": kf, "objects": objs}
+
+
 class StatusServer:
     """Unix stream socket: each connection gets the latest status as one JSON document."""
 
@@ -735,6 +758,17 @@ class Daemon:
             raise ValueError(f"the core's state uses the daemon's checkpoint keys {sorted(clash)}")
         return {**own, **core}
 
+    def _write_record_mission(self) -> None:
+        """mission.yaml of the recording (dran_edge/formats/recorded.py): replay and eval read
+        the record directory as it is."""
+        from dran_edge.formats.recorded import write_recorded_mission
+
+        try:
+            path = write_recorded_mission(self.record_dir)
+            log.info("recording: wrote %s", path)
+        except Exception:  # a recording without mission.yaml can still be merged later
+            log.exception("recording: could not write mission.yaml in %s", self.record_dir)
+
     def checkpoint(self) -> None:
         t = time.perf_counter()
         try:
@@ -792,6 +826,7 @@ class Daemon:
                 "batches": self.perception.batches, "errors": self.perception.errors},
             "counters": dict(self.counters),
             "agent": self.agent_health,
+            "estimate": _estimate_section(est),
             "systemd": self.notifier.backend,
         }
 
@@ -828,6 +863,7 @@ class Daemon:
             self.journal.close()
             if self._record_file is not None:
                 self._record_file.close()
+                self._write_record_mission()
             if self.transport is not None:
                 self.transport.close()
             if self.status_server is not None:

@@ -155,8 +155,17 @@ def _angular_speed(time_s, T, valid, grid_s, max_gap_s, smooth_n):
     dt = np.diff(grid_s)
     R = Tg[:, :3, :3]
     w = np.linalg.norm(geo.so3_log(np.swapaxes(R[:-1], -1, -2) @ R[1:]), axis=-1) / dt
-    ok = ok[:-1] & ok[1:]
-    w = np.where(ok, w, np.nan)
+    return _smooth(np.where(ok[:-1] & ok[1:], w, np.nan), smooth_n)
+
+
+def _linear_speed(time_s, T, valid, grid_s, max_gap_s, smooth_n):
+    Tg, ok = interpolate_track(time_s, T, grid_s, valid=valid, max_gap_s=max_gap_s)
+    v = np.linalg.norm(np.diff(Tg[:, :3, 3], axis=0), axis=-1) / np.diff(grid_s)
+    return _smooth(np.where(ok[:-1] & ok[1:], v, np.nan), smooth_n)
+
+
+def _smooth(w, smooth_n):
+    ok = np.isfinite(w)
     if smooth_n > 1:
         kernel = np.ones(smooth_n) / smooth_n
         filled = np.where(ok, w, 0.0)
@@ -178,8 +187,13 @@ def estimate_time_offset(
     rate_hz: float = 100.0,
     smooth_s: float = 0.05,
     min_overlap_s: float = 5.0,
+    signal: str = "angular",
 ) -> TimeOffset:
     """Clock offset ``t_mocap − t_est`` maximising the correlation of angular speeds.
+
+    ``signal="linear"`` correlates linear speeds ``‖p_k+1 − p_k‖/Δt`` instead (position
+    correlation): for estimates without orientation (positions only) or robots that never
+    turn; invariant to the world frame, not to a scale error's sign (it has none).
 
     The search is around ``initial_offset_s`` (default: the offset that lines up the first
     estimate stamp with the first tracked mocap frame), within ``±max_offset_s`` (default: any
@@ -199,15 +213,17 @@ def estimate_time_offset(
     est_period_s = float(np.median(np.diff(stamps_est_s)))
     smooth_n = max(1, int(round(max(smooth_s, 3.0 * est_period_s) * rate_hz)))
     est_grid = np.arange(stamps_est_s[0], stamps_est_s[-1], step)
+    if len(est_grid) < 3:
+        raise InputError("time offset: the estimate spans less than three resampling steps")
     # The mocap grid in the estimate's clock (shifted by the initial offset), same phase.
     lo = time_ref_s[vr][0] - initial_offset_s
     hi = time_ref_s[vr][-1] - initial_offset_s
     j0 = int(np.floor((lo - est_grid[0]) / step)) if len(est_grid) else 0
     j1 = int(np.ceil((hi - est_grid[0]) / step)) if len(est_grid) else 0
     ref_grid_est_clock = est_grid[0] + np.arange(j0, j1 + 1) * step
-    e = _angular_speed(stamps_est_s, T_est, None, est_grid, 10 * step + 1.0, smooth_n)
-    r = _angular_speed(time_ref_s, T_ref, vr, ref_grid_est_clock + initial_offset_s,
-                       0.25, smooth_n)
+    speed = _angular_speed if signal == "angular" else _linear_speed
+    e = speed(stamps_est_s, T_est, None, est_grid, 10 * step + 1.0, smooth_n)
+    r = speed(time_ref_s, T_ref, vr, ref_grid_est_clock + initial_offset_s, 0.25, smooth_n)
     n_e, n_r = len(e), len(r)
     min_n = int(min_overlap_s * rate_hz)
     if n_e < 3 or n_r < 3 or min(n_e, n_r) < min(min_n, 3):
@@ -239,8 +255,9 @@ def estimate_time_offset(
     if max_offset_s is not None:
         ok &= np.abs(offset_of_L - initial_offset_s) <= max_offset_s + 0.5 * step
     if not ok.any():
-        raise InputError("time offset: no lag with enough overlap and motion (does the robot "
-                         "turn? do the clocks overlap within max_offset_s?)")
+        raise InputError(f"time offset: no lag with enough overlap and {signal} motion (does "
+                         f"the robot {'turn' if signal == 'angular' else 'move'}? does the "
+                         "estimate overlap the reference in time?); give --time-offset S")
     rho_ok = np.where(ok, rho, -np.inf)
     k = int(np.argmax(rho_ok))
     frac = 0.0

@@ -2,7 +2,7 @@
 
 The shell behind ``dran-edge eval`` (docs/eval.md). It reads the run directory
 (docs/run-format.md): ``mission.yaml``, the Motive CSV, and what ``dran-edge replay`` wrote under
-``out/`` (per robot ``trajectory.tum``, ``trajectory_init.tum``, ``objects.csv``; ``merged.g2o``,
+``out/`` (per robot ``<robot>.tum``, ``<robot>_init.tum``, ``objects.csv``; ``merged.g2o``,
 ``merged_vertices.csv``, ``rounds.csv``, ``report.json``). Optional files that are absent only
 remove the metrics that need them (the report's ``notes`` say which and why); a file that is
 present but malformed is an error naming its line.
@@ -15,11 +15,11 @@ the paper's protocol (per robot, the initial world-to-robot frame from mocap at 
 matched pose of the initial estimate; the same frame is used for the initial, final and
 centralized estimates and the robot's object copies).
 
-SR_ATE needs the centralized solution: ``out/centralized/<robot>/trajectory.tum`` if present;
+SR_ATE needs the centralized solution: ``out/centralized/<robot>/<robot>.tum`` if present;
 otherwise ``merged.g2o`` (decentralized final estimate as vertices) is solved with our centralized
 Schur-LM (dran_edge.solver.centralized) and mapped back to robots and stamps by ``merged_vertices.csv``.
 SR_cost uses the SE-Sync objective of ``merged.g2o``: F_k at the file's vertices, F_init at the
-robots' initial estimate (``trajectory_init.tum`` at the vertex stamps; each object placed by its
+robots' initial estimate (``<robot>_init.tum`` at the vertex stamps; each object placed by its
 first observation from that trajectory — where the decentralized method starts, paper Sec. 6.2)
 and F* at the centralized optimum (the chordal start's value is kept as ``F_chordal``);
 without merged.g2o, ``cost_init / cost_final / cost_centralized`` of out/report.json. Per round,
@@ -41,7 +41,12 @@ from dran_edge.formats import motive, tum
 from dran_edge import geometry as geo
 from dran_edge.errors import DependencyError, InputError
 from dran_edge.evaluation.report import json_safe, summary_markdown
-from dran_edge.formats.run_outputs import read_objects_csv, read_rounds_csv, read_vertex_map
+from dran_edge.formats.run_outputs import (
+    read_objects_csv,
+    read_rounds_csv,
+    read_vertex_map,
+    trajectory_file,
+)
 
 log = logging.getLogger(__name__)
 
@@ -93,41 +98,108 @@ def body_ground_truth(take: motive.MotiveTake, body: str, T_body_marker: np.ndar
     return take.time_s, T, b.valid
 
 
-def resolve_time_offset(stamps_s, T_est, gt_time_s, gt_T, gt_valid,
-                        given: float | None) -> tuple[float, str, dict]:
-    """(offset, source, details): the given offset, or one estimated from angular speeds."""
+def _overlap_fraction(stamps_s: np.ndarray, ref_s: np.ndarray) -> float:
+    """Fraction of the estimate's time span inside the reference's, both in one clock."""
+    lo, hi = max(stamps_s[0], ref_s[0]), min(stamps_s[-1], ref_s[-1])
+    span = max(stamps_s[-1] - stamps_s[0], 1e-9)
+    return float(max(hi - lo, 0.0) / span)
+
+
+def resolve_time_offset(stamps_s, T_est, gt_time_s, gt_T, gt_valid, given: float | None, *,
+                        positions_only: bool = False, same_clock_first: bool = False
+                        ) -> tuple[float, str, dict]:
+    """(offset ``t_ref = t_est + offset``, how it was found, details).
+
+    In order: the ``given`` offset; with ``same_clock_first`` (a reference file with absolute
+    stamps, as evo assumes) the **clock overlap** (offset 0 when at least half of the
+    estimate's span lies inside the reference's); the **angular-speed correlation** (skipped
+    for a positions-only estimate); the **position correlation** (linear speeds); the clock
+    overlap. Raises InputError listing what was tried.
+    """
     if given is not None:
         return float(given), "given", {}
-    res = align.estimate_time_offset(stamps_s, T_est, gt_time_s, gt_T, valid_ref=gt_valid)
-    return res.offset_s, "estimated", {"correlation": res.correlation, "overlap_s": res.overlap_s}
+    ref_s = np.asarray(gt_time_s)[np.asarray(gt_valid, bool)] if gt_valid is not None \
+        else np.asarray(gt_time_s)
+    overlap = _overlap_fraction(np.asarray(stamps_s), ref_s) if len(ref_s) else 0.0
+    if same_clock_first and overlap >= 0.5:
+        return 0.0, "clock overlap", {"overlap_fraction": overlap}
+    tried = []
+    for signal, name in (("angular", "angular-speed correlation"),
+                         ("linear", "position correlation")):
+        if signal == "angular" and positions_only:
+            tried.append(f"{name}: skipped, the estimate has no orientations")
+            continue
+        try:
+            res = align.estimate_time_offset(stamps_s, T_est, gt_time_s, gt_T,
+                                             valid_ref=gt_valid, signal=signal)
+        except InputError as exc:
+            tried.append(f"{name}: {str(exc).replace('; give --time-offset S', '')}")
+            continue
+        return res.offset_s, f"estimated ({name})", {
+            "correlation": res.correlation, "overlap_s": res.overlap_s, "tried": tried}
+    if overlap >= 0.5:
+        return 0.0, "clock overlap", {"overlap_fraction": overlap, "tried": tried}
+    raise InputError("no clock offset found: " + "; ".join(tried) + "; and the clocks do not "
+                     "overlap. Give --time-offset S (t_ref = t_est + S)")
+
+
+def _positions_only(T: np.ndarray) -> bool:
+    return bool(np.all(np.abs(np.asarray(T)[:, :3, :3] - np.eye(3)) < 1e-12))
 
 
 def evaluate_trajectory(
     stamps_s: np.ndarray,
     T_est: np.ndarray,
-    take: motive.MotiveTake,
-    body: str,
+    take: motive.MotiveTake | None,
+    body: str | None,
     *,
     T_body_marker: np.ndarray | None = None,
     align_kind: str = "se3",
     time_offset_s: float | None = None,
+    time_offset_source: str | None = None,
     max_gap_s: float = 0.1,
     rpe_delta_s: float = 1.0,
+    reference: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
-    """Score one trajectory against one Motive body (``dran-edge eval traj``)."""
-    T_bm = np.eye(4) if T_body_marker is None else T_body_marker
-    gt_t, gt_T, gt_v = body_ground_truth(take, body, T_bm)
-    offset, source, details = resolve_time_offset(stamps_s, T_est, gt_t, gt_T, gt_v,
-                                                  time_offset_s)
+    """Score one trajectory against one Motive body, or a ``reference`` (stamps_s, T) in the
+    estimate's clock (``dran-edge eval traj``).
+
+    A positions-only estimate (every rotation the identity: a file without orientations) is
+    scored on positions: its rotation errors are reported as None. ``time_offset_source``
+    names where a given offset came from (default "given").
+    """
+    if reference is not None:
+        gt_t, gt_T = np.asarray(reference[0], np.float64), np.asarray(reference[1], np.float64)
+        gt_v = np.ones(len(gt_t), bool)
+        # a file has no occlusion flags: only a gap well above its own sample spacing is one
+        if len(gt_t) > 1:
+            max_gap_s = max(max_gap_s, 1.5 * float(np.median(np.diff(gt_t))))
+        if T_body_marker is not None:
+            gt_T = gt_T @ geo.se3_inverse(T_body_marker)
+        what = "the reference"
+    else:
+        T_bm = np.eye(4) if T_body_marker is None else T_body_marker
+        gt_t, gt_T, gt_v = body_ground_truth(take, body, T_bm)
+        what = f"body {body!r}"
+    pos_only = _positions_only(T_est)
+    offset, source, details = resolve_time_offset(
+        stamps_s, T_est, gt_t, gt_T, gt_v, time_offset_s, positions_only=pos_only,
+        same_clock_first=reference is not None)
+    if time_offset_s is not None and time_offset_source:
+        source = time_offset_source
     a = align.associate(stamps_s, T_est, gt_t, gt_T, valid_ref=gt_v, time_offset_s=offset,
-                        max_gap_s=max_gap_s, what=f"body {body!r}")
+                        max_gap_s=max_gap_s, what=what)
     al = align.fit_alignment(align_kind, a.T_est, a.T_ref)
     T_al = al.apply(a.T_est)
     stats = metrics.ate_trans_stats_m(T_al, a.T_ref)
+    rpe = metrics.rpe(a.stamps_s, T_al, a.T_ref, delta_s=rpe_delta_s)
+    if pos_only:
+        rpe = {k: (None if "rot" in k else v) for k, v in rpe.items()}
     return {
         "body": body,
         "matched_poses": a.matched_poses,
         "estimated_poses": int(len(stamps_s)),
+        "positions_only": pos_only,
         "time_offset_s": offset,
         "time_offset_source": source,
         **{f"time_offset_{k}": v for k, v in details.items()},
@@ -136,9 +208,12 @@ def evaluate_trajectory(
         "ate_mean_m": stats["mean_m"],
         "ate_median_m": stats["median_m"],
         "ate_max_m": stats["max_m"],
-        "ate_rot_rmse_deg": metrics.ate_rot_rmse_deg(T_al, a.T_ref),
-        "ate_log_rmse": metrics.ate_log_rmse(T_al, a.T_ref),
-        "rpe": metrics.rpe(a.stamps_s, T_al, a.T_ref, delta_s=rpe_delta_s),
+        "ate_std_m": float(np.std(np.linalg.norm(T_al[:, :3, 3] - a.T_ref[:, :3, 3], axis=1))),
+        "ate_min_m": float(np.min(np.linalg.norm(T_al[:, :3, 3] - a.T_ref[:, :3, 3], axis=1))),
+        "ate_rot_rmse_deg": None if pos_only else metrics.ate_rot_rmse_deg(T_al, a.T_ref),
+        "ate_log_rmse": None if pos_only else metrics.ate_log_rmse(T_al, a.T_ref),
+        "rpe": rpe,
+        "_": {"stamps_s": a.stamps_s, "T_est_aligned": T_al, "T_ref": a.T_ref},
     }
 
 
@@ -251,7 +326,7 @@ def _centralized_from_g2o(run_dir: Path, finals: dict[str, tuple[np.ndarray, np.
     vmap = read_vertex_map(vmap_path)
     F_init = _initial_objective(g, vmap, inits or {})
     if F_init is None:
-        notes.append("SR_cost: some robot has no out/<robot>/trajectory_init.tum (or an object "
+        notes.append("SR_cost: some robot has no out/<robot>/<robot>_init.tum (or an object "
                      "no observation), so F_init at the initial estimate is unknown")
     else:
         cost["F_init"] = F_init
@@ -277,7 +352,7 @@ def _centralized_from_g2o(run_dir: Path, finals: dict[str, tuple[np.ndarray, np.
             cost["merged_vs_trajectory_max_m"] = worst
     if cost.get("merged_vs_trajectory_max_m", 0.0) > 0.01:
         notes.append(
-            f"merged.g2o: its vertex values differ from out/<robot>/trajectory.tum by up to "
+            f"merged.g2o: its vertex values differ from out/<robot>/<robot>.tum by up to "
             f"{cost['merged_vs_trajectory_max_m']:.3f} m at the same stamps (another frame?); "
             "F_k, SR_cost and the centralized solution (SR_ATE) are then not comparable")
     return out, cost
@@ -299,21 +374,19 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
     robots: dict[str, _Robot] = {}
     for r in mission.robots:
         rb = _Robot(r.name, r.T_body_marker)
-        for kind, fname in (("final", "trajectory.tum"), ("init", "trajectory_init.tum"),
-                            ("centralized", None)):
-            p = (out_dir / r.name / fname) if fname else (out_dir / "centralized" / r.name /
-                                                         "trajectory.tum")
-            if p.exists():
+        for kind in ("final", "init", "centralized"):
+            p = trajectory_file(out_dir, r.name, kind)
+            if p is not None:
                 rb.est[kind] = tum.read_tum(p)
         p = out_dir / r.name / "objects.csv"
         if p.exists():
             rb.objects = read_objects_csv(p)
         if "final" not in rb.est:
-            notes.append(f"robot {r.name}: out/{r.name}/trajectory.tum absent; robot skipped")
+            notes.append(f"robot {r.name}: out/{r.name}/{r.name}.tum absent; robot skipped")
             continue
         robots[r.name] = rb
     if not robots:
-        raise InputError("no robot has out/<name>/trajectory.tum (written by 'dran-edge "
+        raise InputError("no robot has out/<name>/<name>.tum (written by 'dran-edge "
                          "replay' for every robot that produced an estimate)", path=str(out_dir))
 
     # Centralized solution (SR_ATE, SR_cost).
@@ -398,11 +471,15 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
                 # The initial estimate is the raw odometry: locally smoother than the
                 # optimised one, so its angular speed correlates best.
                 src = rb.est.get("init", rb.est["final"])
-                try:
-                    per[n] = align.estimate_time_offset(*src, rb.gt_time_s, rb.gt_T,
-                                                        valid_ref=rb.gt_valid).offset_s
-                except InputError as exc:
-                    notes.append(f"robot {n}: time offset not estimated ({exc})")
+                for signal in ("angular", "linear"):
+                    try:
+                        per[n] = align.estimate_time_offset(*src, rb.gt_time_s, rb.gt_T,
+                                                            valid_ref=rb.gt_valid,
+                                                            signal=signal).offset_s
+                        break
+                    except InputError as exc:
+                        notes.append(f"robot {n}: time offset not estimated from {signal} "
+                                     f"speeds ({exc})")
             if not per:
                 raise InputError("could not estimate the mocap clock offset from any robot; "
                                  "give --time-offset or mocap.start_ns in mission.yaml")
@@ -530,7 +607,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
     }
     report = json_safe(report)
     report["_"] = {"robots": robots, "aligned": aligned, "rounds": rounds, "objects": obj_plot,
-                   "round_cost_ref": round_cost_ref}
+                   "round_cost_ref": round_cost_ref,
+                   "comm_graph": list(mission.comm_graph)}
     return report
 
 
@@ -732,31 +810,61 @@ def _trajectories(plt, report, data, eval_dir):
     return p
 
 
+def round_panels(rounds: dict, ref: dict | None, n_robots: int, n_links: int
+                 ) -> list[tuple[str, str, np.ndarray]]:
+    """(title, y label, values) of rounds.png's panels, each saying what it plots.
+
+    The consensus panel is rounds.csv's ``consensus_error``: per round, the largest of the
+    robots' own consensus residuals — not the paper's CE of the summary (docs/eval.md). The
+    cost is SR_cost when report.json gives ``cost_init`` and ``cost_centralized``, else the
+    raw sum of the robots' local costs (which grows with the graphs). Bytes per round are
+    shown per robot and per communication link, besides the cumulative total.
+    """
+    panels = []
+    if "cost" in rounds and ref is not None:
+        panels.append(("SR_cost per round (paper Sec. 6.2)", "SR_cost (%)",
+                       metrics.sr_cost(ref["F_init"], rounds["cost"], ref["F_star"])))
+    elif "cost" in rounds:
+        panels.append(("sum of the robots' local costs (grows as the graphs grow; "
+                       "not F/F*)", "cost (SE-Sync objective units)", rounds["cost"]))
+    if "consensus_error" in rounds:
+        panels.append(("largest robot's own consensus residual per round (not the "
+                       "summary's CE)", "max_i residual_i", rounds["consensus_error"]))
+    if "bias" in rounds:
+        panels.append(("Bias per round", "Bias", rounds["bias"]))
+    if "bytes_round" in rounds:
+        b = np.asarray(rounds["bytes_round"], dtype=np.float64)
+        panels.append(("bytes sent per round: per robot (mean) and per link (mean)",
+                       "bytes / round", np.stack([b / max(n_robots, 1), b / max(n_links, 1)])))
+    if "bytes_total" in rounds:
+        panels.append(("bytes sent by all robots, cumulative", "bytes (total)",
+                       rounds["bytes_total"]))
+    return panels
+
+
 def _rounds(plt, report, data, eval_dir):
     rounds = data["rounds"]
     if rounds is None or len(rounds.get("round", [])) == 0:
         return None
-    ref = data["round_cost_ref"]
     r = rounds["round"]
-    panels = []
-    if "cost" in rounds and ref is not None:
-        panels.append(("SR_cost (%)", metrics.sr_cost(ref["F_init"], rounds["cost"],
-                                                       ref["F_star"])))
-    elif "cost" in rounds:
-        panels.append(("cost", rounds["cost"]))
-    for col, label in (("consensus_error", "consensus error (CE)"), ("bias", "Bias"),
-                       ("bytes_total", "bytes sent (total)")):
-        if col in rounds:
-            panels.append((label, rounds[col]))
+    n_links = len(data.get("comm_graph") or ()) or 1
+    panels = round_panels(rounds, data["round_cost_ref"], len(report.get("robots") or {}) or 1,
+                          n_links)
     if not panels:
         return None
-    fig, axes = plt.subplots(len(panels), 1, figsize=(7, 2.3 * len(panels)), sharex=True,
+    fig, axes = plt.subplots(len(panels), 1, figsize=(7.5, 2.5 * len(panels)), sharex=True,
                              squeeze=False)
-    for ax, (label, y) in zip(axes[:, 0], panels):
-        ax.plot(r, y, lw=1.4)
+    for ax, (title, label, y) in zip(axes[:, 0], panels):
+        if np.ndim(y) == 2:
+            ax.plot(r, y[0], lw=1.4, label="per robot")
+            ax.plot(r, y[1], lw=1.0, ls="--", label="per link")
+            ax.legend(fontsize=7, loc="best")
+        else:
+            ax.plot(r, y, lw=1.4)
+        ax.set_title(title, fontsize=8)
         ax.set_ylabel(label, fontsize=8)
         ax.grid(alpha=0.3)
-        if label.startswith("consensus") and np.nanmin(y) > 0:
+        if title.startswith("largest") and np.nanmin(y) > 0:
             ax.set_yscale("log")
     axes[-1, 0].set_xlabel("round")
     p = eval_dir / "rounds.png"

@@ -17,6 +17,24 @@ from dran_edge import geometry as geo
 from dran_edge.errors import InputError
 
 
+#: Per-robot trajectory files under ``out/`` by kind: the name replay writes (it carries the
+#: robot, so evo's legends say which robot) and the name older runs have.
+TRAJECTORY_NAMES = {"final": ("{robot}.tum", "trajectory.tum"),
+                    "init": ("{robot}_init.tum", "trajectory_init.tum")}
+
+
+def trajectory_file(out_dir: Path, robot: str, kind: str = "final") -> Path | None:
+    """``out/<robot>/<robot>.tum`` (``final``), ``<robot>_init.tum`` (``init``) or
+    ``out/centralized/<robot>/<robot>.tum`` (``centralized``); the older ``trajectory.tum`` /
+    ``trajectory_init.tum`` names are read too. None when absent."""
+    folder = Path(out_dir) / ("centralized" if kind == "centralized" else "") / robot
+    for name in TRAJECTORY_NAMES["init" if kind == "init" else "final"]:
+        p = folder / name.format(robot=robot)
+        if p.exists():
+            return p
+    return None
+
+
 def read_objects_csv(path: Path) -> dict[int, np.ndarray]:
     """``object_id,x,y,z,qx,qy,qz,qw`` rows (header line optional) -> {id: T_world_object}."""
     out: dict[int, np.ndarray] = {}

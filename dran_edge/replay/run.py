@@ -479,14 +479,16 @@ def write_outputs(run: rd.Run, results: dict, rounds_rows: list[dict]) -> None:
         d.mkdir(parents=True, exist_ok=True)
         u = r.last
         if u is None or len(u.keyframe_stamps_ns) == 0:
-            for f in ("trajectory.tum", "trajectory_init.tum", "objects.csv"):
+            for f in (f"{r.name}.tum", f"{r.name}_init.tum", "objects.csv"):
                 (d / f).unlink(missing_ok=True)
             log.warning("robot %s produced no estimate", r.name)
             continue
         stamps = np.asarray(u.keyframe_stamps_ns, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         stamps = stamps[order]
-        write_tum(d / "trajectory.tum", stamps * 1e-9, np.asarray(u.T_world_body)[order],
+        for f in ("trajectory.tum", "trajectory_init.tum"):  # the names of older replays
+            (d / f).unlink(missing_ok=True)
+        write_tum(d / f"{r.name}.tum", stamps * 1e-9, np.asarray(u.T_world_body)[order],
                   header=f"{r.name}: final estimate (dran-edge replay)")
         if r.initial is not None and len(r.initial[0]):
             s0, T0 = r.initial
@@ -497,7 +499,7 @@ def write_outputs(run: rd.Run, results: dict, rounds_rows: list[dict]) -> None:
                            zip(stamps.tolist(), order.tolist())])
             what = "each keyframe's first estimate"
         o0 = np.argsort(s0, kind="stable")
-        write_tum(d / "trajectory_init.tum", s0[o0] * 1e-9, T0[o0],
+        write_tum(d / f"{r.name}_init.tum", s0[o0] * 1e-9, T0[o0],
                   header=f"{r.name}: initial estimate, {what} (dran-edge replay)")
         with open(d / "objects.csv", "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")

@@ -13,7 +13,10 @@ HELP = "score a run or a trajectory against OptiTrack mocap (ATE, SR, CE, Bias, 
 
 _USAGE = """\
   %(prog)s RUN_DIR [--mocap FILE.csv] [--align paper|se3|sim3|yaw|none] [options]
-  %(prog)s traj EST.tum --mocap FILE.csv --body NAME [--align se3|sim3|yaw|paper|none] [--json]"""
+  %(prog)s traj EST (--mocap FILE.csv --body NAME | --ref REF) [--align se3|sim3|yaw|paper|none]
+         [--format auto|tum|euroc|kitti] [--quat-order xyzw|wxyz] [--plot F.png]
+         [--save-results F.zip] [--json]
+  %(prog)s traj RUN_DIR/out/<robot>/<robot>.tum      (mocap, body, clock from mission.yaml)"""
 
 _DESCRIPTION = """\
 Two forms:
@@ -23,20 +26,42 @@ Two forms:
             rounds.csv, report.json); writes RUN_DIR/eval/report.json, summary.md and PNG
             plots. Default alignment: paper (mocap gives only each robot's initial frame).
 
-  traj EST  score one TUM trajectory (stamp_s x y z qx qy qz qw) against one Motive rigid
-            body; prints ate_rmse_m, ate_max_m, matched_poses, time_offset_s and more.
+  traj EST  score one trajectory against one Motive rigid body (--mocap, --body) or a
+            reference trajectory file (--ref). EST and REF may be TUM, EuRoC/ASL CSV or
+            KITTI poses (docs/trajectory-formats.md); the format and quaternion order are
+            detected from the layout or a header, else --format / --quat-order must say.
+            A trajectory of a replayed run (RUN/out/<robot>/<robot>.tum) takes the mocap
+            file, body, marker offset and clock from the run's mission.yaml. Prints
+            ate_rmse_m, ate_max_m, matched_poses, time_offset_s (and how it was found) and
+            more; --plot writes a PNG, --save-results an evo results zip (evo_res reads it).
             Default alignment: se3 (like evo_ape -a).
 
-Clock: t_mocap = t_est + offset. Without --time-offset the offset comes from mission.yaml
-(mocap.start_ns) or is estimated by correlating angular speeds. Metrics are defined in
-docs/eval.md."""
+Clock: t_ref = t_est + offset. Without --time-offset: mission.yaml (mocap.start_ns); for a
+reference file whose stamps overlap the estimate's, 0 (same clock, as evo assumes);
+otherwise estimated by correlating angular speeds, then linear speeds (positions only or no
+turning), then 0 if the clocks overlap. The output says which. Metrics: docs/eval.md."""
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, usage=_USAGE, description=_DESCRIPTION,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("target", metavar="RUN_DIR|traj", help="a run directory, or 'traj'")
-    p.add_argument("est", nargs="?", metavar="EST.tum", help="(traj) the estimated trajectory")
+    p.add_argument("est", nargs="?", metavar="EST", help="(traj) the estimated trajectory")
+    p.add_argument("--ref", metavar="REF", help="(traj) reference trajectory file instead of "
+                   "--mocap (TUM, EuRoC/ASL CSV, KITTI)")
+    p.add_argument("--format", default="auto", choices=("auto", "tum", "euroc", "kitti"),
+                   help="(traj) format of EST (default: detected)")
+    p.add_argument("--ref-format", default="auto", choices=("auto", "tum", "euroc", "kitti"),
+                   help="(traj) format of REF (default: detected)")
+    p.add_argument("--quat-order", choices=("xyzw", "wxyz"),
+                   help="(traj) quaternion order of EST when the format does not say")
+    p.add_argument("--ref-quat-order", choices=("xyzw", "wxyz"),
+                   help="(traj) quaternion order of REF when the format does not say")
+    p.add_argument("--kitti-rate-hz", type=float, default=10.0,
+                   help="(traj) pose rate of KITTI files, which have no stamps (default 10)")
+    p.add_argument("--plot", metavar="FILE.png", help="(traj) write a top view + error plot")
+    p.add_argument("--save-results", metavar="FILE.zip",
+                   help="(traj) write an evo results file (evo_res reads it)")
     p.add_argument("--mocap", metavar="FILE.csv", help="Motive CSV export (default: the run's)")
     p.add_argument("--body", metavar="NAME", help="(traj) Motive rigid body to compare with")
     p.add_argument("--align", choices=("paper", "se3", "sim3", "yaw", "none"),
@@ -61,36 +86,100 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     return p
 
 
+def _run_of(est: Path):
+    """(run, robot) when ``est`` is RUN/out/<robot>/<file> of a run directory, else None."""
+    from dran_edge.formats import run_dir as rd
+
+    robot_dir = est.resolve().parent
+    root = robot_dir.parent.parent
+    if robot_dir.parent.name != "out" or not (root / "mission.yaml").exists():
+        return None
+    mission = rd.read_mission(root / "mission.yaml")
+    names = {r.name: r for r in mission.robots}
+    if robot_dir.name not in names:
+        return None
+    return rd.Run(root, mission), names[robot_dir.name]
+
+
+def _T_body_marker(args):
+    import numpy as np
+
+    from dran_edge import geometry as geo
+
+    v = np.array(args.T_body_marker)
+    if abs(np.linalg.norm(v[3:]) - 1.0) > 1e-3:
+        raise InputError(f"--T-body-marker: expected a unit quaternion, got norm "
+                         f"{np.linalg.norm(v[3:]):.6f}")
+    return geo.se3_from_xyz_quat_xyzw(v)
+
+
 def _run_traj(args: argparse.Namespace) -> int:
     from dran_edge.evaluation import score as evaluate
-    from dran_edge.formats import motive, tum
+    from dran_edge.formats import motive
+    from dran_edge.formats.trajectory import read_trajectory
 
     if not args.est:
-        raise InputError("eval traj: expected the estimated trajectory EST.tum")
-    if not args.mocap or not args.body:
-        raise InputError("eval traj: expected --mocap FILE.csv and --body NAME")
-    stamps, T = tum.read_tum(args.est)
-    take = motive.read_motive_csv(args.mocap, up_axis=args.up_axis or "y")
-    T_bm = None
-    if args.T_body_marker is not None:
-        import numpy as np
-
-        from dran_edge import geometry as geo
-
-        v = np.array(args.T_body_marker)
-        if abs(np.linalg.norm(v[3:]) - 1.0) > 1e-3:
-            raise InputError(f"--T-body-marker: expected a unit quaternion, got norm "
-                             f"{np.linalg.norm(v[3:]):.6f}")
-        T_bm = geo.se3_from_xyz_quat_xyzw(v)
+        raise InputError("eval traj: expected the estimated trajectory EST")
+    est = read_trajectory(args.est, args.format, quat_order=args.quat_order,
+                          kitti_rate_hz=args.kitti_rate_hz)
+    found = _run_of(Path(args.est))
+    mocap, body, up = args.mocap, args.body, args.up_axis
+    T_bm = _T_body_marker(args) if args.T_body_marker is not None else None
+    offset, offset_src = args.time_offset, None
+    if found is not None and not args.ref:
+        run, robot = found
+        mocap = mocap or (str(run.mocap_path) if run.mocap_path else None)
+        body = body or robot.mocap_body
+        up = up or run.mission.mocap_up_axis
+        T_bm = T_bm if T_bm is not None else robot.T_body_marker
+        own = run.mocap_path is not None and Path(mocap).resolve() == run.mocap_path.resolve()
+        if offset is None and run.mission.mocap_start_ns is not None and own:
+            offset = -run.mission.mocap_start_ns * 1e-9
+            offset_src = "mission.yaml mocap.start_ns"
+    take = ref = None
+    if args.ref:
+        if args.mocap:
+            raise InputError("eval traj: give --ref or --mocap, not both")
+        r = read_trajectory(args.ref, args.ref_format, quat_order=args.ref_quat_order,
+                            kitti_rate_hz=args.kitti_rate_hz)
+        ref = (r.stamps_s, r.T)
+        ref_name, ref_how = Path(args.ref).stem, f"{r.format} ({r.how})"
+    else:
+        if not mocap or not body:
+            raise InputError("eval traj: expected --mocap FILE.csv and --body NAME, or --ref "
+                             "REF (or a trajectory inside a run: RUN/out/<robot>/<robot>.tum)")
+        if est.format == "kitti" and not est.has_stamps:
+            raise InputError("eval traj: KITTI poses have no stamps; compare them with --ref "
+                             "(also KITTI) or convert them with stamps first")
+        take = motive.read_motive_csv(mocap, up_axis=up or "y")
+        ref_name, ref_how = body, f"Motive CSV {mocap}"
     res = evaluate.evaluate_trajectory(
-        stamps, T, take, args.body, T_body_marker=T_bm, align_kind=args.align or "se3",
-        time_offset_s=args.time_offset, max_gap_s=args.max_gap, rpe_delta_s=args.rpe_delta)
+        est.stamps_s, est.T, take, body, T_body_marker=T_bm, align_kind=args.align or "se3",
+        time_offset_s=offset, time_offset_source=offset_src, max_gap_s=args.max_gap,
+        rpe_delta_s=args.rpe_delta, reference=ref)
+    est_name = Path(args.est).stem
+    written = []
+    if args.save_results:
+        from dran_edge.evaluation.traj_outputs import write_evo_results
+
+        written.append(write_evo_results(args.save_results, res, est_name, ref_name))
+    if args.plot:
+        from dran_edge.evaluation.traj_outputs import plot_trajectory
+
+        written.append(plot_trajectory(args.plot, res, est_name, ref_name))
     from dran_edge.evaluation.report import json_safe
 
-    res = json_safe(res)
+    res = json_safe({k: v for k, v in res.items() if k != "_"})
+    res["estimate"] = {"path": args.est, "format": est.format, "quat_order": est.quat_order,
+                       "how": est.how}
+    res["reference"] = ref_how
     if args.json:
         print(json.dumps(res, indent=2))
         return 0
+    print(f"{'estimate':<20}{args.est}: {est.format}, {est.how}")
+    print(f"{'reference':<20}{ref_how}")
+    if res["positions_only"]:
+        print(f"{'note':<20}the estimate has no orientations (all identity): positions only")
     keys = ("ate_rmse_m", "ate_max_m", "ate_mean_m", "ate_median_m", "ate_rot_rmse_deg",
             "ate_log_rmse", "matched_poses", "estimated_poses", "time_offset_s",
             "time_offset_source")
@@ -101,6 +190,8 @@ def _run_traj(args: argparse.Namespace) -> int:
     rpe = res["rpe"]
     print(f"{'rpe_trans_rmse_m':<20}{rpe['trans_rmse_m']:.6f}  (delta {rpe['delta_s']} s, "
           f"{rpe['pairs']} pairs)")
+    for p in written:
+        print(f"{'wrote':<20}{p}")
     return 0
 
 

@@ -102,5 +102,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"ingest records rejected: {r['ingest_rejected']}")
     for w in r.get("warnings", ()):  # also logged when found, before the first round
         print(f"warning: {w}")
-    print(f"outputs: {res.out_dir}/ (report.json, rounds.csv, merged.g2o, <robot>/trajectory.tum)")
+    print(f"outputs: {res.out_dir}/ (report.json, rounds.csv, merged.g2o, <robot>/<robot>.tum)")
     return 0

@@ -24,7 +24,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="the robot's config file (docs/config.md)")
     p.add_argument("--record", metavar="DIR",
                    help="also write the consumed inputs as a recorded run into DIR "
-                        "(robots/<name>/robot.yaml + ingest.bin; docs/run-format.md)")
+                        "(robots/<name>/robot.yaml + ingest.bin, and mission.yaml at exit; "
+                        "docs/run-format.md)")
     p.add_argument("--max-rounds", type=int, default=None, metavar="N",
                    help="stop after N rounds (testing)")
     return p

@@ -1,0 +1,1 @@
+"""ROS 2 integration: the rclpy bridge node (docs/ros2.md)."""
