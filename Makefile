@@ -14,7 +14,7 @@ STAMP  := $(VENV)/.dran-edge-installed
 # CPython >= 3.10). The camera drivers (DRIVERS: extras realsense, oak) are tried one by one by
 # tools/install_drivers.py after them: one without a wheel for this Python/architecture is
 # reported (with what to do instead) and never aborts the install; its tests skip.
-EXTRAS ?= perception,comms,systemd,eval,test
+EXTRAS ?= perception,comms,systemd,eval,viz,test
 DRIVERS ?= realsense
 DEMO_DIR ?= demo-run
 

@@ -1,9 +1,10 @@
 """The architecture's layers (docs/architecture.md), enforced on every import statement.
 
-Every module belongs to a layer: ``dran_edge`` top-level modules (errors, geometry, config,
-events, messages) form the base; then solver < dran < robot (the pure core); then the adapters comms,
-perception and formats; then evaluation and sim; then viz; then daemon; then replay and experiments; then
-rehearsal; then cli. A module may import from its own package and from packages of strictly lower layers, never
+Every module belongs to a layer, lowest first: the base (``dran_edge`` top-level modules errors,
+config, events, messages, blas, and geometry); solver < dran < robot (the pure core); the
+adapters comms and perception; formats (files and bags, which may use ingest records and image
+decoding); evaluation and sim; viz; daemon; replay, experiments and the ROS bridge; rehearsal;
+cli. A module may import from its own package and from packages of strictly lower layers, never
 from a sibling of its own layer or from above. The pure core imports only numpy, scipy and the
 standard library (``dran_edge.config``, the strict YAML loader, may also import yaml).
 
@@ -30,11 +31,12 @@ LAYERS: list[tuple[str, ...]] = [
     ("solver",),
     ("dran",),
     ("robot",),
-    ("comms", "perception", "formats"),
+    ("comms", "perception"),
+    ("formats",),
     ("evaluation", "sim"),
     ("viz",),
     ("daemon",),
-    ("replay", "experiments"),
+    ("replay", "experiments", "ros"),
     ("rehearsal",),
     ("cli",),
 ]
