@@ -758,7 +758,10 @@ class LocalGraph:
         factor (the DRAN agent's LocalProblem): a unary prior on the prior's oldest node (its
         marginal) and one relative factor from that root to each other variable of the prior with
         the conditional covariance given the root. Correlations between the non-root variables
-        (e.g. object-object) are dropped: a sparsification, measured in docs/benchmarks.md."""
+        (e.g. object-object) are dropped; dropping alone would be over-confident wherever they
+        are positively correlated, so every conditional covariance is inflated by the smallest
+        c ≥ 1 with Σ_c ⪯ c·blockdiag(Σ_c) (Σ_c: their joint conditional covariance; c is the
+        largest eigenvalue of the block-normalised Σ_c, at most their number) — conservative."""
         if self.prior is None:
             return _arrays([])
         keys = self.prior["keys"]
@@ -779,14 +782,17 @@ class LocalGraph:
             items.append((NONE, int(keys[r]), T_mean[r], S_rr + 1e-12 * np.eye(6), KIND_PRIOR))
         S_rr_inv = np.linalg.pinv(S_rr, hermitian=True)
         T_r_inv = _inv(T_mean[r])
-        for i, k in enumerate(keys.tolist()):
-            if i == r:
-                continue
-            si = slice(6 * i, 6 * i + 6)
-            S_cond = Sigma[si, si] - Sigma[si, sr] @ S_rr_inv @ Sigma[sr, si]
-            S_cond = 0.5 * (S_cond + S_cond.T) + 1e-12 * np.eye(6)
+        others = [i for i in range(len(keys)) if i != r]
+        so = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in others]) if others else \
+            np.zeros(0, np.int64)
+        S_c = Sigma[np.ix_(so, so)] - Sigma[so, sr] @ S_rr_inv @ Sigma[sr, so]
+        S_c = 0.5 * (S_c + S_c.T) + 1e-12 * np.eye(len(so))
+        c = _blockdiag_bound(S_c)
+        for j, i in enumerate(others):
+            k = int(keys[i])
+            S_cond = c * S_c[6 * j:6 * j + 6, 6 * j:6 * j + 6]
             kind = KIND_OBSERVATION if k >= OBJ else KIND_ODOMETRY
-            items.append((int(keys[r]), int(k), T_r_inv @ T_mean[i], S_cond, kind))
+            items.append((int(keys[r]), k, T_r_inv @ T_mean[i], S_cond, kind))
         return _arrays(items)
 
     def set_estimates(self, keys: np.ndarray, poses: np.ndarray) -> None:
@@ -889,6 +895,20 @@ class LocalGraph:
         g.prior = (None if pr is None
                    else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")})
         return g
+
+
+def _blockdiag_bound(S: np.ndarray, block: int = 6) -> float:
+    """The smallest c ≥ 1 with S ⪯ c·blockdiag(S) (6×6 blocks): the largest eigenvalue of
+    D^-½ S D^-½, D = blockdiag(S); at most the number of blocks (Cauchy–Schwarz)."""
+    k = S.shape[0] // block
+    if k <= 1:
+        return 1.0
+    L = np.zeros_like(S)
+    for i in range(k):
+        sl = slice(block * i, block * i + block)
+        lam, V = np.linalg.eigh(0.5 * (S[sl, sl] + S[sl, sl].T))
+        L[sl, sl] = V @ np.diag(1.0 / np.sqrt(np.maximum(lam, 1e-300))) @ V.T
+    return float(min(max(np.linalg.eigvalsh(L @ S @ L)[-1], 1.0), k))
 
 
 def _dense_normal_equations(blocks: list, n_vars: int, poses: np.ndarray

@@ -302,3 +302,19 @@ def test_chain_node_removal_is_exact():
     g.remove_node(1)
     approx = _information(g, [0, 2], T)
     np.testing.assert_allclose(approx, exact, rtol=1e-6, atol=1e-6 * float(np.abs(exact).max()))
+
+
+def test_blockdiag_bound_makes_dropped_correlations_conservative():
+    from dran_edge.local_graph import _blockdiag_bound
+
+    rng = np.random.default_rng(5)
+    for k in (2, 3, 5):
+        A = rng.normal(size=(6 * k, 6 * k))
+        S = A @ A.T + 0.1 * np.eye(6 * k)
+        D = np.zeros_like(S)
+        for i in range(k):
+            D[6 * i:6 * i + 6, 6 * i:6 * i + 6] = S[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+        c = _blockdiag_bound(S)
+        assert 1.0 <= c <= k
+        assert np.linalg.eigvalsh(c * D - S).min() >= -1e-9 * np.abs(S).max()
+        assert np.linalg.eigvalsh(0.95 * c * D - S).min() < 0  # the smallest such c
