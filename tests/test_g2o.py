@@ -68,7 +68,14 @@ def test_3d_quaternion_order_is_xyzw(tmp_path):
         (SE2_EDGE + "\n" + SE3_EDGE + "\n", 2, "mixes 3D records into a 2D graph"),
         ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 0 0\n" + SE2_EDGE + "\n", 2, "defined twice"),
         ("EDGE_SE2 1 1 1.0 0.0 0.1 10 0 0 10 0 20\n", 1, "to itself"),
-        ("EDGE_SE2 0 1 1.0 0.0 0.1 10 0 0 -10 0 20\n", 1, "not positive definite"),
+        ("EDGE_SE2 0 1 1.0 0.0 0.1 10 0 0 -10 0 20\n", 1, "tau = 2/tr(Omega_tt^-1) is inf"),
+        ("EDGE_SE2 0 1 1.0 0.0 0.1 10 0 0 10 0 -20\n", 1, "kappa = Omega_thth is -20"),
+        (
+            # 3D, translation block singular: tau = 0
+            "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 10 0 0 0 0 0 0 0 0 0 0 10 0 0 0 20 0 0 20 0 20\n",
+            1,
+            "EDGE_SE3:QUAT 0 1: information matrix cannot be used: translation weight tau",
+        ),
         ("EDGE_SE2 0 -1 1.0 0.0 0.1 10 0 0 10 0 20\n", 1, "negative"),
         (
             "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 2 " + SE3_EDGE.split(" ", 10)[10] + "\n",
@@ -141,3 +148,70 @@ def test_solve_cli_file_init_needs_vertices(tmp_path, capsys):
     src.write_text(SE2_EDGE + "\n")
     assert main(["solve", str(src), "--out", str(tmp_path / "o.g2o"), "--init", "file"]) == 2
     assert "--init file needs a VERTEX line" in capsys.readouterr().err
+
+
+def _indefinite_se3_line(i: int, j: int, coupling: float) -> str:
+    """An EDGE_SE3:QUAT whose blocks are diag(10)·I and diag(20)·I (SE-Sync weights τ = 10,
+    κ = 3/(2·tr(Ω_rr⁻¹)) = 10) but whose translation–rotation coupling ``coupling`` makes Ω indefinite when
+    coupling² > 200."""
+    info = np.diag([10.0, 10, 10, 20, 20, 20])
+    info[0, 3] = info[3, 0] = coupling
+    upper = " ".join(repr(float(x)) for x in info[np.triu_indices(6)])
+    return f"EDGE_SE3:QUAT {i} {j} 1 0 0 0 0 0 1 {upper}"
+
+
+def _chain_with_indefinite_edges(tmp_path, bad_edges: int):
+    g, _ = synthetic_graph(3, side=3, layers=1, seed=4)
+    path = tmp_path / "indef.g2o"
+    write_g2o(path, g)
+    lines = path.read_text().splitlines()
+    # replace the first `bad_edges` EDGE lines' information by an indefinite one
+    edge_rows = [k for k, line in enumerate(lines) if line.startswith("EDGE_SE3:QUAT")]
+    for k in edge_rows[:bad_edges]:
+        tok = lines[k].split()
+        ok = _indefinite_se3_line(0, 1, 0.0).split()[10:]
+        bad = _indefinite_se3_line(0, 1, 20.0).split()[10:]
+        assert ok != bad
+        lines[k] = " ".join(tok[:10] + bad)
+    path.write_text("\n".join(lines) + "\n")
+    return path, edge_rows
+
+
+def test_indefinite_information_with_positive_sesync_weights_is_accepted(tmp_path, caplog):
+    from dran_edge.solver.objective import not_positive_definite, sesync_weights
+    from dran_edge.solver.centralized import pose_graph, solve_g2o
+
+    path, edge_rows = _chain_with_indefinite_edges(tmp_path, bad_edges=2)
+    with caplog.at_level("WARNING", logger="dran_edge.formats.g2o"):
+        g = read_g2o(path)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1, warnings
+    assert "2 of" in warnings[0] and f"line {edge_rows[0] + 1}" in warnings[0]
+    bad, lam_min = not_positive_definite(g.information)
+    assert bad.sum() == 2 and lam_min[0] < 0
+    kappa, tau = sesync_weights(3, g.information)
+    np.testing.assert_allclose([kappa[0], tau[0]], [10.0, 10.0])  # from the blocks only
+    report = solve_g2o(g)
+    assert report.result.status.value == "converged"
+    assert report.objective_final <= report.objective_init
+    # the full information cannot whiten these edges: rejected by edge and line
+    with pytest.raises(InputError) as info:
+        pose_graph(g, "geodesic", "information")
+    i, j = (int(v) for v in g.vertex_ids[g.edges[0]])
+    assert f"edge {i} {j} on line {edge_rows[0] + 1}" in str(info.value)
+    assert "not positive definite" in str(info.value) and "1 more" in str(info.value)
+
+
+def test_solve_cli_indefinite_information(tmp_path, capsys, caplog):
+    path, edge_rows = _chain_with_indefinite_edges(tmp_path, bad_edges=1)
+    out = tmp_path / "o.g2o"
+    with caplog.at_level("WARNING"):
+        assert main(["solve", str(path), "--out", str(out), "--quiet"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "not positive definite" in r.getMessage()]
+    assert len(warned) == 1 and "1 of" in warned[0]
+    code = main(
+        ["solve", str(path), "--out", str(out), "--weights", "information", "--residual", "geodesic"]
+    )
+    assert code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"{path}: edge" in last and f"on line {edge_rows[0] + 1}" in last

@@ -228,3 +228,93 @@ def test_reset_event_alone_changes_nothing_structural():
     assert not g.handle(VioReset(5, "x"))
     with pytest.raises(ValueError):
         KeyframeGraph(AgentConfig(dim=2))
+
+
+# --------------------------------------------------------------------------- consistency
+def _star_graph(loops: int, seed: int) -> tuple[KeyframeGraph, dict, np.ndarray]:
+    """Node n = 1 with odometry to p = 0 and to m = 2 (the bridge) and ``loops`` loop factors
+    to nodes 3, 4, ...; zero residuals (measurements from the true poses), so the problem is
+    linear-Gaussian in the tangent at the truth."""
+    rng = np.random.default_rng(seed)
+    g = KeyframeGraph(cfg(residual="geodesic", robust_kernel="none"), anchor_first=False)
+    k = 3 + loops
+    T = geo.se3_exp(rng.normal(scale=[0.5] * 3 + [0.3] * 3, size=(k, 6)))
+    for key in range(k):
+        g.node_stamp[key] = key
+        g.node_segment[key] = 0
+        g.node_est[key] = T[key]
+        g.adj[key] = set()
+
+    def cov(scale):
+        A = rng.normal(size=(6, 6)) * 0.3 + np.eye(6)
+        return scale**2 * (A @ A.T)
+
+    pairs = [(0, 1, 0.01, KIND_ODOMETRY), (1, 2, 0.01, KIND_ODOMETRY)]
+    pairs += [(1, 3 + i, 0.03 * (1 + i), KIND_LOOP) for i in range(loops)]
+    for p, q, sig, kind in pairs:
+        g._add_factor(p, q, geo.se3_between(T[p], T[q]), cov(sig), kind)
+    return g, dict(zip(range(k), T)), T
+
+
+def _information(g: KeyframeGraph, keys: list[int], T: np.ndarray) -> np.ndarray:
+    from dran_edge.robot.keyframe_graph import _dense_normal_equations
+
+    keys_arr = np.array(keys, dtype=np.int64)
+    fa = g.factor_arrays(include_prior=False)
+    blocks = g._blocks(fa, keys_arr, "geodesic")
+    if g.prior is not None:
+        blocks.append(g._prior_block(keys_arr))
+    H, _ = _dense_normal_equations(blocks, len(keys), T[keys_arr])
+    return H
+
+
+@pytest.mark.parametrize("loops", [1, 3])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_node_removal_counts_no_information_twice(loops, seed):
+    """Removing a node with loops: the kept graph's information on the other nodes is at most
+    the exact marginal's (Schur complement) — conservative, no factor used twice."""
+    g, _, T = _star_graph(loops, seed)
+    every = list(range(3 + loops))
+    H = _information(g, every, T)
+    kept = [k for k in every if k != 1]
+    sn, sk = np.arange(6, 12), np.array([6 * k + i for k in kept for i in range(6)])
+    exact = H[np.ix_(sk, sk)] - H[np.ix_(sk, sn)] @ np.linalg.solve(
+        H[np.ix_(sn, sn)], H[np.ix_(sn, sk)]
+    )
+    g.remove_node(1)
+    approx = _information(g, kept, T)
+    scale = float(np.max(np.abs(exact)))
+    gap = np.linalg.eigvalsh(0.5 * ((exact - approx) + (exact - approx).T))
+    assert gap.min() >= -1e-9 * scale, gap.min() / scale
+    # and it keeps most of it: the p–m chain through the removed node survives
+    def rel(Hm):  # information on m relative to p (p fixed)
+        return Hm[6:12, 6:12]
+
+    assert np.trace(rel(approx)) > 0.3 * np.trace(rel(exact))
+
+
+def test_chain_node_removal_is_exact():
+    g, _, T = _star_graph(0, seed=4)
+    H = _information(g, [0, 1, 2], T)
+    exact = H[np.ix_([*range(6), *range(12, 18)], [*range(6), *range(12, 18)])]
+    Hnk = H[6:12][:, [*range(6), *range(12, 18)]]
+    exact = exact - Hnk.T @ np.linalg.solve(H[6:12, 6:12], Hnk)
+    g.remove_node(1)
+    approx = _information(g, [0, 2], T)
+    np.testing.assert_allclose(approx, exact, rtol=1e-6, atol=1e-6 * float(np.abs(exact).max()))
+
+
+def test_blockdiag_bound_makes_dropped_correlations_conservative():
+    from dran_edge.robot.keyframe_graph import _blockdiag_bound
+
+    rng = np.random.default_rng(5)
+    for k in (2, 3, 5):
+        A = rng.normal(size=(6 * k, 6 * k))
+        S = A @ A.T + 0.1 * np.eye(6 * k)
+        D = np.zeros_like(S)
+        for i in range(k):
+            D[6 * i:6 * i + 6, 6 * i:6 * i + 6] = S[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+        c = _blockdiag_bound(S)
+        assert 1.0 <= c <= k
+        assert np.linalg.eigvalsh(c * D - S).min() >= -1e-9 * np.abs(S).max()
+        assert np.linalg.eigvalsh(0.95 * c * D - S).min() < 0  # the smallest such c

@@ -10,6 +10,10 @@ Every malformed line raises :class:`InputError` naming the file, the line number
 nothing is skipped silently. Files without VERTEX lines (CSAIL) are accepted: the poses of the
 vertices named only by edges are unknown (``has_pose`` false) and need an initial guess.
 
+Information matrices need not be positive definite: an edge is rejected only when no weighting
+can use it (SE-Sync's κ or τ not finite and positive); edges usable only with SE-Sync's weights
+are counted in one warning (see ``_check_information``).
+
 The information's rotation block is kept as is, in our tangent order [ρ, φ] (translation first),
 i.e. it is treated as the information of the rotation tangent φ — the reading of SE-Sync's and
 GTSAM's g2o loaders.
@@ -17,6 +21,7 @@ GTSAM's g2o loaders.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +30,9 @@ import numpy as np
 
 from dran_edge import geometry as geo
 from dran_edge.errors import InputError
+from dran_edge.solver.objective import not_positive_definite, weight_problems
+
+log = logging.getLogger(__name__)
 
 _VERTEX = {"VERTEX_SE2": 2, "VERTEX_SE3:QUAT": 3}
 _EDGE = {"EDGE_SE2": 2, "EDGE_SE3:QUAT": 3}
@@ -114,6 +122,46 @@ def _rotation_from_quat_xyzw(q: np.ndarray, lines: np.ndarray, path: str, what: 
             line=int(lines[k]),
         )
     return geo.rotmat_from_quat_xyzw(q / norms[:, None])
+
+
+def _check_information(
+    tag: str, ij: np.ndarray, information: np.ndarray, lines: np.ndarray, path: str, dim: int
+) -> None:
+    """Reject the edges no weighting can use; warn once about those only SE-Sync's can use.
+
+    Every solver path weights edges by SE-Sync's κ, τ (computed from the blocks alone) unless
+    ``--weights information`` asks for Ω itself. An edge whose κ or τ is not finite and positive
+    is unusable either way (a positive definite Ω always gives positive ones): InputError. An
+    indefinite Ω with positive κ, τ (published 3D benchmarks have them) is usable with SE-Sync
+    weights: one warning with the count; ``--weights information`` rejects it later, by line
+    (:func:`dran_edge.solver.centralized.pose_graph`).
+    """
+    problems = weight_problems(dim, information, "sesync")
+    if problems:
+        k, why = problems[0]
+        more = f" ({len(problems) - 1} more edges like it)" if len(problems) > 1 else ""
+        raise InputError(
+            f"{tag} {int(ij[k, 0])} {int(ij[k, 1])}: information matrix cannot be used: "
+            f"{why}{more}",
+            path=path,
+            line=int(lines[k]),
+        )
+    bad, lam_min = not_positive_definite(information)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        log.warning(
+            "%s: %d of %d edges have an information matrix that is not positive definite "
+            "(first: %s %d %d on line %d, smallest eigenvalue %.6g); their SE-Sync weights "
+            "kappa, tau are positive and are used (--weights information would reject them)",
+            path,
+            int(bad.sum()),
+            bad.size,
+            tag,
+            int(ij[k, 0]),
+            int(ij[k, 1]),
+            int(lines[k]),
+            lam_min[k],
+        )
 
 
 def read_g2o(path: str | Path) -> G2oGraph:
@@ -235,16 +283,7 @@ def read_g2o(path: str | Path) -> G2oGraph:
         measurements = geo.se3_from_rt(R, nums[:, :3])
         information = _upper_to_full(nums[:, 7:], 6)
         tag = "EDGE_SE3:QUAT"
-    eig = np.linalg.eigvalsh(information)
-    bad = np.flatnonzero(~(eig[:, 0] > 0.0))
-    if bad.size:
-        k = bad[0]
-        raise InputError(
-            f"{tag}: information matrix is not positive definite "
-            f"(smallest eigenvalue {eig[k, 0]:.6g})",
-            path=path,
-            line=int(lines[k]),
-        )
+    _check_information(tag, ij, information, lines, path, dim)
 
     fixed = np.zeros(n, dtype=bool)
     for vid, lineno in fix_ids:

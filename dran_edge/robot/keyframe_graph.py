@@ -132,6 +132,26 @@ def fuse(Z1: np.ndarray, S1: np.ndarray, Z2: np.ndarray, S2: np.ndarray
     return Z1 @ geo.se3_exp(delta), 0.5 * (S + S.T)
 
 
+def split_weights(a0: float, covariances: list[np.ndarray]) -> tuple[float, list[float]]:
+    """Shares (w₀, [w_i]) of one factor's information Ω among its uses, w₀ + Σ w_i = 1.
+
+    Use i composes the shared factor with a factor of covariance ``covariances[i]``; use 0 (the
+    marginalisation) has scalar information ``a0`` (0: no such use). Giving use i the copy
+    ``w_i Ω`` counts Ω exactly once: the copies sum to the original factor, and eliminating the
+    removed node separately in each use is the original elimination with the constraint "all
+    copies of the node are equal" dropped — which can only lose information, so the result is
+    conservative (the kept graph's information ⪯ the exact marginal's). The shares maximise the
+    scalar information Σ 1/(s_i + b/w_i) of the uses (s_i = tr Σ_i, a0 = 1/s_0, b the shared
+    factor's): w_i ∝ 1/s_i — a precise partner gets most of the shared factor.
+    """
+    a = [a0] + [1.0 / max(float(np.trace(S)), 1e-300) for S in covariances]
+    total = sum(a)
+    if total <= 0.0:
+        k = len(covariances)
+        return 0.0, [1.0 / k] * k
+    return a[0] / total, [x / total for x in a[1:]]
+
+
 @dataclass(frozen=True, eq=False)
 class MarginalPrior:
     """Dense Gaussian on k variables left by marginalised nodes (a :class:`Factor` block, m = 1).
@@ -521,26 +541,46 @@ class KeyframeGraph:
         """Move ``n``'s loop factors onto its most certain odometry neighbour (composition).
 
         Marginalising a loop would put its far endpoint into the dense prior, and the prior
-        would soon span the whole window; loops are few, so their composition's reuse of one
-        odometry edge costs little. Returns the slots left for marginalisation.
+        would soon span the whole window. Each re-anchored loop and the marginalisation of the
+        rest use the bridge edge ``(n, m)``; its information is split among them
+        (:func:`split_weights`), so that it is counted once in total and the result is
+        conservative (module docstring). Returns the slots left for marginalisation.
         """
         odo = [s for s in slots if self.factors[s][4] == KIND_ODOMETRY]
         loops = [s for s in slots if self.factors[s][4] == KIND_LOOP]
         if not odo or not loops:
             return slots
         bridge = min(odo, key=lambda s: float(np.trace(self.factors[s][3])))
-        p, q, Z_b, S_b, _ = self.factors[bridge]
+        p, q, Z_b, S_b, kind_b = self.factors[bridge]
         m = q if p == n else p
         Z_nm, S_nm = (Z_b, S_b) if p == n else invert_cov(Z_b, S_b)
+        rest = [s for s in slots if s not in loops]
+        moved = []
         for s in loops:
             p, q, Z, S, _ = self._remove_factor(s)
             x = p if q == n else q
             if x == m:
-                continue  # a loop between the two neighbours adds nothing the bridge lacks
-            Z_xn, S_xn = (Z, S) if q == n else invert_cov(Z, S)
-            self._add_factor(x, m, *compose_cov(Z_xn, S_xn, Z_nm, S_nm), KIND_LOOP)
+                # a second n-m measurement: fused into the bridge (Ω₁ + Ω₂, independent)
+                Z_nm, S_nm = fuse(Z_nm, S_nm, *((Z, S) if p == n else invert_cov(Z, S)))
+                continue
+            moved.append((x, *((Z, S) if q == n else invert_cov(Z, S))))
+        # the marginalisation's own use of the bridge: the rest of n's factors and the prior
+        a0 = sum(1.0 / float(np.trace(self.factors[s][3])) for s in rest if s != bridge)
+        if self.prior is not None and n in self.prior["keys"]:
+            i = int(np.flatnonzero(self.prior["keys"] == n)[0])
+            Wn = self.prior["W"][:, 6 * i:6 * i + 6]
+            a0 += float(np.trace(Wn.T @ Wn)) / 36.0  # 1/tr(Σ) for Σ = σ²I ↔ tr(Ω)/36
+        w0, ws = split_weights(a0, [S for _, _, S in moved])
+        for (x, Z_xn, S_xn), w in zip(moved, ws):
+            self._add_factor(x, m, *compose_cov(Z_xn, S_xn, Z_nm, S_nm / w), KIND_LOOP)
             self._count("loops_reanchored")
-        return [s for s in slots if s not in loops]
+        self._remove_factor(bridge)
+        if w0 > 0.0:
+            self._add_factor(n, m, Z_nm, S_nm / w0, kind_b)
+            rest = [s for s in rest if s != bridge] + [self.next_slot - 1]
+        else:
+            rest = [s for s in rest if s != bridge]
+        return rest
 
     def _marginalize_out(self, n: int, slots: list[int]) -> None:
         """Schur-complement node ``n`` out of its factors and the prior into a new prior."""
@@ -625,28 +665,35 @@ class KeyframeGraph:
                 return (0 if other < OBJ else 1, float(np.trace(S)))
 
             bridge = min(binary, key=certainty)
-        if bridge is not None:
-            p, q, Z_b, S_b, bridge_kind = self._remove_factor(bridge)
-            m = q if p == n else p
-            Z_nm, S_nm = (Z_b, S_b) if p == n else invert_cov(Z_b, S_b)
+        if bridge is None:
+            for s in slots:
+                self._remove_factor(s)  # nothing to carry their information onto
+            return
+        p, q, Z_b, S_b, bridge_kind = self._remove_factor(bridge)
+        m = q if p == n else p
+        Z_nm, S_nm = (Z_b, S_b) if p == n else invert_cov(Z_b, S_b)
+        users = []
         for s in slots:
             if s == bridge:
                 continue
             p, q, Z, S, kind = self._remove_factor(s)
-            if bridge is None:
-                continue  # nothing to carry its information onto
+            x = p if q == n else q
+            if p != NONE and x == m:
+                self._count("factors_dropped_cycle")  # a second n-m factor: fused into Σ_nm
+                Z_nm, S_nm = fuse(Z_nm, S_nm, *((Z, S) if p == n else invert_cov(Z, S)))
+                continue
+            users.append((p, q, Z, S, kind))
+        # every user composes with the bridge: split its information (counted once in total)
+        _, ws = split_weights(0.0, [S for *_, S, _ in users])
+        for (p, q, Z, S, kind), w in zip(users, ws):
+            S_bridge = S_nm / w
             if p == NONE:  # prior on n -> prior on m
-                Z2, S2 = compose_cov(Z, S, Z_nm, S_nm)
+                Z2, S2 = compose_cov(Z, S, Z_nm, S_bridge)
                 self._add_factor(NONE, m, Z2, S2, KIND_PRIOR)
                 continue
             x = p if q == n else q
             Z_xn, S_xn = (Z, S) if q == n else invert_cov(Z, S)
-            if x == m:
-                self._count("factors_dropped_cycle")  # a second n-m factor: already in Σ_nm
-                Zf, Sf = fuse(Z_nm, S_nm, *invert_cov(Z_xn, S_xn))
-                Z_nm, S_nm = Zf, Sf
-                continue
-            Z2, S2 = compose_cov(Z_xn, S_xn, Z_nm, S_nm)
+            Z2, S2 = compose_cov(Z_xn, S_xn, Z_nm, S_bridge)
             if m >= OBJ or x >= OBJ:
                 new_kind = KIND_OBSERVATION
             elif kind == KIND_ODOMETRY and bridge_kind == KIND_ODOMETRY:
@@ -711,7 +758,10 @@ class KeyframeGraph:
         factor (the DRAN agent's LocalProblem): a unary prior on the prior's oldest node (its
         marginal) and one relative factor from that root to each other variable of the prior with
         the conditional covariance given the root. Correlations between the non-root variables
-        (e.g. object-object) are dropped: a sparsification, measured in docs/benchmarks.md."""
+        (e.g. object-object) are dropped; dropping alone would be over-confident wherever they
+        are positively correlated, so every conditional covariance is inflated by the smallest
+        c ≥ 1 with Σ_c ⪯ c·blockdiag(Σ_c) (Σ_c: their joint conditional covariance; c is the
+        largest eigenvalue of the block-normalised Σ_c, at most their number) — conservative."""
         if self.prior is None:
             return _arrays([])
         keys = self.prior["keys"]
@@ -732,14 +782,17 @@ class KeyframeGraph:
             items.append((NONE, int(keys[r]), T_mean[r], S_rr + 1e-12 * np.eye(6), KIND_PRIOR))
         S_rr_inv = np.linalg.pinv(S_rr, hermitian=True)
         T_r_inv = _inv(T_mean[r])
-        for i, k in enumerate(keys.tolist()):
-            if i == r:
-                continue
-            si = slice(6 * i, 6 * i + 6)
-            S_cond = Sigma[si, si] - Sigma[si, sr] @ S_rr_inv @ Sigma[sr, si]
-            S_cond = 0.5 * (S_cond + S_cond.T) + 1e-12 * np.eye(6)
+        others = [i for i in range(len(keys)) if i != r]
+        so = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in others]) if others else \
+            np.zeros(0, np.int64)
+        S_c = Sigma[np.ix_(so, so)] - Sigma[so, sr] @ S_rr_inv @ Sigma[sr, so]
+        S_c = 0.5 * (S_c + S_c.T) + 1e-12 * np.eye(len(so))
+        c = _blockdiag_bound(S_c)
+        for j, i in enumerate(others):
+            k = int(keys[i])
+            S_cond = c * S_c[6 * j:6 * j + 6, 6 * j:6 * j + 6]
             kind = KIND_OBSERVATION if k >= OBJ else KIND_ODOMETRY
-            items.append((int(keys[r]), int(k), T_r_inv @ T_mean[i], S_cond, kind))
+            items.append((int(keys[r]), k, T_r_inv @ T_mean[i], S_cond, kind))
         return _arrays(items)
 
     def set_estimates(self, keys: np.ndarray, poses: np.ndarray) -> None:
@@ -842,6 +895,20 @@ class KeyframeGraph:
         g.prior = (None if pr is None
                    else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")})
         return g
+
+
+def _blockdiag_bound(S: np.ndarray, block: int = 6) -> float:
+    """The smallest c ≥ 1 with S ⪯ c·blockdiag(S) (6×6 blocks): the largest eigenvalue of
+    D^-½ S D^-½, D = blockdiag(S); at most the number of blocks (Cauchy–Schwarz)."""
+    k = S.shape[0] // block
+    if k <= 1:
+        return 1.0
+    L = np.zeros_like(S)
+    for i in range(k):
+        sl = slice(block * i, block * i + block)
+        lam, V = np.linalg.eigh(0.5 * (S[sl, sl] + S[sl, sl].T))
+        L[sl, sl] = V @ np.diag(1.0 / np.sqrt(np.maximum(lam, 1e-300))) @ V.T
+    return float(min(max(np.linalg.eigvalsh(L @ S @ L)[-1], 1.0), k))
 
 
 def _dense_normal_equations(blocks: list, n_vars: int, poses: np.ndarray

@@ -72,3 +72,90 @@ def synthetic_graph(
         edge_lines=np.arange(1, m + 1, dtype=np.int64),
     )
     return graph, T
+
+
+def city_trajectory(
+    num_poses: int, block_m: float = 10.0, blocks: int = 12, step_m: float = 1.0, seed: int = 0
+) -> np.ndarray:
+    """(n, 3, 3) true SE(2) poses of a robot driving a long random route on a city street grid.
+
+    The streets are the lines x = k·block_m and y = k·block_m of a ``blocks``×``blocks`` grid; the
+    robot advances ``step_m`` per pose and picks a random street (never a U-turn unless at the
+    border) at every intersection, so it revisits the same streets many times, as a car or a
+    long indoor dataset does.
+    """
+    rng = np.random.default_rng(seed)
+    steps = int(round(block_m / step_m))
+    heading = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])
+    cell, d = np.array([0, 0]), 0
+    xy, yaw = [], []
+    while len(xy) < num_poses:
+        options = []
+        for nd in ((d + 1) % 4, d, (d + 3) % 4):
+            nxt = cell + heading[nd]
+            if np.all((nxt >= 0) & (nxt <= blocks)):
+                options.append(nd)
+        d = int(rng.choice(options)) if options else (d + 2) % 4
+        start = cell * block_m
+        for s in range(steps):
+            xy.append(start + heading[d] * s * step_m)
+            yaw.append(np.arctan2(heading[d][1], heading[d][0]))
+        cell = cell + heading[d]
+    xy, yaw = np.asarray(xy[:num_poses], float), np.asarray(yaw[:num_poses])
+    return geo.se2_from_xy_theta(np.column_stack([xy, yaw]))
+
+
+def city_graph(
+    num_poses: int = 15000,
+    loop_fraction: float = 0.1,
+    loop_radius_m: float = 0.6,
+    min_gap: int = 30,
+    sigma_t_m: float = 0.05,
+    sigma_r_rad: float = 0.02,
+    loop_noise_scale: float = 1.0,
+    block_m: float = 10.0,
+    blocks: int = 12,
+    seed: int = 0,
+) -> tuple[G2oGraph, np.ndarray]:
+    """A long noisy 2D trajectory on a street grid (:func:`city_trajectory`) with loop closures.
+
+    Odometry links consecutive poses; about ``loop_fraction``·n loop closures link a pose to a
+    random earlier pose (at least ``min_gap`` poses back) within ``loop_radius_m``. Noise as in
+    :func:`synthetic_graph`, the loop closures' ``loop_noise_scale`` times larger than their
+    information says (scan matches that are worse than they claim, as in real data). The vertices of the returned graph are the odometry composition of the
+    noisy measurements (the dead-reckoning a file would hold), not the truth; returns (graph,
+    true poses).
+    """
+    from scipy.spatial import cKDTree
+
+    T = city_trajectory(num_poses, block_m, blocks, seed=seed)
+    n = T.shape[0]
+    rng = np.random.default_rng(seed + 1)
+    pos = T[:, :2, 2]
+    pairs = cKDTree(pos).query_pairs(loop_radius_m, output_type="ndarray")
+    pairs = pairs[np.abs(pairs[:, 1] - pairs[:, 0]) >= min_gap]
+    want = min(int(round(loop_fraction * n)), pairs.shape[0])
+    loops = np.sort(pairs[rng.choice(pairs.shape[0], size=want, replace=False)], axis=1)
+    odo = np.column_stack([np.arange(n - 1), np.arange(1, n)])
+    edges = np.concatenate([odo, loops]).astype(np.int64)
+    Z = geo.between(T[edges[:, 0]], T[edges[:, 1]])
+    sig = np.array([sigma_t_m, sigma_t_m, sigma_r_rad])
+    scale = np.where(np.arange(edges.shape[0]) < n - 1, 1.0, loop_noise_scale)
+    Z = geo.retract(Z, rng.normal(size=(edges.shape[0], 3)) * sig * scale[:, None])
+    m = edges.shape[0]
+    dead = np.empty_like(T)
+    dead[0] = T[0]
+    for k in range(n - 1):
+        dead[k + 1] = dead[k] @ Z[k]
+    graph = G2oGraph(
+        dim=2,
+        vertex_ids=np.arange(n, dtype=np.int64),
+        poses=dead,
+        has_pose=np.ones(n, dtype=bool),
+        edges=edges,
+        measurements=Z,
+        information=np.broadcast_to(np.diag(1.0 / sig**2), (m, 3, 3)).copy(),
+        fixed=np.zeros(n, dtype=bool),
+        edge_lines=np.arange(1, m + 1, dtype=np.int64),
+    )
+    return graph, T

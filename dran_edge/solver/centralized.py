@@ -18,7 +18,13 @@ from dran_edge.solver.chordal import chordal_initialization
 from dran_edge.errors import InputError
 from dran_edge.solver.graph import PoseGraph, kinds_array
 from dran_edge.solver.lm import LMParams, LMResult, solve
-from dran_edge.solver.objective import edge_factors, sesync_objective, sesync_weights
+from dran_edge.solver.objective import (
+    WEIGHTS,
+    edge_factors,
+    sesync_objective,
+    sesync_weights,
+    weight_problems,
+)
 
 if TYPE_CHECKING:  # the solver only reads a G2oGraph's arrays; the format layer builds it
     from dran_edge.formats.g2o import G2oGraph
@@ -102,7 +108,16 @@ def initial_poses(g: G2oGraph, init: str) -> np.ndarray:
 
 
 def pose_graph(g: G2oGraph, residual: str, weights: str) -> PoseGraph:
-    """The PoseGraph of a g2o graph: every vertex private except the gauge-fixed ones."""
+    """The PoseGraph of a g2o graph: every vertex private except the gauge-fixed ones.
+
+    Raises InputError naming the first edge (ids and line) whose information the chosen
+    ``weights`` cannot use (see :func:`dran_edge.solver.objective.weight_problems`)."""
+    problems = weight_problems(g.dim, g.information, weights) if weights in WEIGHTS else []
+    if problems:
+        k, why = problems[0]
+        i, j = (int(g.vertex_ids[v]) for v in g.edges[k])
+        more = f" ({len(problems) - 1} more edges like it)" if len(problems) > 1 else ""
+        raise InputError(f"edge {i} {j} on line {int(g.edge_lines[k])}: {why}{more}")
     block = edge_factors(g.dim, g.edges, g.measurements, g.information, residual, weights)
     return PoseGraph(
         dim=g.dim, kinds=kinds_array(g.num_vertices, fixed=gauge_fixed(g)), factors=(block,)

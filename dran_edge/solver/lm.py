@@ -340,10 +340,15 @@ class LinearSolveError(ArithmeticError):
     """A damped system could not be factorised (singular or not positive definite)."""
 
 
-def _factorize(A_mu: sp.csc_matrix):
-    """Sparse LU of a symmetric positive definite matrix, SuperLU in symmetric mode."""
+def _factorize(A_mu: sp.csc_matrix, require_positive_definite: bool = False):
+    """Sparse LU of a symmetric positive definite matrix, SuperLU in symmetric mode.
+
+    SuperLU factorises an indefinite matrix without complaint; with ``require_positive_definite``
+    the factor's inertia is checked: with diagonal pivots only (``perm_r == perm_c``) the LU is
+    a symmetric LDLᵀ with ``D = diag(U)``, so A is positive definite iff every pivot is > 0
+    (Sylvester's law of inertia). A failed check raises :class:`LinearSolveError`."""
     try:
-        return spla.splu(
+        lu = spla.splu(
             A_mu,
             permc_spec="MMD_AT_PLUS_A",
             diag_pivot_thresh=0.0,
@@ -351,6 +356,14 @@ def _factorize(A_mu: sp.csc_matrix):
         )
     except RuntimeError as exc:  # SuperLU reports singular factors this way
         raise LinearSolveError(str(exc)) from None
+    if require_positive_definite:
+        pivots = lu.U.diagonal()
+        if not np.array_equal(lu.perm_r, lu.perm_c) or not np.all(pivots > 0.0):
+            raise LinearSolveError(
+                f"damped matrix is not positive definite ({int(np.sum(~(pivots > 0.0)))} "
+                "non-positive pivots)"
+            )
+    return lu
 
 
 def cholesky_factorizer(plan: StructurePlan) -> Callable[[sp.csc_matrix, float], object] | None:
@@ -378,13 +391,17 @@ def schur_step(
     g_y: np.ndarray,
     mu: float,
     factorize: Callable[[sp.csc_matrix, float], object] | None = None,
+    require_positive_definite: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Tier 3: the minimiser (u, v) = −M⁻¹ g of the damped model (eqs. 8, 10, 11).
 
     One sparse factorisation of ``A + μI`` serves both right-hand sides ``[g_x, C]``: by
     ``factorize(A, mu)`` when given (an object with ``solve(rhs)``, e.g. from
-    :func:`cholesky_factorizer`), else SuperLU. Raises :class:`LinearSolveError` when a
-    factorisation fails.
+    :func:`cholesky_factorizer`, which always checks definiteness), else SuperLU. Raises
+    :class:`LinearSolveError` when a factorisation fails, and with ``require_positive_definite``
+    also when the SuperLU factor of ``A + μI`` shows it is not positive definite (``Ĥ`` is always
+    checked by its Cholesky): a model that is not convex has no minimiser, and its "step" is a
+    saddle point (the exact Hessian far from the optimum).
     """
     n_u, n_v = g_x.shape[0], g_y.shape[0]
     if n_u == 0:
@@ -394,7 +411,9 @@ def schur_step(
         if factorize is not None:
             lu = factorize(A, mu)
         else:
-            lu = _factorize(sp.csc_matrix(A + mu * sp.identity(n_u, format="csc")))
+            lu = _factorize(
+                sp.csc_matrix(A + mu * sp.identity(n_u, format="csc")), require_positive_definite
+            )
         C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
         if n_v and hasattr(lu, "forward"):
             # Cholesky: with Y = L⁻¹P[g_x, C], CᵀA⁻¹C = Y_Cᵀ Y_C and CᵀA⁻¹g_x = Y_Cᵀ y_g, and
@@ -466,9 +485,16 @@ class LMParams:
     """Converged when ‖g‖_∞ ≤ gradient_tol at a linearisation point (whitened units)."""
     hessian: str = "gauss_newton"
     """'gauss_newton' (M = JᵀJ + μI, the paper's LM) or 'exact' (adds the chordal residual's
-    second-order terms — damped Newton; in an iteration where that model cannot be factorised
-    (indefinite, Cholesky only) or its step does not lower the cost, the iteration continues with
-    the Gauss–Newton model at the same μ)."""
+    second-order terms — damped Newton). The exact model keeps its own damping μ_N, separate
+    from the Gauss–Newton μ: in an iteration where ``A + μ_N I`` or ``Ĥ`` is not positive
+    definite, or the Newton step does not lower the cost (then μ_N grows, Nielsen), the iteration
+    continues with the Gauss–Newton model at its own μ. (With one shared μ, Gauss–Newton
+    steps kept shrinking μ while the Newton model, indefinite or overshooting at that μ, failed
+    every iteration: linear convergence at two solves per iteration. See
+    docs/notes/solve-and-bounded-graph.md.)"""
+    newton_damping: str = "separate"
+    """'separate' (the μ_N above, with the definiteness check) or 'shared' (one μ for both models
+    and no definiteness check on SuperLU factors: the policy before, kept for benchmarks)."""
     linear_solver: str = "superlu"
     """Factorisation of A + μI: 'superlu', 'cholesky' (supernodal, dran_edge.solver.sparse_cholesky) or
     'auto' (cholesky for SE(3) graphs with ≥ AUTO_CHOLESKY_MIN_POSES private poses, else superlu;
@@ -495,6 +521,51 @@ class LMResult:
     """One line on why the loop stopped."""
 
 
+NEWTON_MU_DECREASE = 0.1
+"""Smallest factor by which an accepted Newton step lowers μ_N (Nielsen's rule uses 1/3): the
+Newton model converges quadratically once it is convex, so a μ_N raised while it was not (far
+from the optimum) must fall back quickly; with 1/3 parking-garage needed one iteration more than
+with the shared μ."""
+
+
+class _Damping:
+    """Nielsen's damping update, one μ (and ν) per model: Gauss–Newton and Newton (exact)."""
+
+    def __init__(self, mu_min: float, shared: bool = False):
+        self.mu_min = mu_min
+        self.shared = shared
+        """One μ for both models; a failed Newton trial leaves it to the Gauss–Newton one."""
+        self.mu_gn: float | None = None
+        self.mu_newton = 0.0
+        self.nu = {False: 2.0, True: 2.0}
+
+    def start(self, mu0: float) -> None:
+        self.mu_gn = self.mu_newton = mu0
+
+    def mu(self, exact: bool) -> float:
+        return self.mu_newton if exact and not self.shared else self.mu_gn
+
+    def _set(self, exact: bool, mu: float) -> None:
+        if exact and not self.shared:
+            self.mu_newton = mu
+        else:
+            self.mu_gn = mu
+
+    def accept(self, exact: bool, rho: float) -> None:
+        """A step lowered the cost; ρ = actual / predicted decrease."""
+        floor = NEWTON_MU_DECREASE if exact and not self.shared else 1.0 / 3.0
+        factor = max(floor, 1.0 - (2.0 * rho - 1.0) ** 3)
+        self._set(exact, max(self.mu(exact) * factor, self.mu_min))
+        self.nu[exact] = 2.0
+
+    def reject(self, exact: bool) -> None:
+        """A step failed (no decrease, or the damped model could not be factorised)."""
+        if exact and self.shared:
+            return  # the old policy: Gauss–Newton retries at the same μ
+        self._set(exact, self.mu(exact) * self.nu[exact])
+        self.nu[exact] *= 2.0
+
+
 def solve(
     graph: PoseGraph,
     poses: np.ndarray,
@@ -518,6 +589,11 @@ def solve(
     )
     if params.hessian not in ("gauss_newton", "exact"):
         raise ValueError(f"hessian must be 'gauss_newton' or 'exact', got {params.hessian!r}")
+    if params.newton_damping not in ("separate", "shared"):
+        raise ValueError(
+            f"newton_damping must be 'separate' or 'shared', got {params.newton_damping!r}"
+        )
+    shared = params.newton_damping == "shared"
     factorize = cholesky_factorizer(plan) if use_cholesky else None
     poses = np.asarray(poses, dtype=np.float64)
     cost = evaluate_cost(graph, poses)
@@ -530,8 +606,7 @@ def solve(
 
     if not math.isfinite(cost):
         return stop(LMStatus.NON_FINITE, 0, "cost at the initial values is not finite")
-    mu: float | None = None
-    nu = 2.0
+    damping = _Damping(params.mu_min, shared)
     for iteration in range(params.max_iterations):
         # The first iteration uses Gauss–Newton even in 'exact' mode: far from a minimum the
         # Gauss–Newton model of the chordal cost predicts better (sphere2500 from the chordal
@@ -543,22 +618,28 @@ def solve(
             return stop(LMStatus.NON_FINITE, iteration, "non-finite gradient or Hessian")
         if g.size == 0 or np.max(np.abs(g)) <= params.gradient_tol:
             return stop(LMStatus.CONVERGED, iteration, "gradient below gradient_tol")
-        if mu is None:
+        if damping.mu_gn is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
-            mu = max(params.mu_init * float(np.max(diag)), params.mu_min)
+            damping.start(max(params.mu_init * float(np.max(diag)), params.mu_min))
         accepted = False
         solved_any = False
         pred = math.inf
         for _ in range(params.max_trials):
             trials += 1
+            mu = damping.mu(exact)
             try:
-                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, factorize)
+                u, v = schur_step(
+                    lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, factorize, exact and not shared
+                )
             except LinearSolveError as exc:
                 log.debug("damped solve failed at mu=%g: %s", mu, exc)
-                if exact:  # indefinite exact model: Gauss–Newton for this iteration, same μ
+                if exact:
+                    # Not convex at μ_N: a property of this point, not of the step length, so
+                    # μ_N stays (raising it here cost parking-garage an iteration); the
+                    # Gauss–Newton model, convex by construction, takes this iteration.
                     lin, exact = linearize(graph, plan, poses, False), False
-                    continue
-                mu, nu = mu * nu, nu * 2.0
+                else:
+                    damping.reject(False)
                 continue
             solved_any = True
             step = np.concatenate([u, v])
@@ -566,16 +647,17 @@ def solve(
             new_poses = retract(plan, poses, u, v)
             new_cost = evaluate_cost(graph, new_poses)
             actual = cost - new_cost
+            log.debug(
+                "iteration %d %s mu=%.3g predicted %.6g actual %.6g",
+                iteration, "newton" if exact else "gauss-newton", mu, pred, actual,
+            )
             if math.isfinite(new_cost) and actual > 0.0:
-                rho = actual / pred if pred > 0 else 0.0
-                mu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), params.mu_min)
-                nu = 2.0
+                damping.accept(exact, actual / pred if pred > 0 else 0.0)
                 accepted = True
                 break
-            if exact:  # the exact model's step failed: Gauss–Newton for this iteration, same μ
+            damping.reject(exact)
+            if exact:  # the Newton step failed: Gauss–Newton for this iteration
                 lin, exact = linearize(graph, plan, poses, False), False
-                continue
-            mu, nu = mu * nu, nu * 2.0
         if not accepted:
             if not solved_any:
                 return stop(
@@ -598,7 +680,7 @@ def solve(
         poses, cost = new_poses, new_cost
         history.append(cost)
         if callback is not None:
-            callback(iteration + 1, cost, mu)
+            callback(iteration + 1, cost, damping.mu(exact))
         if rel < params.cost_tol:
             return stop(LMStatus.CONVERGED, iteration + 1, "relative cost decrease below cost_tol")
         if float(np.linalg.norm(step)) < params.step_tol:

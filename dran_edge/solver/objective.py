@@ -25,16 +25,71 @@ WEIGHTS = ("sesync", "information")
 RESIDUALS = ("chordal", "geodesic")
 
 
+def _trace_inverse(blocks: np.ndarray) -> np.ndarray:
+    """tr(Ω⁻¹) of each (m, k, k) block; +inf for a singular block (no finite inverse)."""
+    try:
+        return np.trace(np.linalg.inv(blocks), axis1=1, axis2=2)
+    except np.linalg.LinAlgError:  # one singular block fails the batch: edge by edge
+        out = np.empty(blocks.shape[0])
+        for k, block in enumerate(blocks):
+            try:
+                out[k] = np.trace(np.linalg.inv(block))
+            except np.linalg.LinAlgError:
+                out[k] = np.inf
+        return out
+
+
 def sesync_weights(dim: int, information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(κ, τ), each (m,), from (m, r, r) information matrices in [translation, rotation] order."""
+    """(κ, τ), each (m,), from (m, r, r) information matrices in [translation, rotation] order.
+
+    Only the blocks' traces of inverses are used, so Ω itself need not be positive definite; a
+    singular block gives weight 0 and an indefinite one may give a negative or infinite weight:
+    :func:`weight_problems` tells which edges cannot be used."""
     information = np.asarray(information, dtype=np.float64)
-    tt = information[:, :dim, :dim]
-    tau = dim / np.trace(np.linalg.inv(tt), axis1=1, axis2=2)
-    if dim == 3:
-        kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(information[:, 3:, 3:]), axis1=1, axis2=2))
-    else:
-        kappa = information[:, 2, 2].copy()
+    with np.errstate(divide="ignore"):
+        tau = dim / _trace_inverse(information[:, :dim, :dim])
+        if dim == 3:
+            kappa = 3.0 / (2.0 * _trace_inverse(information[:, 3:, 3:]))
+        else:
+            kappa = information[:, 2, 2].copy()
     return kappa, tau
+
+
+def not_positive_definite(information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mask, smallest eigenvalue) over (m, r, r) information matrices: which are not positive
+    definite (smallest eigenvalue ≤ 0, or not finite)."""
+    lam_min = np.linalg.eigvalsh(np.asarray(information, dtype=np.float64))[:, 0]
+    return ~(lam_min > 0.0), lam_min
+
+
+def weight_problems(dim: int, information: np.ndarray, weights: str) -> list[tuple[int, str]]:
+    """(edge index, why) for every edge whose weights under ``weights`` cannot be used, in edge
+    order; empty when all can. 'sesync' needs finite κ > 0 and τ > 0 (SE-Sync's loader computes
+    them from the blocks alone, so an indefinite Ω with positive weights is usable);
+    'information' needs Ω positive definite (it is the whitening's square)."""
+    if weights == "sesync":
+        kappa, tau = sesync_weights(dim, information)
+        rule = "3/(2 tr(Omega_rr^-1))" if dim == 3 else "Omega_thth"
+        out = []
+        for k in np.flatnonzero(~(np.isfinite(kappa) & np.isfinite(tau) & (kappa > 0) & (tau > 0))):
+            why = []
+            if not (np.isfinite(tau[k]) and tau[k] > 0):
+                why.append(f"translation weight tau = {dim}/tr(Omega_tt^-1) is {tau[k]:.6g}")
+            if not (np.isfinite(kappa[k]) and kappa[k] > 0):
+                why.append(f"rotation weight kappa = {rule} is {kappa[k]:.6g}")
+            out.append((int(k), "; ".join(why) + " (SE-Sync weights must be finite and > 0)"))
+        return out
+    if weights == "information":
+        bad, lam_min = not_positive_definite(information)
+        return [
+            (
+                int(k),
+                f"information matrix is not positive definite (smallest eigenvalue "
+                f"{lam_min[k]:.6g}), which --weights information needs (use --weights sesync)",
+            )
+            for k in np.flatnonzero(bad)
+        ]
+    raise ValueError(f"weights must be one of {WEIGHTS}, got {weights!r}")
 
 
 def sesync_objective(

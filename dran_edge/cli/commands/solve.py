@@ -112,7 +112,12 @@ def run(args: argparse.Namespace) -> int:
         linear_solver=args.linear_solver,
         hessian=args.hessian,
     )
-    report = solve_g2o(graph, args.init, args.residual, args.weights, params, progress)
+    try:
+        report = solve_g2o(graph, args.init, args.residual, args.weights, params, progress)
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), path=args.input) from None
     write_g2o(args.out, graph, report.result.poses)
     wall_s = time.perf_counter() - t0
     result = report.result
