@@ -22,7 +22,6 @@ from dran_edge.solver.lm import (
     schur_step,
     solve,
 )
-from dran_edge.solver.centralized import pose_graph
 from dran_edge.solver.centralized import initial_poses, pose_graph
 
 
