@@ -263,13 +263,16 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         agents.append(agent)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
-    rounds = fleet.run(max_rounds or config.k_max * (int(colour.max()) + 1), callback=callback)
+    cap = max_rounds or config.k_max * (int(colour.max()) + 1)
+    rounds = fleet.run(cap, callback=callback)
+    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
     merged = init.poses.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
     return {
         "poses": merged,
         "rounds": rounds,
+        "stopped_by": "+".join(reasons) if rounds < cap else None,
         "init_rounds": init_rounds,
         "rounds_total": init_rounds + rounds,
         "bytes_init": init_bytes,

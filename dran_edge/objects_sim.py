@@ -230,8 +230,10 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     check's centre (``centre_reach_m``, 16 m, the agent default) stays on: a lone wrong view
     cleared by the exclusion can start a phantom in the first round, and least squares would
     average it into the relays before the check drops it ("Thirteenth session"). ``min_views``
-    overrides the min views."""
-    return AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
+    overrides the min views. The fleet stops on the "tail" rule (docs/notes/stopping-rule.md):
+    the paper's ε_u/ε_v test let a run stop at K_max 27 % above F*."""
+    return AgentConfig(stop_rule="tail",
+                       robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
                        object_robust_threshold=1.0, conflict_reach_m=0.0 if robust else 16.0,
                        object_min_views=min_views if min_views is not None else 2 if robust else 1)
 
@@ -295,7 +297,9 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
         ce = metrics.consistency_error(Y[:, have], present[:, have])[0] if have.any() else 0.0
         bias = metrics.object_bias(Y[:, have], present[:, have], sc.gt_objects[have]) if have.any() else 0.0
         return {"round": fleet.round, "F": F_k, "SR_cost": metrics.sr_cost(F_init, F_k, F_star),
-                "ATE": ate_k, "SR_ATE": metrics.sr_ate(ate0, ate_k, ate_star), "CE": float(ce),
+                "F_over_Fstar": metrics.cost_ratio(F_k, F_star),
+                "ATE": ate_k, "SR_ATE": metrics.sr_ate(ate0, ate_k, ate_star),
+                "ATE_over_ATEstar": metrics.ate_ratio(ate_k, ate_star), "CE": float(ce),
                 "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
 
     def cb(k, _fleet):
@@ -306,7 +310,9 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
 
     rounds = fleet.run(max_rounds, callback=cb)
     out = snapshot()
-    out.update({"rounds": rounds, "F_init": F_init, "F_star": F_star, "ATE_init": ate0,
+    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
+    out.update({"rounds": rounds, "stopped_by": "+".join(reasons) if rounds < max_rounds else None,
+                "F_init": F_init, "F_star": F_star, "ATE_init": ate0,
                 "ATE_star": ate_star, "history": history,
                 "local_step_ms_median": float(np.median(fleet.step_ms)),
                 "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,
