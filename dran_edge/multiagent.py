@@ -199,17 +199,27 @@ TABLE1_EPS_COST_REL = 1e-4
 TABLE1_DELTA_EVERY = 20
 
 
-def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
+def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop: str = "steps"):
     """``(AgentConfig, run_g2o_dran keyword arguments)`` of the Table 1 runs. ``plain``: Alg. 1
-    as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone."""
+    as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone.
+    ``stop``: "steps" (Table 1: the ε_u/ε_v and relative-decrease tests) or "tail" (the rule
+    that cannot fire far from F*, docs/notes/stopping-rule.md; replaces the stop only)."""
+    import dataclasses
+
     from dran_edge.config import AgentConfig
 
+    if stop not in ("steps", "tail"):
+        raise ValueError(f"stop must be 'steps' or 'tail', got {stop!r}")
     if plain:
-        return (AgentConfig(dim=dim, residual=residual, robust_kernel="none"),
-                {"schedule": "parallel", "delta_every": 0})
-    cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
-                      sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
-    return cfg, {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
+        cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none")
+        kw = {"schedule": "parallel", "delta_every": 0}
+    else:
+        cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
+                          sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
+        kw = {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
+    if stop == "tail":
+        cfg = dataclasses.replace(cfg, stop_rule="tail", eps_cost_rel=0.0)
+    return cfg, kw
 
 
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,

@@ -18,9 +18,8 @@ from dran_edge.partition import partition_contiguous
 from dran_edge.pgo import odometry_initialization, solve_g2o
 
 
-def _tail_setup(dim=2, **kw):
-    cfg, run_kw = table1_setup(dim)
-    return dataclasses.replace(cfg, stop_rule="tail", eps_cost_rel=0.0, **kw), run_kw
+def _tail_setup(dim=2):
+    return table1_setup(dim, stop="tail")
 
 
 @pytest.fixture(scope="module")

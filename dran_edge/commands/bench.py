@@ -46,6 +46,11 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="Alg. 1 as printed: every robot every round, no over-relaxation, absolute "
                         "values on the wire (default: colour schedule, SOR, delta entries; "
                         "docs/dran.md)")
+    g.add_argument("--stop", choices=("tail", "steps"), default="tail",
+                   help="stopping rule: tail (default; stops only when every robot's predicted "
+                        "remaining decrease is below 1e-3 of its cost and its neighbours agree, "
+                        "docs/notes/stopping-rule.md) or steps (the paper's step-norm test with "
+                        "the relative-decrease stop: what tools/bench/bench_table1.py runs)")
     g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
                    help="residual of the local problems (chordal optimises the reported F exactly)")
     g.add_argument("--no-reference", action="store_true",
@@ -120,7 +125,7 @@ def run_g2o(args) -> int:
     if args.robots < 1 or args.robots > g.num_vertices:
         raise InputError(f"--robots must be in 1..{g.num_vertices}, got {args.robots}")
     if args.method == "dran":
-        cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain)
+        cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain, stop=args.stop)
 
         def cb(k, fleet):  # progress on stderr; stdout stays the report
             if k == 1:

@@ -24,7 +24,6 @@ F/F* at a stop per rule.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
@@ -104,12 +103,7 @@ def make_graph(family: str, seed: int, quick: bool) -> G2oGraph:
 
 
 def rule_config(rule: str, dim: int):
-    cfg, kw = table1_setup(dim)
-    if rule == "steps":
-        cfg = dataclasses.replace(cfg, stop_rule="steps")
-    else:
-        cfg = dataclasses.replace(cfg, stop_rule="tail", eps_cost_rel=0.0)
-    return cfg, kw
+    return table1_setup(dim, stop=rule)
 
 
 def run_case(g: G2oGraph, F_star: float, rule: str, robots: int, max_rounds: int) -> dict:
