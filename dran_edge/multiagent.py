@@ -54,6 +54,24 @@ def neighbour_weights(bus: Bus, round_: int = 0) -> list[dict]:
     return [{ids[j]: W[i, j] for j in np.flatnonzero(A[i])} for i in range(len(ids))]
 
 
+def stop_rounds_for(bus: Bus, config, round_: int = 0) -> int:
+    """``config.stop_rounds``, raised to the communication graph's diameter + 3 where that is
+    larger (the done counter reaches K only when every robot within K − 1 hops passes its test,
+    docs/notes/stopping-rule.md; capped at 255). A disconnected graph keeps the configured K."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    ids = bus.robot_ids
+    index = {r: k for k, r in enumerate(ids)}
+    A = np.zeros((len(ids), len(ids)))
+    for a, b in bus.edges(round_):
+        A[index[a], index[b]] = A[index[b], index[a]] = 1.0
+    hops = shortest_path(csr_matrix(A), unweighted=True)
+    if not np.all(np.isfinite(hops)):
+        return int(config.stop_rounds)
+    return int(min(255, max(config.stop_rounds, int(hops.max()) + 3)))
+
+
 @dataclass(frozen=True)
 class Traffic:
     """What crossed the bus so far (a view of ``Bus.stats()`` plus the decode failures)."""
@@ -259,9 +277,11 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     F_init = F(init.poses)
     agents = []
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
+    K = stop_rounds_for(bus, config)
     for r in range(num_robots):
         cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
-                                  colour=int(colour[r]), colours=int(colour.max()) + 1)
+                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
+                                  stop_rounds=K)
         prob = LocalProblem.from_partition(g, part, r, init.poses, kappa, tau, cfg.residual)
         agent = Agent(cfg, prob, weights=W[r])
         # the init's last exchange left every robot with its neighbours' separators

@@ -251,7 +251,7 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     SR_cost and SR_ATE are against the centralized LM; for a scenario with outliers, the LM of
     the same scenario without them (F, F_init and F* on that outlier-free graph)."""
     from dran_edge.comms.bus import Bus, BusParams
-    from dran_edge.multiagent import Fleet, neighbour_weights
+    from dran_edge.multiagent import Fleet, neighbour_weights, stop_rounds_for
 
     # The reference (F*, ATE*): the centralized LM with the agents' kernels. With outliers it
     # solves the same seed's scenario without them (same trajectories, noise and start; see
@@ -275,8 +275,10 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
               params=dataclasses.replace(links or BusParams(), seed=seed))
     W = neighbour_weights(bus)
     agents = []
+    K = stop_rounds_for(bus, config)
     for r, p in enumerate(sc.problems):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3)
+        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3,
+                                  stop_rounds=K)
         agents.append(Agent(cfg, p, weights=W[r]))
     fleet = Fleet(agents, bus)
     history = []

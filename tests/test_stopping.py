@@ -108,3 +108,14 @@ def test_same_seed_same_run(grid):
     assert (a["rounds"], a["bytes_total"], a["stopped_by"]) == (b["rounds"], b["bytes_total"],
                                                                b["stopped_by"])
     assert np.array_equal(a["poses"], b["poses"])
+
+
+def test_the_harness_sets_the_done_counter_above_the_graph_diameter():
+    from dran_edge.comms.bus import Bus
+    from dran_edge.config import AgentConfig
+    from dran_edge.multiagent import stop_rounds_for
+
+    line = Bus(range(12), graph=[(i, i + 1) for i in range(11)])
+    assert stop_rounds_for(line, AgentConfig()) == 11 + 3
+    ring = Bus(range(4), graph=[(0, 1), (1, 2), (2, 3), (3, 0)])
+    assert stop_rounds_for(ring, AgentConfig()) == 10  # the configured K is larger
