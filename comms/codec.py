@@ -57,7 +57,13 @@ _FLAG_DELTA = 0x02
 #: Per-robot identity (docs/wire-format.md, "Authentication"): the trailer is the sender's
 #: 64-byte Ed25519 signature instead of the fleet's 16-byte HMAC tag.
 _FLAG_SIGNED = 0x04
-_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA | _FLAG_SIGNED
+#: Stop status (docs/wire-format.md): one varint after the entry counts, the sender's done
+#: counter (``NeighbourMessage.done_count``, docs/notes/stopping-rule.md). Without the flag the
+#: header is byte for byte the one before the flag existed.
+_FLAG_STATUS = 0x08
+_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA | _FLAG_SIGNED | _FLAG_STATUS
+#: Largest done counter on the wire (a robot's counter saturates there; 2 varint bytes at most).
+DONE_COUNT_MAX = 255
 _INIT_DELTA_BIT = 0x80
 _STAGES = frozenset(int(s) for s in InitStage)
 
@@ -287,6 +293,8 @@ class Header:
     delta: bool = False
     #: Ed25519-signed (flag 0x04): the trailer is ``SIGNATURE_BYTES`` long, else ``TAG_BYTES``.
     signed: bool = False
+    #: The sender's done counter (flag 0x08), None without the flag.
+    done_count: int | None = None
 
     @property
     def trailer_bytes(self) -> int:
@@ -344,6 +352,11 @@ def decode_header(data: bytes) -> Header:
     n_sep, pos = _read_varint(data, pos, end)
     n_obj, pos = _read_varint(data, pos, end)
     n_init, pos = _read_varint(data, pos, end)
+    done_count = None
+    if flags & _FLAG_STATUS:
+        done_count, pos = _read_varint(data, pos, end)
+        if done_count > DONE_COUNT_MAX:
+            raise DecodeError(f"done count {done_count} exceeds {DONE_COUNT_MAX}")
     dim = 3 if flags & _FLAG_DIM3 else 2
     # Every entry takes at least 2 id bytes and a pose (a delta value in the delta layout);
     # counts beyond that are lies.
@@ -367,6 +380,7 @@ def decode_header(data: bytes) -> Header:
         pos,
         bool(flags & _FLAG_DELTA),
         bool(flags & _FLAG_SIGNED),
+        done_count,
     )
 
 
@@ -596,6 +610,7 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
         fleet_id=h.fleet_id,
         boot_epoch=h.boot_epoch,
         sequence=h.sequence,
+        done_count=h.done_count,
         extra={"datagram_bytes": len(data), "bytes_by_kind": by_kind, "dim": dim,
                "delta_unresolved": unresolved},
     )
@@ -779,10 +794,15 @@ def encode_datagrams(
     dim = _message_dim(message)
     kinds, ids, values = _entry_records(message, dim, delta)
     n = len(kinds)
+    done = message.done_count
+    if done is not None and not 0 <= int(done) <= DONE_COUNT_MAX:
+        raise EncodeError(f"done_count must be in [0, {DONE_COUNT_MAX}], got {done}")
+    status = b"" if done is None else _varint(int(done))
     flags = (
         (_FLAG_DIM3 if dim == 3 else 0)
         | (_FLAG_DELTA if delta is not None else 0)
         | (_FLAG_SIGNED if signed else 0)
+        | (_FLAG_STATUS if done is not None else 0)
     )
     trailer = SIGNATURE_BYTES if signed else TAG_BYTES
     ident = (
@@ -794,7 +814,7 @@ def encode_datagrams(
     when = _varint(int(message.round)) + _varint(int(message.stamp_ns))
     # The sequence is reserved at 5 varint bytes (u32) and the counts at 2 each (< 16384
     # entries per datagram, guaranteed by the size cap), so packing never overshoots.
-    budget = max_datagram_bytes - len(ident) - 5 - len(when) - 6 - trailer
+    budget = max_datagram_bytes - len(ident) - 5 - len(when) - 6 - len(status) - trailer
     groups: list[tuple[int, int]] = []
     start = 0
     used = 0
@@ -822,6 +842,7 @@ def encode_datagrams(
             + _varint(n_sep)
             + _varint(n_obj)
             + _varint(n_init)
+            + status
         )
         data = b"".join([head, *ids[a:b], *values[a:b], bytes(trailer)])
         by_kind = dict.fromkeys(KINDS, 0)

@@ -190,6 +190,26 @@ class AgentConfig(_Checked):
     """Also optimal when the round's local step lowered L̂_i by at most this fraction of it
     (0: off, the paper's ε_u/ε_v rule alone). Steps that no longer pay stop the traffic of a
     slowly converging tail (docs/dran.md)."""
+    stop_rule: str = _f("steps", choices=("tail", "steps"))
+    """Which local test feeds the stop (docs/notes/stopping-rule.md). "tail": the remaining
+    decrease of L̂_i predicted from the local Newton decrement (the Schur-reduced gradient in the
+    metric of the local Hessian) and its observed contraction rate, relative to L̂_i, at most
+    stop_tol, with the consensus penalty energy also at most stop_tol × L̂_i; a robot reports
+    convergence only once its done counter (propagated as the minimum over its neighbours)
+    reaches stop_rounds; the done counter rides in every neighbour message (one byte).
+    "steps" (default, the robot daemon's): the paper's eps_u/eps_v (and eps_cost_rel) test
+    alone; the daemon never stops on it, it only reports it. The benchmarks that stop on the
+    rule (bench g2o, bench objects) use "tail"."""
+    stop_tol: float = _f(1e-3, lo=0.0, lo_open=True)
+    """"tail" rule: bound on the predicted remaining relative decrease of L̂_i."""
+    stop_window: int = _f(20, lo=4, hi=1000)
+    """"tail" rule: own local steps over which the contraction rate is estimated (the test
+    needs this many steps of history)."""
+    stop_rounds: int = _f(10, lo=1, hi=255)
+    """"tail" rule: done counter needed to report convergence. The counter is 0 while the local
+    test fails, else one more than the smallest of its own last value and the neighbours'
+    counters; so it reaches this only when every robot within (this − 1) hops has passed its
+    local test for the last rounds. Set above the communication graph's diameter."""
     k_max: int = _f(500, lo=1, hi=1_000_000)
     """Maximum number of local steps (DRAN iterations) of one optimisation."""
     mu_init: float = _f(1e-4, lo=0.0, lo_open=True)

@@ -82,6 +82,10 @@ class NeighbourMessage:
     separators: tuple[SeparatorEntry, ...] = ()
     objects: tuple[ObjectEntry, ...] = ()
     init: tuple[InitEntry, ...] = ()
+    #: The sender's done counter (docs/notes/stopping-rule.md): 0 while its own stopping test
+    #: fails, else one more than the smallest counter it holds from its neighbours (saturating
+    #: at 255). None: not carried (no stop-status flag on the wire).
+    done_count: int | None = None
     #: Filled by the codec on decode (None on messages the agent builds).
     fleet_id: int | None = None
     boot_epoch: int | None = None

@@ -41,3 +41,31 @@ def test_bench_objects_rejects_a_bad_round_count(capsys):
 def test_bench_objects_rejects_a_non_positive_penalty_or_dual_step(capsys, flag):
     assert main(["bench", "objects", flag, "0"]) == 2
     assert f"{flag}: {flag[2:]}: expected a value > 0" in capsys.readouterr().err
+
+
+def test_bench_objects_reports_the_ratios_to_the_centralized_solution(capsys):
+    rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
+               "--rounds", "3", "--history-every", "3", "--json"])
+    assert rc == 0
+    row = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert row["F_over_Fstar"] == pytest.approx(row["F"] / row["F_star"])
+    assert row["ATE_over_ATEstar"] == pytest.approx(row["ATE"] / row["ATE_star"])
+    assert row["history"][-1]["F_over_Fstar"] == row["F_over_Fstar"]
+    assert row["stopped_by"] is None  # 3 rounds: the round cap, not the stopping rule
+
+
+def test_bench_g2o_reports_f_over_fstar_or_says_na(capsys, tmp_path):
+    from dran_edge.formats.g2o import write_g2o
+    from dran_edge.sim.graphgen import synthetic_graph
+
+    g, _ = synthetic_graph(dim=2, side=5, layers=1, seed=1)
+    path = tmp_path / "grid.g2o"
+    write_g2o(path, g, g.poses)
+    assert main(["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["F_over_Fstar"] == pytest.approx(rep["objective_final"] / rep["F_star"])
+    assert rep["F_over_Fstar"] >= 1 - 1e-9 and rep["stopped_by"] is None
+    assert main(["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5",
+                 "--no-reference"]) == 0
+    out = capsys.readouterr().out
+    assert "F_over_Fstar: n/a" in out

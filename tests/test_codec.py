@@ -404,3 +404,26 @@ def test_header_ids_out_of_range(field):
     values[field] -= 1
     head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(codec._varint(v) for v in values)
     assert codec.decode_header(head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES))
+
+
+def test_done_count_rides_in_the_header_and_only_with_its_flag():
+    plain = _one(GOLDEN_MESSAGE)
+    msg = NeighbourMessage(**{**{f: getattr(GOLDEN_MESSAGE, f) for f in
+                                 ("sender_id", "round", "stamp_ns", "separators", "objects",
+                                  "init")}, "done_count": 7})
+    data = _one(msg)
+    assert len(data) == len(plain) + 1 and data[3] == plain[3] | 0x08
+    back = codec.decode_datagram(data)
+    assert back.done_count == 7 and len(back.separators) == 1 and len(back.objects) == 1
+    assert codec.decode_datagram(plain).done_count is None
+    beat = codec.decode_datagram(_one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0,
+                                                       done_count=0)))
+    assert beat.done_count == 0 and not beat.separators
+    with pytest.raises(codec.EncodeError, match="done_count"):
+        _one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0, done_count=256))
+    # a counter above 255 on the wire is malformed
+    bad = bytearray(_one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0, done_count=255)))
+    i = bad.index(bytes([0xFF, 0x01]))
+    bad[i:i + 2] = bytes([0x80, 0x02])
+    with pytest.raises(DecodeError, match="done count"):
+        codec.decode_datagram(bytes(bad))

@@ -79,6 +79,14 @@ _MAX_TRIALS = 6
 _MU_MIN = 1e-12
 
 
+def _log_rate(h: np.ndarray) -> float:
+    """Contraction rate per step of the positive sequence ``h``: exp of the least-squares slope
+    of log h (a geometric sequence gives its ratio; a noisy one its trend)."""
+    k = np.arange(h.size, dtype=np.float64)
+    k -= k.mean()
+    return float(np.exp(np.dot(k, np.log(h)) / np.dot(k, k)))
+
+
 # --------------------------------------------------------------------------- the local problem
 @dataclass(frozen=True, eq=False)
 class LocalProblem:
@@ -243,6 +251,15 @@ class Agent:
         self.last_norms = (math.inf, math.inf, math.inf)
         self.last_cost = math.nan
         self.last_decrease = math.inf  # decrease of L̂_i by the last local step
+        #: the stopping rule (docs/notes/stopping-rule.md): local Newton decrements ½gᵀM⁻¹g of
+        #: the last own steps, this robot's done counter, the neighbours' (value, round)
+        self.decrements: list[float] = []
+        self.last_decrement = math.inf
+        self.done_count = 0
+        self.nbr_done: dict[int, tuple[int, int]] = {}
+        self.last_sent_done: dict[int, int] = {}
+        self.stop_reason: str | None = None  # "criterion" or "k_max" once converged
+        self.last_stop_test: dict = {}
         self.step_times: list = []
         self._structure: _Structure | None = None
         self._init_objects_from_observations()
@@ -270,6 +287,8 @@ class Agent:
 
     def _absorb(self, msg: NeighbourMessage) -> None:
         j, rnd = int(msg.sender_id), int(msg.round)
+        if msg.done_count is not None and self.nbr_done.get(j, (0, -1))[1] <= rnd:
+            self.nbr_done[j] = (int(msg.done_count), rnd)
         for e in msg.separators:
             key = (int(e.owner_robot), int(e.keyframe_id))
             if self.anchor_round.get(key, -1) > rnd:
@@ -714,12 +733,84 @@ class Agent:
             y_j = np.stack([self.nbr_obj[k][0] for k in s.pair_keys])
             phi2 = float(np.max(consensus_error(y_i, y_j)))
         self.last_norms = (norm_u, norm_v, phi2)
+        iterations = self.counters["rounds"] - self.counters.get("idle_rounds", 0)
+        if c.stop_rule == "tail":
+            done = self._tail_test(s, phi2) and self._steps_test(norm_u, norm_v, phi2, eps=False)
+            self._update_done_count(done)
+            converged = self.done_count >= c.stop_rounds
+        else:
+            converged = self._steps_test(norm_u, norm_v, phi2, eps=True)
+        self.converged = converged or iterations >= c.k_max
+        if self.converged and self.stop_reason is None:
+            self.stop_reason = "criterion" if converged else "k_max"
+        elif not self.converged:
+            self.stop_reason = None
+        return self._outputs(stamp_ns, s, phi2)
+
+    # ----------------------------------------------------------------- stopping rule
+    def _steps_test(self, norm_u: float, norm_v: float, phi2: float, eps: bool) -> bool:
+        """The paper's test (Sec. 4.2.3): ‖u‖ ≤ ε_u, ‖v‖ ≤ ε_v (``eps``; or the eps_cost_rel
+        decrease test) and max φ² ≤ ε_φ. With ``eps`` False only the feasibility part."""
+        c = self.config
+        if phi2 > c.eps_phi:
+            return False
+        if not eps:
+            return True
         optimal = norm_u <= c.eps_u and norm_v <= c.eps_v
         if c.eps_cost_rel > 0 and self.last_decrease <= c.eps_cost_rel * max(self.last_cost, 1e-300):
             optimal = True  # the local step no longer pays (docs/dran.md, termination)
-        iterations = self.counters["rounds"] - self.counters.get("idle_rounds", 0)
-        self.converged = (optimal and phi2 <= c.eps_phi) or iterations >= c.k_max
-        return self._outputs(stamp_ns, s, phi2)
+        return optimal
+
+    def _tail_test(self, s: _Structure, phi2: float) -> bool:
+        """Local part of the "tail" rule (docs/notes/stopping-rule.md).
+
+        δ_k = ½ gᵀ M⁻¹ g is the local Newton decrement at the start of the k-th own step (with
+        the neighbours' newest separators and copies; ``gᵀM⁻¹g = g_xᵀA⁻¹g_x + ĝᵀĤ⁻¹ĝ``, the
+        Schur-reduced gradient in the metric of the local Hessian). In a block iteration that
+        converges linearly at rate ρ the decrements shrink by ρ per step, and the decrease still
+        to come is about δ_k / (1 − ρ); ρ is estimated from the decrements of the last
+        ``stop_window`` steps (the larger of the full- and half-window rates, so a slow mode that
+        has just taken over counts). Passes when that remaining decrease is at most
+        ``stop_tol`` × L̂_i and the consensus penalty energy (β/2) Σ w² ‖φ‖² too."""
+        c = self.config
+        d = self.last_decrement
+        self.decrements.append(d)
+        W = c.stop_window
+        if len(self.decrements) > W + 1:
+            del self.decrements[: len(self.decrements) - W - 1]
+        L = max(self.last_cost, 1e-300)
+        test = {"decrement_rel": d / L, "rate": math.nan, "tail_rel": math.inf, "penalty_rel": 0.0}
+        self.last_stop_test = test
+        if len(self.decrements) <= W or not all(map(math.isfinite, self.decrements)):
+            return False
+        h = np.asarray(self.decrements)
+        if d <= 1e-14 * L:  # at the optimum of its block to rounding: nothing left here
+            rate = 0.0
+        elif np.any(h <= 0.0):
+            return False
+        else:
+            rate = max(_log_rate(h), _log_rate(h[W // 2:]))
+        test["rate"] = float(rate)
+        if not rate < 1.0:
+            return False
+        test["tail_rel"] = d / (1.0 - rate) / L
+        if s.pair_keys:
+            y_i = np.stack([self.y[o] for _, o in s.pair_keys])
+            y_j = np.stack([self.nbr_obj[k][0] for k in s.pair_keys])
+            w = np.array([self.w[j] for j, _ in s.pair_keys])
+            p = phi(y_i, y_j, c.residual)
+            test["penalty_rel"] = 0.5 * c.beta * float(np.sum(w[:, None] ** 2 * p * p)) / L
+        return test["tail_rel"] <= c.stop_tol and test["penalty_rel"] <= c.stop_tol
+
+    def _update_done_count(self, done: bool) -> None:
+        """c_i ← 0 if the local test fails, else 1 + min(c_i, min_j c_j) (capped at
+        stop_rounds): c_i ≥ K only when every robot within K − 1 hops has passed its own test
+        in its last rounds, so no robot reports convergence while another is far from it."""
+        if not done:
+            self.done_count = 0
+            return
+        nbr = [self.nbr_done.get(q, (0, -1))[0] for q in self.neighbours]
+        self.done_count = min(self.config.stop_rounds, 1 + min([self.done_count, *nbr]))
 
     def _local_step(self, graph: PoseGraph, s: _Structure, poses: np.ndarray) -> tuple[float, float]:
         """One damped LM step with the Schur complement (eqs. 7–12); keeps x, y on rejection."""
@@ -732,6 +823,7 @@ class Agent:
             # relative to the median curvature: a stiff gauge prior must not inflate μ
             self.mu = max(c.mu_init * float(np.median(diag)) if diag.size else 1.0, _MU_MIN)
         g = np.concatenate([lin.g_x, lin.g_y])
+        self.last_decrement = math.inf
         for _ in range(_MAX_TRIALS):
             try:
                 u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, self.mu, s.factorize)
@@ -739,6 +831,9 @@ class Agent:
                 self.counters["linear_fail"] += 1
                 self.mu *= 4.0
                 continue
+            if not math.isfinite(self.last_decrement):
+                # local Newton decrement ½ gᵀ M⁻¹ g of this round's first solvable model
+                self.last_decrement = max(-0.5 * float(g @ np.concatenate([u, v])), 0.0)
             new = retract(plan, poses, c.gamma * u, c.alpha * v)
             new_cost = evaluate_cost(graph, new)
             if math.isfinite(new_cost) and new_cost <= cost:
@@ -798,8 +893,18 @@ class Agent:
                     objs.append(ObjectEntry(oid, T.copy(), *prov))
                     self.last_sent[key] = (T.copy(), self.k)
                     self.last_sent_provenance[key] = prov
+            done = None
+            if self.config.stop_rule == "tail":
+                done = self.done_count
+                if self.last_sent_done.get(q) != done:  # a new counter goes out at once
+                    self.last_sent_done[q] = done
+                    if not (seps or objs):  # alone: a header-only datagram
+                        out.append(Outgoing(NeighbourMessage(self.id, self.k, stamp_ns,
+                                                             done_count=done), (q,)))
+                        continue
             if seps or objs:
-                msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs))
+                msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs),
+                                       done_count=done)
                 out.append(Outgoing(msg, (q,)))
         out.append(self._estimate(stamp_ns, phi2))
         return out
@@ -833,6 +938,8 @@ class Agent:
             "support": dict(self.support),
             "lam": {k: v.copy() for k, v in self.lam.items()}, "w": dict(self.w),
             "counters": dict(self.counters),
+            "decrements": list(self.decrements), "done_count": self.done_count,
+            "nbr_done": dict(self.nbr_done), "last_sent_done": dict(self.last_sent_done),
         }
 
     @classmethod
@@ -851,6 +958,10 @@ class Agent:
         agent.support = {int(k): int(v) for k, v in state.get("support", {}).items()}
         agent.lam = {tuple(k): np.asarray(v) for k, v in state["lam"].items()}
         agent.counters.update(state["counters"])
+        agent.decrements = [float(d) for d in state.get("decrements", [])]
+        agent.done_count = int(state.get("done_count", 0))
+        agent.nbr_done = {int(k): (int(v[0]), int(v[1])) for k, v in state.get("nbr_done", {}).items()}
+        agent.last_sent_done = {int(k): int(v) for k, v in state.get("last_sent_done", {}).items()}
         return agent
 
     # ----------------------------------------------------------------- reporting

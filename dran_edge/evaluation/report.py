@@ -29,6 +29,11 @@ def _f(v: Any, fmt: str = ".4f") -> str:
     return "—" if v is None else format(v, fmt)
 
 
+def _na(v: Any, fmt: str = ".4f") -> str:
+    """A ratio to the centralized solution, or why it is missing."""
+    return "n/a (no centralized solution)" if v is None else format(v, fmt)
+
+
 def summary_markdown(r: dict[str, Any]) -> str:
     """A short human summary of an eval report."""
     lines = [f"# Evaluation of `{r['run']}`", ""]
@@ -42,8 +47,8 @@ def summary_markdown(r: dict[str, Any]) -> str:
     if r["robots"]:
         lines += ["## Trajectories", "",
                   "| robot | poses | ATE trans (m) | ATE max (m) | rot RMSE (deg) | ATE log "
-                  "(paper) | ATE⁰ log | ATE* log | SR_ATE (%) |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "(paper) | ATE⁰ log | ATE* log | SR_ATE (%) | ATE/ATE* |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for n, e in r["robots"].items():
             f = e.get("final", {})
             lines.append(
@@ -51,12 +56,13 @@ def summary_markdown(r: dict[str, Any]) -> str:
                 f"{_f(f.get('ate_trans_max_m'))} | {_f(f.get('ate_rot_rmse_deg'), '.3f')} | "
                 f"{_f(f.get('ate_log_rmse'))} | {_f(e.get('init', {}).get('ate_log_rmse'))} | "
                 f"{_f(e.get('centralized', {}).get('ate_log_rmse'))} | "
-                f"{_f(e.get('sr_ate_pct'), '.1f')} |")
+                f"{_f(e.get('sr_ate_pct'), '.1f')} | {_na(e.get('ate_over_atestar'))} |")
         o = r["overall"]
         lines += ["", f"Overall (each robot weighs 1/N): ATE log "
                   f"{_f(o.get('final', {}).get('ate_log_rmse'))}, ATE trans "
                   f"{_f(o.get('final', {}).get('ate_trans_rmse_m'))} m, SR_ATE "
-                  f"{_f(o.get('sr_ate_pct'), '.1f')} %.", ""]
+                  f"{_f(o.get('sr_ate_pct'), '.1f')} %, ATE/ATE* {_na(o.get('ate_over_atestar'))}.",
+                  ""]
     ob = r.get("objects") or {}
     if ob:
         lines += ["## Objects", "",
@@ -67,7 +73,8 @@ def summary_markdown(r: dict[str, Any]) -> str:
     c = r.get("cost") or {}
     if c:
         lines += ["## Cost", "", f"- F_init {_f(c.get('F_init'))}, F_k {_f(c.get('F_k'))}, "
-                  f"F* {_f(c.get('F_star'))}, SR_cost {_f(c.get('sr_cost_pct'), '.1f')} %", ""]
+                  f"F* {_f(c.get('F_star'))}, SR_cost {_f(c.get('sr_cost_pct'), '.1f')} %, "
+                  f"F/F* {_na(c.get('F_over_Fstar'))}", ""]
     ir = r.get("inter_robot") or {}
     if ir.get("pairs"):
         lines += ["## Inter-robot relative poses", "",

@@ -418,6 +418,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         cost = {"source": "out/report.json (the convention of rounds.csv)", **replay_cost}
     if all(cost.get(k) is not None for k in ("F_init", "F_k", "F_star")):
         cost["sr_cost_pct"] = metrics.sr_cost(cost["F_init"], cost["F_k"], cost["F_star"])
+    if cost.get("F_k") is not None and cost.get("F_star") is not None:
+        cost["F_over_Fstar"] = metrics.cost_ratio(cost["F_k"], cost["F_star"])
     # Per-round SR_cost needs F_init and F* in the convention of rounds.csv's cost column.
     round_cost_ref = replay_cost if {"F_init", "F_star"} <= replay_cost.keys() else None
 
@@ -548,6 +550,9 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         if {"init", "final", "centralized"} <= e.keys():
             e["sr_ate_pct"] = metrics.sr_ate(e["init"]["ate_log_rmse"], e["final"]["ate_log_rmse"],
                                              e["centralized"]["ate_log_rmse"])
+        if {"final", "centralized"} <= e.keys():
+            e["ate_over_atestar"] = metrics.ate_ratio(e["final"]["ate_log_rmse"],
+                                                      e["centralized"]["ate_log_rmse"])
     if {"init", "final", "centralized"} <= overall.keys():
         overall["sr_ate_pct"] = metrics.sr_ate(overall["init"]["ate_log_rmse"],
                                                overall["final"]["ate_log_rmse"],
@@ -555,6 +560,9 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         overall["sr_ate_trans_pct"] = metrics.sr_ate(overall["init"]["ate_trans_rmse_m"],
                                                      overall["final"]["ate_trans_rmse_m"],
                                                      overall["centralized"]["ate_trans_rmse_m"])
+    if {"final", "centralized"} <= overall.keys():
+        overall["ate_over_atestar"] = metrics.ate_ratio(overall["final"]["ate_log_rmse"],
+                                                        overall["centralized"]["ate_log_rmse"])
     elif scored:
         missing = [k for k in kinds if k not in overall]
         notes.append(f"SR_ATE: no {' / '.join(missing)} estimate to compare")
@@ -587,6 +595,9 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> dict[
         "ate_log": final.get("ate_log_rmse"),
         "sr_ate_pct": overall.get("sr_ate_pct"),
         "sr_cost_pct": cost.get("sr_cost_pct"),
+        # None where no centralized solution was computed (reported as n/a)
+        "f_over_fstar": cost.get("F_over_Fstar"),
+        "ate_over_atestar": overall.get("ate_over_atestar"),
         "ce": objects_rep.get("ce"),
         "bias": objects_rep.get("bias"),
     }

@@ -54,6 +54,24 @@ def neighbour_weights(bus: Bus, round_: int = 0) -> list[dict]:
     return [{ids[j]: W[i, j] for j in np.flatnonzero(A[i])} for i in range(len(ids))]
 
 
+def stop_rounds_for(bus: Bus, config, round_: int = 0) -> int:
+    """``config.stop_rounds``, raised to the communication graph's diameter + 3 where that is
+    larger (the done counter reaches K only when every robot within K − 1 hops passes its test,
+    docs/notes/stopping-rule.md; capped at 255). A disconnected graph keeps the configured K."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    ids = bus.robot_ids
+    index = {r: k for k, r in enumerate(ids)}
+    A = np.zeros((len(ids), len(ids)))
+    for a, b in bus.edges(round_):
+        A[index[a], index[b]] = A[index[b], index[a]] = 1.0
+    hops = shortest_path(csr_matrix(A), unweighted=True)
+    if not np.all(np.isfinite(hops)):
+        return int(config.stop_rounds)
+    return int(min(255, max(config.stop_rounds, int(hops.max()) + 3)))
+
+
 @dataclass(frozen=True)
 class Traffic:
     """What crossed the bus so far (a view of ``Bus.stats()`` plus the decode failures)."""
@@ -199,17 +217,27 @@ TABLE1_EPS_COST_REL = 1e-4
 TABLE1_DELTA_EVERY = 20
 
 
-def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
+def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop: str = "steps"):
     """``(AgentConfig, run_g2o_dran keyword arguments)`` of the Table 1 runs. ``plain``: Alg. 1
-    as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone."""
+    as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone.
+    ``stop``: "steps" (Table 1: the ε_u/ε_v and relative-decrease tests) or "tail" (the rule
+    that cannot fire far from F*, docs/notes/stopping-rule.md; replaces the stop only)."""
+    import dataclasses
+
     from dran_edge.config import AgentConfig
 
+    if stop not in ("steps", "tail"):
+        raise ValueError(f"stop must be 'steps' or 'tail', got {stop!r}")
     if plain:
-        return (AgentConfig(dim=dim, residual=residual, robust_kernel="none"),
-                {"schedule": "parallel", "delta_every": 0})
-    cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
-                      sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
-    return cfg, {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
+        cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none")
+        kw = {"schedule": "parallel", "delta_every": 0}
+    else:
+        cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
+                          sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
+        kw = {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
+    if stop == "tail":
+        cfg = dataclasses.replace(cfg, stop_rule="tail", eps_cost_rel=0.0)
+    return cfg, kw
 
 
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
@@ -249,9 +277,11 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     F_init = F(init.poses)
     agents = []
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
+    K = stop_rounds_for(bus, config)
     for r in range(num_robots):
         cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
-                                  colour=int(colour[r]), colours=int(colour.max()) + 1)
+                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
+                                  stop_rounds=K)
         prob = LocalProblem.from_partition(g, part, r, init.poses, kappa, tau, cfg.residual)
         agent = Agent(cfg, prob, weights=W[r])
         # the init's last exchange left every robot with its neighbours' separators
@@ -263,13 +293,16 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         agents.append(agent)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
-    rounds = fleet.run(max_rounds or config.k_max * (int(colour.max()) + 1), callback=callback)
+    cap = max_rounds or config.k_max * (int(colour.max()) + 1)
+    rounds = fleet.run(cap, callback=callback)
+    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
     merged = init.poses.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
     return {
         "poses": merged,
         "rounds": rounds,
+        "stopped_by": "+".join(reasons) if rounds < cap else None,
         "init_rounds": init_rounds,
         "rounds_total": init_rounds + rounds,
         "bytes_init": init_bytes,

@@ -226,12 +226,14 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     consensus-conflict kernel is off (``conflict_reach_m`` 0): with the exclusion all but one of
     the 1956 wrong views of scenario seeds 0-7 wait for corroboration, and on drifted copies of
     one object the kernel only slowed the fleet (seed 5: +24 % ATE where the run ended;
-    docs/notes/benchmarks-history.md, "Tenth session"). The kernel on copies far from the
-    association check's centre (``centre_reach_m``, 16 m, the agent default) stays on: a lone
-    wrong view cleared by the exclusion can start a phantom in the first round, and least
-    squares would average it into the relays before the check drops it ("Thirteenth
-    session"). ``min_views`` overrides the min views."""
-    return AgentConfig(robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
+    docs/notes/benchmarks-history.md, "Tenth session"). The kernel on copies far from the association
+    check's centre (``centre_reach_m``, 16 m, the agent default) stays on: a lone wrong view
+    cleared by the exclusion can start a phantom in the first round, and least squares would
+    average it into the relays before the check drops it ("Thirteenth session"). ``min_views``
+    overrides the min views. The fleet stops on the "tail" rule (docs/notes/stopping-rule.md):
+    the paper's ε_u/ε_v test let a run stop at K_max 27 % above F*."""
+    return AgentConfig(stop_rule="tail",
+                       robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
                        object_robust_threshold=1.0, conflict_reach_m=0.0 if robust else 16.0,
                        object_min_views=min_views if min_views is not None else 2 if robust else 1)
 
@@ -249,7 +251,7 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     SR_cost and SR_ATE are against the centralized LM; for a scenario with outliers, the LM of
     the same scenario without them (F, F_init and F* on that outlier-free graph)."""
     from dran_edge.comms.bus import Bus, BusParams
-    from dran_edge.experiments.fleet import Fleet, neighbour_weights
+    from dran_edge.experiments.fleet import Fleet, neighbour_weights, stop_rounds_for
 
     # The reference (F*, ATE*): the centralized LM with the agents' kernels. With outliers it
     # solves the same seed's scenario without them (same trajectories, noise and start; see
@@ -274,8 +276,10 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
               params=dataclasses.replace(links or BusParams(), seed=seed))
     W = neighbour_weights(bus)
     agents = []
+    K = stop_rounds_for(bus, config)
     for r, p in enumerate(sc.problems):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3)
+        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3,
+                                  stop_rounds=K)
         agents.append(Agent(cfg, p, weights=W[r]))
     fleet = Fleet(agents, bus)
     history = []
@@ -296,7 +300,9 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
         ce = metrics.consistency_error(Y[:, have], present[:, have])[0] if have.any() else 0.0
         bias = metrics.object_bias(Y[:, have], present[:, have], sc.gt_objects[have]) if have.any() else 0.0
         return {"round": fleet.round, "F": F_k, "SR_cost": metrics.sr_cost(F_init, F_k, F_star),
-                "ATE": ate_k, "SR_ATE": metrics.sr_ate(ate0, ate_k, ate_star), "CE": float(ce),
+                "F_over_Fstar": metrics.cost_ratio(F_k, F_star),
+                "ATE": ate_k, "SR_ATE": metrics.sr_ate(ate0, ate_k, ate_star),
+                "ATE_over_ATEstar": metrics.ate_ratio(ate_k, ate_star), "CE": float(ce),
                 "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
 
     def cb(k, _fleet):
@@ -307,7 +313,9 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
 
     rounds = fleet.run(max_rounds, callback=cb)
     out = snapshot()
-    out.update({"rounds": rounds, "F_init": F_init, "F_star": F_star, "ATE_init": ate0,
+    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
+    out.update({"rounds": rounds, "stopped_by": "+".join(reasons) if rounds < max_rounds else None,
+                "F_init": F_init, "F_star": F_star, "ATE_init": ate0,
                 "ATE_star": ate_star, "history": history,
                 "local_step_ms_median": float(np.median(fleet.step_ms)),
                 "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,

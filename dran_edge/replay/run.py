@@ -462,6 +462,9 @@ def pick_metrics(ev: dict) -> dict:
     return {
         "sr_ate": find(ev, "sr_ate_pct", "summary.sr_ate_pct", "sr_ate"),
         "sr_cost": find(ev, "sr_cost_pct", "summary.sr_cost_pct", "cost.sr_cost_pct", "sr_cost"),
+        "f_over_fstar": find(ev, "f_over_fstar", "summary.f_over_fstar", "cost.F_over_Fstar"),
+        "ate_over_atestar": find(ev, "ate_over_atestar", "summary.ate_over_atestar",
+                                 "overall.ate_over_atestar"),
         "ate_m": find(ev, "ate_m", "summary.ate_m", "ate.final.rmse_m", "ate_rmse_m"),
         "ce": find(ev, "ce", "summary.ce", "objects.ce"),
         "bias": find(ev, "bias", "summary.bias", "objects.bias"),

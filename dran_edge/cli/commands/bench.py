@@ -48,8 +48,17 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="Alg. 1 as printed: every robot every round, no over-relaxation, absolute "
                         "values on the wire (default: colour schedule, SOR, delta entries; "
                         "docs/dran.md)")
+    g.add_argument("--stop", choices=("tail", "steps"), default="tail",
+                   help="stopping rule: tail (default; stops only when every robot's predicted "
+                        "remaining decrease is below 1e-3 of its cost and its neighbours agree, "
+                        "docs/notes/stopping-rule.md) or steps (the paper's step-norm test with "
+                        "the relative-decrease stop: what tools/bench/bench_table1.py runs)")
     g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
                    help="residual of the local problems (chordal optimises the reported F exactly)")
+    g.add_argument("--no-reference", action="store_true",
+                   help="skip the centralized solve (F*): F/F* is then reported as n/a "
+                        "(default: solve the graph centrally, chordal init + exact LM, as "
+                        "'dran-edge solve' does, and report F/F* beside the objective)")
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     o = sub.add_parser("objects", help="object simulation sweeps",
@@ -115,7 +124,7 @@ def run_g2o(args) -> int:
     if args.robots < 1 or args.robots > g.num_vertices:
         raise InputError(f"--robots must be in 1..{g.num_vertices}, got {args.robots}")
     if args.method == "dran":
-        cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain)
+        cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain, stop=args.stop)
 
         bar = ProgressBar()
 
@@ -132,12 +141,28 @@ def run_g2o(args) -> int:
         write_g2o(args.out, g, res["poses"])
     report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots}
     report.update({k: v for k, v in res.items() if k != "poses"})
+    report.update(_reference(g, res, skip=args.no_reference))
     if args.json:
         print(json.dumps(report))
     else:
         for k, v in report.items():
-            print(f"{k:>24}: {v}")
+            print(f"{k:>24}: {'n/a' if v is None else v}")
     return 0
+
+
+def _reference(g, res: dict, skip: bool) -> dict:
+    """F* by the centralized solver and F/F* of the run's initial and final estimates (None:
+    not computed, printed as n/a)."""
+    from dran_edge.evaluation import metrics
+    from dran_edge.solver.centralized import solve_g2o
+
+    if skip:
+        return {"F_star": None, "F_over_Fstar": None, "F_init_over_Fstar": None}
+    note("centralized solve for F* (--no-reference skips it)")
+    F_star = solve_g2o(g).objective_final
+    return {"F_star": F_star,
+            "F_over_Fstar": metrics.cost_ratio(res["objective_final"], F_star),
+            "F_init_over_Fstar": metrics.cost_ratio(res["objective_init"], F_star)}
 
 
 def run_objects_cmd(args) -> int:
@@ -185,14 +210,20 @@ def run_objects_cmd(args) -> int:
             if args.json:
                 print(json.dumps(row), flush=True)
             else:
+                stop = (f" (stopped: {row['stopped_by']})" if row.get("stopped_by")
+                        else " (round cap)")
                 print(f"rho={rho:.1f} noise={noise:g}: SR_cost={row['SR_cost']:.2f}% "
-                      f"SR_ATE={row['SR_ATE']:.2f}% CE={row['CE']:.3g} Bias={row['Bias']:.3g} "
-                      f"ATE={row['ATE']:.4f} bytes={row['bytes']} rounds={row['rounds']}"
+                      f"F/F*={row['F_over_Fstar']:.4f} SR_ATE={row['SR_ATE']:.2f}% "
+                      f"ATE/ATE*={row['ATE_over_ATEstar']:.3f} CE={row['CE']:.3g} "
+                      f"Bias={row['Bias']:.3g} ATE={row['ATE']:.4f} ATE*={row['ATE_star']:.4f} "
+                      f"bytes={row['bytes']} rounds={row['rounds']}{stop}"
                       + (f" consensus_conflicts={row['consensus_conflicts']}" if robust else ""),
                       flush=True)
                 for h in row.get("history", ()):
-                    print(f"  round {h['round']}: SR_cost={h['SR_cost']:.2f}% ATE={h['ATE']:.4f} "
-                          f"CE={h['CE']:.3g} bytes={h['bytes']}", flush=True)
+                    print(f"  round {h['round']}: SR_cost={h['SR_cost']:.2f}% "
+                          f"F/F*={h['F_over_Fstar']:.4f} ATE={h['ATE']:.4f} "
+                          f"ATE/ATE*={h['ATE_over_ATEstar']:.3f} CE={h['CE']:.3g} "
+                          f"bytes={h['bytes']}", flush=True)
     if args.plot:
         _plot(rows, args.plot)
     return 0

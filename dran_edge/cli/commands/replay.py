@@ -94,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
           f"({_sources(r.get('observation_sources', {}))})")
     if "sr_ate" in r:
         print(f"SR_ATE {_fmt(r.get('sr_ate'), '.1f')} %   SR_cost {_fmt(r.get('sr_cost'), '.1f')} %"
+              f"   ATE/ATE* {_fmt(r.get('ate_over_atestar'), '.3f')}"
+              f"   F/F* {_fmt(r.get('f_over_fstar'), '.4f')}"
               f"   ATE {_fmt(r.get('ate_m'), '.3f')} m   CE {_fmt(r.get('ce'), '.4f')}"
               f"   Bias {_fmt(r.get('bias'), '.4f')}")
     elif "evaluation_error" in r:
