@@ -215,14 +215,18 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
                  links: BusParams | None = None, partitions=(), callback=None,
                  schedule: str = "parallel", delta_every: int = 0,
-                 initial_poses: np.ndarray | None = None) -> dict:
+                 initial_poses: np.ndarray | None = None, partition=None,
+                 stop: bool = True) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
     network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
     (every robot every round) or "colour" (the robots of one colour of a greedy colouring per
     round); ``delta_every``: see ``Fleet``. Returns the merged poses and the numbers the bench
     reports. ``initial_poses`` (diagnostics): start DRAN from these instead of running the
-    distributed init (no init rounds or bytes)."""
+    distributed init (no init rounds or bytes). ``partition`` (a ``partition.Partition`` of
+    ``num_robots`` robots): use this split instead of the contiguous one. ``stop=False``: run
+    all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
+    record where it fired, via ``callback``). The result also holds ``poses_init``."""
     import dataclasses
     import types
 
@@ -233,7 +237,8 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
 
     t_start = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
-    part = partition_contiguous(g.edges, g.num_vertices, num_robots)
+    part = partition if partition is not None else partition_contiguous(
+        g.edges, g.num_vertices, num_robots)
     bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
               partitions=partitions)
     W = neighbour_weights(bus)
@@ -263,12 +268,14 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         agents.append(agent)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
-    rounds = fleet.run(max_rounds or config.k_max * (int(colour.max()) + 1), callback=callback)
+    cap = max_rounds or config.k_max * (int(colour.max()) + 1)
+    rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
     merged = init.poses.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
     return {
         "poses": merged,
+        "poses_init": init.poses,
         "rounds": rounds,
         "init_rounds": init_rounds,
         "rounds_total": init_rounds + rounds,

@@ -71,7 +71,7 @@ def main(argv=None) -> int:
             print(f"{k} {F:.6f} {fleet.traffic.bytes_total} {rel:.1e}", flush=True)
 
     res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=callback, **kw)
-    summary = {k: v for k, v in res.items() if k != "poses"}
+    summary = {k: v for k, v in res.items() if k not in ("poses", "poses_init")}
     summary["crossed_0.1pct"] = crossed[0] if crossed else None
     print(json.dumps(summary))
     return 0
