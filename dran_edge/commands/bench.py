@@ -290,6 +290,10 @@ def run_suite_cmd(args) -> int:
         rows.append(row)
         if args.json:
             print(json.dumps({k: v for k, v in row.items() if k != "curve"}), flush=True)
+        if args.out:  # after every graph: a long run leaves its partial results
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            (Path(args.out) / "suite.json").write_text(json.dumps(
+                {"rounds": rounds, "init": args.init, "rows": rows}, indent=1))
     table = suite.markdown_table(rows)
     worst = suite.worst_by_family(rows)
     if not args.json:

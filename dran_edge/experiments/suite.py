@@ -224,7 +224,7 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
 def default_cases(quick: bool = False, seeds=(1, 2, 3)) -> list[Case]:
     """The suite. Quick: two small families, 3 robots, for the test and a smoke run."""
     if quick:
-        return [Case("car2d", 300, 1, robots=3), Case("city3d", 200, 2, robots=3,
+        return [Case("car2d", 240, 1, robots=3), Case("city3d", 150, 2, robots=3,
                                                        split="interleaved")]
     cases = []
     for fam in FAMILIES:
