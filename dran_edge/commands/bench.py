@@ -49,6 +49,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "docs/dran.md)")
     g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
                    help="residual of the local problems (chordal optimises the reported F exactly)")
+    g.add_argument("--init", choices=("auto", "always", "never"), default="auto",
+                   help="distributed init per stage: solve it exactly by substructuring where "
+                        "that costs at most 100 block iterations' values (auto, default), always, "
+                        "or block Gauss-Seidel iterations only (never; docs/dran.md)")
     g.add_argument("--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     o = sub.add_parser("objects", help="object simulation sweeps",
@@ -150,11 +154,13 @@ def run_g2o(args) -> int:
     from pathlib import Path
 
     from dran_edge.dgs import run_g2o_dgs
+    from dran_edge.dist_init import InitParams
     from dran_edge.errors import InputError
     from dran_edge.g2o import read_g2o, write_g2o
     from dran_edge.multiagent import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 
     g = read_g2o(args.dataset)
+    init_params = InitParams(gauss_seidel=True, direct=args.init)
     if args.robots < 1 or args.robots > g.num_vertices:
         raise InputError(f"--robots must be in 1..{g.num_vertices}, got {args.robots}")
     if args.method == "dran":
@@ -167,12 +173,15 @@ def run_g2o(args) -> int:
             if k % 50 == 0:
                 _progress(f"DRAN round {k}: {fleet.traffic.bytes_total} bytes")
 
-        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb, **run_kw)
+        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb,
+                           init_params=init_params, **run_kw)
     else:
-        res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY)
+        res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY,
+                          init_params=init_params)
     if args.out:
         write_g2o(args.out, g, res["poses"])
-    report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots}
+    report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots,
+              "init": args.init}
     report.update({k: v for k, v in res.items() if k not in ("poses", "poses_init")})
     if args.json:
         print(json.dumps(report))
