@@ -130,7 +130,7 @@ def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params
     the distributed init, no init rounds or bytes; ``partition``: this split instead of the
     contiguous one)."""
     from dran_edge.comms.bus import Bus, BusParams
-    from dran_edge.multiagent import Fleet
+    from dran_edge.multiagent import Fleet, default_init_params
     from dran_edge.objective import sesync_objective, sesync_weights
     from dran_edge.partition import partition_contiguous
 
@@ -144,9 +144,9 @@ def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params
     if initial_poses is not None:
         start = np.asarray(initial_poses, np.float64).copy()
     else:
-        start = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa,
-                                         tau, part, fleet.init_exchange,
-                                         init_params or InitParams(gauss_seidel=True)).poses
+        start = distributed_chordal_init(
+            g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
+            fleet.init_exchange, init_params or default_init_params(links, partitions)).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     poses, sweeps = dgs_pose_stage(g, part, start, kappa, tau, fleet.init_exchange, params)
 

@@ -123,7 +123,8 @@ def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
     and down between layers), turning with ``turn_probability`` at every node: the "city"
     worlds of M3500 / city10000 (Olson et al. 2006), dense with revisits."""
     rng = np.random.default_rng(seed)
-    dirs = [np.array(v) for v in ((1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))]
+    dirs = [np.array(v) for v in ((1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0), (0, 0, 1),
+                                  (0, 0, -1))]
     ndir = 6 if dim == 3 else 4
     layers = max(2, side // 6) if dim == 3 else 1
     lim = np.array([side - 1, side - 1, layers - 1])

@@ -199,6 +199,17 @@ TABLE1_EPS_COST_REL = 1e-4
 TABLE1_DELTA_EVERY = 20
 
 
+def default_init_params(links: BusParams | None = None, partitions=()):
+    """The init of the g2o runs: Gauss–Seidel block iterations, and the substructured exact
+    stages where cheap (``InitParams.direct="auto"``) unless ``links`` or ``partitions`` lose
+    datagrams (that protocol needs every message; the block iterations tolerate losses)."""
+    from dran_edge.dist_init import InitParams
+
+    lossy = bool(partitions) or (links is not None and (
+        links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values())))
+    return InitParams(gauss_seidel=True, direct="never" if lossy else "auto")
+
+
 def table1_setup(dim: int, residual: str = "chordal", plain: bool = False):
     """``(AgentConfig, run_g2o_dran keyword arguments)`` of the Table 1 runs. ``plain``: Alg. 1
     as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone."""
@@ -248,7 +259,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     else:
         init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                         part, fleet.init_exchange,
-                                        init_params or InitParams(gauss_seidel=True))
+                                        init_params or default_init_params(links, partitions))
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)

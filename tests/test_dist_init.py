@@ -235,7 +235,8 @@ def test_substructured_init_over_the_wire_lands_on_the_chordal_objective():
     ref = _F(g, chordal_initialization(g.num_vertices, g.edges, g.measurements, k, t, 0))
     runs = []
     for _ in range(2):
-        fleet = Fleet([], Bus(range(5), graph=part.neighbour_pairs()), delta_every=TABLE1_DELTA_EVERY)
+        fleet = Fleet([], Bus(range(5), graph=part.neighbour_pairs()),
+                      delta_every=TABLE1_DELTA_EVERY)
         res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
                                        fleet.init_exchange, InitParams(gauss_seidel=True))
         runs.append((res.poses, fleet.traffic.bytes_total, fleet.round))

@@ -122,7 +122,8 @@ def _add_suite_parser(sub) -> None:
                     "families: " + ", ".join(FAMILIES) + "\n\n"
                     "examples:\n"
                     "  dran-edge bench suite --quick --out /tmp/suite\n"
-                    "  dran-edge bench suite --families car2d city2d --seeds 1 2 --rounds 500 --out runs/s")
+                    "  dran-edge bench suite --families car2d city2d --seeds 1 2 --rounds 500 "
+                    "--out runs/s")
     s.add_argument("--quick", action="store_true",
                    help="two small graphs, 200 rounds (a smoke run, < 60 s)")
     s.add_argument("--families", nargs="+", choices=sorted(FAMILIES), metavar="FAMILY",
@@ -309,8 +310,8 @@ def run_suite_cmd(args) -> int:
         print(table)
         print()
         for fam, w in worst.items():
-            print(f"worst {fam}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                               for k, v in w.items()))
+            print(f"worst {fam}: " + ", ".join(
+                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in w.items()))
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

@@ -180,6 +180,16 @@ def _unpack(flat: np.ndarray, b: int, ncol: int) -> tuple[np.ndarray, np.ndarray
     return B, g, S + np.triu(S, 1).T
 
 
+def _packed_size(nb: float, b: int, ncol: int) -> int:
+    k = int(round(nb)) * b
+    return 1 + int(round(nb)) + k * ncol + k * (k + 1) // 2
+
+
+def _missing(what: str) -> None:
+    raise RuntimeError(f"substructured init stage: {what} (a lost datagram?); it needs every "
+                       "message delivered: over lossy links use InitParams(direct='never')")
+
+
 def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
     size = d * d
     pad = np.zeros(-(-flat.size // size) * size)
@@ -213,15 +223,23 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
         incoming = exchange(schur_kind, rounds, outgoing)
         rounds += 1
         for q, entries in incoming.items():
-            parts: dict[int, list] = {}
-            for e in entries:
+            parts: dict[int, dict] = {}
+            for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
                 if InitStage(e.stage) == schur_kind:
-                    parts.setdefault(int(e.owner_robot), []).append(
-                        (int(e.keyframe_id), np.asarray(e.value, float).ravel()))
-            for o, chunks in parts.items():
-                bundles[q][o] = np.concatenate([v for _, v in sorted(chunks, key=lambda t: t[0])])
+                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
+                        np.asarray(e.value, float).ravel()
+            for o, by_index in parts.items():
+                chunks = sorted(by_index.items())
+                flat = np.concatenate([v for _, v in chunks])
+                if [k for k, _ in chunks] != list(range(len(chunks))) or \
+                        flat.size < _packed_size(flat[0], b, ncol):
+                    _missing(f"robot {o}'s condensed system reached robot {q} incomplete")
+                bundles[q][o] = flat
     # 2. the root assembles Σ S_r, Σ g_r and solves
     root = tree.root
+    if len(bundles[tree.root]) != R:
+        _missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
+                 f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
     unpacked = [_unpack(bundles[root][o], b, ncol) for o in range(R)]
     Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
     rows, cols, vals = [], [], []
@@ -258,6 +276,9 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
     # 4. back-substitution of each robot's interior
     views = []
     for r, loc in enumerate(locs):
+        lost = [int(v) for v in loc.B.tolist() if int(v) not in known[r]]
+        if lost:
+            _missing(f"robot {r} did not receive the separator values {lost[:5]}")
         view = X0.copy()
         view[_expand(np.array([gauge]), b)] = X_gauge
         Xb = np.concatenate([known[r][int(v)] for v in loc.B.tolist()]) if loc.B.size else \

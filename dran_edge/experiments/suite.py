@@ -194,7 +194,8 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
         "init_rounds": res["init_rounds"], "init_bytes": res["bytes_init"],
         "ATE_init_m": ate_m(res["poses_init"], T_true),
         "dran_rounds": res["rounds"], "dran_bytes": res["bytes_total"],
-        "dran_F_end": res["objective_final"], "dran_F_end_over_F_star": res["objective_final"] / F_star,
+        "dran_F_end": res["objective_final"],
+        "dran_F_end_over_F_star": res["objective_final"] / F_star,
         "dran_ATE_end_m": ate_m(res["poses"], T_true),
     }
     by_round = {k: (b, f) for k, b, f in curve}
@@ -303,7 +304,8 @@ def plot(rows: list[dict], out_dir) -> list:
             label = r["case"].removeprefix(fam + "-")
             axes[0].plot(c[:, 0], c[:, 2] - 1.0, label=label)
             axes[1].plot(c[:, 1] / 1e6, c[:, 2] - 1.0, label=label)
-        for ax, xl in zip(axes, ("DRAN rounds after the initialisation", "MB sent (init included)")):
+        labels = ("DRAN rounds after the initialisation", "MB sent (init included)")
+        for ax, xl in zip(axes, labels):
             ax.set_yscale("log")
             ax.axhline(0.01, color="k", lw=0.6, ls="--")
             ax.axhline(0.001, color="k", lw=0.6, ls=":")

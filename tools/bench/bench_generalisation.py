@@ -27,9 +27,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from dran_edge.experiments import suite  # noqa: E402
 
-KEYS = [("F_init_over_F_chordal", ".4f"), ("init_bytes", ".0f"), ("F_over_F_star_at_300", ".4f"),
-        ("F_over_F_star_at_1000", ".4f"), ("stop_F_over_F_star", ".4f"),
-        ("dran_F_end_over_F_star", ".4f"), ("bytes_at_1pct", ".0f"), ("dgs_F_end_over_F_star", ".4f")]
+KEYS = [("F_init_over_F_chordal", ".4f"), ("init_bytes", ".0f"),
+        ("F_over_F_star_at_300", ".4f"), ("F_over_F_star_at_1000", ".4f"),
+        ("stop_F_over_F_star", ".4f"), ("dran_F_end_over_F_star", ".4f"),
+        ("bytes_at_1pct", ".0f"), ("dgs_F_end_over_F_star", ".4f")]
 
 
 def worst(rows: list, key: str):
@@ -65,7 +66,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="the suite's two small graphs, 200 rounds")
     ap.add_argument("--families", nargs="+", choices=sorted(suite.FAMILIES))
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    ap.add_argument("--rounds", type=int, default=None, help="DRAN rounds (default 1000, quick 200)")
+    ap.add_argument("--rounds", type=int, default=None,
+                    help="DRAN rounds (default 1000, quick 200)")
     ap.add_argument("--baseline", choices=("never", "none"), default="never",
                     help="baseline init: the block iterations only (never), or no baseline")
     ap.add_argument("--baseline-rounds", type=int, default=None,
@@ -83,7 +85,8 @@ def main(argv=None) -> int:
         b_rounds = rounds if args.baseline_rounds is None else max(args.baseline_rounds, 1)
         base = run(cases, b_rounds, args.baseline, False, args.out and args.out / "baseline")
     fams = sorted({r["family"] for r in cur})
-    print("worst case per family: current (direct=auto)" + (" | baseline (direct=never)" if base else ""))
+    print("worst case per family: current (direct=auto)"
+          + (" | baseline (direct=never)" if base else ""))
     print("| family | cases | " + " | ".join(k for k, _ in KEYS) + " |")
     print("|---|---|" + "---|" * len(KEYS))
     for fam in fams:
