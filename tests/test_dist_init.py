@@ -246,9 +246,11 @@ def test_substructured_init_over_the_wire_lands_on_the_chordal_objective():
     assert np.array_equal(runs[0][0], runs[1][0]) and runs[0][1:] == runs[1][1:]
 
 
-def test_auto_keeps_the_block_iterations_where_the_direct_solve_costs_more():
-    """A dense grid world (every robot's poses mostly separators): the condensed systems
-    would cost more than ``direct_budget`` block iterations, so "auto" iterates."""
+def test_auto_picks_the_direct_solve_only_within_its_byte_budget():
+    """``direct="auto"`` compares what the condensed systems would send with ``direct_budget``
+    block iterations' worth of separator values: a dense grid world is cheap enough with the
+    default budget (its interior pieces are small), and with a budget of one iteration the
+    same split runs the block iterations."""
     from dran_edge import graphgen as gg
     from dran_edge.dran import substructure
 
@@ -258,8 +260,13 @@ def test_auto_keeps_the_block_iterations_where_the_direct_solve_costs_more():
     tree = substructure.robot_tree(part)
     ratio = (substructure.direct_floats(part, 2, 2, 0, tree)
              / substructure.iteration_floats(part, 2, 2))
-    assert ratio > InitParams().direct_budget
+    assert 1.0 < ratio < InitParams().direct_budget
     k, t = sesync_weights(2, g.information)
-    res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                   direct_exchange, InitParams(gauss_seidel=True, max_iterations=3))
-    assert "direct" not in [h[1] for h in res.history][:1]
+    kinds = {}
+    for budget in (1.0, 100.0):
+        res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
+                                       direct_exchange, InitParams(gauss_seidel=True,
+                                                                   max_iterations=3,
+                                                                   direct_budget=budget))
+        kinds[budget] = [h[1] for h in res.history if h[0] == "ROTATION"]
+    assert kinds[100.0] == ["direct"] and "direct" not in kinds[1.0]

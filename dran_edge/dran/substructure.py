@@ -78,11 +78,14 @@ def _bfs(adj: list, root: int) -> np.ndarray:
 
 
 def robot_tree(partition: Partition) -> RobotTree:
-    """BFS tree rooted at a centre of the robot graph (least eccentricity, lowest id)."""
+    """BFS tree rooted at a centre of the robot graph (least eccentricity; among those the
+    robot with the most boundary vertices, whose condensed system then does not travel;
+    then the lowest id)."""
     R = partition.num_robots
     adj = [sorted(p.neighbours) for p in partition.parts]
-    ecc = [int(_bfs(adj, r).max()) for r in range(R)]
-    root = int(np.argmin(ecc))
+    ecc = np.array([int(_bfs(adj, r).max()) for r in range(R)])
+    size = np.array([np.union1d(p.separators, p.anchors).size for p in partition.parts])
+    root = int(np.lexsort((np.arange(R), -size, ecc))[0])
     depth = _bfs(adj, root)
     if np.any(depth < 0):
         raise ValueError("the robot graph is not connected")
@@ -100,14 +103,61 @@ def boundary(part, gauge: int) -> np.ndarray:
     return B[B != gauge]
 
 
+@dataclass(frozen=True)
+class _Structure:
+    """Which blocks of a robot's condensed system can be non-zero (from the graph alone)."""
+
+    B: np.ndarray  # boundary vertex positions (sorted)
+    I: np.ndarray  # interior vertex positions (sorted)
+    pairs: np.ndarray  # (p, 2) boundary-local (i ≤ j) pairs joined by an edge, and (i, i)
+    comps: tuple  # per connected piece C of the interior: (C local rows into I, N(C) into B)
+
+
+def _structure(part, partition: Partition, gauge: int) -> _Structure:
+    """S_r = Q_BB − Σ_C Q_BC Q_CC⁻¹ Q_CB: Q_BB has a block per boundary edge and the diagonal;
+    each connected piece C of the interior fills a dense block on its boundary neighbours N(C)
+    and nothing else (the pieces are independent), so only those blocks travel."""
+    from scipy.sparse.csgraph import connected_components
+
+    B = boundary(part, gauge)
+    I = np.setdiff1d(part.vertices, np.concatenate([part.separators, [gauge]]))
+    e = partition.edges[np.concatenate([part.intra_edges, part.inter_edges])]
+    e = e[(e != gauge).all(axis=1)]
+    inB, inI = np.isin(e, B), np.isin(e, I)
+    bb = np.sort(np.searchsorted(B, e[inB.all(axis=1)]), axis=1)
+    diag = np.repeat(np.arange(B.size)[:, None], 2, axis=1)
+    pairs = np.unique(np.concatenate([diag, bb]), axis=0)
+    ii = np.searchsorted(I, e[inI.all(axis=1)])
+    adj = sp.coo_matrix((np.ones(len(ii)), (ii[:, 0], ii[:, 1])), shape=(I.size, I.size))
+    ncomp, label = connected_components(adj, directed=False) if I.size else (0, np.zeros(0, int))
+    ib = e[inI.any(axis=1) & inB.any(axis=1)]
+    i_end = np.where(np.isin(ib[:, 0], I), ib[:, 0], ib[:, 1])
+    b_end = np.where(np.isin(ib[:, 0], I), ib[:, 1], ib[:, 0])
+    comp_of_edge = label[np.searchsorted(I, i_end)]
+    comps = []
+    for c in range(ncomp):
+        N = np.unique(np.searchsorted(B, b_end[comp_of_edge == c]))
+        comps.append((np.flatnonzero(label == c), N))
+    return _Structure(B, I, pairs, tuple(comps))
+
+
+def _structure_floats(st: _Structure, b: int, ncol: int) -> int:
+    """Floats of ``_pack``: header, ids, right-hand side, Q_BB blocks, interior-piece blocks."""
+    n = 4 + st.B.size * (1 + b * ncol) + len(st.pairs) * (2 + b * b)
+    for _, N in st.comps:
+        k = N.size * b
+        n += 1 + N.size + k * (k + 1) // 2
+    return n
+
+
 def direct_floats(partition: Partition, b: int, ncol: int, gauge: int, tree: RobotTree) -> int:
-    """Floats the direct solve sends: each S_r, g_r and id list times its depth (forwarded up
-    the tree), plus the separator values scattered down."""
+    """Floats the direct solve sends: each robot's condensed system times its depth (forwarded
+    up the tree), plus the separator values scattered down."""
     total = 0
     for part in partition.parts:
-        nb = boundary(part, gauge).size
-        k = nb * b
-        total += int(tree.depth[part.robot_id]) * (1 + nb + k * ncol + k * (k + 1) // 2)
+        depth = int(tree.depth[part.robot_id])
+        if depth:
+            total += depth * _structure_floats(_structure(part, partition, gauge), b, ncol)
     for r in range(partition.num_robots):
         if r == tree.root:
             continue
@@ -128,13 +178,21 @@ def _expand(positions: np.ndarray, b: int) -> np.ndarray:
 
 @dataclass
 class _Local:
-    B: np.ndarray  # boundary vertex positions
-    I: np.ndarray  # interior vertex positions
+    st: _Structure
     lu: object
     Q_IB: sp.csr_matrix
     rhs_I: np.ndarray
-    S: np.ndarray
+    Q_BB: np.ndarray  # (p, b, b) blocks at st.pairs
+    pieces: list  # per interior piece: dense −Q_NC Q_CC⁻¹ Q_CN on N(C)
     g: np.ndarray
+
+    @property
+    def B(self) -> np.ndarray:
+        return self.st.B
+
+    @property
+    def I(self) -> np.ndarray:
+        return self.st.I
 
 
 def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: int,
@@ -146,43 +204,69 @@ def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: in
     scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
     Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c[eidx], w[eidx] * scale)
     Q = Q.tocsr()
-    g_rows = _expand(np.array([gauge]), b)
-    rhs = Bv - Q[:, g_rows] @ X_gauge
-    Bd = boundary(part, gauge)
-    I = np.setdiff1d(part.vertices, np.concatenate([part.separators, [gauge]]))
-    rb, ri = _expand(Bd, b), _expand(I, b)
-    Q_BB = Q[rb][:, rb].toarray()
-    S, g, lu, Q_IB = Q_BB, rhs[rb], None, sp.csr_matrix((ri.size, rb.size))
+    rhs = Bv - Q[:, _expand(np.array([gauge]), b)] @ X_gauge
+    st = _structure(part, partition, gauge)
+    rb, ri = _expand(st.B, b), _expand(st.I, b)
+    Q_B = Q[rb][:, rb]
+    Q_BB = np.stack([Q_B[i * b:(i + 1) * b][:, j * b:(j + 1) * b].toarray() for i, j in st.pairs]) \
+        if len(st.pairs) else np.zeros((0, b, b))
+    g, lu, Q_IB, pieces = rhs[rb].copy(), None, sp.csr_matrix((ri.size, rb.size)), []
     if ri.size:
-        Q_II = sp.csc_matrix(Q[ri][:, ri])
-        lu = spla.splu(Q_II, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
+        lu = spla.splu(sp.csc_matrix(Q[ri][:, ri]), permc_spec="MMD_AT_PLUS_A",
+                       diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         Q_IB = Q[ri][:, rb].tocsr()
         Y = lu.solve(np.column_stack([Q_IB.toarray(), rhs[ri]]))
-        S = Q_BB - Q_IB.T @ Y[:, :rb.size]
-        g = rhs[rb] - Q_IB.T @ Y[:, rb.size:]
-    return _Local(Bd, I, lu, Q_IB, rhs[ri], 0.5 * (S + S.T), g)
+        for C, N in st.comps:  # Y is zero outside each piece's own rows and neighbours
+            rc, rn = _expand(C, b), _expand(N, b)
+            Qc = Q_IB[rc][:, rn].toarray()
+            P = -Qc.T @ Y[rc][:, rn]
+            pieces.append(0.5 * (P + P.T))
+            g[rn] -= Qc.T @ Y[rc, rb.size:]
+    return _Local(st, lu, Q_IB, rhs[ri], Q_BB, pieces, g)
 
 
 def _pack(loc: _Local, b: int) -> np.ndarray:
-    k = loc.B.size * b
-    iu = np.triu_indices(k)
-    return np.concatenate([[loc.B.size], loc.B.astype(float), loc.g.ravel(), loc.S[iu]])
+    st = loc.st
+    out = [[st.B.size], st.B.astype(float), loc.g.ravel(), [len(st.pairs)]]
+    for (i, j), blk in zip(st.pairs, loc.Q_BB):
+        out += [[i, j], blk.ravel()]
+    out.append([len(st.comps)])
+    for (_, N), P in zip(st.comps, loc.pieces):
+        out += [[N.size], N.astype(float), P[np.triu_indices(P.shape[0])]]
+    return np.concatenate([np.asarray(x, float) for x in out])
 
 
-def _unpack(flat: np.ndarray, b: int, ncol: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    nb = int(round(flat[0]))
-    B = np.rint(flat[1:1 + nb]).astype(np.int64)
-    k = nb * b
-    g = flat[1 + nb:1 + nb + k * ncol].reshape(k, ncol)
-    S = np.zeros((k, k))
-    S[np.triu_indices(k)] = flat[1 + nb + k * ncol:1 + nb + k * ncol + k * (k + 1) // 2]
-    return B, g, S + np.triu(S, 1).T
+def _unpack(flat: np.ndarray, b: int, ncol: int):
+    """(B ids, g, pieces): the condensed system as (boundary-local indices, dense block) terms."""
+    pos = 0
 
+    def take(k):
+        nonlocal pos
+        pos += k
+        if pos > flat.size:
+            raise ValueError("truncated condensed system")
+        return flat[pos - k:pos]
 
-def _packed_size(nb: float, b: int, ncol: int) -> int:
-    k = int(round(nb)) * b
-    return 1 + int(round(nb)) + k * ncol + k * (k + 1) // 2
+    nb = int(round(take(1)[0]))
+    B = np.rint(take(nb)).astype(np.int64)
+    g = take(nb * b * ncol).reshape(nb * b, ncol)
+    pieces = []
+    for _ in range(int(round(take(1)[0]))):
+        i, j = np.rint(take(2)).astype(np.int64)
+        blk = take(b * b).reshape(b, b)
+        if i == j:
+            pieces.append((np.array([i]), blk))
+        else:
+            pieces.append((np.array([i, j]), np.block([[np.zeros((b, b)), blk],
+                                                       [blk.T, np.zeros((b, b))]])))
+    for _ in range(int(round(take(1)[0]))):
+        nn = int(round(take(1)[0]))
+        N = np.rint(take(nn)).astype(np.int64)
+        k = nn * b
+        P = np.zeros((k, k))
+        P[np.triu_indices(k)] = take(k * (k + 1) // 2)
+        pieces.append((N, P + np.triu(P, 1).T))
+    return B, g, pieces, pos
 
 
 def _missing(what: str) -> None:
@@ -191,6 +275,8 @@ def _missing(what: str) -> None:
 
 
 def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
+    """The packed vector, prefixed by its length, cut into d×d chunks (the last zero-padded)."""
+    flat = np.concatenate([[flat.size], flat])
     size = d * d
     pad = np.zeros(-(-flat.size // size) * size)
     pad[:flat.size] = flat
@@ -232,9 +318,9 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
                 chunks = sorted(by_index.items())
                 flat = np.concatenate([v for _, v in chunks])
                 if [k for k, _ in chunks] != list(range(len(chunks))) or \
-                        flat.size < _packed_size(flat[0], b, ncol):
+                        flat.size < 1 + int(round(flat[0])):
                     _missing(f"robot {o}'s condensed system reached robot {q} incomplete")
-                bundles[q][o] = flat
+                bundles[q][o] = flat[1:1 + int(round(flat[0]))]
     # 2. the root assembles Σ S_r, Σ g_r and solves
     root = tree.root
     if len(bundles[tree.root]) != R:
@@ -244,12 +330,14 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
     Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
     rows, cols, vals = [], [], []
     g_glob = np.zeros((Bglob.size * b, ncol))
-    for B, g, S in unpacked:
-        idx = _expand(np.searchsorted(Bglob, B), b)
-        rows.append(np.repeat(idx, idx.size))
-        cols.append(np.tile(idx, idx.size))
-        vals.append(S.ravel())
-        np.add.at(g_glob, idx, g)
+    for B, g, pieces, _ in unpacked:
+        at = np.searchsorted(Bglob, B)
+        np.add.at(g_glob, _expand(at, b), g)
+        for loc_idx, P in pieces:
+            idx = _expand(at[loc_idx], b)
+            rows.append(np.repeat(idx, idx.size))
+            cols.append(np.tile(idx, idx.size))
+            vals.append(P.ravel())
     X_B = np.zeros_like(g_glob)
     if Bglob.size:
         S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
