@@ -34,11 +34,17 @@ class InitStage(enum.IntEnum):
     #: (X_v = X̂_v + s). ``keyframe_id`` is 0.
     ROTATION_FRAME = 3
     TRANSLATION_FRAME = 4
+    #: Substructuring (``dran_edge.dran.substructure``): chunks of d x d floats of a robot's
+    #: condensed system (boundary ids, right-hand side, upper triangle of S_r), sent up the
+    #: robot tree; ``owner_robot`` is the robot whose system it is, ``keyframe_id`` the chunk.
+    ROTATION_SCHUR = 5
+    TRANSLATION_SCHUR = 6
 
     @property
     def matrix_valued(self) -> bool:
         """True when the value is a d x d matrix (else a pose)."""
-        return self in (InitStage.ROTATION, InitStage.ROTATION_FRAME)
+        return self in (InitStage.ROTATION, InitStage.ROTATION_FRAME, InitStage.ROTATION_SCHUR,
+                        InitStage.TRANSLATION_SCHUR)
 
 
 @dataclass(frozen=True, eq=False)

@@ -42,6 +42,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dran_edge import geometry as geo
+from dran_edge.dran import substructure
 from dran_edge.messages import InitEntry, InitStage
 from dran_edge.dran.partition import Partition
 
@@ -93,6 +94,15 @@ class InitParams:
     gauss_seidel: bool = False
     """True: robots of one colour update per sub-step using the newest values (DGS);
     False: all robots update in parallel from last round's values (Jacobi)."""
+    direct: str = "auto"
+    """Per stage: "always" solves it exactly by substructuring (``dran_edge.dran.substructure``:
+    each robot condenses its segment onto its separators, the robot tree's root solves the
+    interface, 2 × tree height rounds); "never" runs the block iterations above; "auto" solves
+    directly when that sends at most ``direct_budget`` block iterations' worth of values
+    (``substructure.direct_floats`` against ``iteration_floats``) — the chain-like graphs
+    with few separators, where the block iterations converge slowest."""
+    direct_budget: float = 100.0
+    """See ``direct``: the block-iteration count whose values the direct solve may cost."""
 
 
 @dataclass
@@ -195,8 +205,13 @@ class LinearStage:
             X_hat = X0.copy()
             X_hat[rf] = X_first
             if loc.size:
-                X_hat[rl] = spla.spsolve(sp.csc_matrix(Qi[rl][:, rl]),
-                                         Bi[rl] - Qi[rl][:, rf] @ X_first).reshape(-1, X0.shape[1])
+                # A segment may fall apart into pieces (interleaved splits); a tiny pull
+                # towards X0 keeps the pieces without the local gauge defined.
+                Qs = sp.csc_matrix(Qi[rl][:, rl])
+                eps = 1e-9 * max(float(np.abs(Qs.diagonal()).max(initial=0.0)), 1.0)
+                X_hat[rl] = spla.spsolve(Qs + eps * sp.identity(rl.size, format="csc"),
+                                         Bi[rl] - Qi[rl][:, rf] @ X_first + eps * X0[rl]
+                                         ).reshape(-1, X0.shape[1])
             view[_expand(part.vertices, b)] = X_hat[_expand(part.vertices, b)]
             self.views.append(view)
             self.blocks.append(_Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], view[ro].copy()))
@@ -397,30 +412,44 @@ def distributed_chordal_init(
     R_meas, t_meas = measurements[:, :d, :d], measurements[:, :d, d]
     I_d = np.eye(d)
     X0 = np.tile(I_d, (n, 1))  # X_v = R_vᵀ = I
-    rot = LinearStage(partition, n, d, edges, np.swapaxes(R_meas, 1, 2),
-                      lambda r: np.zeros((m, d, d)), np.asarray(kappa, float), gauge, I_d, X0)
+    rot = _LazyStage(lambda: LinearStage(partition, n, d, edges, np.swapaxes(R_meas, 1, 2),
+                                         lambda r: np.zeros((m, d, d)), np.asarray(kappa, float),
+                                         gauge, I_d, X0))
 
     def rot_entry(r: int, v: int, X_v: np.ndarray) -> InitEntry:
         return InitEntry(InitStage.ROTATION, r, v, X_v.T.copy())
 
     frames = params.frame_entries
-    it_rot = _run_stage(rot, InitStage.ROTATION, exchange, params, params.rotation_tol, sor_rot,
-                        params.send_tol, colour, rot_entry,
-                        lambda e: np.asarray(e.value, float).T, history, params.max_iterations,
-                        InitStage.ROTATION_FRAME if frames else None,
-                        lambda r, G: InitEntry(InitStage.ROTATION_FRAME, r, 0, G.copy()),
-                        lambda e: np.asarray(e.value, float))
+    tree = substructure.robot_tree(partition) if partition.num_robots > 1 else None
+    rot_M = np.swapaxes(R_meas, 1, 2)
+    if _use_direct(params, partition, d, d, gauge, tree):
+        owner = partition.owner
+        rot_views, it_rot = substructure.solve_direct(
+            partition, n, d, d, edges, rot_M, lambda r: np.zeros((m, d, d)),
+            np.asarray(kappa, float), gauge, I_d, exchange, InitStage.ROTATION_SCHUR,
+            InitStage.ROTATION, lambda v, X: rot_entry(int(owner[v]), v, X),
+            lambda e: np.asarray(e.value, float).T, X0, tree)
+        history.append((InitStage.ROTATION.name, "direct", it_rot))
+    else:
+        it_rot = _run_stage(rot, InitStage.ROTATION, exchange, params, params.rotation_tol,
+                            sor_rot, params.send_tol, colour, rot_entry,
+                            lambda e: np.asarray(e.value, float).T, history,
+                            params.max_iterations, InitStage.ROTATION_FRAME if frames else None,
+                            lambda r, G: InitEntry(InitStage.ROTATION_FRAME, r, 0, G.copy()),
+                            lambda e: np.asarray(e.value, float))
+        rot_views = rot.views
 
     # Each robot projects what it knows (own values and the neighbours' last relaxed values).
     R_views = [geo.so3_project(v.reshape(n, d, d).swapaxes(1, 2)) if d == 3 else
-               _so2_project(v.reshape(n, d, d).swapaxes(1, 2)) for v in rot.views]
+               _so2_project(v.reshape(n, d, d).swapaxes(1, 2)) for v in rot_views]
 
     def c_of(r: int) -> np.ndarray:
         Ri = R_views[r][edges[:, 0]]
         return (Ri @ t_meas[:, :, None]).reshape(m, 1, d)
 
-    trans = LinearStage(partition, n, 1, edges, np.ones((m, 1, 1)), c_of,
-                        np.asarray(tau, float), gauge, np.zeros((1, d)), np.zeros((n, d)))
+    trans = _LazyStage(lambda: LinearStage(partition, n, 1, edges, np.ones((m, 1, 1)), c_of,
+                                           np.asarray(tau, float), gauge, np.zeros((1, d)),
+                                           np.zeros((n, d))))
 
     def trans_entry(r: int, v: int, X_v: np.ndarray) -> InitEntry:
         T = np.eye(D)
@@ -432,18 +461,57 @@ def distributed_chordal_init(
         T[:d, d] = s_off[0]
         return InitEntry(InitStage.TRANSLATION_FRAME, r, 0, T)
 
-    it_tr = _run_stage(trans, InitStage.TRANSLATION, exchange, params, params.translation_tol,
-                       sor_tr, params.translation_send_tol, colour, trans_entry,
-                       lambda e: np.asarray(e.value, float)[:d, d][None], history,
-                       params.max_iterations, InitStage.TRANSLATION_FRAME if frames else None,
-                       offset_entry, lambda e: np.asarray(e.value, float)[:d, d][None])
+    if _use_direct(params, partition, 1, d, gauge, tree):
+        def value_entry(v: int, X_v: np.ndarray) -> InitEntry:
+            # the owner's rotation rides along (the pose layout needs one); receivers use t
+            return trans_entry(int(partition.owner[v]), v, X_v)
+
+        tr_views, it_tr = substructure.solve_direct(
+            partition, n, 1, d, edges, np.ones((m, 1, 1)), c_of, np.asarray(tau, float), gauge,
+            np.zeros((1, d)), exchange, InitStage.TRANSLATION_SCHUR, InitStage.TRANSLATION,
+            value_entry, lambda e: np.asarray(e.value, float)[:d, d][None], np.zeros((n, d)),
+            tree)
+        history.append((InitStage.TRANSLATION.name, "direct", it_tr))
+    else:
+        it_tr = _run_stage(trans, InitStage.TRANSLATION, exchange, params,
+                           params.translation_tol, sor_tr, params.translation_send_tol, colour,
+                           trans_entry, lambda e: np.asarray(e.value, float)[:d, d][None],
+                           history, params.max_iterations,
+                           InitStage.TRANSLATION_FRAME if frames else None, offset_entry,
+                           lambda e: np.asarray(e.value, float)[:d, d][None])
+        tr_views = trans.views
 
     poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
     for part in partition.parts:
         r, own = part.robot_id, part.vertices
         poses[own, :d, :d] = R_views[r][own]
-        poses[own, :d, d] = trans.views[r][own]
+        poses[own, :d, d] = tr_views[r][own]
     return InitResult(poses, it_rot, it_tr, history)
+
+
+class _LazyStage:
+    """A ``LinearStage`` built on first use (the direct path never needs its factorisations)."""
+
+    def __init__(self, build: Callable[[], LinearStage]):
+        self._build, self._stage = build, None
+
+    def __getattr__(self, name):
+        if self._stage is None:
+            self._stage = self._build()
+        return getattr(self._stage, name)
+
+
+def _use_direct(params: InitParams, partition: Partition, b: int, ncol: int, gauge: int,
+                tree) -> bool:
+    """``InitParams.direct`` for a stage with block size ``b`` and ``ncol`` columns."""
+    if params.direct not in ("auto", "always", "never"):
+        raise ValueError(f"InitParams.direct must be auto, always or never, got {params.direct!r}")
+    if tree is None or params.direct == "never":
+        return False
+    if params.direct == "always":
+        return True
+    direct = substructure.direct_floats(partition, b, ncol, gauge, tree)
+    return direct <= params.direct_budget * substructure.iteration_floats(partition, b, ncol)
 
 
 def _so2_project(M: np.ndarray) -> np.ndarray:

@@ -121,3 +121,13 @@ def partition_edges(edges: np.ndarray, owner: np.ndarray) -> Partition:
 def partition_contiguous(edges: np.ndarray, num_vertices: int, num_robots: int) -> Partition:
     """The paper's split: ``num_robots`` contiguous trajectory segments (Sec. 6.1)."""
     return partition_edges(edges, contiguous_owner(num_vertices, num_robots))
+
+
+def interleaved_owner(num_vertices: int, num_robots: int, chunks_per_robot: int = 4) -> np.ndarray:
+    """(n,) owner ids: the vertices in order cut into ``num_robots × chunks_per_robot``
+    near-equal chunks dealt round-robin (chunk c to robot c mod R), so every robot drives
+    several stretches of the trajectory and robots revisit each other's areas."""
+    if chunks_per_robot < 1:
+        raise InputError(f"chunks per robot must be >= 1, got {chunks_per_robot}")
+    chunks = contiguous_owner(num_vertices, num_robots * chunks_per_robot)
+    return chunks % num_robots

@@ -123,28 +123,30 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
 
 def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params=None,
                 links=None, partitions=(), delta_every: int = 0,
-                initial_poses: np.ndarray | None = None) -> dict:
+                initial_poses: np.ndarray | None = None, partition=None) -> dict:
     """DGS on a g2o graph split like Table 1; same bus and byte accounting as ``run_g2o_dran``
     (``links``: the bus's ``BusParams``, default lossless; ``delta_every``: the delta layout,
     see ``Fleet``; ``initial_poses`` (diagnostics): run the pose stage from these instead of
-    the distributed init, no init rounds or bytes)."""
+    the distributed init, no init rounds or bytes; ``partition``: this split instead of the
+    contiguous one)."""
     from dran_edge.comms.bus import Bus, BusParams
-    from dran_edge.experiments.fleet import Fleet
+    from dran_edge.experiments.fleet import Fleet, default_init_params
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
 
     t0 = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
-    part = partition_contiguous(g.edges, g.num_vertices, num_robots)
+    part = partition if partition is not None else partition_contiguous(
+        g.edges, g.num_vertices, num_robots)
     bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
               partitions=partitions)
     fleet = Fleet([], bus, delta_every=delta_every)
     if initial_poses is not None:
         start = np.asarray(initial_poses, np.float64).copy()
     else:
-        start = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa,
-                                         tau, part, fleet.init_exchange,
-                                         init_params or InitParams(gauss_seidel=True)).poses
+        start = distributed_chordal_init(
+            g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
+            fleet.init_exchange, init_params or default_init_params(links, partitions)).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     poses, sweeps = dgs_pose_stage(g, part, start, kappa, tau, fleet.init_exchange, params)
 

@@ -217,6 +217,17 @@ TABLE1_EPS_COST_REL = 1e-4
 TABLE1_DELTA_EVERY = 20
 
 
+def default_init_params(links: BusParams | None = None, partitions=()):
+    """The init of the g2o runs: Gauss–Seidel block iterations, and the substructured exact
+    stages where cheap (``InitParams.direct="auto"``) unless ``links`` or ``partitions`` lose
+    datagrams (that protocol needs every message; the block iterations tolerate losses)."""
+    from dran_edge.dran.dist_init import InitParams
+
+    lossy = bool(partitions) or (links is not None and (
+        links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values())))
+    return InitParams(gauss_seidel=True, direct="never" if lossy else "auto")
+
+
 def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop: str = "steps"):
     """``(AgentConfig, run_g2o_dran keyword arguments)`` of the Table 1 runs. ``plain``: Alg. 1
     as printed — every robot every round, ω = 1, absolute values, the ε_u/ε_v stop alone.
@@ -243,14 +254,18 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop:
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
                  links: BusParams | None = None, partitions=(), callback=None,
                  schedule: str = "parallel", delta_every: int = 0,
-                 initial_poses: np.ndarray | None = None) -> dict:
+                 initial_poses: np.ndarray | None = None, partition=None,
+                 stop: bool = True) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
     network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
     (every robot every round) or "colour" (the robots of one colour of a greedy colouring per
     round); ``delta_every``: see ``Fleet``. Returns the merged poses and the numbers the bench
     reports. ``initial_poses`` (diagnostics): start DRAN from these instead of running the
-    distributed init (no init rounds or bytes)."""
+    distributed init (no init rounds or bytes). ``partition`` (a ``partition.Partition`` of
+    ``num_robots`` robots): use this split instead of the contiguous one. ``stop=False``: run
+    all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
+    record where it fired, via ``callback``). The result also holds ``poses_init``."""
     import dataclasses
     import types
 
@@ -261,7 +276,8 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
 
     t_start = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
-    part = partition_contiguous(g.edges, g.num_vertices, num_robots)
+    part = partition if partition is not None else partition_contiguous(
+        g.edges, g.num_vertices, num_robots)
     bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
               partitions=partitions)
     W = neighbour_weights(bus)
@@ -271,7 +287,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     else:
         init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
                                         part, fleet.init_exchange,
-                                        init_params or InitParams(gauss_seidel=True))
+                                        init_params or default_init_params(links, partitions))
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)
@@ -294,13 +310,14 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
-    rounds = fleet.run(cap, callback=callback)
+    rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
     reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
     merged = init.poses.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
     return {
         "poses": merged,
+        "poses_init": init.poses,
         "rounds": rounds,
         "stopped_by": "+".join(reasons) if rounds < cap else None,
         "init_rounds": init_rounds,

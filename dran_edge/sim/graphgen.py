@@ -159,3 +159,134 @@ def city_graph(
         edge_lines=np.arange(1, m + 1, dtype=np.int64),
     )
     return graph, T
+
+
+# --------------------------------------------------------------------------- suite families
+# Generators for the generalisation suite (docs/notes/generalisation.md): long odometry chains
+# with sparse loops (car / long indoor), dense grid worlds, noisy and anisotropic variants.
+
+
+def road_trajectory(dim: int, num_poses: int, seed: int, step_m: float = 1.0,
+                    block_m: float = 20.0, blocks: int = 8, hills_m: float = 0.0) -> np.ndarray:
+    """(n, D, D) true poses of a vehicle driving a grid of streets: ``blocks`` × ``blocks``
+    city blocks of ``block_m`` metres, one pose every ``step_m``; at each intersection it goes
+    straight, left or right at random (never back, never off the map), so it revisits streets
+    at random, as a car or a robot in long corridors does. In 3D the streets follow smooth
+    hills of amplitude ``hills_m`` (pitch from the slope) with a small random roll."""
+    rng = np.random.default_rng(seed)
+    per_block = max(1, int(round(block_m / step_m)))
+    size = blocks * per_block
+    heading = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])
+    cell, h = np.array([0, 0]), 0
+    cells, headings = [], []
+    for _ in range(num_poses):
+        cells.append(cell.copy())
+        headings.append(h)
+        if np.all(cell % per_block == 0):  # intersection: choose among allowed directions
+            options = [k for k in ((h + 1) % 4, h, (h + 3) % 4)
+                       if np.all((cell + heading[k] >= 0) & (cell + heading[k] <= size))]
+            h = int(rng.choice(options)) if options else (h + 2) % 4
+        cell = cell + heading[h]
+        headings[-1] = h  # the pose faces where it drives next
+    xy = np.asarray(cells, dtype=np.float64) * step_m
+    yaw = np.asarray(headings) * (np.pi / 2)
+    if dim == 2:
+        return geo.se2_from_xy_theta(np.column_stack([xy, yaw]))
+    L = size * step_m + 1.0
+    z = hills_m * np.sin(2 * np.pi * xy[:, 0] / L) * np.cos(2 * np.pi * xy[:, 1] / L)
+    dz = np.gradient(z) / step_m if z.size > 1 else np.zeros_like(z)
+    pitch = -np.arctan(dz)
+    roll = rng.normal(scale=0.02, size=z.size)
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rz = np.stack([np.stack([c, -s, 0 * c], -1), np.stack([s, c, 0 * c], -1),
+                   np.stack([0 * c, 0 * c, 1 + 0 * c], -1)], 1)
+    R = Rz @ geo.so3_exp(np.column_stack([roll, pitch, np.zeros_like(roll)]))
+    return geo.se3_from_rt(R, np.column_stack([xy, z]))
+
+
+def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
+                         turn_probability: float = 0.3) -> np.ndarray:
+    """(n, D, D) true poses of a random walk on a ``side`` × ``side`` unit grid (3D: also up
+    and down between layers), turning with ``turn_probability`` at every node: the "city"
+    worlds of M3500 / city10000 (Olson et al. 2006), dense with revisits."""
+    rng = np.random.default_rng(seed)
+    dirs = [np.array(v) for v in ((1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0), (0, 0, 1),
+                                  (0, 0, -1))]
+    ndir = 6 if dim == 3 else 4
+    layers = max(2, side // 6) if dim == 3 else 1
+    lim = np.array([side - 1, side - 1, layers - 1])
+    p, h = np.zeros(3, dtype=np.int64), 0
+    pts, hs = [], []
+    for _ in range(num_poses):
+        if rng.random() < turn_probability or np.any((p + dirs[h] < 0) | (p + dirs[h] > lim)):
+            back = (h + 2) % 4 if h < 4 else 9 - h
+            ok = [k for k in range(ndir) if np.all((p + dirs[k] >= 0) & (p + dirs[k] <= lim))
+                  and k != back]
+            h = int(rng.choice(ok))
+        p = p + dirs[h]
+        pts.append(p.copy())
+        hs.append(h)
+    pts = np.asarray(pts, dtype=np.float64)
+    yaw = np.array([(k if k < 4 else 0) * np.pi / 2 for k in hs])
+    if dim == 2:
+        return geo.se2_from_xy_theta(np.column_stack([pts[:, :2], yaw]))
+    tilt = rng.normal(scale=0.05, size=(yaw.size, 2))
+    return geo.se3_from_rt(geo.so3_exp(np.column_stack([tilt, yaw])), pts)
+
+
+def loop_pairs(T: np.ndarray, radius_m: float, min_gap: int, count: int | None,
+               seed: int) -> np.ndarray:
+    """(k, 2) loop closures i < j − ``min_gap`` between poses within ``radius_m``; ``count``
+    of them drawn uniformly at random (spread over the trajectory), or all when None."""
+    from scipy.spatial import cKDTree
+
+    d = T.shape[-1] - 1
+    pairs = cKDTree(T[:, :d, d]).query_pairs(radius_m, output_type="ndarray")
+    if pairs.size == 0:
+        return np.zeros((0, 2), np.int64)
+    pairs = np.sort(pairs, axis=1)
+    pairs = pairs[pairs[:, 1] - pairs[:, 0] > min_gap]
+    pairs = pairs[np.lexsort((pairs[:, 0], pairs[:, 1]))]
+    if count is not None and count < len(pairs):
+        rng = np.random.default_rng(seed + 7919)
+        pairs = pairs[np.sort(rng.choice(len(pairs), size=count, replace=False))]
+    return pairs.astype(np.int64)
+
+
+def graph_from_trajectory(T: np.ndarray, loops: np.ndarray, sigma_t_m, sigma_r_rad,
+                          seed: int, anisotropy: float = 1.0) -> G2oGraph:
+    """A pose graph over true poses ``T``: odometry between consecutive poses plus ``loops``,
+    measurements perturbed on the right by ``Exp(n)``, n ~ N(0, Σ). ``sigma_t_m`` /
+    ``sigma_r_rad`` are scalars or per-axis arrays. ``anisotropy`` > 1 draws, per edge, a
+    random rotation of the translation covariance with axis standard deviations spread
+    by that ratio (correlated, non-diagonal information); 1 keeps it diagonal. The vertices
+    hold the true poses (the suite starts from its own initialisation)."""
+    dim = T.shape[-1] - 1
+    n = T.shape[0]
+    dof = 6 if dim == 3 else 3
+    edges = np.concatenate([np.column_stack([np.arange(n - 1), np.arange(1, n)]), loops])
+    edges = edges.astype(np.int64)
+    m = edges.shape[0]
+    Z = geo.between(T[edges[:, 0]], T[edges[:, 1]])
+    rng = np.random.default_rng(seed)
+    st = np.broadcast_to(np.asarray(sigma_t_m, float), (dim,))
+    sr = np.broadcast_to(np.asarray(sigma_r_rad, float), (dof - dim,))
+    cov = np.zeros((m, dof, dof))
+    cov[:, :dim, :dim] = np.diag(st**2)
+    cov[:, dim:, dim:] = np.diag(sr**2)
+    if anisotropy != 1.0:
+        scales = np.geomspace(1.0, anisotropy, dim) / np.sqrt(anisotropy)
+        if dim == 2:
+            Q = geo.so2_exp(rng.uniform(-np.pi, np.pi, m))
+        else:
+            Q = geo.so3_exp(rng.normal(size=(m, 3)) * 2.0)
+        cov[:, :dim, :dim] = Q @ np.diag((st * scales) ** 2) @ np.swapaxes(Q, 1, 2)
+    Lc = np.linalg.cholesky(cov)
+    noise = (Lc @ rng.normal(size=(m, dof, 1)))[..., 0]
+    Z = geo.retract(Z, noise)
+    info = np.linalg.inv(cov)
+    info = 0.5 * (info + np.swapaxes(info, 1, 2))
+    return G2oGraph(
+        dim=dim, vertex_ids=np.arange(n, dtype=np.int64), poses=T.copy(),
+        has_pose=np.ones(n, dtype=bool), edges=edges, measurements=Z, information=info,
+        fixed=np.zeros(n, dtype=bool), edge_lines=np.arange(1, m + 1, dtype=np.int64))

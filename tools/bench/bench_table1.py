@@ -2,6 +2,7 @@
 
 Usage: .venv/bin/python tools/bench/bench_table1.py DATA_DIR [--robots 5] [--only NAME ...] [--json OUT]
        .venv/bin/python tools/bench/bench_table1.py --quick    # a small generated graph, seconds
+       [--init auto|always|never]
 
 Prints a Table-1-like table with the paper's columns next to ours: objective (SE-Sync convention)
 at the distributed initialisation and at the end, rounds and total transmitted bytes (every byte
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import _common  # one BLAS thread, before numpy (docs/benchmarks.md)
 
+from dran_edge.dran.dist_init import InitParams
 from dran_edge.experiments.dgs import run_g2o_dgs
 from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 from dran_edge.formats.g2o import read_g2o
@@ -48,6 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--plain", action="store_true", help="DRAN as Alg. 1 prints it (see module doc)")
     ap.add_argument("--quick", action="store_true",
                     help="a small generated graph, 3 robots, 20 DRAN rounds: checks the script only")
+    ap.add_argument("--init", choices=("auto", "always", "never"), default="auto",
+                    help="InitParams.direct of the distributed init (never: block iterations only)")
     args = ap.parse_args(argv)
     if args.quick:  # the SE(2) graph only unless --only names the other: 1 s instead of 3
         args.robots, args.max_rounds = 3, args.max_rounds or 20
@@ -67,10 +71,13 @@ def _run(args, data_dir: str, graphs: dict[str, tuple[str, float]]) -> int:
         dgs_F, dran_F, dgs_MB, dran_MB = PAPER.get(name, NO_PAPER)
         g = read_g2o(Path(data_dir) / fname)
         cfg, run_kw = table1_setup(g.dim, "chordal", plain=args.plain)
-        dran = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, **run_kw)
-        dgs = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY)
+        init = InitParams(gauss_seidel=True, direct=args.init)
+        dran = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, init_params=init,
+                            **run_kw)
+        dgs = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY,
+                          init_params=init)
         row = {
-            "dataset": name, "F_star": F_star,
+            "dataset": name, "init": args.init, "F_star": F_star,
             "dran_F_init": dran["objective_init"], "dran_F": dran["objective_final"],
             "dran_gap_pct": 100 * (dran["objective_final"] / F_star - 1),
             "dran_rounds": dran["rounds_total"], "dran_MB": dran["bytes_total"] / 1e6,

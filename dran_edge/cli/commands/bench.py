@@ -30,11 +30,12 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
             "examples:\n"
             "  dran-edge bench g2o CSAIL.g2o --robots 5 --json\n"
             "  dran-edge bench objects --rho 0.3 --outliers 0.2 --json     # 20 % wrong ids / loops\n"
-            "  dran-edge bench objects --rho 0.3 --robust --json           # same settings, no outliers"
+            "  dran-edge bench objects --rho 0.3 --robust --json           # same settings, no outliers\n"
+            "  dran-edge bench suite --quick --out /tmp/suite              # generated graph families"
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="what", required=True, metavar="{g2o,objects}")
+    sub = parser.add_subparsers(dest="what", required=True, metavar="{g2o,objects,suite}")
     g = sub.add_parser("g2o", help="Table 1 protocol on one g2o file")
     g.add_argument("dataset", help="a g2o file (VERTEX_SE2/SE3:QUAT, EDGE_SE2/SE3:QUAT)")
     g.add_argument("--robots", type=int, default=5, help="number of robots (default 5)")
@@ -59,6 +60,10 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="skip the centralized solve (F*): F/F* is then reported as n/a "
                         "(default: solve the graph centrally, chordal init + exact LM, as "
                         "'dran-edge solve' does, and report F/F* beside the objective)")
+    g.add_argument("--init", choices=("auto", "always", "never"), default="auto",
+                   help="distributed init per stage: solve it exactly by substructuring where "
+                        "that costs at most 100 block iterations' values (auto, default), always, "
+                        "or block Gauss-Seidel iterations only (never; docs/dran.md)")
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     o = sub.add_parser("objects", help="object simulation sweeps",
@@ -109,18 +114,62 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="scenario seed; the communication graph uses seed + 1 (default 0)")
     o.add_argument("--json", action="store_true", help="print one JSON object per run")
     o.add_argument("--plot", metavar="DIR", help="write a PNG per sweep into DIR")
+    _add_suite_parser(sub)
     return parser
+
+
+def _add_suite_parser(sub) -> None:
+    from dran_edge.experiments.suite import CHECKPOINTS, FAMILIES
+
+    s = sub.add_parser(
+        "suite", help="generalisation suite: generated graph families, DRAN vs DGS vs centralized",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Generate pose-graph families DRAN was not tuned on (long 2D/3D odometry "
+                    "chains with 1-3 % loops, dense grid worlds, 0.1 rad rotation noise, "
+                    "anisotropic information; 3-20 robots, contiguous and interleaved splits), "
+                    "run the distributed init + DRAN (Table 1 setup), DGS and the centralized "
+                    "solver on each, and report per graph F/F* at rounds "
+                    + "/".join(map(str, CHECKPOINTS)) + ", where the stopping rule fired, "
+                    "bytes, ATE against ground truth, F_init/F_chordal (docs/benchmarks.md).\n\n"
+                    "families: " + ", ".join(FAMILIES) + "\n\n"
+                    "examples:\n"
+                    "  dran-edge bench suite --quick --out /tmp/suite\n"
+                    "  dran-edge bench suite --families car2d city2d --seeds 1 2 --rounds 500 "
+                    "--out runs/s")
+    s.add_argument("--quick", action="store_true",
+                   help="two small graphs, 200 rounds (a smoke run, < 60 s)")
+    s.add_argument("--families", nargs="+", choices=sorted(FAMILIES), metavar="FAMILY",
+                   help="only these families (default: the whole suite)")
+    s.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3], help="seeds (default 1 2 3)")
+    s.add_argument("--poses", type=int, default=None,
+                   help="poses per graph (default: 2000-4000 by seed for chains, 2000 grids)")
+    s.add_argument("--robots", type=int, nargs="+", default=None,
+                   help="robot counts (default: 5, plus the 3/10/20-robot and interleaved cases)")
+    s.add_argument("--split", choices=("contiguous", "interleaved"), nargs="+", default=None,
+                   help="splits (default: contiguous, plus the interleaved cases)")
+    s.add_argument("--rounds", type=int, default=None,
+                   help="DRAN rounds per graph (default 1000; 200 with --quick); DRAN keeps "
+                        "running after its stopping rule fires so both are reported")
+    s.add_argument("--init", choices=("auto", "always", "never"), default="auto",
+                   help="InitParams.direct: substructured exact init where it is cheap (auto), "
+                        "always, or the block Gauss-Seidel iterations only (never)")
+    s.add_argument("--no-dgs", action="store_true", help="skip the DGS baseline")
+    s.add_argument("-o", "--out", metavar="DIR", default=None,
+                   help="write suite.json, suite.md and the plots (suite_FAMILY.png) here")
+    s.add_argument("--json", action="store_true", help="print one JSON object per graph")
 
 
 def run_g2o(args) -> int:
     from pathlib import Path
 
     from dran_edge.experiments.dgs import run_g2o_dgs
+    from dran_edge.dran.dist_init import InitParams
     from dran_edge.errors import InputError
     from dran_edge.formats.g2o import read_g2o, write_g2o
     from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
 
     g = read_g2o(args.dataset)
+    init_params = InitParams(gauss_seidel=True, direct=args.init)
     if args.robots < 1 or args.robots > g.num_vertices:
         raise InputError(f"--robots must be in 1..{g.num_vertices}, got {args.robots}")
     if args.method == "dran":
@@ -134,13 +183,16 @@ def run_g2o(args) -> int:
                      f"{fleet.traffic.bytes_total} bytes so far")
             bar("DRAN rounds", k, args.max_rounds or k)
 
-        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb, **run_kw)
+        res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb,
+                           init_params=init_params, **run_kw)
     else:
-        res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY)
+        res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY,
+                          init_params=init_params)
     if args.out:
         write_g2o(args.out, g, res["poses"])
-    report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots}
-    report.update({k: v for k, v in res.items() if k != "poses"})
+    report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots,
+              "init": args.init}
+    report.update({k: v for k, v in res.items() if k not in ("poses", "poses_init")})
     report.update(_reference(g, res, skip=args.no_reference))
     if args.json:
         print(json.dumps(report))
@@ -257,5 +309,52 @@ def _plot(rows: list, out_dir: str) -> None:
         plt.close(fig)
 
 
+def run_suite_cmd(args) -> int:
+    from pathlib import Path
+
+    from dran_edge.errors import InputError
+    from dran_edge.experiments import suite
+
+    rounds = args.rounds or (200 if args.quick else 1000)
+    if rounds < 1:
+        raise InputError(f"--rounds must be at least 1, got {rounds}")
+    cases = suite.default_cases(args.quick, tuple(args.seeds))
+    if args.families or args.poses or args.robots or args.split:
+        fams = args.families or sorted(suite.FAMILIES)
+        cases = [suite.Case(f, args.poses or (300 if args.quick else 3000), seed, robots, split)
+                 for f in fams for seed in args.seeds for robots in (args.robots or [5])
+                 for split in (args.split or ["contiguous"])]
+    rows = []
+    for k, case in enumerate(cases):
+        note(f"[{k + 1}/{len(cases)}] {case.name}")
+        row = suite.run_case(case, rounds=rounds, init_direct=args.init, dgs=not args.no_dgs)
+        rows.append(row)
+        if args.json:
+            print(json.dumps({k: v for k, v in row.items() if k != "curve"}), flush=True)
+        if args.out:  # after every graph: a long run leaves its partial results
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+            (Path(args.out) / "suite.json").write_text(json.dumps(
+                {"rounds": rounds, "init": args.init, "rows": rows}, indent=1))
+    table = suite.markdown_table(rows)
+    worst = suite.worst_by_family(rows)
+    if not args.json:
+        print(table)
+        print()
+        for fam, w in worst.items():
+            print(f"worst {fam}: " + ", ".join(
+                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in w.items()))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "suite.json").write_text(json.dumps({"rounds": rounds, "init": args.init,
+                                                    "rows": rows, "worst": worst}, indent=1))
+        (out / "suite.md").write_text(table + "\n")
+        suite.plot(rows, out)
+        note(f"wrote {out}/suite.json, suite.md and the plots")
+    return 0
+
+
 def run(args) -> int:
+    if args.what == "suite":
+        return run_suite_cmd(args)
     return run_g2o(args) if args.what == "g2o" else run_objects_cmd(args)

@@ -1,0 +1,378 @@
+"""Exact distributed solve of one linear stage of the initialisation by substructuring
+(static condensation over the robot graph): the direct alternative to the block iterations of
+``dran_edge.dran.dist_init``.
+
+The stage is the least squares ``Σ_e w_e ‖X_j − M_e X_i − c_e‖²`` of ``dist_init`` (normal
+equations ``Q X = Bv``). Split every inter-robot edge's weight half to each of its two robots;
+robot r's share ``Q⁽ʳ⁾`` then involves its own vertices and its anchors only, and
+``Q = Σ_r Q⁽ʳ⁾``. Its own vertices without inter-robot edges (the *interior* I_r) appear in no
+other share, so eliminating them is local (Schur complement onto its *boundary* B_r = its
+separators ∪ its anchors):
+
+    S_r = Q⁽ʳ⁾_BB − Q⁽ʳ⁾_BI (Q⁽ʳ⁾_II)⁻¹ Q⁽ʳ⁾_IB,    g_r = Bv⁽ʳ⁾_B − Q⁽ʳ⁾_BI (Q⁽ʳ⁾_II)⁻¹ Bv⁽ʳ⁾_I
+
+and the separators solve ``(Σ_r S_r) X_B = Σ_r g_r`` — exactly the stage's solution restricted
+to them. Protocol over a BFS spanning tree of the robot graph rooted at a centre:
+
+1. gather (height rounds): each robot sends (B_r ids, g_r, upper triangle of S_r) to its
+   parent, forwarding its children's; packed float values travel as ``*_SCHUR`` init entries
+   (``keyframe_id`` = chunk index, ``owner_robot`` = the robot whose S_r it is);
+2. the root assembles and solves the interface system;
+3. scatter (height rounds): each link carries the separator values its subtree needs, as the
+   stage's own value entries (ROTATION / TRANSLATION);
+4. each robot back-substitutes its interior: ``X_I = (Q⁽ʳ⁾_II)⁻¹ (Bv_I − Q_IB X_B)``.
+
+Exact up to the wire's float32 values, in 2 × height rounds per stage. Bytes grow with
+|B_r|² (a dense S_r per robot), so ``dist_init`` uses it where it costs no more than a number
+of block iterations would (``direct_floats`` against ``iteration_floats``): chain-like graphs
+with few loops, where the block iterations converge slowest, have small boundaries.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from dran_edge.messages import InitEntry, InitStage
+from dran_edge.dran.partition import Partition
+
+
+@dataclass(frozen=True)
+class RobotTree:
+    """BFS spanning tree of the robot graph: ``parent[root] = -1``."""
+
+    root: int
+    parent: np.ndarray
+    depth: np.ndarray
+    children: tuple
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.max(initial=0))
+
+    def subtree(self, r: int) -> list[int]:
+        out, stack = [], [r]
+        while stack:
+            q = stack.pop()
+            out.append(q)
+            stack.extend(self.children[q])
+        return out
+
+
+def _bfs(adj: list, root: int) -> np.ndarray:
+    depth = np.full(len(adj), -1)
+    depth[root] = 0
+    queue = deque([root])
+    while queue:
+        r = queue.popleft()
+        for q in adj[r]:
+            if depth[q] < 0:
+                depth[q] = depth[r] + 1
+                queue.append(q)
+    return depth
+
+
+def robot_tree(partition: Partition) -> RobotTree:
+    """BFS tree rooted at a centre of the robot graph (least eccentricity; among those the
+    robot with the most boundary vertices, whose condensed system then does not travel;
+    then the lowest id)."""
+    R = partition.num_robots
+    adj = [sorted(p.neighbours) for p in partition.parts]
+    ecc = np.array([int(_bfs(adj, r).max()) for r in range(R)])
+    size = np.array([np.union1d(p.separators, p.anchors).size for p in partition.parts])
+    root = int(np.lexsort((np.arange(R), -size, ecc))[0])
+    depth = _bfs(adj, root)
+    if np.any(depth < 0):
+        raise ValueError("the robot graph is not connected")
+    parent = np.full(R, -1)
+    for r in range(R):
+        if r != root:
+            parent[r] = min(q for q in adj[r] if depth[q] == depth[r] - 1)
+    children = tuple(tuple(int(c) for c in np.flatnonzero(parent == r)) for r in range(R))
+    return RobotTree(root, parent, depth, children)
+
+
+def boundary(part, gauge: int) -> np.ndarray:
+    """Robot's boundary vertices B_r: its separators and anchors, without the gauge."""
+    B = np.union1d(part.separators, part.anchors)
+    return B[B != gauge]
+
+
+@dataclass(frozen=True)
+class _Structure:
+    """Which blocks of a robot's condensed system can be non-zero (from the graph alone)."""
+
+    B: np.ndarray  # boundary vertex positions (sorted)
+    I: np.ndarray  # interior vertex positions (sorted)
+    pairs: np.ndarray  # (p, 2) boundary-local (i ≤ j) pairs joined by an edge, and (i, i)
+    comps: tuple  # per connected piece C of the interior: (C local rows into I, N(C) into B)
+
+
+def _structure(part, partition: Partition, gauge: int) -> _Structure:
+    """S_r = Q_BB − Σ_C Q_BC Q_CC⁻¹ Q_CB: Q_BB has a block per boundary edge and the diagonal;
+    each connected piece C of the interior fills a dense block on its boundary neighbours N(C)
+    and nothing else (the pieces are independent), so only those blocks travel."""
+    from scipy.sparse.csgraph import connected_components
+
+    B = boundary(part, gauge)
+    I = np.setdiff1d(part.vertices, np.concatenate([part.separators, [gauge]]))
+    e = partition.edges[np.concatenate([part.intra_edges, part.inter_edges])]
+    e = e[(e != gauge).all(axis=1)]
+    inB, inI = np.isin(e, B), np.isin(e, I)
+    bb = np.sort(np.searchsorted(B, e[inB.all(axis=1)]), axis=1)
+    diag = np.repeat(np.arange(B.size)[:, None], 2, axis=1)
+    pairs = np.unique(np.concatenate([diag, bb]), axis=0)
+    ii = np.searchsorted(I, e[inI.all(axis=1)])
+    adj = sp.coo_matrix((np.ones(len(ii)), (ii[:, 0], ii[:, 1])), shape=(I.size, I.size))
+    ncomp, label = connected_components(adj, directed=False) if I.size else (0, np.zeros(0, int))
+    ib = e[inI.any(axis=1) & inB.any(axis=1)]
+    i_end = np.where(np.isin(ib[:, 0], I), ib[:, 0], ib[:, 1])
+    b_end = np.where(np.isin(ib[:, 0], I), ib[:, 1], ib[:, 0])
+    comp_of_edge = label[np.searchsorted(I, i_end)]
+    comps = []
+    for c in range(ncomp):
+        N = np.unique(np.searchsorted(B, b_end[comp_of_edge == c]))
+        comps.append((np.flatnonzero(label == c), N))
+    return _Structure(B, I, pairs, tuple(comps))
+
+
+def _structure_floats(st: _Structure, b: int, ncol: int) -> int:
+    """Floats of ``_pack``: header, ids, right-hand side, Q_BB blocks, interior-piece blocks."""
+    n = 4 + st.B.size * (1 + b * ncol) + len(st.pairs) * (2 + b * b)
+    for _, N in st.comps:
+        k = N.size * b
+        n += 1 + N.size + k * (k + 1) // 2
+    return n
+
+
+def direct_floats(partition: Partition, b: int, ncol: int, gauge: int, tree: RobotTree) -> int:
+    """Floats the direct solve sends: each robot's condensed system times its depth (forwarded
+    up the tree), plus the separator values scattered down."""
+    total = 0
+    for part in partition.parts:
+        depth = int(tree.depth[part.robot_id])
+        if depth:
+            total += depth * _structure_floats(_structure(part, partition, gauge), b, ncol)
+    for r in range(partition.num_robots):
+        if r == tree.root:
+            continue
+        need = np.unique(np.concatenate([boundary(partition.parts[q], gauge)
+                                         for q in tree.subtree(r)]))
+        total += need.size * b * ncol
+    return total
+
+
+def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
+    """Floats of one block iteration in which every separator is sent to every neighbour."""
+    return sum(v.size for p in partition.parts for v in p.separators_for.values()) * b * ncol
+
+
+def _expand(positions: np.ndarray, b: int) -> np.ndarray:
+    return (positions[:, None] * b + np.arange(b)[None]).ravel()
+
+
+@dataclass
+class _Local:
+    st: _Structure
+    lu: object
+    Q_IB: sp.csr_matrix
+    rhs_I: np.ndarray
+    Q_BB: np.ndarray  # (p, b, b) blocks at st.pairs
+    pieces: list  # per interior piece: dense −Q_NC Q_CC⁻¹ Q_CN on N(C)
+    g: np.ndarray
+
+    @property
+    def B(self) -> np.ndarray:
+        return self.st.B
+
+    @property
+    def I(self) -> np.ndarray:
+        return self.st.I
+
+
+def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: int,
+           X_gauge: np.ndarray) -> _Local:
+    """Robot's share Q⁽ʳ⁾ (inter-robot edges at half weight) condensed onto its boundary."""
+    from dran_edge.dran.dist_init import normal_equations
+
+    eidx = np.concatenate([part.intra_edges, part.inter_edges])
+    scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
+    Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c[eidx], w[eidx] * scale)
+    Q = Q.tocsr()
+    rhs = Bv - Q[:, _expand(np.array([gauge]), b)] @ X_gauge
+    st = _structure(part, partition, gauge)
+    rb, ri = _expand(st.B, b), _expand(st.I, b)
+    Q_B = Q[rb][:, rb]
+    Q_BB = np.stack([Q_B[i * b:(i + 1) * b][:, j * b:(j + 1) * b].toarray() for i, j in st.pairs]) \
+        if len(st.pairs) else np.zeros((0, b, b))
+    g, lu, Q_IB, pieces = rhs[rb].copy(), None, sp.csr_matrix((ri.size, rb.size)), []
+    if ri.size:
+        lu = spla.splu(sp.csc_matrix(Q[ri][:, ri]), permc_spec="MMD_AT_PLUS_A",
+                       diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        Q_IB = Q[ri][:, rb].tocsr()
+        Y = lu.solve(np.column_stack([Q_IB.toarray(), rhs[ri]]))
+        for C, N in st.comps:  # Y is zero outside each piece's own rows and neighbours
+            rc, rn = _expand(C, b), _expand(N, b)
+            Qc = Q_IB[rc][:, rn].toarray()
+            P = -Qc.T @ Y[rc][:, rn]
+            pieces.append(0.5 * (P + P.T))
+            g[rn] -= Qc.T @ Y[rc, rb.size:]
+    return _Local(st, lu, Q_IB, rhs[ri], Q_BB, pieces, g)
+
+
+def _pack(loc: _Local, b: int) -> np.ndarray:
+    st = loc.st
+    out = [[st.B.size], st.B.astype(float), loc.g.ravel(), [len(st.pairs)]]
+    for (i, j), blk in zip(st.pairs, loc.Q_BB):
+        out += [[i, j], blk.ravel()]
+    out.append([len(st.comps)])
+    for (_, N), P in zip(st.comps, loc.pieces):
+        out += [[N.size], N.astype(float), P[np.triu_indices(P.shape[0])]]
+    return np.concatenate([np.asarray(x, float) for x in out])
+
+
+def _unpack(flat: np.ndarray, b: int, ncol: int):
+    """(B ids, g, pieces): the condensed system as (boundary-local indices, dense block) terms."""
+    pos = 0
+
+    def take(k):
+        nonlocal pos
+        pos += k
+        if pos > flat.size:
+            raise ValueError("truncated condensed system")
+        return flat[pos - k:pos]
+
+    nb = int(round(take(1)[0]))
+    B = np.rint(take(nb)).astype(np.int64)
+    g = take(nb * b * ncol).reshape(nb * b, ncol)
+    pieces = []
+    for _ in range(int(round(take(1)[0]))):
+        i, j = np.rint(take(2)).astype(np.int64)
+        blk = take(b * b).reshape(b, b)
+        if i == j:
+            pieces.append((np.array([i]), blk))
+        else:
+            pieces.append((np.array([i, j]), np.block([[np.zeros((b, b)), blk],
+                                                       [blk.T, np.zeros((b, b))]])))
+    for _ in range(int(round(take(1)[0]))):
+        nn = int(round(take(1)[0]))
+        N = np.rint(take(nn)).astype(np.int64)
+        k = nn * b
+        P = np.zeros((k, k))
+        P[np.triu_indices(k)] = take(k * (k + 1) // 2)
+        pieces.append((N, P + np.triu(P, 1).T))
+    return B, g, pieces, pos
+
+
+def _missing(what: str) -> None:
+    raise RuntimeError(f"substructured init stage: {what} (a lost datagram?); it needs every "
+                       "message delivered: over lossy links use InitParams(direct='never')")
+
+
+def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
+    """The packed vector, prefixed by its length, cut into d×d chunks (the last zero-padded)."""
+    flat = np.concatenate([[flat.size], flat])
+    size = d * d
+    pad = np.zeros(-(-flat.size // size) * size)
+    pad[:flat.size] = flat
+    return list(pad.reshape(-1, d, d))
+
+
+def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray,
+                 M: np.ndarray, c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
+                 X_gauge: np.ndarray, exchange, schur_kind: InitStage, value_kind: InitStage,
+                 to_entry: Callable, from_entry: Callable, X0: np.ndarray,
+                 tree: RobotTree | None = None) -> tuple[list[np.ndarray], int]:
+    """Solve the stage exactly (module docstring). Returns each robot's view ((n·b, ncol):
+    its own vertices and anchors solved, the rest ``X0``) and the rounds used. ``to_entry(v,
+    X_v)`` / ``from_entry(entry)`` convert one separator value to / from its init entry."""
+    R = partition.num_robots
+    ncol = X0.shape[1]
+    tree = tree or robot_tree(partition)
+    locs = [_local(p, partition, n, b, edges, M, c_of(p.robot_id), w, gauge, X_gauge)
+            for p in partition.parts]
+    rounds = 0
+    # 1. gather: bundles[r] = {origin robot: packed floats} known at r
+    bundles = [{r: _pack(locs[r], b)} for r in range(R)]
+    for level in range(tree.height, 0, -1):
+        outgoing: dict[int, list] = {}
+        for r in np.flatnonzero(tree.depth == level):
+            entries = [InitEntry(schur_kind, int(o), k, ch)
+                       for o, flat in sorted(bundles[r].items())
+                       for k, ch in enumerate(_chunks(flat, d))]
+            outgoing[int(r)] = [(int(tree.parent[r]), entries)]
+        incoming = exchange(schur_kind, rounds, outgoing)
+        rounds += 1
+        for q, entries in incoming.items():
+            parts: dict[int, dict] = {}
+            for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
+                if InitStage(e.stage) == schur_kind:
+                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
+                        np.asarray(e.value, float).ravel()
+            for o, by_index in parts.items():
+                chunks = sorted(by_index.items())
+                flat = np.concatenate([v for _, v in chunks])
+                if [k for k, _ in chunks] != list(range(len(chunks))) or \
+                        flat.size < 1 + int(round(flat[0])):
+                    _missing(f"robot {o}'s condensed system reached robot {q} incomplete")
+                bundles[q][o] = flat[1:1 + int(round(flat[0]))]
+    # 2. the root assembles Σ S_r, Σ g_r and solves
+    root = tree.root
+    if len(bundles[tree.root]) != R:
+        _missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
+                 f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
+    unpacked = [_unpack(bundles[root][o], b, ncol) for o in range(R)]
+    Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
+    rows, cols, vals = [], [], []
+    g_glob = np.zeros((Bglob.size * b, ncol))
+    for B, g, pieces, _ in unpacked:
+        at = np.searchsorted(Bglob, B)
+        np.add.at(g_glob, _expand(at, b), g)
+        for loc_idx, P in pieces:
+            idx = _expand(at[loc_idx], b)
+            rows.append(np.repeat(idx, idx.size))
+            cols.append(np.tile(idx, idx.size))
+            vals.append(P.ravel())
+    X_B = np.zeros_like(g_glob)
+    if Bglob.size:
+        S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                               shape=(Bglob.size * b,) * 2)
+        X_B = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                        options={"SymmetricMode": True}).solve(g_glob)
+    X_B = X_B.reshape(Bglob.size, b, ncol)
+    # 3. scatter: known[r] = {vertex: value} the robot holds
+    known = [dict() for _ in range(R)]
+    known[root] = {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}
+    for level in range(1, tree.height + 1):
+        outgoing = {}
+        for c in np.flatnonzero(tree.depth == level):
+            p = int(tree.parent[c])
+            need = np.unique(np.concatenate([locs[q].B for q in tree.subtree(int(c))]))
+            outgoing.setdefault(p, []).append(
+                (int(c), [to_entry(int(v), known[p][int(v)]) for v in need.tolist()]))
+        incoming = exchange(value_kind, rounds, outgoing)
+        rounds += 1
+        for q, entries in incoming.items():
+            for e in entries:
+                if InitStage(e.stage) == value_kind:
+                    known[q][int(e.keyframe_id)] = from_entry(e)
+    # 4. back-substitution of each robot's interior
+    views = []
+    for r, loc in enumerate(locs):
+        lost = [int(v) for v in loc.B.tolist() if int(v) not in known[r]]
+        if lost:
+            _missing(f"robot {r} did not receive the separator values {lost[:5]}")
+        view = X0.copy()
+        view[_expand(np.array([gauge]), b)] = X_gauge
+        Xb = np.concatenate([known[r][int(v)] for v in loc.B.tolist()]) if loc.B.size else \
+            np.zeros((0, ncol))
+        view[_expand(loc.B, b)] = Xb
+        if loc.I.size:
+            view[_expand(loc.I, b)] = loc.lu.solve(loc.rhs_I - loc.Q_IB @ Xb)
+        views.append(view)
+    return views, rounds

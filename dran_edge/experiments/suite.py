@@ -1,0 +1,326 @@
+"""The generalisation suite: generated pose-graph families that DRAN was not tuned on, each
+split over robots and solved by DRAN (Table 1 setup), the DGS baseline and the centralized LM.
+
+Families (``FAMILIES``; generators in ``dran_edge.sim.graphgen``), several seeds each:
+
+- ``car2d`` / ``car3d``: a vehicle on a grid of streets (20 m blocks, 3D over hills), one pose
+  per metre, 1–3 % of the poses get a loop closure to an earlier visit (spread over the
+  trajectory, as car datasets look);
+- ``indoor2d``: the same in 6 m corridors, 0.5 m steps (long indoor datasets);
+- ``city2d`` / ``city3d``: a random walk on a unit grid with loops at every second revisit
+  (M3500 / city10000-like, dense);
+- ``noisy3d``: ``car3d`` with 0.1 rad rotation noise per edge;
+- ``aniso2d`` / ``aniso3d``: ``car*`` with per-edge correlated translation covariances whose
+  axis standard deviations span a factor 10.
+
+Per case (``run_case``): F* and ATE* of the centralized solver (``pgo.solve_g2o`` from the
+chordal initialisation, exact Hessian, as ``dran-edge solve`` runs it), F of the centralized
+chordal initialisation, then DRAN from the distributed initialisation over the in-process bus
+with every byte counted (``multiagent.run_g2o_dran``, Table 1 setup, ``stop=False`` so it runs
+all rounds while recording where every robot's stopping rule first held), and DGS from the same
+initialisation (its init rounds and bytes are DRAN's). F is the SE-Sync objective; ATE the
+translation RMSE after a rigid alignment to the ground truth. Nothing here is tuned per case.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+CHECKPOINTS = (50, 100, 200, 300, 500, 1000)
+"""DRAN rounds (after the initialisation) at which F/F* is reported."""
+
+
+@dataclass(frozen=True)
+class Family:
+    dim: int
+    kind: str  # "road" or "grid"
+    sigma_r_rad: float = 0.01
+    sigma_t_m: float = 0.05
+    anisotropy: float = 1.0
+    step_m: float = 1.0
+    block_m: float = 20.0
+    hills_m: float = 0.0
+
+
+FAMILIES = {
+    "car2d": Family(2, "road"),
+    "car3d": Family(3, "road", hills_m=3.0),
+    "indoor2d": Family(2, "road", step_m=0.5, block_m=6.0, sigma_t_m=0.02),
+    "city2d": Family(2, "grid"),
+    "city3d": Family(3, "grid"),
+    "noisy3d": Family(3, "road", sigma_r_rad=0.1, hills_m=3.0),
+    "aniso2d": Family(2, "road", anisotropy=10.0),
+    "aniso3d": Family(3, "road", anisotropy=10.0, hills_m=3.0),
+}
+
+
+@dataclass(frozen=True)
+class Case:
+    family: str
+    num_poses: int
+    seed: int
+    robots: int = 5
+    split: str = "contiguous"  # or "interleaved"
+
+    @property
+    def loop_fraction(self) -> float:
+        """1, 2 or 3 % by seed for the chain families (the grid families close every loop)."""
+        return 0.01 * (1 + self.seed % 3)
+
+    @property
+    def name(self) -> str:
+        return f"{self.family}-n{self.num_poses}-s{self.seed}-r{self.robots}-{self.split[:6]}"
+
+
+def make_graph(case: Case):
+    """(G2oGraph, true poses) of a case; deterministic in the case."""
+    from dran_edge.sim import graphgen as gg
+
+    fam = FAMILIES[case.family]
+    n, seed = case.num_poses, case.seed
+    if fam.kind == "road":
+        blocks = max(3, int(np.sqrt(n * fam.step_m / (4 * fam.block_m))))
+        T = gg.road_trajectory(fam.dim, n, seed, step_m=fam.step_m, block_m=fam.block_m,
+                               blocks=blocks, hills_m=fam.hills_m)
+        loops = gg.loop_pairs(T, 1.5 * fam.step_m, int(2 * fam.block_m / fam.step_m),
+                              int(round(case.loop_fraction * n)), seed)
+    else:
+        side = max(6, int(np.sqrt(n / 2)) if fam.dim == 2 else int((n / 2) ** (1 / 3)) + 4)
+        T = gg.grid_walk_trajectory(fam.dim, n, seed, side=side)
+        loops = gg.loop_pairs(T, 0.01, 4, int(0.5 * n), seed)
+    g = gg.graph_from_trajectory(T, loops, fam.sigma_t_m, fam.sigma_r_rad, seed, fam.anisotropy)
+    return g, T
+
+
+def make_partition(case: Case, g):
+    from dran_edge.dran.partition import contiguous_owner, interleaved_owner, partition_edges
+
+    if case.split == "contiguous":
+        owner = contiguous_owner(g.num_vertices, case.robots)
+    elif case.split == "interleaved":
+        owner = interleaved_owner(g.num_vertices, case.robots)
+    else:
+        raise ValueError(f"split must be contiguous or interleaved, got {case.split!r}")
+    return partition_edges(g.edges, owner)
+
+
+def ate_m(T_est: np.ndarray, T_true: np.ndarray) -> float:
+    """Translation RMSE (m) after the least-squares rigid alignment of the positions."""
+    from dran_edge.evaluation.align import umeyama
+
+    d = T_est.shape[-1] - 1
+    p, q = np.zeros((len(T_est), 3)), np.zeros((len(T_true), 3))
+    p[:, :d], q[:, :d] = T_est[:, :d, d], T_true[:, :d, d]
+    R, t, _ = umeyama(p, q)
+    err = p @ R.T + t - q
+    return float(np.sqrt(np.mean(np.sum(err * err, axis=1))))
+
+
+def _first(curve: list, ratio: float, F_star: float):
+    """(round, bytes) of the first point of ``curve`` at or below ratio × F*."""
+    for k, b, F in curve:
+        if F <= ratio * F_star:
+            return k, b
+    return None, None
+
+
+def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: bool = True,
+             checkpoints=CHECKPOINTS) -> dict:
+    """Every number of one case (module docstring); ``curve`` holds (DRAN round, bytes so far,
+    F) per round, round 0 being the initialisation's end."""
+    from dran_edge.experiments.dgs import run_g2o_dgs
+    from dran_edge.dran.dist_init import InitParams
+    from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
+    from dran_edge.solver.objective import sesync_objective, sesync_weights
+    from dran_edge.solver.centralized import solve_g2o
+
+    t0 = time.perf_counter()
+    g, T_true = make_graph(case)
+    part = make_partition(case, g)
+    kappa, tau = sesync_weights(g.dim, g.information)
+
+    def F(T):
+        return sesync_objective(T, g.edges, g.measurements, kappa, tau)
+
+    central = solve_g2o(g, "chordal", "chordal", "sesync")
+    F_star, F_chordal = central.objective_final, central.objective_init
+    t_central = time.perf_counter() - t0
+    cfg, run_kw = table1_setup(g.dim)
+    curve: list = []
+    stop = {"round": None}
+    streak = [0]
+
+    shape = (g.num_vertices, g.dim + 1, g.dim + 1)
+
+    def merged(fleet):
+        T = np.zeros(shape)  # every vertex is some robot's
+        for r, p in enumerate(part.parts):
+            T[p.vertices] = fleet.agents[r].x
+        return T
+
+    def cb(k, fleet):
+        done = all(e is not None and e.converged for e in fleet.estimates)
+        streak[0] = streak[0] + 1 if done else 0
+        T = merged(fleet)
+        curve.append((k, fleet.traffic.bytes_total, F(T)))
+        if streak[0] >= 3 and stop["round"] is None:
+            stop.update(round=k, F=curve[-1][2], bytes=curve[-1][1], ate=ate_m(T, T_true))
+
+    def cb_first(k, fleet):
+        if k == 1:  # round 0: the initialisation's end (F filled in below)
+            curve.append((0, None, None))
+        cb(k, fleet)
+
+    t1 = time.perf_counter()
+    res = run_g2o_dran(g, case.robots, cfg, init_params=InitParams(gauss_seidel=True,
+                                                                   direct=init_direct),
+                       max_rounds=rounds, callback=cb_first, partition=part, stop=False,
+                       **run_kw)
+    t_dran = time.perf_counter() - t1
+    F_init = res["objective_init"]
+    curve[0] = (0, res["bytes_init"], F_init)
+    out = {
+        "case": case.name, "family": case.family, "seed": case.seed, "dim": g.dim,
+        "poses": g.num_vertices, "edges": g.num_edges, "robots": case.robots,
+        "split": case.split, "loop_fraction": case.loop_fraction if FAMILIES[case.family].kind
+        == "road" else None, "init_direct": init_direct,
+        "F_star": F_star, "F_chordal": F_chordal, "ATE_star_m": ate_m(central.result.poses, T_true),
+        "ATE_chordal_m": ate_m(central.poses_init, T_true),
+        "F_init": F_init, "F_init_over_F_chordal": F_init / F_chordal,
+        "init_rounds": res["init_rounds"], "init_bytes": res["bytes_init"],
+        "ATE_init_m": ate_m(res["poses_init"], T_true),
+        "dran_rounds": res["rounds"], "dran_bytes": res["bytes_total"],
+        "dran_F_end": res["objective_final"],
+        "dran_F_end_over_F_star": res["objective_final"] / F_star,
+        "dran_ATE_end_m": ate_m(res["poses"], T_true),
+    }
+    by_round = {k: (b, f) for k, b, f in curve}
+    for c in checkpoints:
+        if c <= rounds and c in by_round:
+            out[f"F_over_F_star_at_{c}"] = by_round[c][1] / F_star
+    out["stop_round"] = stop["round"]
+    if stop["round"] is not None:
+        out.update(stop_F_over_F_star=stop["F"] / F_star, stop_bytes=stop["bytes"],
+                   stop_ATE_m=stop["ate"])
+    for ratio, key in ((1.01, "1pct"), (1.001, "01pct")):
+        k, b = _first(curve, ratio, F_star)
+        out[f"round_at_{key}"], out[f"bytes_at_{key}"] = k, b
+    if dgs:
+        t2 = time.perf_counter()
+        d = run_g2o_dgs(g, case.robots, initial_poses=res["poses_init"], partition=part,
+                        delta_every=TABLE1_DELTA_EVERY)
+        out.update(dgs_F_end_over_F_star=d["objective_final"] / F_star,
+                   dgs_rounds=res["init_rounds"] + d["rounds"],
+                   dgs_bytes=res["bytes_init"] + d["bytes_total"],
+                   dgs_ATE_end_m=ate_m(d["poses"], T_true), dgs_wall_s=time.perf_counter() - t2)
+    out.update(central_wall_s=t_central, dran_wall_s=t_dran, wall_s=time.perf_counter() - t0)
+    out["curve"] = [(k, b, f / F_star) for k, b, f in curve]
+    return out
+
+
+def default_cases(quick: bool = False, seeds=(1, 2, 3)) -> list[Case]:
+    """The suite. Quick: two small families, 3 robots, for the test and a smoke run."""
+    if quick:
+        return [Case("car2d", 240, 1, robots=3), Case("city3d", 150, 2, robots=3,
+                                                       split="interleaved")]
+    cases = []
+    for fam in FAMILIES:
+        for k, seed in enumerate(seeds):
+            n = 2000 + 1000 * ((seed + k) % 3) if FAMILIES[fam].kind == "road" else 2000
+            cases.append(Case(fam, n, seed))
+    for robots in (3, 10, 20):
+        cases.append(Case("car2d", 3000, 1, robots=robots))
+        cases.append(Case("car3d", 3000, 1, robots=robots))
+    for fam in ("car2d", "car3d", "city2d"):
+        cases.append(Case(fam, 3000, 1, robots=5, split="interleaved"))
+    return cases
+
+
+def worst_by_family(rows: list[dict]) -> dict:
+    """Per family the worst (largest) value of each ratio and the latest 1 % round."""
+    keys = ["F_init_over_F_chordal", "dran_F_end_over_F_star", "stop_F_over_F_star",
+            "dgs_F_end_over_F_star"] + [f"F_over_F_star_at_{c}" for c in CHECKPOINTS]
+    out: dict = {}
+    for r in rows:
+        w = out.setdefault(r["family"], {"cases": 0})
+        w["cases"] += 1
+        for k in keys:
+            if r.get(k) is not None:
+                w[k] = max(w.get(k, -np.inf), r[k])
+        k1 = r.get("round_at_1pct")
+        w["round_at_1pct"] = None if k1 is None or w.get("round_at_1pct", 0) is None \
+            else max(w.get("round_at_1pct", 0), k1)
+    return out
+
+
+def _fmt(v, spec=".4f") -> str:
+    return "–" if v is None else format(v, spec)
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """One line per case: the numbers of ``run_case`` (ratios to F*, bytes in kB)."""
+    cps = [c for c in CHECKPOINTS if any(f"F_over_F_star_at_{c}" in r for r in rows)]
+    head = (["case", "F_init/F_chord", "init rnd/kB"] + [f"F/F* @{c}" for c in cps]
+            + ["stop rnd", "F/F* stop", "kB @1.01F*", "F/F* end", "ATE end/ATE*",
+               "DGS F/F*", "DGS kB"])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r["case"], _fmt(r["F_init_over_F_chordal"]),
+                 f"{r['init_rounds']}/{r['init_bytes'] / 1e3:.0f}"]
+        cells += [_fmt(r.get(f"F_over_F_star_at_{c}")) for c in cps]
+        cells += [str(r["stop_round"]), _fmt(r.get("stop_F_over_F_star")),
+                  _fmt(None if r["bytes_at_1pct"] is None else r["bytes_at_1pct"] / 1e3, ".0f"),
+                  _fmt(r["dran_F_end_over_F_star"]),
+                  _fmt(r["dran_ATE_end_m"] / max(r["ATE_star_m"], 1e-12), ".3f"),
+                  _fmt(r.get("dgs_F_end_over_F_star")),
+                  _fmt(None if r.get("dgs_bytes") is None else r["dgs_bytes"] / 1e3, ".0f")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], out_dir) -> list:
+    """F/F* against DRAN rounds and against bytes, one line per case, one figure per family
+    (PNG, matplotlib Agg); returns the written paths."""
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for fam in sorted({r["family"] for r in rows}):
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+        for r in rows:
+            if r["family"] != fam:
+                continue
+            c = np.asarray(r["curve"], float)
+            label = r["case"].removeprefix(fam + "-")
+            axes[0].plot(c[:, 0], c[:, 2] - 1.0, label=label)
+            axes[1].plot(c[:, 1] / 1e6, c[:, 2] - 1.0, label=label)
+        labels = ("DRAN rounds after the initialisation", "MB sent (init included)")
+        for ax, xl in zip(axes, labels):
+            ax.set_yscale("log")
+            ax.axhline(0.01, color="k", lw=0.6, ls="--")
+            ax.axhline(0.001, color="k", lw=0.6, ls=":")
+            ax.set_xlabel(xl)
+            ax.set_ylabel("F/F* − 1")
+            ax.grid(True, alpha=0.3)
+        axes[0].legend(fontsize=6)
+        fig.suptitle(fam)
+        fig.tight_layout()
+        path = out_dir / f"suite_{fam}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def case_from_dict(d: dict) -> Case:
+    return Case(**{f.name: d[f.name] for f in dataclasses.fields(Case) if f.name in d})
