@@ -50,10 +50,13 @@ def add_common_options(parser: argparse.ArgumentParser) -> None:
     """What every command takes: ``-v``/``--verbose`` (more log output, twice for debug) and
     ``-q``/``--quiet`` (errors only, no progress on stderr). The result on stdout is the same."""
     group = parser.add_argument_group("output")
-    group.add_argument("-v", "--verbose", action="count", default=0,
-                       help="more log output on stderr (-vv: debug)")
-    group.add_argument("-q", "--quiet", action="store_true",
-                       help="only errors on stderr: no progress, no warnings")
+    taken = parser._option_string_actions  # a command that defines one of them keeps its own
+    if "--verbose" not in taken:
+        group.add_argument("-v", "--verbose", action="count", default=0,
+                           help="more log output on stderr (-vv: debug)")
+    if "--quiet" not in taken:
+        group.add_argument("-q", "--quiet", action="store_true",
+                           help="only errors on stderr: no progress, no warnings")
 
 
 def _top_parser() -> argparse.ArgumentParser:

@@ -60,8 +60,8 @@ _BASE_PORT = 47600
 _PENDING_IMAGES = 30
 
 
-ProgressFn = Callable[[str, int, int, float], None]
-"""progress(bag_name, messages_done, messages_total, bytes_per_s)."""
+ProgressFn = Callable[[str, int, int], None]
+"""progress(stage, messages_done, messages_total), stage = "import-bag: <bag file name>"."""
 
 
 def open_bag(path: str | Path):
@@ -455,8 +455,7 @@ def _read_one(reader, path: Path, wanted, sinks, mocap, found, stats, progress) 
                 sink.skipped[exc.reason] += 1
                 _first_note(sink, exc.reason, f"{conn.topic}: {exc}")
             if progress and (done % 2000 == 0 or done == total):
-                el = max(time.monotonic() - t_start, 1e-9)
-                progress(path.name, done, total, size * done / max(total, 1) / el)
+                progress(f"import-bag: {path.name}", done, total)
         stats["messages"] += done
         stats["bags"].append({"path": str(path), "messages": done, "bytes": size,
                               "seconds": round(time.monotonic() - t_start, 3)})

@@ -25,14 +25,14 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     m.add_argument("run", metavar="RUN", help="run directory (docs/run-format.md)")
     m.add_argument("--format", choices=("tum", "euroc", "kitti"), default="tum",
                    help="file format (default tum; docs/trajectory-formats.md)")
-    m.add_argument("--out", help="output folder (default RUN/export/mocap)")
+    m.add_argument("-o", "--out", help="output folder (default RUN/export/mocap)")
     m.add_argument("--marker", action="store_true",
                    help="write the rigid bodies' own poses (no T_body_marker / T_object_marker)")
     b = sub.add_parser("bag", help="the run as ROS bags + the mapping file (docs/bags.md)")
     b.add_argument("run", metavar="RUN", help="run directory (docs/run-format.md)")
     b.add_argument("--format", choices=("ros1", "sqlite3", "mcap"), default="mcap",
                    help="ros1 (.bag), sqlite3 (ROS 2 .db3) or mcap (ROS 2; default)")
-    b.add_argument("--out", required=True, help="new output folder")
+    b.add_argument("-o", "--out", required=True, help="new output folder")
     b.add_argument("--per-robot", action="store_true",
                    help="one bag per robot (+ mocap) instead of one bag with /<robot>/ topics")
     b.add_argument("--raw-images", action="store_true",

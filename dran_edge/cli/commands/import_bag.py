@@ -26,32 +26,15 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     )
     p.add_argument("bags", nargs="+", metavar="BAG",
                    help="ROS 1 .bag file, or ROS 2 bag folder (or the .db3/.mcap inside it)")
-    p.add_argument("--out", metavar="RUN_DIR", help="new (or empty) run directory to write")
+    p.add_argument("-o", "--out", metavar="RUN_DIR", help="new (or empty) run directory to write")
     p.add_argument("--map", metavar="MAPPING.yaml", help="topic mapping file (docs/bags.md)")
     p.add_argument("--list", action="store_true",
                    help="only list each bag's topics, message types and counts")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return p
 
 
-def _progress(quiet: bool):
-    tty = sys.stderr.isatty()
-    last = [0.0]
-
-    def show(bag: str, done: int, total: int, bytes_per_s: float) -> None:
-        now = time.monotonic()
-        if quiet or (done < total and now - last[0] < (0.2 if tty else 5.0)):
-            return
-        last[0] = now
-        line = (f"import-bag: {bag}: {done}/{total} messages "
-                f"({100.0 * done / max(total, 1):.0f} %, {bytes_per_s / 1e6:.0f} MB/s)")
-        print(("\r" + line) if tty else line, end="" if tty and done < total else "\n",
-              file=sys.stderr, flush=True)
-
-    return show
-
-
 def run(args: argparse.Namespace) -> int:
+    from dran_edge.cli.progress import ProgressBar
     from dran_edge.errors import InputError
     from dran_edge.formats import bags
 
@@ -67,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
     mapping = read_mapping(args.map)
     t0 = time.monotonic()
-    summary = bags.import_bags(args.bags, mapping, args.out, progress=_progress(args.quiet))
+    summary = bags.import_bags(args.bags, mapping, args.out, progress=ProgressBar())
     for name, r in summary["robots"].items():
         w = r["written"]
         skipped = ", ".join(f"{k} {v}" for k, v in sorted(r["skipped"].items())) or "none"
