@@ -36,7 +36,17 @@ SHELL_MODULES = {
     "replay_robots",  # replay's per-robot drivers (daemon code, transports)
     "dran_node",  # a DRAN agent as a comms.loopback node (simulation scenario inside)
 }
-SHELL_PACKAGES = {"commands"}
+SHELL_PACKAGES = {"commands", "ros"}  # ros: the rclpy bridge node and its socket client
+# Shell modules inside sub-packages (path under dran_edge/): bag import/export (rosbags, files),
+# the ROS message conversion (encodes ingest records with dran_edge.comms), recordings, plots.
+SHELL_FILES = {
+    "formats/bags.py",
+    "formats/bag_sinks.py",
+    "formats/run_bag.py",
+    "formats/ros_msgs.py",
+    "formats/recorded.py",
+    "evaluation/traj_outputs.py",
+}
 CORE_THIRD_PARTY = {"numpy", "scipy", "yaml"}
 HARDWARE = {"pyrealsense2", "depthai", "zmq", "systemd"}
 
@@ -45,7 +55,8 @@ def _core_files() -> list[pathlib.Path]:
     out = []
     for path in sorted((ROOT / "dran_edge").rglob("*.py")):
         rel = path.relative_to(ROOT / "dran_edge")
-        if rel.parts[0] in SHELL_PACKAGES or (len(rel.parts) == 1 and path.stem in SHELL_MODULES):
+        if rel.parts[0] in SHELL_PACKAGES or (len(rel.parts) == 1 and path.stem in SHELL_MODULES) \
+                or rel.as_posix() in SHELL_FILES:
             continue
         out.append(path)
     return out

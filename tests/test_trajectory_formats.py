@@ -4,7 +4,6 @@ quaternion order), export of a run's mocap, eval traj against files, runs, posit
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

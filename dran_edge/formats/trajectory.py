@@ -26,7 +26,8 @@ QUAT_NORM_TOL = 1e-3
 NS_THRESHOLD = 1e12
 EUROC_HEADER = ("#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],"
                 "q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []")
-_QUAT_NAME = re.compile(r"(?:^|[._ ])(?:q|quat|quaternion|orientation|rot)[a-z0-9_.]*?[._]?([wxyz])$")
+_QUAT_NAME = re.compile(
+    r"(?:^|[._ ])(?:q|quat|quaternion|orientation|rot)[a-z0-9_.]*?[._]?([wxyz])$")
 
 
 @dataclass(frozen=True, eq=False)
