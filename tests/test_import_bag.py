@@ -33,7 +33,8 @@ _SLOW = pytest.mark.slow
 
 @pytest.mark.parametrize("fmt,per_robot,replay", [
     ("ros1", True, True), ("sqlite3", False, False), ("mcap", False, False),
-    pytest.param("sqlite3", False, True, marks=_SLOW), pytest.param("mcap", False, True, marks=_SLOW)],
+    pytest.param("sqlite3", False, True, marks=_SLOW),
+    pytest.param("mcap", False, True, marks=_SLOW)],
     ids=["ros1-bag-per-robot-replay", "ros2-db3-namespaced-files", "ros2-mcap-namespaced-files",
          "ros2-db3-namespaced-replay", "ros2-mcap-namespaced-replay"])
 def test_bags_of_a_simulated_run_import_and_replay_to_the_same_numbers(

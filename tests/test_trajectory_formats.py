@@ -4,7 +4,6 @@ quaternion order), export of a run's mocap, eval traj against files, runs, posit
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -181,3 +180,30 @@ def test_kitti_without_stamps_needs_a_file_reference(tmp_path, capsys):
     assert rc == 2 and "KITTI poses have no stamps" in capsys.readouterr().err
     rc = main(["eval", "traj", str(p), "--ref", str(p), "--json"])
     assert rc == 0 and json.loads(capsys.readouterr().out)["ate_rmse_m"] < 1e-9
+
+
+def test_a_bag_topic_is_an_estimate_and_a_reference(small_sim_run, tmp_path, capsys):
+    pytest.importorskip("rosbags", reason="bags are read with rosbags")
+    from dran_edge.formats.run_bag import write_run_bags
+
+    run, _ = small_sim_run
+    (bag,), _ = write_run_bags(run, tmp_path / "bags", "mcap")
+    est_t, ref_t = "/dingo1/vins_estimator/odometry", "/vrpn_client_node/dingo1/pose"
+    rc = main(["eval", "traj", str(bag), "--topic", est_t, "--ref", str(bag), "--ref-topic",
+               ref_t, "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    by_bag = json.loads(cap.out)
+    assert by_bag["time_offset_source"] == "clock overlap" and by_bag["matched_poses"] > 100
+    # the same poses as TUM files score the same
+    for topic, name in ((est_t, "est.tum"), (ref_t, "ref.tum")):
+        t = tr.read_bag_trajectory(bag, topic)
+        tr.write_trajectory(tmp_path / name, t.stamps_s, t.T, "tum")
+    assert main(["eval", "traj", str(tmp_path / "est.tum"), "--ref", str(tmp_path / "ref.tum"),
+                 "--json"]) == 0
+    by_file = json.loads(capsys.readouterr().out)
+    assert by_file["ate_rmse_m"] == pytest.approx(by_bag["ate_rmse_m"], abs=1e-7)
+    rc = main(["eval", "traj", str(bag), "--topic", "/nope", "--ref", str(bag), "--ref-topic",
+               ref_t])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no topic /nope in the bag" in err and est_t in err

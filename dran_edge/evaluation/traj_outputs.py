@@ -21,8 +21,9 @@ import numpy as np
 from dran_edge import geometry as geo
 from dran_edge.errors import DependencyError
 
-_ALIGN_TITLE = {"se3": "\n(with SE(3) Umeyama alignment)", "sim3": "\n(with Sim(3) Umeyama "
-                "alignment)", "yaw": "\n(with yaw + translation alignment)", "none": "\n(not aligned)",
+_ALIGN_TITLE = {"se3": "\n(with SE(3) Umeyama alignment)",
+                "sim3": "\n(with Sim(3) Umeyama alignment)",
+                "yaw": "\n(with yaw + translation alignment)", "none": "\n(not aligned)",
                 "paper": "\n(aligned at the first pose)"}
 
 

@@ -43,7 +43,6 @@ from typing import Any
 
 import numpy as np
 
-from dran_edge import geometry as geo
 from dran_edge.errors import DranError
 from dran_edge.comms import ingest
 

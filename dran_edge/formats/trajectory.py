@@ -26,7 +26,8 @@ QUAT_NORM_TOL = 1e-3
 NS_THRESHOLD = 1e12
 EUROC_HEADER = ("#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],"
                 "q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []")
-_QUAT_NAME = re.compile(r"(?:^|[._ ])(?:q|quat|quaternion|orientation|rot)[a-z0-9_.]*?[._]?([wxyz])$")
+_QUAT_NAME = re.compile(
+    r"(?:^|[._ ])(?:q|quat|quaternion|orientation|rot)[a-z0-9_.]*?[._]?([wxyz])$")
 
 
 @dataclass(frozen=True, eq=False)
@@ -224,6 +225,52 @@ def write_trajectory(path: str | Path, stamps_s: np.ndarray, T: np.ndarray, fmt:
 
 
 SUFFIX = {"tum": ".tum", "euroc": ".csv", "kitti": ".kitti"}
+BAG_POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
+                  "geometry_msgs/msg/PoseWithCovarianceStamped")
+
+
+def read_bag_trajectory(path: str | Path, topic: str) -> Trajectory:
+    """The poses of one topic of a ROS 1 / ROS 2 bag (Odometry, PoseStamped or
+    PoseWithCovarianceStamped), at their header stamps; a stamp not after the previous one
+    is dropped (the count is in ``how``)."""
+    from dran_edge.formats import ros_msgs as rm
+    from dran_edge.formats.bags import open_bag
+
+    reader, p = open_bag(path)
+    topic = topic if topic.startswith("/") else "/" + topic
+    stamps, rows, dropped = [], [], 0
+    try:
+        with reader:
+            conns = [c for c in reader.connections if c.topic == topic]
+            if not conns:
+                have = ", ".join(sorted({c.topic for c in reader.connections}))
+                raise InputError(f"no topic {topic} in the bag; it has: {have}", path=str(p))
+            if conns[0].msgtype not in BAG_POSE_TYPES:
+                raise InputError(f"topic {topic} is {conns[0].msgtype}; expected one of "
+                                 f"{', '.join(BAG_POSE_TYPES)}", path=str(p))
+            for c, _t, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, c.msgtype)
+                try:
+                    s, v = rm.mocap_pose(msg)
+                except rm.MessageError:
+                    dropped += 1
+                    continue
+                if stamps and s <= stamps[-1]:
+                    dropped += 1
+                    continue
+                stamps.append(s)
+                rows.append(v)
+    except InputError:
+        raise
+    except Exception as exc:  # rosbags' errors for a damaged bag
+        raise InputError(f"cannot read the bag: {exc}", path=str(p)) from None
+    if not rows:
+        raise InputError(f"topic {topic}: no usable pose", path=str(p))
+    a = np.asarray(rows, dtype=np.float64)
+    a[:, 3:] /= np.linalg.norm(a[:, 3:], axis=1, keepdims=True)
+    how = f"bag topic {topic} ({conns[0].msgtype})" + (f", {dropped} dropped" if dropped else "")
+    return Trajectory(np.asarray(stamps, np.int64) * 1e-9, geo.se3_from_xyz_quat_xyzw(a), "bag",
+                      "xyzw", how, str(p))
 
 
 def export_mocap(run_dir: str | Path, fmt: str = "tum", out_dir: str | Path | None = None, *,

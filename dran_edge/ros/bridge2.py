@@ -143,28 +143,12 @@ def estimate_from_status(status: dict) -> dict | None:
             "object_ids": objs[:, 0].astype(np.int64), "object_poses": objs[:, 1:]}
 
 
-def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclpy
-    import rclpy
-    from geometry_msgs.msg import PoseStamped, TransformStamped
-    from nav_msgs.msg import Odometry, Path
-    from rclpy.node import Node
+def _subscribe(node, core: BridgeCore, p: dict) -> None:  # pragma: no cover - needs rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
     from rclpy.qos import qos_profile_sensor_data
     from std_msgs.msg import Bool
-    from tf2_ros import TransformBroadcaster
-    from visualization_msgs.msg import Marker, MarkerArray
 
-    from dran_edge.daemon.status import query_status
-    from dran_edge.errors import DranError
-    from dran_edge.ros.ingest_client import IngestClient
-
-    rclpy.init(args=argv)
-    node = Node("dran_edge_bridge")
-    p = {k: node.declare_parameter(k, v).value for k, v in DEFAULTS.items()}
-    client = IngestClient(p["socket"], int(p["max_queue"]),
-                          log=lambda m: node.get_logger().info(m))
-    client.start()
-    core = BridgeCore(client.put, float(p["frame_hz"]), bool(p["depth"]))
-    from geometry_msgs.msg import PoseWithCovarianceStamped
 
     node.create_subscription(Odometry, p["odometry"], core.on_odometry, 200)
     if p["keyframes"]:
@@ -183,16 +167,30 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclp
         if p["depth"]:
             node.create_subscription(Image, p["depth"], lambda m: core.on_image(m, True),
                                      qos_profile_sensor_data)
+
+
+def _pose_msg(v):  # pragma: no cover - needs rclpy
+    from geometry_msgs.msg import Point, Pose, Quaternion
+
+    return Pose(position=Point(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+                orientation=Quaternion(x=float(v[3]), y=float(v[4]), z=float(v[5]),
+                                       w=float(v[6])))
+
+
+def _publisher(node, p: dict) -> Callable[[], None]:  # pragma: no cover - needs rclpy
+    """The timer callback: status socket -> Path, MarkerArray, TF."""
+    from geometry_msgs.msg import PoseStamped, TransformStamped
+    from nav_msgs.msg import Path
+    from tf2_ros import TransformBroadcaster
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    from dran_edge.daemon.status import query_status
+    from dran_edge.errors import DranError
+
     path_pub = node.create_publisher(Path, "~/path", 1)
     marker_pub = node.create_publisher(MarkerArray, "~/objects", 1)
     tf = TransformBroadcaster(node)
     world = p["world_frame"]
-
-    def pose_msg(v):
-        from geometry_msgs.msg import Point, Pose, Quaternion
-
-        return Pose(position=Point(x=v[0], y=v[1], z=v[2]),
-                    orientation=Quaternion(x=v[3], y=v[4], z=v[5], w=v[6]))
 
     def publish() -> None:
         try:
@@ -206,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclp
         path = Path()
         path.header.frame_id, path.header.stamp = world, now
         for s, v in zip(est["stamps_ns"].tolist(), est["poses"]):
-            ps = PoseStamped(pose=pose_msg(v))
+            ps = PoseStamped(pose=_pose_msg(v))
             ps.header.frame_id = world
             ps.header.stamp.sec, ps.header.stamp.nanosec = divmod(int(s), 1_000_000_000)
             path.poses.append(ps)
@@ -214,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclp
         arr = MarkerArray()
         for oid, v in zip(est["object_ids"].tolist(), est["object_poses"]):
             for kind, mid in ((Marker.CUBE, 2 * oid), (Marker.TEXT_VIEW_FACING, 2 * oid + 1)):
-                m = Marker(type=kind, id=int(mid), action=Marker.ADD, pose=pose_msg(v))
+                m = Marker(type=kind, id=int(mid), action=Marker.ADD, pose=_pose_msg(v))
                 m.header.frame_id, m.header.stamp, m.ns = world, now, "dran_edge_objects"
                 m.scale.x = m.scale.y = m.scale.z = 0.4 if kind == Marker.CUBE else 0.2
                 m.color.r, m.color.g, m.color.b, m.color.a = 0.2, 0.6, 1.0, 0.8
@@ -224,13 +222,30 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclp
         t = TransformStamped()
         t.header.frame_id, t.header.stamp = world, now
         t.child_frame_id = p["robot_frame"]
-        v = est["poses"][-1]
+        v = [float(x) for x in est["poses"][-1]]
         t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = v[:3]
         q = t.transform.rotation
         q.x, q.y, q.z, q.w = v[3:]
         tf.sendTransform(t)
 
-    node.create_timer(float(p["publish_period_s"]), publish)
+    return publish
+
+
+def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclpy
+    import rclpy
+    from rclpy.node import Node
+
+    from dran_edge.ros.ingest_client import IngestClient
+
+    rclpy.init(args=argv)
+    node = Node("dran_edge_bridge")
+    p = {k: node.declare_parameter(k, v).value for k, v in DEFAULTS.items()}
+    client = IngestClient(p["socket"], int(p["max_queue"]),
+                          log=lambda m: node.get_logger().info(m))
+    client.start()
+    core = BridgeCore(client.put, float(p["frame_hz"]), bool(p["depth"]))
+    _subscribe(node, core, p)
+    node.create_timer(float(p["publish_period_s"]), _publisher(node, p))
     node.get_logger().info(f"dran-edge bridge: {p['odometry']} ... -> {p['socket']}")
     try:
         rclpy.spin(node)

@@ -16,7 +16,8 @@ _USAGE = """\
   %(prog)s traj EST (--mocap FILE.csv --body NAME | --ref REF) [--align se3|sim3|yaw|paper|none]
          [--format auto|tum|euroc|kitti] [--quat-order xyzw|wxyz] [--plot F.png]
          [--save-results F.zip] [--json]
-  %(prog)s traj RUN_DIR/out/<robot>/<robot>.tum      (mocap, body, clock from mission.yaml)"""
+  %(prog)s traj RUN_DIR/out/<robot>/<robot>.tum      (mocap, body, clock from mission.yaml)
+  %(prog)s traj BAG --topic /odom --ref GT_BAG --ref-topic /vrpn_client_node/dingo1/pose"""
 
 _DESCRIPTION = """\
 Two forms:
@@ -28,7 +29,8 @@ Two forms:
 
   traj EST  score one trajectory against one Motive rigid body (--mocap, --body) or a
             reference trajectory file (--ref). EST and REF may be TUM, EuRoC/ASL CSV or
-            KITTI poses (docs/trajectory-formats.md); the format and quaternion order are
+            KITTI poses, or a pose topic of a ROS 1/2 bag (--topic, --ref-topic)
+            (docs/trajectory-formats.md); the format and quaternion order are
             detected from the layout or a header, else --format / --quat-order must say.
             A trajectory of a replayed run (RUN/out/<robot>/<robot>.tum) takes the mocap
             file, body, marker offset and clock from the run's mission.yaml. Prints
@@ -57,6 +59,11 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="(traj) quaternion order of EST when the format does not say")
     p.add_argument("--ref-quat-order", choices=("xyzw", "wxyz"),
                    help="(traj) quaternion order of REF when the format does not say")
+    p.add_argument("--topic", metavar="TOPIC",
+                   help="(traj) EST is a ROS 1/2 bag: read this pose topic (Odometry, "
+                        "PoseStamped, PoseWithCovarianceStamped)")
+    p.add_argument("--ref-topic", metavar="TOPIC",
+                   help="(traj) REF is a bag: read this pose topic")
     p.add_argument("--kitti-rate-hz", type=float, default=10.0,
                    help="(traj) pose rate of KITTI files, which have no stamps (default 10)")
     p.add_argument("--plot", metavar="FILE.png", help="(traj) write a top view + error plot")
@@ -120,8 +127,13 @@ def _run_traj(args: argparse.Namespace) -> int:
 
     if not args.est:
         raise InputError("eval traj: expected the estimated trajectory EST")
-    est = read_trajectory(args.est, args.format, quat_order=args.quat_order,
-                          kitti_rate_hz=args.kitti_rate_hz)
+    if args.topic:
+        from dran_edge.formats.trajectory import read_bag_trajectory
+
+        est = read_bag_trajectory(args.est, args.topic)
+    else:
+        est = read_trajectory(args.est, args.format, quat_order=args.quat_order,
+                              kitti_rate_hz=args.kitti_rate_hz)
     found = _run_of(Path(args.est))
     mocap, body, up = args.mocap, args.body, args.up_axis
     T_bm = _T_body_marker(args) if args.T_body_marker is not None else None
@@ -140,8 +152,13 @@ def _run_traj(args: argparse.Namespace) -> int:
     if args.ref:
         if args.mocap:
             raise InputError("eval traj: give --ref or --mocap, not both")
-        r = read_trajectory(args.ref, args.ref_format, quat_order=args.ref_quat_order,
-                            kitti_rate_hz=args.kitti_rate_hz)
+        if args.ref_topic:
+            from dran_edge.formats.trajectory import read_bag_trajectory
+
+            r = read_bag_trajectory(args.ref, args.ref_topic)
+        else:
+            r = read_trajectory(args.ref, args.ref_format, quat_order=args.ref_quat_order,
+                                kitti_rate_hz=args.kitti_rate_hz)
         ref = (r.stamps_s, r.T)
         ref_name, ref_how = Path(args.ref).stem, f"{r.format} ({r.how})"
     else:
@@ -173,9 +190,14 @@ def _run_traj(args: argparse.Namespace) -> int:
     res["estimate"] = {"path": args.est, "format": est.format, "quat_order": est.quat_order,
                        "how": est.how}
     res["reference"] = ref_how
+    _print_traj(args, est, ref_how, res, written)
+    return 0
+
+
+def _print_traj(args, est, ref_how: str, res: dict, written: list) -> None:
     if args.json:
         print(json.dumps(res, indent=2))
-        return 0
+        return
     print(f"{'estimate':<20}{args.est}: {est.format}, {est.how}")
     print(f"{'reference':<20}{ref_how}")
     if res["positions_only"]:
@@ -192,7 +214,6 @@ def _run_traj(args: argparse.Namespace) -> int:
           f"{rpe['pairs']} pairs)")
     for p in written:
         print(f"{'wrote':<20}{p}")
-    return 0
 
 
 def _run_dir(args: argparse.Namespace) -> int:

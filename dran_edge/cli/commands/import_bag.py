@@ -60,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
         for reason, text in r["first_skip"].items():
             print(f"  first {reason}: {text}", file=sys.stderr)
     if summary["mocap"]:
-        print("mocap: " + ", ".join(f"{b} {n} poses" for b, n in summary["mocap"]["bodies"].items()))
+        bodies = summary["mocap"]["bodies"]
+        print("mocap: " + ", ".join(f"{b} {n} poses" for b, n in bodies.items()))
     if summary["undecodable"]:
         print("undecodable messages: " + ", ".join(f"{t} {n}" for t, n in
                                                   summary["undecodable"].items()))
