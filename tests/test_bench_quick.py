@@ -38,6 +38,13 @@ SCRIPTS = {
     "test_bench_bounded_graph": ("bench_bounded_graph.py", (), ()),
     "test_bench_replay": ("bench_replay.py", (), PERCEPTION),
     "test_bench_comms": ("bench_comms.py", (), ()),
+    "test_bench_robot_budget": ("bench_robot_budget.py", (), PERCEPTION),
+    "test_bench_solve_policy": ("bench_solve_policy.py", ("--no-gtsam",), ()),
+    # minutes even when quick (a 0.2 GB bag; DRAN runs to 1000 rounds; real daemons): slow
+    "test_bench_bags": ("bench_bags.py", (), ("rosbags",)),
+    "test_bench_generalisation": ("bench_generalisation.py", (), ()),
+    "test_bench_stopping": ("bench_stopping.py", (), ()),
+    "test_bench_rehearsal": ("bench_rehearsal.py", (), ()),
 }
 
 
@@ -203,3 +210,49 @@ def test_bench_comms(runs):
     assert pos < 1e-4 and rot < 1e-5  # far under the solver's tolerances
     # the loopback part needs a draft-enabled libzmq; without one the script says so
     assert "RADIO/DISH" in out and (re.search(r"answers \d+/24", out) or "not run" in out)
+
+
+def test_bench_robot_budget(runs):
+    out = run_quick(runs, "test_bench_robot_budget")
+    for phase in ("local_step", "acceptance", "codec", "round"):
+        line = next(line for line in out.splitlines() if line.strip().startswith(phase))
+        here, robot = floats(line)[:2]
+        assert robot == pytest.approx(2.5 * here, rel=0.05, abs=0.06)  # the x2.5 core model
+    assert "rounds that would exceed 500 ms on the robot:" in out
+    assert "perception per frame" in out
+
+
+def test_bench_solve_policy(runs):
+    out = run_quick(runs, "test_bench_solve_policy")
+    rows = [line for line in out.splitlines() if line.startswith("| ") and "/" in line
+            and not line.startswith("| graph")]
+    assert rows, out
+    assert "time after/before" in out
+
+
+@pytest.mark.slow
+def test_bench_bags(runs):
+    out = run_quick(runs, "test_bench_bags")
+    assert "rosbags iterate+deser." in out and "dran-edge import-bag" in out
+    assert "the baseline's time" in out
+
+
+@pytest.mark.slow
+def test_bench_generalisation(runs):
+    out = run_quick(runs, "test_bench_generalisation")
+    assert "worst case per family" in out
+    assert [line.split("|")[1].strip() for line in out.splitlines()
+            if line.startswith("| ") and not line.startswith("| family")]
+
+
+@pytest.mark.slow
+def test_bench_stopping(runs):
+    out = run_quick(runs, "test_bench_stopping")
+    ratios = [float(x) for x in re.findall(r"F/F\*=(\d+\.\d+)", out)]
+    assert ratios and min(ratios) >= 1.0 - 1e-6  # nothing below the optimum
+
+
+@pytest.mark.slow
+def test_bench_rehearsal(runs):
+    out = run_quick(runs, "test_bench_rehearsal")
+    assert "SR_ATE %" in out and "targets (SR_ATE within 5 points of replay" in out
