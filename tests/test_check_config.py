@@ -12,6 +12,14 @@ from dran_edge.comms import keys
 from dran_edge.cli.app import main
 
 REPO = Path(__file__).resolve().parents[1]
+try:
+    import cryptography  # noqa: F401  (the ed25519 key policy)
+
+    HAVE_ED25519 = True
+except ImportError:
+    HAVE_ED25519 = False
+needs_ed25519 = pytest.mark.skipif(not HAVE_ED25519,
+                                   reason="no 'cryptography' (pip install .[comms])")
 
 
 def _config(tmp_path, name="robot.yaml", **sections):
@@ -81,6 +89,7 @@ def test_every_schema_error_is_reported_with_its_line(tmp_path, capsys):
         load_config(path)
 
 
+@needs_ed25519
 def test_ed25519_keys_are_checked(tmp_path, capsys):
     keys.write_robot_key(tmp_path / "dingo1.key", 1)
     keys.write_robot_key(tmp_path / "dingo2.key", 2)
@@ -132,7 +141,7 @@ def _fleet(tmp_path, n=4, auth="hmac", edit=None):
     return check_fleet(d)
 
 
-@pytest.mark.parametrize("auth", ["hmac", "ed25519"])
+@pytest.mark.parametrize("auth", ["hmac", pytest.param("ed25519", marks=needs_ed25519)])
 def test_check_fleet_consistent_ring_is_ok(tmp_path, auth):
     rep = _fleet(tmp_path, auth=auth)
     assert rep.errors == [] and len(rep.robots) == 4
@@ -156,6 +165,7 @@ def test_check_fleet_finds_every_inconsistency(tmp_path):
     assert "neighbour 4 (r4) is not a robot of this directory" in text
 
 
+@needs_ed25519
 def test_check_fleet_keys(tmp_path, capsys):
     def mixed(i, cfg):
         if i == 2:

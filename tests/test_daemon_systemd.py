@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import socket
@@ -155,7 +156,8 @@ def test_unit_files_verify_and_keep_the_camera_reachable(tmp_path, name, instanc
     assert res.returncode == 0, res.stdout + res.stderr
 
 
-@pytest.mark.parametrize("policy", ["hmac", "ed25519"])
+@pytest.mark.parametrize("policy", ["hmac", pytest.param("ed25519", marks=pytest.mark.skipif(
+    importlib.util.find_spec("cryptography") is None, reason="no 'cryptography' (.[comms])"))])
 def test_two_daemons_exchange_over_loopback_udp(tmp_path, policy):
     """Two robot processes, RADIO/DISH on 127.0.0.1, authenticated with a fleet key or with
     per-robot key pairs and the fleet's public-key file (made by the fleet-key command)."""
