@@ -94,14 +94,19 @@ grep -E "^(replayed|SR_ATE)" "$OUT/replay.log" | sed 's/^/    /' | tee -a "$RESU
 #  - tests marked hardware (no RealSense/OAK/Jetson) and slow (as in make test);
 #  - tests marked network: they create network namespaces / veth pairs inside the test, which
 #    qemu-user cannot emulate (the unshare/setns syscalls of an emulated process fail);
-#  - tests/test_vins_bridge.py: needs ROS (rospy) from apt, not part of a robot bundle.
+#  - tests/test_vins_bridge.py: needs ROS (rospy) from apt, not part of a robot bundle;
+#  - (full suite) timing assertions at a 50 ms daemon period (test_daemon's deadlines) can fail
+#    under emulation, which runs Python about 10x slower: such a failure is emulation, not arm64.
 SKIP=(--deselect tests/test_vins_bridge.py)
 if [ "${ARM64_CHECK_FULL:-0}" = 1 ]; then
     SEL=(tests)
-else  # the subset: golden replay + redetection tolerance, perception, codec/radio, daemon
-    SEL=(tests/test_replay.py tests/test_perception_pipeline.py tests/test_perception_detector.py
-         tests/test_codec.py tests/test_radio.py tests/test_ingest.py tests/test_daemon.py
-         tests/test_install_drivers.py tests/test_deb_src.py tests/test_layering.py)
+else  # the subset (the full suite takes 12+ minutes under qemu on an idle machine): the golden
+      # replay of the recorded run, the detector, the wire codec, RADIO/DISH over the bundle's
+      # libzmq, the offline driver install, the deb-src rule; re-detection is measured by
+      # tools/redetect_diff.py below (what tests/test_replay.py's tolerance test asserts)
+    SEL=(tests/test_replay.py::test_matches_the_golden_summary tests/test_perception_detector.py
+         tests/test_codec.py tests/test_radio.py tests/test_install_drivers.py
+         tests/test_deb_src.py)
 fi
 t4=$SECONDS
 offline sh -c "set -e; /opt/dran-edge/.venv/bin/python -m venv --system-site-packages /opt/testenv 2>/dev/null || true

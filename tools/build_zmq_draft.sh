@@ -133,7 +133,12 @@ log "building libzmq with drafts ($JOBS jobs)"
 CROSS_ARGS=()
 if [ -n "${DRAN_ZMQ_CROSS:-}" ]; then
     CROSS_ARGS=(-DCMAKE_SYSTEM_NAME=Linux "-DCMAKE_SYSTEM_PROCESSOR=${DRAN_ZMQ_CROSS%%-*}"
-                "-DCMAKE_C_COMPILER=$DRAN_ZMQ_CROSS-gcc" "-DCMAKE_CXX_COMPILER=$DRAN_ZMQ_CROSS-g++")
+                "-DCMAKE_C_COMPILER=$DRAN_ZMQ_CROSS-gcc" "-DCMAKE_CXX_COMPILER=$DRAN_ZMQ_CROSS-g++"
+                # optional libraries (GnuTLS for WSS, libbsd) only from the target's sysroot,
+                # never this machine's: as in the target's own build without their -dev packages
+                "-DCMAKE_FIND_ROOT_PATH=/usr/$DRAN_ZMQ_CROSS" -DCMAKE_FIND_ROOT_PATH_MODE_PROGRAM=NEVER
+                -DCMAKE_FIND_ROOT_PATH_MODE_LIBRARY=ONLY -DCMAKE_FIND_ROOT_PATH_MODE_INCLUDE=ONLY
+                -DCMAKE_FIND_ROOT_PATH_MODE_PACKAGE=ONLY -DWITH_TLS=OFF -DWITH_LIBBSD=OFF)
     # libzmq's feature checks run test programs: through qemu-user with the cross sysroot
     if command -v "qemu-${DRAN_ZMQ_CROSS%%-*}-static" >/dev/null; then
         CROSS_ARGS+=("-DCMAKE_CROSSCOMPILING_EMULATOR=qemu-${DRAN_ZMQ_CROSS%%-*}-static;-L;/usr/$DRAN_ZMQ_CROSS")
