@@ -77,7 +77,7 @@ def test_three_daemons_match_replay(tmp_path):
         i = p["ingest"]
         assert i["applied_distinct"] == i["records_in_run"] and i["never_applied"] == 0
         assert p["keyframes"] > 5 and p["objects"] > 0
-    assert (res.out_dir / "out" / "dingo1" / "trajectory.tum").exists()
+    assert (res.out_dir / "out" / "dingo1" / "dingo1.tum").exists()
     assert (res.out_dir / "out" / "merged.g2o").exists()
     # same agent code, same inputs: only the clocks and round alignment differ
     assert abs(r["sr_ate"] - rep["sr_ate"]) <= 5.0, (r["sr_ate"], rep["sr_ate"])

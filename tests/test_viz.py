@@ -106,7 +106,7 @@ def test_mcap_of_a_replayed_run_reads_back(tmp_path):
     assert read == counts
     steps = 12  # one message per mission second
     for name in ("dingo1", "dingo2"):
-        t, _ = read_tum(run / "out" / name / "trajectory.tum")
+        t, _ = read_tum(run / "out" / name / f"{name}.tum")
         first = int(np.ceil(t[0] - 1767225600.0 - 1e-9))  # the first second with a keyframe
         assert read[f"/{name}/path"] == steps - max(first, 1) + 1
         assert read[f"/{name}/objects"] == 2 and read[f"/mocap/{name}"] == steps

@@ -126,6 +126,7 @@ def _robot_messages(run: rd.Run, name: str, msgs: _Msgs, raw_images: bool
     """(role, stamp_ns, receive_ns, message) of one robot, unordered."""
     from dran_edge.comms import ingest
 
+    has_frames = run.frames_dir(name) is not None
     for rec in ingest.iter_records(run.read_ingest(name)):
         if isinstance(rec, Exception):
             raise InputError(f"robot {name}: ingest.bin does not decode: {rec}",
@@ -144,9 +145,11 @@ def _robot_messages(run: rd.Run, name: str, msgs: _Msgs, raw_images: bool
         elif rec.kind == ingest.KIND_RESET:
             s = rec.event.stamp_ns
             yield "reset", s, s, msgs.header(s)
+        elif rec.kind == ingest.KIND_OBSERVATIONS and has_frames:
+            continue  # the robot's own perception output: an import derives it from the frames
         else:
             raise InputError(f"robot {name}: ingest record kind {rec.kind} has no ROS topic in "
-                             "this exporter (observations come from frames)",
+                             "this exporter (a run's observations are exported as the frames they came from)",
                              path=str(run.ingest_path(name)))
     fdir = run.frames_dir(name)
     if fdir is None:

@@ -1,7 +1,7 @@
 """A run's outputs as an MCAP file for Foxglove: paths, object maps, links, mocap ground truth.
 
 ``write_run_mcap(RUN, PATH)`` reads what ``dran-edge replay`` or ``dran-edge rehearse`` wrote
-(``out/<robot>/trajectory.tum``, ``trajectory_init.tum``, ``objects.csv``, ``rounds.csv``;
+(``out/<robot>/<robot>.tum``, ``<robot>_init.tum``, ``objects.csv``, ``rounds.csv``;
 docs/run-format.md) and the run's mocap, and writes the topics of :mod:`.messages` with
 log times in mission time (the robots' clock):
 
@@ -85,7 +85,7 @@ def _mocap(run: rd.Run):
 
 def write_run_mcap(run_dir: str | Path, path: str | Path, step_s: float = 1.0) -> dict:
     """Write the MCAP file (module docstring); returns ``{topic: messages written}``."""
-    from dran_edge.formats.run_outputs import read_objects_csv, read_rounds_csv
+    from dran_edge.formats.run_outputs import read_objects_csv, read_rounds_csv, trajectory_file
     from dran_edge.formats.tum import read_tum
 
     foxglove = _foxglove()
@@ -96,12 +96,11 @@ def write_run_mcap(run_dir: str | Path, path: str | Path, step_s: float = 1.0) -
     est, init, objs = {}, {}, {}
     for r in robots:
         d = run.out_dir / r.name
-        if (d / "trajectory.tum").exists():
-            t, T = read_tum(d / "trajectory.tum")
-            est[r.name] = (np.round(np.asarray(t) * 1e9).astype(np.int64), np.asarray(T))
-        if (d / "trajectory_init.tum").exists():
-            t, T = read_tum(d / "trajectory_init.tum")
-            init[r.name] = (np.round(np.asarray(t) * 1e9).astype(np.int64), np.asarray(T))
+        for kind, into in (("final", est), ("init", init)):
+            tum_path = trajectory_file(run.out_dir, r.name, kind)
+            if tum_path is not None:
+                t, T = read_tum(tum_path)
+                into[r.name] = (np.round(np.asarray(t) * 1e9).astype(np.int64), np.asarray(T))
         if (d / "objects.csv").exists():
             objs[r.name] = read_objects_csv(d / "objects.csv")
     gt = _mocap(run)

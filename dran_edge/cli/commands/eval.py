@@ -23,7 +23,7 @@ _DESCRIPTION = """\
 Two forms:
 
   RUN_DIR   score a replayed run (docs/run-format.md): reads mission.yaml, the Motive CSV
-            and out/ (trajectory.tum, trajectory_init.tum, objects.csv, merged.g2o,
+            and out/ (<robot>/<robot>.tum, <robot>_init.tum, objects.csv, merged.g2o,
             rounds.csv, report.json); writes RUN_DIR/eval/report.json, summary.md and PNG
             plots. Default alignment: paper (mocap gives only each robot's initial frame).
 
