@@ -960,7 +960,8 @@ class Agent:
         agent.counters.update(state["counters"])
         agent.decrements = [float(d) for d in state.get("decrements", [])]
         agent.done_count = int(state.get("done_count", 0))
-        agent.nbr_done = {int(k): (int(v[0]), int(v[1])) for k, v in state.get("nbr_done", {}).items()}
+        agent.nbr_done = {int(k): (int(v[0]), int(v[1]))
+                          for k, v in state.get("nbr_done", {}).items()}
         agent.last_sent_done = {int(k): int(v) for k, v in state.get("last_sent_done", {}).items()}
         return agent
 

@@ -12,7 +12,7 @@ Paper definitions (Sec. 6.2; ``i`` robots 1..N, ``j`` poses 1..n_i or objects 1.
 - SR_ATE = (ATE⁰ − ATEᵏ) / (ATE⁰ − ATE*) · 100 %              — :func:`sr_ate`
 - SR_cost = (F_init − Fᵏ) / (F_init − F*) · 100 %             — :func:`sr_cost`
 - F/F* and ATE/ATE* (not in the paper; reported beside SR_cost / SR_ATE, since those hide a
-  gap that is small next to the initial one)                   — :func:`cost_ratio`, :func:`ate_ratio`
+  gap that is small next to the initial one)    — :func:`cost_ratio`, :func:`ate_ratio`
 - CE   = 1/N Σ_i 1/m Σ_j ‖Log(y_ij⁻¹ y_avg,j)‖²,
   y_avg = argmin_y 1/N Σ_i 1/m Σ_j ‖Log(y_ij⁻¹ y_j)‖²          — :func:`consistency_error`
 - Bias = sqrt( 1/N Σ_i 1/m Σ_j ‖Log(ȳ_ij⁻¹ y_ij)‖² )           — :func:`object_bias`

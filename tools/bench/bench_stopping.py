@@ -1,4 +1,6 @@
-"""Where does DRAN's stopping rule fire, and how far from F* is it then? (docs/notes/stopping-rule.md)
+"""Where does DRAN's stopping rule fire, and how far from F* is it then?
+
+Design and results: docs/notes/stopping-rule.md.
 
     .venv/bin/python tools/bench/bench_stopping.py [--quick] [--seeds 0 1 2] [--robots 5]
         [--families chain2d grid2d chain3d grid3d] [--rules tail steps] [--max-rounds 600] [--json]
@@ -67,8 +69,8 @@ def chain_graph(dim: int, n: int, seed: int, laps: int = 4, loop_frac: float = 0
     edges_of = np.array([0.0, a, a + b, 2 * a + b, per_lap])
     side = np.searchsorted(edges_of, s, side="right") - 1
     u = s - edges_of[side]
-    xy = np.select([(side == k)[:, None] for k in range(4)],
-                   [np.c_[u, -lane], np.c_[a + lane, u], np.c_[a - u, b + lane], np.c_[-lane, b - u]])
+    legs = [np.c_[u, -lane], np.c_[a + lane, u], np.c_[a - u, b + lane], np.c_[-lane, b - u]]
+    xy = np.select([(side == k)[:, None] for k in range(4)], legs)
     yaw = side * (np.pi / 2)
     if dim == 2:
         T = geo.se2_from_xy_theta(np.c_[xy, yaw])

@@ -88,8 +88,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  SR_cost {f(s.get('sr_cost_pct'), '7.1f')} %   (SE-Sync cost: initial estimate "
           f"{f(c.get('F_init'), '.4g')}, ours {f(c.get('F_k'), '.4g')}, centralized "
           f"{f(c.get('F_star'), '.4g')})")
-    print(f"  F/F*    {f(s.get('f_over_fstar'), '7.4f')}     (our SE-Sync cost over the centralized "
-          f"optimum's; 1 is the optimum)")
+    print(f"  F/F*    {f(s.get('f_over_fstar'), '7.4f')}     (our SE-Sync cost over the "
+          f"centralized optimum's; 1 is the optimum)")
     print(f"  ATE/ATE*{f(s.get('ate_over_atestar'), '7.3f')}     (our ATE over the centralized "
           f"solution's)")
     print(f"  ATE     {f(s.get('ate_m'), '7.3f')} m   (keyframe positions vs OptiTrack)")
