@@ -151,9 +151,9 @@ def test_solve_cli_file_init_needs_vertices(tmp_path, capsys):
 
 
 def _indefinite_se3_line(i: int, j: int, coupling: float) -> str:
-    """An EDGE_SE3:QUAT whose blocks are diag(10)·I and diag(20)·I (SE-Sync weights τ = 10,
-    κ = 3/(2·tr(Ω_rr⁻¹)) = 10) but whose translation–rotation coupling ``coupling`` makes Ω indefinite when
-    coupling² > 200."""
+    """An EDGE_SE3:QUAT whose blocks are 10·I and 20·I (SE-Sync weights τ = 10,
+    κ = 3/(2·tr(Ω_rr⁻¹)) = 10) but whose translation–rotation coupling ``coupling`` makes Ω
+    indefinite when coupling² > 200."""
     info = np.diag([10.0, 10, 10, 20, 20, 20])
     info[0, 3] = info[3, 0] = coupling
     upper = " ".join(repr(float(x)) for x in info[np.triu_indices(6)])
@@ -210,7 +210,8 @@ def test_solve_cli_indefinite_information(tmp_path, capsys, caplog):
     warned = [r.getMessage() for r in caplog.records if "not positive definite" in r.getMessage()]
     assert len(warned) == 1 and "1 of" in warned[0]
     code = main(
-        ["solve", str(path), "--out", str(out), "--weights", "information", "--residual", "geodesic"]
+        ["solve", str(path), "--out", str(out)]
+        + ["--weights", "information", "--residual", "geodesic"]
     )
     assert code == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]

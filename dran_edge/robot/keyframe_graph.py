@@ -31,9 +31,11 @@ becomes ``(x, m)`` with
     Z_xm = Z_xn Z_nm,    Σ_xm = Ad(Z_nm⁻¹) Σ_xn Ad(Z_nm⁻¹)ᵀ + Σ_nm
 
 (a unary prior on ``n`` likewise becomes a prior on ``m``). For a node with only its two
-odometry edges this is exact marginalisation of the chain (to first order). When the node has
-more factors the bridge's information is reused by each re-anchored factor, which is slightly
-over-confident; the benchmark reports the accuracy cost. Factors that end up parallel (same
+odometry edges this is exact marginalisation of the chain (to first order). When the bridge has
+several uses (re-anchored factors, and for a node with loops the Schur complement of the rest)
+its information is split among them, ``Σ_nm / w_i`` with ``Σ w_i = 1`` (:func:`split_weights`):
+counted once in total, and conservative — the kept graph's information never exceeds the exact
+marginal's (docs/notes/solve-and-bounded-graph.md). Factors that end up parallel (same
 endpoints) are fused, ``Ω = Ω₁ + Ω₂``, ``Z = Z₁ Exp(Ω⁻¹ Ω₂ Log(Z₁⁻¹ Z₂))``, which is what keeps
 the edge count bounded. Memory is O(max_nodes + max_edges + buffers) whatever the mission length.
 

@@ -122,9 +122,9 @@ def city_graph(
     Odometry links consecutive poses; about ``loop_fraction``·n loop closures link a pose to a
     random earlier pose (at least ``min_gap`` poses back) within ``loop_radius_m``. Noise as in
     :func:`synthetic_graph`, the loop closures' ``loop_noise_scale`` times larger than their
-    information says (scan matches that are worse than they claim, as in real data). The vertices of the returned graph are the odometry composition of the
-    noisy measurements (the dead-reckoning a file would hold), not the truth; returns (graph,
-    true poses).
+    information says (scan matches that are worse than they claim, as in real data). The
+    vertices of the returned graph are the odometry composition of the noisy measurements (the
+    dead reckoning a file would hold), not the truth; returns (graph, true poses).
     """
     from scipy.spatial import cKDTree
 

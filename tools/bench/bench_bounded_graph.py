@@ -18,6 +18,7 @@ for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=
     OPENBLAS_NUM_THREADS=1 .venv/bin/python tools/bench/bench_bounded_graph.py
     .venv/bin/python tools/bench/bench_bounded_graph.py --no-baseline   # RSS of the bounded graph
     .venv/bin/python tools/bench/bench_bounded_graph.py --quick   # 100 keyframes, caps 40 / 160
+    .venv/bin/python tools/bench/bench_bounded_graph.py --checkpoints 2000,5000  # ATE on the way
 
 The mission is generated in a child process and written as ingest records (docs/ingest.md);
 this process streams it back through the ingest decoder in 1 MiB chunks, as the daemon would,
@@ -27,6 +28,7 @@ so its RSS holds the graph, not the whole mission.
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import sys
 import time
@@ -83,6 +85,24 @@ def solve_sparsified(g: KeyframeGraph) -> tuple[np.ndarray, np.ndarray]:
     return res.poses[:n], res.poses[n:]
 
 
+def checkpoint(bounded: KeyframeGraph, unbounded: KeyframeGraph | None, mission, kf: int) -> None:
+    """ATE of copies of both graphs solved to convergence now, on the bounded graph's nodes."""
+    b = copy.deepcopy(bounded)
+    b.solve(lm.LMParams(max_iterations=50))
+    stamps = b.node_stamps_ns()
+    b_ate, _ = errors(b, mission, stamps, b.T_world_body(), b.T_world_object())
+    s_T, s_O = solve_sparsified(b)
+    s_ate, _ = errors(b, mission, stamps, s_T, s_O)
+    line = f"checkpoint {kf} keyframes: ATE bounded dense {b_ate:.4f} m, sparsified {s_ate:.4f} m"
+    if unbounded is not None:
+        u = copy.deepcopy(unbounded)
+        u.solve(lm.LMParams(max_iterations=50))
+        idx = np.searchsorted(u.node_stamps_ns(), stamps)
+        u_ate, _ = errors(u, mission, stamps, u.T_world_body()[idx], u.T_world_object())
+        line += f", unbounded {u_ate:.4f} m (bounded dense / unbounded {b_ate / u_ate:.2f})"
+    print(line + f"; RSS {rss_mb():.0f} MB", flush=True)
+
+
 def write_mission(path: str, n: int, seed: int) -> None:
     """Child process: generate the mission, write its ingest records and its ground truth."""
     mission = vio_mission(n, seed=seed, reset_at=(n // 3, 2 * n // 3))
@@ -124,6 +144,9 @@ def main(argv=None) -> int:
     ap.add_argument("--report-every", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
+    ap.add_argument("--checkpoints", default="",
+                    help="comma-separated keyframe counts at which a copy of each graph is "
+                    "solved to convergence and its ATE printed (e.g. 2000,5000)")
     ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
     ap.add_argument("--quick", action="store_true",
                     help="100 keyframes, caps of 40 nodes / 160 edges: checks the script only")
@@ -148,6 +171,7 @@ def main(argv=None) -> int:
     gen_s = time.perf_counter() - t0
     print(f"mission: {n} keyframes, {os.path.getsize(path) / 1e6:.1f} MB of ingest records, "
           f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB")
+    checkpoints = {int(k) for k in args.checkpoints.split(",") if k.strip()}
     base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
     bounded = KeyframeGraph(base)
     unbounded = None if args.no_baseline else KeyframeGraph(
@@ -176,6 +200,8 @@ def main(argv=None) -> int:
         kf += 1
         if kf % args.round_every == 0:
             window.append(round_solve(bounded, args.iterations))
+        if kf in checkpoints:
+            checkpoint(bounded, unbounded, mission, kf)
         if kf % args.report_every == 0:
             ub = "—"
             ub_ms = float("nan")
