@@ -62,7 +62,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "'dran-edge solve' does, and report F/F* beside the objective)")
     g.add_argument("--init", choices=("auto", "always", "never"), default="auto",
                    help="distributed init per stage: solve it exactly by substructuring where "
-                        "that costs at most 100 block iterations' values (auto, default), always, "
+                        "that costs at most 20 block iterations' values (auto, default), always, "
                         "or block Gauss-Seidel iterations only (never; docs/dran.md)")
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
