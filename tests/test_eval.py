@@ -262,7 +262,7 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
                 edges.append((base + j - 1, base + j))
                 meas.append(np.linalg.inv(gt[sel[j - 1]]) @ gt[k])
     if connected:  # one inter-robot loop between the robots' 6th vertices
-        (s1, g1), (s2, g2) = truth["dingo1"], truth["dingo2"]
+        (_, g1), (_, g2) = truth["dingo1"], truth["dingo2"]
         edges.append((5, 45))
         meas.append(np.linalg.inv(g1[50]) @ g2[50])
     g = G2oGraph(dim=3, vertex_ids=np.array(vids), poses=np.stack(poses),

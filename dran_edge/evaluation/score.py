@@ -792,7 +792,7 @@ def _trajectories(plt, report, data, eval_dir):
         ax.plot(Tf[:, 0, 3], Tf[:, 1, 3], color=c, lw=1.6, label=name)
     ob = data["objects"]
     if ob:
-        Y, present, gt, y_avg = ob["Y"], ob["present"], ob["gt"], ob["y_avg"]
+        Y, present, gt = ob["Y"], ob["present"], ob["gt"]
         for i, name in enumerate(ob["names"]):
             c = colours[list(robots).index(name) % len(colours)]
             P = Y[i][present[i]]

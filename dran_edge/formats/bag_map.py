@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from dran_edge.formats import run_dir as rd
-from dran_edge.errors import InputError
 
 MAP_FORMAT = "dran-edge-bag-map/1"
 CLOCKS = ("header", "receive")

@@ -24,7 +24,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from dran_edge.formats import run_dir as rd
 from dran_edge.errors import DependencyError, InputError
