@@ -28,7 +28,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dran_edge import geometry as geo
-from dran_edge.dist_init import InitParams, distributed_chordal_init, greedy_colouring
+from dran_edge.dist_init import distributed_chordal_init, greedy_colouring
 from dran_edge.messages import InitEntry, InitStage
 
 

@@ -242,7 +242,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     import types
 
     from dran_edge.agent import LocalProblem
-    from dran_edge.dist_init import InitParams, distributed_chordal_init, greedy_colouring
+    from dran_edge.dist_init import distributed_chordal_init, greedy_colouring
     from dran_edge.objective import sesync_objective, sesync_weights
     from dran_edge.partition import partition_contiguous
 
