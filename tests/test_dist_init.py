@@ -182,7 +182,14 @@ def test_bench_g2o_cli_runs_the_table1_setup_plain_and_dgs(graph, tmp_path, caps
     for r in reports.values():
         assert r["objective_final"] < r["objective_init"] and r["bytes_total"] > r["bytes_init"] > 0
     assert dgs["bytes_init"] == fast["bytes_init"]  # same init over the same wire layout
-    assert fast["bytes_total"] < plain["bytes_total"]
+    # from the exact (substructured) init, Alg. 1's ε_u stop ends the plain run after a few
+    # rounds at a worse objective: compare the objective, and the bytes per DRAN round
+    assert fast["objective_final"] <= plain["objective_final"]
+
+    def per_round(r):
+        return (r["bytes_total"] - r["bytes_init"]) / r["rounds"]
+
+    assert per_round(fast) < 0.5 * per_round(plain)
 
 
 # --------------------------------------------------------------------------- substructuring

@@ -86,7 +86,7 @@ def main(argv=None) -> int:
         base = run(cases, b_rounds, args.baseline, False, args.out and args.out / "baseline")
     fams = sorted({r["family"] for r in cur})
     print("worst case per family: current (direct=auto)"
-          + (" | baseline (direct=never)" if base else ""))
+          + (" / baseline (direct=never)" if base else ""))
     print("| family | cases | " + " | ".join(k for k, _ in KEYS) + " |")
     print("|---|---|" + "---|" * len(KEYS))
     for fam in fams:
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
             if rb and not (key.startswith("dgs") or (args.baseline_rounds == 0 and key not in (
                     "F_init_over_F_chordal", "init_bytes"))):
                 b = worst(rb, key)
-                s += " | " + ("–" if b is None else format(b, spec))
+                s += " / " + ("–" if b is None else format(b, spec))
             cells.append(s)
         print(f"| {fam} | {len(rc)} | " + " | ".join(cells) + " |")
     return 0
