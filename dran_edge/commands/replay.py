@@ -42,7 +42,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--redetect", action="store_true",
                    help="ignore the tag observations recorded in ingest.bin and run perception "
                         "on the recorded frames again (results may differ slightly across CPU "
-                        "architectures; the recorded ones replay bit for bit)")
+                        "architectures; the recorded ones are the same everywhere)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bus loss model (default 0)")
     p.add_argument("--no-eval", action="store_true",
                    help="do not score against the run's mocap")
