@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import platform
 import shutil
 from pathlib import Path
 
@@ -83,17 +84,37 @@ def test_same_run_same_numbers(tiny, tmp_path):
     assert a == b
 
 
+#: Golden tolerances for another CPU architecture. The stored run's inputs are identical
+#: everywhere (recorded observations, no perception); what differs is the back end's floating
+#: point (numpy/scipy/OpenBLAS kernels, FMA). Measured in the arm64 root (tools/arm64_check.sh,
+#: docs/benchmarks.md): every count equal except bytes_total (12809 vs 12797, 0.09 %: a few
+#: send/delta decisions flip), floats within 8.6e-6 relative (SR_ATE 72.9294 vs 72.9297).
+#: Limits: 10x those. Counts that reflect what the robots saw and estimated stay exact.
+GOLDEN_MACHINES = ("x86_64", "AMD64")  # tools/regen_golden.py ran on x86-64
+GOLDEN_RTOL = 1e-4
+GOLDEN_BYTES_RTOL = 0.01
+GOLDEN_EXACT = ("robots", "mission_s", "rounds", "mission_rounds", "frames_processed",
+                "observation_sources", "observations", "ingest_rejected", "keyframes",
+                "objects_known", "converged_robots")
+
+
 def test_matches_the_golden_summary(regen, tmp_path):
     """The stored recorded run (robots' own observations, no frames) replays to the golden
-    summary: counts exactly, floats to 1e-9 relative. Nothing in it depends on perception, so
-    this holds on any architecture (tools/arm64_check.sh runs it in an arm64 root)."""
+    summary: the robots' observations, keyframes and objects exactly, floats and bytes within
+    the architecture tolerances above (on the machine that made the golden file: exactly)."""
     if not GOLDEN.exists():
         pytest.fail(f"{GOLDEN} missing: run tools/regen_golden.py")
     report = regen.replay_stored(tmp_path)
     assert report["frames_processed"] == 0
     golden = json.loads(GOLDEN.read_text())
-    diffs = rp.compare_summary(rp.golden_summary(report), golden, rtol=1e-9, atol=1e-12,
-                               count_rtol=0)
+    actual = rp.golden_summary(report)
+    if platform.machine() in GOLDEN_MACHINES:  # where the golden file was made: exactly
+        diffs = rp.compare_summary(actual, golden, rtol=1e-9, atol=1e-12, count_rtol=0)
+    else:
+        diffs = rp.compare_summary(actual, golden, rtol=GOLDEN_RTOL, atol=1e-9,
+                                   count_rtol=GOLDEN_BYTES_RTOL)
+    diffs += [f"{k}: {actual.get(k)!r} != golden {golden.get(k)!r} (exact)"
+              for k in GOLDEN_EXACT if actual.get(k) != golden.get(k)]
     assert diffs == [], "replay differs from the golden summary (tools/regen_golden.py " \
                         "regenerates it when the change is intended):\n" + "\n".join(diffs)
 
@@ -157,8 +178,10 @@ def test_redetect_without_frames_is_an_error(regen, tmp_path):
         rp.replay_run(run, rp.ReplayOptions(redetect=True, workers=1))
 
 
-#: Re-detection on another machine against the stored (x86-64) recording. Measured in the
-#: arm64 root (tools/arm64_check.sh, docs/benchmarks.md): see the test's docstring.
+#: Re-detection on another machine against the stored (x86-64) recording. Measured in the arm64
+#: root (tools/arm64_check.sh -> tools/redetect_diff.py, docs/benchmarks.md): 68 of the 70
+#: observations found (2 marginal tags missed, 2.9 %), matched ones within 2.5 mm and 0.51 deg.
+#: Limits: 5 % found on one side only; 1 cm (4x) and 1 deg (2x) for a tag seen on both sides.
 REDETECT_MISSED_MAX = 0.05
 REDETECT_T_MAX_M = 0.01
 REDETECT_R_MAX_DEG = 1.0
@@ -170,10 +193,10 @@ def test_redetect_stays_within_tolerance_of_the_recording(regen, redetected):
     The renderer (OpenCV warps, blur) and the detector (quad fit, sub-pixel refinement) use
     floating point whose last bits differ across CPUs and SIMD kernels, so a tag at the edge of
     detectability can appear on one machine and not on the other, and a detected tag's corners
-    move by a small fraction of a pixel. On aarch64 (arm64 root under qemu) 2 of the 70
-    observations flipped. Tolerance: at most 5 % of the observations present on one side only;
-    a tag seen on both sides agrees to 1 cm and 1 degree (a 0.1 px corner shift at 3 m with the
-    640 px camera moves a 16 cm tag's pose by a few millimetres)."""
+    move by a fraction of a pixel. On aarch64 (arm64 root under qemu) 2 of the 70 observations
+    were missed and the others moved by up to 2.5 mm and 0.51 degrees (the rendered frames
+    themselves differ: OpenCV's warps and blur). Tolerances above, on this machine's frames and
+    perception against the x86-64 recording."""
     spec = importlib.util.spec_from_file_location("redetect_diff",
                                                   ROOT / "tools" / "redetect_diff.py")
     rdd = importlib.util.module_from_spec(spec)

@@ -3,8 +3,9 @@
 
 - ``tests/data/golden/tiny_run/`` is a tiny 3-robot run *as robots record it*: each robot's
   ``ingest.bin`` holds its odometry, keyframes, loops and the tag observations its perception
-  found (no frames). Replaying it needs no perception, so it replays to the same numbers on
-  every architecture (tests/test_replay.py::test_matches_the_golden_summary).
+  found (no frames). Replaying it needs no perception, so every architecture gets the same
+  inputs; the summary agrees within the back end's floating point
+  (tests/test_replay.py::test_matches_the_golden_summary states the tolerances).
 - ``tests/data/golden/tiny_replay.json`` is the golden summary of that replay.
 
 Run this only when a change to the simulator, the perception pipeline, the agent or the replay

@@ -619,7 +619,8 @@ def write_merged_g2o(run: rd.Run, results: dict) -> bool:
 # ---------------------------------------------------------------------------------- golden
 #: Keys of report.json kept in a golden summary (wall-clock fields are never among them).
 GOLDEN_KEYS = ("robots", "mission_s", "rounds", "mission_rounds", "bytes_total",
-               "frames_processed", "observation_sources", "observations", "ingest_rejected", "keyframes",
+               "frames_processed", "observation_sources", "observations", "ingest_rejected",
+               "keyframes",
                "objects_known", "converged_robots", "final_cost", "final_consensus_error",
                "sr_ate", "sr_cost", "ate_m", "ce", "bias")
 

@@ -40,7 +40,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--redetect", action="store_true",
                    help="ignore the tag observations recorded in ingest.bin and run perception "
                         "on the recorded frames again (results may differ slightly across CPU "
-                        "architectures; the recorded ones replay bit for bit)")
+                        "architectures; the recorded ones are the same everywhere)")
     p.add_argument("--loss-seed", type=int, default=0,
                    help="seed of the bus loss model (default 0); --seed is the simulation's "
                         "seed in 'simulate' and 'demo'")
