@@ -185,13 +185,7 @@ def read_mapping(path: str | Path) -> BagMapping:
         raise top._err(f"clock: expected one of {CLOCKS}, got {clock!r}", "clock")
     robots = [_robot(rd._Node(item, f"robots[{i}]", str(path), lines), str(path), lines)
               for i, item in enumerate(top.get("robots", "list"))]
-    if not robots:
-        raise top._err("robots: expected at least one robot", "robots")
-    for attr in ("id", "name"):
-        vals = [getattr(r, attr) for r in robots]
-        dup = sorted({v for v in vals if vals.count(v) > 1})
-        if dup:
-            raise top._err(f"robots: {attr} {dup[0]!r} appears more than once", "robots")
+    rd.check_robot_list(top, robots)
     seen: dict[tuple[str | None, str], str] = {}
     for r in robots:
         for role, t in r.topics().items():

@@ -207,6 +207,19 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
 
 
 # ------------------------------------------------------------------------------ mission.yaml
+
+def check_robot_list(top: _Node, robots: list) -> None:
+    """At least one robot, and no id or name twice (the ``robots`` list of mission.yaml or of a
+    bag mapping file)."""
+    if not robots:
+        raise top._err("robots: expected at least one robot", "robots")
+    for attr in ("id", "name"):
+        vals = [getattr(r, attr) for r in robots]
+        dup = sorted({v for v in vals if vals.count(v) > 1})
+        if dup:
+            raise top._err(f"robots: {attr} {dup[0]!r} appears more than once", "robots")
+
+
 def read_mission(path: str | Path) -> Mission:
     """Load and validate ``mission.yaml``."""
     path = Path(path)
@@ -233,13 +246,7 @@ def read_mission(path: str | Path) -> Mission:
         robots.append(RunRobot(rid, n.get("name", "name"), n.get("mocap_body", "str"),
                                n.get("T_body_marker", "pose", np.eye(4)),
                                n.get("T_world_odom", "pose")))
-    if not robots:
-        raise top._err("robots: expected at least one robot", "robots")
-    for attr in ("id", "name"):
-        vals = [getattr(r, attr) for r in robots]
-        dup = sorted({v for v in vals if vals.count(v) > 1})
-        if dup:
-            raise top._err(f"robots: {attr} {dup[0]!r} appears more than once", "robots")
+    check_robot_list(top, robots)
     objects = []
     for i, item in enumerate(top.get("objects", "list", [])):
         n = _Node(item, f"objects[{i}]", str(path), lines)
