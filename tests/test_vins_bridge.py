@@ -1,4 +1,4 @@
-"""tools/vins_bridge.py: its duplicated encoder matches ours byte for byte, it is Python 3.8
+"""dran_edge/ros/vins_bridge.py: its duplicated encoder matches ours byte for byte, it is Python 3.8
 code, and it forwards real ROS messages from a real roscore to the ingest socket."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from dran_edge.events import Keyframe, LoopClosure, OdometrySample, VioReset
 from dran_edge.daemon.ingest_server import IngestServer
 
 REPO = Path(__file__).resolve().parents[1]
-BRIDGE = REPO / "tools" / "vins_bridge.py"
+BRIDGE = REPO / "dran_edge" / "ros" / "vins_bridge.py"
 SYSTEM_PYTHON = "/usr/bin/python3"
 
 

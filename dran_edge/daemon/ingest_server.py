@@ -1,6 +1,6 @@
 """The daemon's local ingest socket: a Unix-domain stream server for VIO records and frames.
 
-The VINS bridge (``tools/vins_bridge.py``) connects and writes framed records
+The VINS bridge (``dran_edge/ros/vins_bridge.py``) connects and writes framed records
 (:mod:`dran_edge.comms.ingest`, docs/ingest.md). Records are decoded strictly per connection;
 a bad record is counted by reason, logged at most once per ``log_every_s`` per reason, and
 dropped. Nothing a client sends can stop the server: decode problems are values, a client

@@ -2,7 +2,7 @@
 
 One conversion layer for every path a ROS message takes into dran-edge: the bag importer
 (:mod:`dran_edge.formats.bags`), the ROS 2 bridge node (:mod:`dran_edge.ros.bridge2`) and, by
-construction, the ROS 1 bridge (``tools/vins_bridge.py``, a standard-library copy whose bytes
+construction, the ROS 1 bridge (``dran_edge/ros/vins_bridge.py``, a standard-library copy whose bytes
 ``tests/test_vins_bridge.py`` compares with :mod:`dran_edge.comms.ingest`).
 
 Messages are duck-typed: anything with the ROS field names works — ``rosbags``' dataclasses

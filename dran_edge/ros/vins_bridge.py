@@ -27,7 +27,7 @@ The record encoder below duplicates ``dran_edge.comms.ingest``'s ``pack_*`` func
 
 Usage (ROS environment sourced)::
 
-    python3 tools/vins_bridge.py _socket:=/run/dran-edge/ingest.sock
+    python3 dran_edge/ros/vins_bridge.py _socket:=/run/dran-edge/ingest.sock
 """
 
 import collections
