@@ -1,9 +1,7 @@
-"""tools/vins_to_run.py: VINS-Mono CSVs (+ pose_graph.txt, images) -> a run directory."""
+"""dran-edge import-vins (dran_edge/formats/vins_csv.py): VINS-Mono CSVs (+ pose_graph.txt, images) -> a run directory."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,15 +10,14 @@ from dran_edge import geometry as geo
 from dran_edge.formats import run_dir as rd
 from dran_edge.sim import mission as sim
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "vins_to_run.py"
-
-
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("vins_to_run", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    """``dran-edge import-vins`` as the tests call it: ``tool.main(argv) -> exit code``."""
+    from types import SimpleNamespace
+
+    from dran_edge.cli.app import main
+
+    return SimpleNamespace(main=lambda argv: main(["import-vins", *argv]))
 
 
 @pytest.fixture(scope="module")

@@ -34,6 +34,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "detect": ("dran_edge.cli.commands.detect", "detect AprilTags in images, recordings or a camera"),
     "import-bag": ("dran_edge.cli.commands.import_bag",
                    "import ROS 1 / ROS 2 bags (.bag, .db3, .mcap) as a run directory"),
+    "import-vins": ("dran_edge.cli.commands.import_vins",
+                    "import VINS-Mono CSV outputs as one robot of a run directory"),
     "merge-records": ("dran_edge.cli.commands.merge_records",
                       "combine robots' 'run --record' directories into one run"),
     "export": ("dran_edge.cli.commands.export",
