@@ -15,6 +15,19 @@ import yaml
 from dran_edge.daemon.status import query_status
 
 
+def feed_and_drain(d, events, max_ticks: int = 200) -> None:
+    """Send ``events`` through the daemon's real ingest socket, tick until all are applied."""
+    from dran_edge.comms.ingest import encode_event
+
+    with socket.socket(socket.AF_UNIX) as s:
+        s.connect(str(d.ingest.path))
+        s.sendall(b"".join(encode_event(e) for e in events))
+    for _ in range(max_ticks):
+        d.tick()
+        if d.ingest.counters["records"] == len(events) and d.journal.pending_count == 0:
+            break
+
+
 def write_config(tmp: Path, **overrides) -> Path:
     """A robot config with everything under ``tmp`` (no camera, no radio)."""
     cfg = {

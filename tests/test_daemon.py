@@ -5,7 +5,7 @@ from __future__ import annotations
 import socket
 
 import numpy as np
-from daemon_helpers import write_config
+from daemon_helpers import feed_and_drain, write_config
 
 from dran_edge.comms.ingest import encode_event
 from dran_edge.config import load_config
@@ -36,13 +36,7 @@ def test_ticks_feed_the_real_agent_and_report(tmp_path):
     d = make(tmp_path)
     d.start()
     m = vio_mission(60, seed=1)
-    with socket.socket(socket.AF_UNIX) as s:
-        s.connect(str(d.ingest.path))
-        s.sendall(b"".join(encode_event(e) for e in m.events))
-    for _ in range(200):
-        d.tick()
-        if d.ingest.counters["records"] == len(m.events) and d.journal.pending_count == 0:
-            break
+    feed_and_drain(d, m.events)
     for _ in range(5):
         d.tick()
     d.shutdown()

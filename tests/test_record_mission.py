@@ -4,14 +4,12 @@ robots' recordings; replay and eval read the result without hand edits."""
 from __future__ import annotations
 
 import shutil
-import socket
 
 import numpy as np
-from daemon_helpers import write_config
+from daemon_helpers import feed_and_drain, write_config
 from test_daemon import RecordingNotifier
 
 from dran_edge.cli.app import main
-from dran_edge.comms.ingest import encode_event
 from dran_edge.config import load_config
 from dran_edge.daemon.service import Daemon
 from dran_edge.formats.recorded import ingest_span
@@ -27,13 +25,7 @@ def test_a_daemon_recording_replays_as_it_is(tmp_path):
     d = Daemon(cfg, notifier=RecordingNotifier(), environ={}, record_dir=rec)
     d.start()
     m = vio_mission(20, seed=4)
-    with socket.socket(socket.AF_UNIX) as s:
-        s.connect(str(d.ingest.path))
-        s.sendall(b"".join(encode_event(e) for e in m.events))
-    for _ in range(200):
-        d.tick()
-        if d.ingest.counters["records"] == len(m.events) and d.journal.pending_count == 0:
-            break
+    feed_and_drain(d, m.events)
     d.shutdown()
     run = open_run(rec)  # strict reader: mission.yaml complete and consistent
     stamps = [getattr(e, "stamp_ns", getattr(e, "stamp_cur_ns", None)) for e in m.events]
