@@ -35,3 +35,20 @@ def small_sim_run(tmp_path_factory):
     write_run(generate_mission(SimParams(**SMALL_SIM)), run, frames="render", workers=1)
     report = replay_run(run, ReplayOptions(**SMALL_REPLAY)).report
     return run, report
+
+
+def mutate_datagram(data, datagram: bytes) -> bytes:
+    """A hypothesis-drawn corruption of ``datagram``: one bit flipped, cut short, or bytes
+    inserted (the forgery tests of the HMAC and the Ed25519 trailers)."""
+    from hypothesis import strategies as st
+
+    mutated = bytearray(datagram)
+    i = data.draw(st.integers(0, len(mutated) - 1))
+    op = data.draw(st.sampled_from(["flip", "cut", "extend"]))
+    if op == "flip":
+        mutated[i] ^= 1 << data.draw(st.integers(0, 7))
+    elif op == "cut":
+        del mutated[i:]
+    else:
+        mutated[i:i] = data.draw(st.binary(min_size=1, max_size=20))
+    return bytes(mutated)

@@ -9,6 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import mutate_datagram
+
 from dran_edge.comms import auth, codec
 from dran_edge.comms.auth import AuthPolicy, Reject, Signer, Verifier
 from dran_edge.errors import ConfigError
@@ -146,16 +148,7 @@ def test_forgeries_never_accepted(data):
     """Any modification of a valid datagram (bytes flipped, cut, extended) is rejected."""
     good = bytearray(_datagram(seq=data.draw(st.integers(0, 1000)), n_obj=3))
     v = Verifier(KEY, POLICY)
-    mutated = bytearray(good)
-    i = data.draw(st.integers(0, len(mutated) - 1))
-    op = data.draw(st.sampled_from(["flip", "cut", "extend"]))
-    if op == "flip":
-        mutated[i] ^= 1 << data.draw(st.integers(0, 7))
-    elif op == "cut":
-        del mutated[i:]
-    else:
-        mutated[i:i] = data.draw(st.binary(min_size=1, max_size=20))
-    msg, reason = v.check(bytes(mutated))
+    msg, reason = v.check(mutate_datagram(data, bytes(good)))
     assert msg is None and reason is not None
 
 

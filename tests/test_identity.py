@@ -9,6 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import mutate_datagram
+
 pytest.importorskip("cryptography")
 
 from dran_edge.comms import auth, codec
@@ -224,16 +226,7 @@ def test_fleet_key_pair_export_check_commands(tmp_path, capsys):
 def test_mutated_signed_datagrams_never_accepted_never_raise(data):
     genuine = _signed(_message(1, np.random.default_rng(5)), SEEDS[1], 0)
     v = Verifier(PUBLIC, _policy(2, {1, 3}))
-    mutated = bytearray(genuine)
-    i = data.draw(st.integers(0, len(mutated) - 1))
-    op = data.draw(st.sampled_from(["flip", "cut", "extend"]))
-    if op == "flip":
-        mutated[i] ^= 1 << data.draw(st.integers(0, 7))
-    elif op == "cut":
-        del mutated[i:]
-    else:
-        mutated[i:i] = data.draw(st.binary(min_size=1, max_size=20))
-    msg, reason = v.check(bytes(mutated))
+    msg, reason = v.check(mutate_datagram(data, genuine))
     assert msg is None and reason is not None
 
 

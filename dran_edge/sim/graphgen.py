@@ -32,6 +32,18 @@ def grid_trajectory(dim: int, side: int, layers: int = 1, step_m: float = 1.0) -
     return geo.se3_from_rt(R, pts)
 
 
+def _generated_graph(dim: int, poses: np.ndarray, edges: np.ndarray, Z: np.ndarray,
+                     information: np.ndarray) -> G2oGraph:
+    """A G2oGraph of generated data: vertex ids 0..n-1, every vertex posed, none fixed, one
+    information matrix per edge (``(m, r, r)``; broadcast from ``(r, r)``)."""
+    n, m, r = poses.shape[0], edges.shape[0], 3 if dim == 2 else 6
+    return G2oGraph(
+        dim=dim, vertex_ids=np.arange(n, dtype=np.int64), poses=poses,
+        has_pose=np.ones(n, dtype=bool), edges=edges, measurements=Z,
+        information=np.broadcast_to(information, (m, r, r)).copy(),
+        fixed=np.zeros(n, dtype=bool), edge_lines=np.arange(1, m + 1, dtype=np.int64))
+
+
 def synthetic_graph(
     dim: int = 3,
     side: int = 6,
@@ -59,19 +71,7 @@ def synthetic_graph(
         info = np.diag(1.0 / sig**2)
     else:
         info = np.eye(dof)
-    m = edges.shape[0]
-    graph = G2oGraph(
-        dim=dim,
-        vertex_ids=np.arange(n, dtype=np.int64),
-        poses=T.copy(),
-        has_pose=np.ones(n, dtype=bool),
-        edges=edges,
-        measurements=Z,
-        information=np.broadcast_to(info, (m, dof, dof)).copy(),
-        fixed=np.zeros(n, dtype=bool),
-        edge_lines=np.arange(1, m + 1, dtype=np.int64),
-    )
-    return graph, T
+    return _generated_graph(dim, T.copy(), edges, Z, info), T
 
 
 def city_trajectory(
@@ -142,23 +142,11 @@ def city_graph(
     sig = np.array([sigma_t_m, sigma_t_m, sigma_r_rad])
     scale = np.where(np.arange(edges.shape[0]) < n - 1, 1.0, loop_noise_scale)
     Z = geo.retract(Z, rng.normal(size=(edges.shape[0], 3)) * sig * scale[:, None])
-    m = edges.shape[0]
     dead = np.empty_like(T)
     dead[0] = T[0]
     for k in range(n - 1):
         dead[k + 1] = dead[k] @ Z[k]
-    graph = G2oGraph(
-        dim=2,
-        vertex_ids=np.arange(n, dtype=np.int64),
-        poses=dead,
-        has_pose=np.ones(n, dtype=bool),
-        edges=edges,
-        measurements=Z,
-        information=np.broadcast_to(np.diag(1.0 / sig**2), (m, 3, 3)).copy(),
-        fixed=np.zeros(n, dtype=bool),
-        edge_lines=np.arange(1, m + 1, dtype=np.int64),
-    )
-    return graph, T
+    return _generated_graph(2, dead, edges, Z, np.diag(1.0 / sig**2)), T
 
 
 # --------------------------------------------------------------------------- suite families
@@ -286,7 +274,4 @@ def graph_from_trajectory(T: np.ndarray, loops: np.ndarray, sigma_t_m, sigma_r_r
     Z = geo.retract(Z, noise)
     info = np.linalg.inv(cov)
     info = 0.5 * (info + np.swapaxes(info, 1, 2))
-    return G2oGraph(
-        dim=dim, vertex_ids=np.arange(n, dtype=np.int64), poses=T.copy(),
-        has_pose=np.ones(n, dtype=bool), edges=edges, measurements=Z, information=info,
-        fixed=np.zeros(n, dtype=bool), edge_lines=np.arange(1, m + 1, dtype=np.int64))
+    return _generated_graph(dim, T.copy(), edges, Z, info)
