@@ -394,16 +394,18 @@ class CommsSection(_Checked):
     """Address the DISH binds to."""
     port: int = _f(5600, lo=1, hi=65535)
     """UDP port the DISH binds to."""
-    auth: str = _f("hmac", choices=("hmac", "ed25519"))
+    auth: str = _f("hmac", choices=("hmac", "ed25519", "pairwise"))
     """Key policy (docs/wire-format.md, "Authentication"): ``hmac``, one secret key shared by
     the fleet (any holder can sign as any robot); ``ed25519``, one key pair per robot (a robot
-    can sign only as itself). Every robot of a fleet uses the same policy."""
+    can sign only as itself); ``pairwise``, the same key pairs agreeing an HMAC key per pair of
+    robots (a robot can send only as itself, at an HMAC's cost). Every robot of a fleet uses the
+    same policy."""
     key_file: str = _f("")
     """Secret key file (mode 0600, owned by the daemon's user); relative to the config. ``hmac``:
-    the fleet key (``dran-edge fleet-key new``); ``ed25519``: this robot's secret key
-    (``dran-edge fleet-key pair``)."""
+    the fleet key (``dran-edge fleet-key new``); ``ed25519`` and ``pairwise``: this robot's
+    secret key (``dran-edge fleet-key pair``)."""
     public_keys_file: str = _f("")
-    """With ``auth: ed25519``: the fleet's public keys (``dran-edge fleet-key export``), the same
+    """With ``auth: ed25519`` or ``pairwise``: the fleet's public keys (``dran-edge fleet-key export``), the same
     file on every robot; relative to the config. Needed unless every neighbour lists its
     ``public_keys``."""
     datagram_max_bytes: int = _f(1200, lo=256, hi=4096)
