@@ -1,5 +1,6 @@
 """The pairwise key policy: pair keys agreed from the robots' Ed25519 key pairs (X25519 + HKDF),
-one HMAC tag per receiver; forgery with another robot's secret, policies, rotation, links."""
+one HMAC tag per receiver; forgery with another robot's secret, policies, rotation; links over
+the bus with either per-robot policy (ed25519 or pairwise)."""
 
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from dran_edge.comms.auth import (
     Ed25519Signer,
     PairwiseSigner,
     Reject,
+    RobotIdentity,
     Signer,
     Verifier,
 )
@@ -214,19 +216,23 @@ def test_rotation_follows_the_receivers_key():
 
 
 @pytest.mark.parametrize("delta_every", [0, 5])
-def test_links_over_the_bus_with_pair_keys(delta_every):
+@pytest.mark.parametrize("identity", [RobotIdentity, PairwiseIdentity])
+def test_links_over_the_bus_with_identities(identity, delta_every):
+    """Three robots' links over the in-process bus, each with its own key pair: signed
+    (ed25519) or pair-keyed (pairwise), absolute or delta layout; nothing rejected."""
     from dran_edge.comms.bus import Bus
     from dran_edge.comms.link import NeighbourLink
 
     bus = Bus([1, 2, 3], graph=[(1, 2), (2, 3), (1, 3)])
     rng = np.random.default_rng(4)
-    links = {r: NeighbourLink(bus.endpoint(r), key=PairwiseIdentity(SEEDS[r], PUBLIC),
+    links = {r: NeighbourLink(bus.endpoint(r), key=identity(SEEDS[r], PUBLIC),
                               policy=_policy(r), boot_epoch=3, delta_every=delta_every)
              for r in (1, 2, 3)}
     for _ in range(3):
         for r, link in links.items():
             sent = link.send_message(_message(r, rng), to=[j for j in links if j != r])
-            assert len(sent) == 2 and sent[0] != sent[1]  # one tag per receiver
+            if identity is PairwiseIdentity:  # one tag per receiver
+                assert len(sent) == 2 and sent[0] != sent[1]
         bus.advance()
         for r, link in links.items():
             assert sorted(m.sender_id for m in link.poll()) == sorted({1, 2, 3} - {r})
