@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import mutate_datagram
+from conftest import assert_forgeries_rejected, flip_one_bit, mutate_datagram
 
 pytest.importorskip("cryptography")
 
@@ -165,28 +165,21 @@ def test_compromised_robot_cannot_forge_another():
         t = templates[seq % len(templates)]
         return t[:7] + codec._varint(seq) + t[8:]
 
-    reasons: dict = {}
-    n = 10_000
-    for i in range(n):
-        kind, body = i % 5, unsigned(10 + i)[:-16]
-        if kind == 0:  # claims robot 1, tagged with robot 3's own key to robot 2
-            data = body + as_self.tag_for(2, body)
-        elif kind == 1:  # robot 3's secret running as robot 1
-            data = body + as_one.tag_for(2, body)
-        elif kind == 2:  # robot 1's key towards robot 3 (which robot 3 holds)
-            data = body + hmac.digest(k13, body, "sha256")[:16]
-        elif kind == 3:  # a genuine datagram of robot 1 to robot 3, or random tag bytes
-            data = genuine_to_3[i % 8] if i % 2 else body + rng.bytes(16)
-        else:  # genuine robot-1 bytes with one bit flipped
-            mutated = bytearray(genuine)
-            pos = int(rng.integers(4, len(mutated)))
-            mutated[pos] ^= 1 << int(rng.integers(0, 8))
-            data = bytes(mutated)
-        msg, reason = v.check(data)
-        assert msg is None, f"forgery {i} (kind {kind}) was accepted"
-        reasons[reason] = reasons.get(reason, 0) + 1
-    assert sum(reasons.values()) == n
-    assert reasons[Reject.BAD_TAG] >= 0.95 * n, reasons
+    def forgeries(n):
+        for i in range(n):
+            kind, body = i % 5, unsigned(10 + i)[:-16]
+            if kind == 0:  # claims robot 1, tagged with robot 3's own key to robot 2
+                yield kind, body + as_self.tag_for(2, body)
+            elif kind == 1:  # robot 3's secret running as robot 1
+                yield kind, body + as_one.tag_for(2, body)
+            elif kind == 2:  # robot 1's key towards robot 3 (which robot 3 holds)
+                yield kind, body + hmac.digest(k13, body, "sha256")[:16]
+            elif kind == 3:  # a genuine datagram of robot 1 to robot 3, or random tag bytes
+                yield kind, genuine_to_3[i % 8] if i % 2 else body + rng.bytes(16)
+            else:  # genuine robot-1 bytes with one bit flipped
+                yield kind, flip_one_bit(rng, genuine)
+
+    assert_forgeries_rejected(v, forgeries(10_000), 10_000)
     assert v.counts.accepted == 2
 
 
