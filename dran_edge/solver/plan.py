@@ -101,41 +101,27 @@ def _block_csc_plan(brow, bcol, base, stride, nbr: int, nbc: int, dof: int, with
     return indices, indptr, src, tgt.astype(np.int64), diag
 
 
-def build_plan(graph: PoseGraph) -> StructurePlan:
-    """Tier 1: variable ordering (private first, then public) and the scatter plans that turn the
-    per-factor blocks ``JᵀJ`` and ``Jᵀr`` into ``A`` (sparse), ``C`` (sparse), ``B`` (dense),
-    ``g_x`` and ``g_y``. Depends only on the topology."""
+_SCATTER_KEYS = (
+    *("A_r", "A_c", "A_s", "A_k"),  # A: block row, block column, source base, source stride
+    *("C_r", "C_c", "C_s", "C_k"),  # C: the same
+    *("B_r", "B_c", "B_s"),  # B: scalar row, scalar column, source
+    *("gx_t", "gx_s", "gy_t", "gy_s"),  # g_x, g_y: target, source
+)
+
+
+def _scatter_sources(
+    graph: PoseGraph, slot: np.ndarray
+) -> tuple[dict[str, np.ndarray], list[int], list[int]]:
+    """Where each element of the concatenated factor blocks goes: per key of ``_SCATTER_KEYS``
+    the concatenated indices, and the offsets of each factor block's (m, kd, kd) Hessian and
+    (m, kd) gradient blocks in the concatenated arrays (kd = k·dof for k-ary factors)."""
     dof = graph.dof
     kinds = graph.kinds
-    private_vars = np.flatnonzero(kinds == VariableKind.PRIVATE)
-    public_vars = np.flatnonzero(kinds == VariableKind.PUBLIC)
-    slot = np.full(graph.num_variables, -1, dtype=np.int64)
-    slot[private_vars] = np.arange(private_vars.shape[0])
-    slot[public_vars] = np.arange(public_vars.shape[0])
-
     rr, cc = np.divmod(np.arange(dof * dof), dof)
     ar = np.arange(dof)
-    parts: dict[str, list[np.ndarray]] = {
-        key: []
-        for key in (
-            "A_r",
-            "A_c",
-            "A_s",
-            "A_k",
-            "C_r",
-            "C_c",
-            "C_s",
-            "C_k",
-            "B_r",
-            "B_c",
-            "B_s",
-            "gx_t",
-            "gx_s",
-            "gy_t",
-            "gy_s",
-        )
-    }
-    H_offsets, g_offsets = [], []
+    parts: dict[str, list[np.ndarray]] = {key: [] for key in _SCATTER_KEYS}
+    H_offsets: list[int] = []
+    g_offsets: list[int] = []
     H_off = g_off = 0
     for block in graph.factors:
         var = np.asarray(block.variables, dtype=np.int64)
@@ -171,10 +157,24 @@ def build_plan(graph: PoseGraph) -> StructurePlan:
                 parts["B_s"].append((base[sel, None] + (rr * kd + cc)[None]).ravel())
         H_off += m * kd * kd
         g_off += m * kd
-
     cat = {
         key: (np.concatenate(val) if val else np.zeros(0, np.int64)) for key, val in parts.items()
     }
+    return cat, H_offsets, g_offsets
+
+
+def build_plan(graph: PoseGraph) -> StructurePlan:
+    """Tier 1: variable ordering (private first, then public) and the scatter plans that turn the
+    per-factor blocks ``JᵀJ`` and ``Jᵀr`` into ``A`` (sparse), ``C`` (sparse), ``B`` (dense),
+    ``g_x`` and ``g_y``. Depends only on the topology."""
+    dof = graph.dof
+    kinds = graph.kinds
+    private_vars = np.flatnonzero(kinds == VariableKind.PRIVATE)
+    public_vars = np.flatnonzero(kinds == VariableKind.PUBLIC)
+    slot = np.full(graph.num_variables, -1, dtype=np.int64)
+    slot[private_vars] = np.arange(private_vars.shape[0])
+    slot[public_vars] = np.arange(public_vars.shape[0])
+    cat, H_offsets, g_offsets = _scatter_sources(graph, slot)
     n_pu, n_pv = private_vars.shape[0], public_vars.shape[0]
     A_indices, A_indptr, A_src, A_tgt, A_diag = _block_csc_plan(
         cat["A_r"], cat["A_c"], cat["A_s"], cat["A_k"], n_pu, n_pu, dof, True
