@@ -50,7 +50,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dran_edge import geometry as geo
-from dran_edge.config import AgentConfig
+from dran_edge.config import AgentConfig, Residual
 from dran_edge.dran.consensus import ConsensusFactors, consensus_error, dual_update, phi, phi_dim
 from dran_edge.events import (
     EstimateUpdate,
@@ -152,7 +152,7 @@ class LocalProblem:
 
     @classmethod
     def empty(cls, dim: int, residual: str) -> LocalProblem:
-        D, r = dim + 1, (6 if dim == 3 else 3) if residual == "geodesic" else dim * dim + dim
+        D, r = dim + 1, (6 if dim == 3 else 3) if residual == Residual.GEODESIC else dim * dim + dim
         z = np.zeros(0, np.int64)
         T, W = np.zeros((0, D, D)), np.zeros((0, r))
         return cls(dim, residual, z, z, T, np.zeros((0, 2), np.int64), T, W, np.zeros(0, bool),

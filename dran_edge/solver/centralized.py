@@ -17,6 +17,7 @@ from dran_edge import geometry as geo
 from dran_edge.solver.chordal import chordal_initialization
 from dran_edge.errors import InputError
 from dran_edge.solver.graph import PoseGraph, kinds_array
+from dran_edge.solver.choices import Hessian
 from dran_edge.solver.lm import LMParams, LMResult, solve
 from dran_edge.solver.objective import (
     WEIGHTS,
@@ -147,7 +148,7 @@ def solve_g2o(
     """Initialise and optimise ``g``; objectives in the SE-Sync convention (see objective.py).
     ``params`` default: exact Hessian (Newton on the chordal cost), cost_tol 1e-8."""
     if params is None:
-        params = LMParams(hessian="exact", cost_tol=1e-8)
+        params = LMParams(hessian=Hessian.EXACT, cost_tol=1e-8)
     kappa, tau = sesync_weights(g.dim, g.information)
 
     def F(T: np.ndarray) -> float:

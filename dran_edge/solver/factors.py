@@ -33,6 +33,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from dran_edge import geometry as geo
+from dran_edge.config import Residual, RobustKernel
 
 # ----------------------------------------------------------------------------- kernels
 
@@ -79,11 +80,11 @@ Kernel = Huber | Cauchy
 
 def make_kernel(name: str, width: float) -> Kernel | None:
     """The kernel a config names ('none', 'huber', 'cauchy'), of width ``width``."""
-    if name == "none":
+    if name == RobustKernel.NONE:
         return None
-    if name == "huber":
+    if name == RobustKernel.HUBER:
         return Huber(width)
-    if name == "cauchy":
+    if name == RobustKernel.CAUCHY:
         return Cauchy(width)
     raise ValueError(f"unknown robust kernel {name!r} (none, huber or cauchy)")
 
@@ -224,16 +225,16 @@ def chordal_second_order(
 
 
 _RESIDUALS = {
-    "geodesic": (geodesic_residual, geodesic_jacobians),
-    "chordal": (chordal_residual, chordal_jacobians),
+    Residual.GEODESIC: (geodesic_residual, geodesic_jacobians),
+    Residual.CHORDAL: (chordal_residual, chordal_jacobians),
 }
 
 
 def residual_dim(residual: str, dim: int) -> int:
     """Length of one residual: geodesic 6/3, chordal 12/6 for SE(3)/SE(2)."""
-    if residual == "geodesic":
+    if residual == Residual.GEODESIC:
         return 6 if dim == 3 else 3
-    if residual == "chordal":
+    if residual == Residual.CHORDAL:
         return dim * dim + dim
     raise ValueError(f"residual must be 'geodesic' or 'chordal', got {residual!r}")
 
@@ -257,12 +258,12 @@ def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: 
     kappa = np.asarray(kappa, dtype=np.float64)
     tau = np.asarray(tau, dtype=np.float64)
     nrot = 3 if dim == 3 else 1
-    if residual == "chordal":
+    if residual == Residual.CHORDAL:
         parts = [
             np.repeat(np.sqrt(kappa)[:, None], dim * dim, 1),
             np.repeat(np.sqrt(tau)[:, None], dim, 1),
         ]
-    elif residual == "geodesic":
+    elif residual == Residual.GEODESIC:
         parts = [
             np.repeat(np.sqrt(tau)[:, None], dim, 1),
             np.repeat(np.sqrt(2 * kappa)[:, None], nrot, 1),
@@ -298,7 +299,7 @@ class BetweenFactors:
     """(m, D, D) ``T̃_p_q``."""
     whitening: np.ndarray
     """(m, r) diagonal or (m, r, r) full W with WᵀW = Ω in the residual's coordinates."""
-    residual: str = "geodesic"
+    residual: str = Residual.GEODESIC
     """'geodesic' or 'chordal' (paper eq. 2)."""
     kernel: Kernel | None = None
     label: str = "between"
@@ -319,7 +320,7 @@ class BetweenFactors:
     def second_order(self, poses: np.ndarray) -> np.ndarray | None:
         """(m, 2·dof, 2·dof) Hessian terms Gauss–Newton drops (chordal residual only, where
         they are cheap and matter: its residuals stay large at the optimum), else None."""
-        if self.residual != "chordal":
+        if self.residual != Residual.CHORDAL:
             return None
         p, q = self.variables[:, 0], self.variables[:, 1]
         T_p, T_q = poses[p], poses[q]
@@ -347,7 +348,7 @@ class PriorFactors:
     measurements: np.ndarray
     """(m, D, D) the prior pose T̄."""
     whitening: np.ndarray
-    residual: str = "geodesic"
+    residual: str = Residual.GEODESIC
     kernel: Kernel | None = None
     label: str = "prior"
 
@@ -367,7 +368,7 @@ class PriorFactors:
 
     def second_order(self, poses: np.ndarray) -> np.ndarray | None:
         """(m, dof, dof) Hessian terms Gauss–Newton drops (chordal residual only), else None."""
-        if self.residual != "chordal":
+        if self.residual != Residual.CHORDAL:
             return None
         T_q = poses[self.variables[:, 0]]
         I = self._identity()

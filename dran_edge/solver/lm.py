@@ -27,6 +27,7 @@ from enum import Enum
 
 import numpy as np
 
+from dran_edge.solver.choices import Hessian, LinearSolver, NewtonDamping
 from dran_edge.solver.damping import (
     LM_DAMPING,
     LM_NEWTON_DAMPING,
@@ -50,6 +51,9 @@ from dran_edge.solver.schur import (
 
 __all__ = [
     "AUTO_CHOLESKY_MIN_POSES",
+    "Hessian",
+    "LinearSolver",
+    "NewtonDamping",
     "NEWTON_MU_DECREASE",
     "LMParams",
     "LMResult",
@@ -105,7 +109,7 @@ class LMParams:
     """Converged when an accepted step's ‖(u, v)‖₂ < step_tol (metres/radians mixed)."""
     gradient_tol: float = 0.0
     """Converged when ‖g‖_∞ ≤ gradient_tol at a linearisation point (whitened units)."""
-    hessian: str = "gauss_newton"
+    hessian: Hessian = Hessian.GAUSS_NEWTON
     """'gauss_newton' (M = JᵀJ + μI, the paper's LM) or 'exact' (adds the chordal residual's
     second-order terms — damped Newton). The exact model keeps its own damping μ_N, separate
     from the Gauss–Newton μ: in an iteration where ``A + μ_N I`` or ``Ĥ`` is not positive
@@ -114,16 +118,25 @@ class LMParams:
     steps kept shrinking μ while the Newton model, indefinite or overshooting at that μ, failed
     every iteration: linear convergence at two solves per iteration. See
     docs/notes/solve-and-bounded-graph.md.)"""
-    newton_damping: str = "separate"
+    newton_damping: NewtonDamping = NewtonDamping.SEPARATE
     """'separate' (the μ_N above, with the definiteness check) or 'shared' (one μ for both models
     and no definiteness check on SuperLU factors: the policy before, kept for benchmarks)."""
-    linear_solver: str = "superlu"
+    linear_solver: LinearSolver = LinearSolver.SUPERLU
     """Factorisation of A + μI: 'superlu', 'cholesky' (supernodal, dran_edge.solver.sparse_cholesky) or
     'auto' (cholesky for SE(3) graphs with ≥ AUTO_CHOLESKY_MIN_POSES private poses, else superlu;
     from tools/bench/bench_cholesky.py: 2–7× faster factorisations on the 3D benchmark graphs,
     no gain on the small 2D ones once its analysis is paid). The Cholesky makes many small BLAS
     calls, which a multi-threaded OpenBLAS on an oversubscribed machine slows down badly: shells
     that use it set OPENBLAS_NUM_THREADS=1 before numpy loads."""
+
+    def __post_init__(self) -> None:
+        # the choices may be given by their strings (CLI, YAML): checked and converted here, once
+        for name, choice in (
+            ("hessian", Hessian),
+            ("newton_damping", NewtonDamping),
+            ("linear_solver", LinearSolver),
+        ):
+            object.__setattr__(self, name, choice.parse(getattr(self, name), name))
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,7 +169,7 @@ class _LMDamping:
 
     @classmethod
     def for_params(cls, params: LMParams) -> _LMDamping:
-        shared = params.newton_damping == "shared"
+        shared = params.newton_damping is NewtonDamping.SHARED
         newton = LM_SHARED_NEWTON_DAMPING if shared else LM_NEWTON_DAMPING
         limits = {"mu_init": params.mu_init, "mu_min": params.mu_min}
         return cls(
@@ -239,23 +252,10 @@ def _damped_iteration(
     )
 
 
-def _check_choices(params: LMParams) -> None:
-    if params.linear_solver not in ("cholesky", "superlu", "auto"):
-        raise ValueError(
-            f"linear_solver must be 'cholesky', 'superlu' or 'auto', got {params.linear_solver!r}"
-        )
-    if params.hessian not in ("gauss_newton", "exact"):
-        raise ValueError(f"hessian must be 'gauss_newton' or 'exact', got {params.hessian!r}")
-    if params.newton_damping not in ("separate", "shared"):
-        raise ValueError(
-            f"newton_damping must be 'separate' or 'shared', got {params.newton_damping!r}"
-        )
-
-
 def _factorizer(plan: StructurePlan, params: LMParams) -> Factorize | None:
     """The supernodal Cholesky where ``linear_solver`` asks for it, else None (SuperLU)."""
-    use_cholesky = params.linear_solver == "cholesky" or (
-        params.linear_solver == "auto"
+    use_cholesky = params.linear_solver is LinearSolver.CHOLESKY or (
+        params.linear_solver is LinearSolver.AUTO
         and plan.dof == 6
         and plan.private_vars.shape[0] >= AUTO_CHOLESKY_MIN_POSES
     )
@@ -274,7 +274,6 @@ def solve(
     ``callback(iteration, cost, mu)`` is called after every accepted step (progress reports).
     """
     plan = build_plan(graph) if plan is None else plan
-    _check_choices(params)
     factorize = _factorizer(plan, params)
     poses = np.asarray(poses, dtype=np.float64)
     cost = evaluate_cost(graph, poses)
@@ -292,7 +291,7 @@ def solve(
         # The first iteration uses Gauss–Newton even in 'exact' mode: far from a minimum the
         # Gauss–Newton model of the chordal cost predicts better (sphere2500 from the chordal
         # initialisation: F 1687.86 after a Gauss–Newton step, 1707.8 after an exact one).
-        exact = params.hessian == "exact" and iteration > 0
+        exact = params.hessian is Hessian.EXACT and iteration > 0
         lin = linearize(graph, plan, poses, exact)
         g = np.concatenate([lin.g_x, lin.g_y])
         if not np.all(np.isfinite(g)) or not np.all(np.isfinite(lin.A.data)):

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from dran_edge.config import Residual
 from dran_edge.solver.factors import BetweenFactors, isotropic_whitening, whitening_from_information
 
 WEIGHTS = ("sesync", "information")
-RESIDUALS = ("chordal", "geodesic")
+RESIDUALS = (Residual.CHORDAL, Residual.GEODESIC)
 
 
 def _trace_inverse(blocks: np.ndarray) -> np.ndarray:
@@ -126,12 +127,12 @@ def edge_factors(
     residual's 12 (or 6) entries have no natural image of a 6×6 (or 3×3) information matrix.
     """
     if residual not in RESIDUALS:
-        raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}")
+        raise ValueError(f"residual must be one of {', '.join(RESIDUALS)}, got {residual!r}")
     if weights == "sesync":
         kappa, tau = sesync_weights(dim, information)
         W = isotropic_whitening(kappa, tau, residual, dim)
     elif weights == "information":
-        if residual != "geodesic":
+        if residual != Residual.GEODESIC:
             raise ValueError(
                 "weights 'information' needs the geodesic residual; the chordal residual is "
                 "weighted isotropically (use weights 'sesync')"
