@@ -38,15 +38,21 @@ from dran_edge.errors import ConfigError
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")
 
 
+_Choice = typing.TypeVar("_Choice", bound="StrChoice")
+
+
 class StrChoice(str, Enum):
     """A choice among fixed strings, checked once where a config is loaded or built: members
     compare equal to their strings and print, format and serialise (JSON) as them."""
 
-    __str__ = str.__str__
-    __format__ = str.__format__
+    def __str__(self) -> str:
+        return str.__str__(self)
+
+    def __format__(self, format_spec: str) -> str:
+        return str.__format__(self, format_spec)
 
     @classmethod
-    def parse(cls, value: Any, key: str) -> Any:
+    def parse(cls: type[_Choice], value: Any, key: str) -> _Choice:
         """The member named by ``value`` (a member or its string); ValueError naming ``key``,
         the bad value and the allowed ones otherwise."""
         try:
@@ -607,14 +613,16 @@ def _convert(value: Any, tp: Any, key: str, lines: dict[str, int]) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise _err(f"{key}: expected a number, got {_describe(value)}", key, lines)
         return float(value)
-    if tp is str or (isinstance(tp, type) and issubclass(tp, StrChoice)):
+    if isinstance(tp, type) and issubclass(tp, StrChoice):
         if not isinstance(value, str):
             raise _err(f"{key}: expected a string, got {_describe(value)}", key, lines)
-        if tp is not str:
-            try:
-                return tp.parse(value, key)
-            except ValueError as exc:
-                raise _err(str(exc), key, lines) from None
+        try:
+            return tp.parse(value, key)
+        except ValueError as exc:
+            raise _err(str(exc), key, lines) from None
+    if tp is str:
+        if not isinstance(value, str):
+            raise _err(f"{key}: expected a string, got {_describe(value)}", key, lines)
         return value
     raise AssertionError(f"unsupported config type {tp!r} at {key}")
 

@@ -28,6 +28,7 @@ paper eq. 6) are added from outside by implementing it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -101,8 +102,15 @@ def kernel_cost(kernel: Kernel | None, s: np.ndarray) -> np.ndarray:
 class Factor(Protocol):
     """A block of m factors of one type (see the module docstring)."""
 
-    variables: np.ndarray
-    kernel: Kernel | None
+    @property
+    def variables(self) -> np.ndarray:
+        """(m, k) int graph indices of each factor's variables."""
+        ...
+
+    @property
+    def kernel(self) -> Kernel | None:
+        """The robust kernel on the squared whitened norms, None for least squares."""
+        ...
 
     def linearize(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals ``(m, r)`` and Jacobians ``(m, k, r, dof)`` at ``poses`` (n, D, D)."""
@@ -197,8 +205,9 @@ def _tangent_generators(d: int) -> np.ndarray:
 def _sym_generator_products(d: int) -> np.ndarray:
     """½(E_a E_b + E_b E_a): the second derivative ∂²Exp(ξ)/∂ξ_a∂ξ_b at ξ = 0."""
     E = _tangent_generators(d)
-    P = np.einsum("aij,bjk->abik", E, E)
-    return 0.5 * (P + np.swapaxes(P, 0, 1))
+    P: np.ndarray = np.einsum("aij,bjk->abik", E, E)
+    sym: np.ndarray = 0.5 * (P + np.swapaxes(P, 0, 1))
+    return sym
 
 
 def chordal_second_order(
@@ -224,7 +233,9 @@ def chordal_second_order(
     return np.einsum("...ij,abij->...ab", Mp, G2), np.einsum("...ij,abij->...ab", Mq, G2)
 
 
-_RESIDUALS = {
+_RESIDUALS: dict[
+    str, tuple[Callable[..., np.ndarray], Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]]
+] = {
     Residual.GEODESIC: (geodesic_residual, geodesic_jacobians),
     Residual.CHORDAL: (chordal_residual, chordal_jacobians),
 }
@@ -246,7 +257,8 @@ def whitening_from_information(information: np.ndarray) -> np.ndarray:
     """W with WᵀW = Ω for each ``(..., r, r)`` information (symmetric eigen-square-root, robust to
     near-singular Ω, where a Cholesky factor may fail)."""
     lam, V = np.linalg.eigh(np.asarray(information, dtype=np.float64))
-    return np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(V, -1, -2)
+    W: np.ndarray = np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(V, -1, -2)
+    return W
 
 
 def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: int) -> np.ndarray:
@@ -275,11 +287,14 @@ def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: 
 
 def _whiten(W: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Apply a diagonal ``(m, r)`` or full ``(m, r, r)`` whitening to ``(m, r)`` or ``(m, r, c)``."""
+    out: np.ndarray
     if W.ndim == 2:
-        return W * x if x.ndim == 2 else W[:, :, None] * x
-    if x.ndim == 2:
-        return np.einsum("mij,mj->mi", W, x)
-    return W @ x
+        out = W * x if x.ndim == 2 else W[:, :, None] * x
+    elif x.ndim == 2:
+        out = np.einsum("mij,mj->mi", W, x)
+    else:
+        out = W @ x
+    return out
 
 
 # ----------------------------------------------------------------------------- factor blocks

@@ -92,7 +92,7 @@ def evaluate_cost(graph: PoseGraph, poses: np.ndarray) -> float:
 
 def retract(plan: StructurePlan, poses: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """New poses: private ``x ⊕ u``, public ``y ⊕ v``, fixed unchanged (stacked tangents)."""
-    out = poses.copy()
+    out: np.ndarray = poses.copy()
     dof = plan.dof
     if plan.private_vars.size:
         out[plan.private_vars] = geo.retract(poses[plan.private_vars], u.reshape(-1, dof))

@@ -171,10 +171,12 @@ class _LMDamping:
     def for_params(cls, params: LMParams) -> _LMDamping:
         shared = params.newton_damping is NewtonDamping.SHARED
         newton = LM_SHARED_NEWTON_DAMPING if shared else LM_NEWTON_DAMPING
-        limits = {"mu_init": params.mu_init, "mu_min": params.mu_min}
+        mu_init, mu_min = params.mu_init, params.mu_min
         return cls(
-            gauss_newton=replace(LM_DAMPING, max_trials=params.max_trials, **limits),
-            newton=replace(newton, **limits),
+            gauss_newton=replace(
+                LM_DAMPING, mu_init=mu_init, mu_min=mu_min, max_trials=params.max_trials
+            ),
+            newton=replace(newton, mu_init=mu_init, mu_min=mu_min),
             shared=shared,
         )
 

@@ -29,7 +29,8 @@ RESIDUALS = (Residual.CHORDAL, Residual.GEODESIC)
 def _trace_inverse(blocks: np.ndarray) -> np.ndarray:
     """tr(Ω⁻¹) of each (m, k, k) block; +inf for a singular block (no finite inverse)."""
     try:
-        return np.trace(np.linalg.inv(blocks), axis1=1, axis2=2)
+        trace: np.ndarray = np.trace(np.linalg.inv(blocks), axis1=1, axis2=2)
+        return trace
     except np.linalg.LinAlgError:  # one singular block fails the batch: edge by edge
         out = np.empty(blocks.shape[0])
         for k, block in enumerate(blocks):

@@ -54,7 +54,16 @@ class StructurePlan:
         return int(self.public_vars.shape[0]) * self.dof
 
 
-def _block_csc_plan(brow, bcol, base, stride, nbr: int, nbc: int, dof: int, with_diag: bool):
+def _block_csc_plan(
+    brow: np.ndarray,
+    bcol: np.ndarray,
+    base: np.ndarray,
+    stride: np.ndarray,
+    nbr: int,
+    nbc: int,
+    dof: int,
+    with_diag: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Scatter plan of dense dof×dof blocks into one CSC matrix (nbr·dof × nbc·dof).
 
     Block i sits at block (brow[i], bcol[i]) and its element (r, c) is read at

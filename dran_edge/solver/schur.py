@@ -29,6 +29,7 @@ blocks add the second-order terms of the chordal residual, making the model the 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import scipy.linalg
@@ -36,16 +37,46 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dran_edge.solver.plan import StructurePlan
-from dran_edge.solver.sparse_cholesky import NotPositiveDefinite, SymbolicCholesky
+from dran_edge.solver.sparse_cholesky import (
+    NotPositiveDefinite,
+    NumericCholesky,
+    SymbolicCholesky,
+)
 
-Factorize = Callable[[sp.csc_matrix, float], object]
-"""``factorize(A, mu)``: a factor of ``A + μI`` with ``solve(rhs)`` (see :func:`schur_step`)."""
+
+@runtime_checkable
+class DampedFactor(Protocol):
+    """A factorisation of ``A + μI`` (SuperLU's, or the supernodal Cholesky)."""
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """``(A + μI)⁻¹ rhs`` for (n,) or (n, r) right-hand sides."""
+        ...
+
+
+@runtime_checkable
+class TriangularFactor(DampedFactor, Protocol):
+    """``L Lᵀ = P (A + μI) Pᵀ`` with its two triangular solves (the supernodal Cholesky)."""
+
+    def forward(self, rhs: np.ndarray) -> np.ndarray:
+        """``L⁻¹ P rhs`` as (n, r)."""
+        ...
+
+    def backward(self, y: np.ndarray) -> np.ndarray:
+        """``Pᵀ L⁻ᵀ y`` as (n, r)."""
+        ...
+
+
+Factorize = Callable[[sp.csc_matrix, float], DampedFactor]
+"""``factorize(A, mu)``: a factor of ``A + μI`` (see :func:`schur_step`)."""
+
 
 class LinearSolveError(ArithmeticError):
     """A damped system could not be factorised (singular or not positive definite)."""
 
 
-def superlu_factorize(A_mu: sp.csc_matrix, require_positive_definite: bool = False):
+def superlu_factorize(
+    A_mu: sp.csc_matrix, require_positive_definite: bool = False
+) -> DampedFactor:
     """Sparse LU of a symmetric positive definite matrix, SuperLU in symmetric mode.
 
     SuperLU factorises an indefinite matrix without complaint; with ``require_positive_definite``
@@ -68,7 +99,8 @@ def superlu_factorize(A_mu: sp.csc_matrix, require_positive_definite: bool = Fal
                 f"damped matrix is not positive definite ({int(np.sum(~(pivots > 0.0)))} "
                 "non-positive pivots)"
             )
-    return lu
+    factor: DampedFactor = lu  # scipy's SuperLU (no stubs)
+    return factor
 
 
 def cholesky_factorizer(plan: StructurePlan) -> Factorize | None:
@@ -79,7 +111,7 @@ def cholesky_factorizer(plan: StructurePlan) -> Factorize | None:
         return None
     symbolic = SymbolicCholesky(plan.A_indptr, plan.A_indices, plan.n_u, plan.dof)
 
-    def factorize(A: sp.csc_matrix, mu: float):
+    def factorize(A: sp.csc_matrix, mu: float) -> NumericCholesky:
         try:
             return symbolic.factorize(A.data, mu)
         except NotPositiveDefinite as exc:
@@ -119,8 +151,8 @@ def schur_step(
             lu = superlu_factorize(
                 sp.csc_matrix(A + mu * sp.identity(n_u, format="csc")), require_positive_definite
             )
-        C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
-        if n_v and hasattr(lu, "forward"):
+        C_dense = _dense(C)
+        if n_v and isinstance(lu, TriangularFactor):
             # Cholesky: with Y = L⁻¹P[g_x, C], CᵀA⁻¹C = Y_Cᵀ Y_C and CᵀA⁻¹g_x = Y_Cᵀ y_g, and
             # u needs one back substitution of y_g + Y_C v (half the solves of A⁻¹[g_x, C])
             Y = lu.forward(np.column_stack([g_x, C_dense]))
@@ -134,7 +166,7 @@ def schur_step(
         Ainv_g, Ainv_C = X[:, 0], X[:, 1:]
     if n_v == 0:
         return -Ainv_g, np.zeros(0)
-    C_dense = C.toarray() if sp.issparse(C) else np.asarray(C)
+    C_dense = _dense(C)
     H_hat = B + mu * np.eye(n_v) - C_dense.T @ Ainv_C  # eq. 11
     g_hat = g_y - C_dense.T @ Ainv_g  # eq. 10
     v = _reduced_step(H_hat, g_hat)
@@ -145,6 +177,13 @@ def schur_step(
 def _reduced_step(H_hat: np.ndarray, g_hat: np.ndarray) -> np.ndarray:
     """v = −Ĥ⁻¹ ĝ, the minimiser of the reduced model h (eq. 9), by a dense Cholesky of Ĥ."""
     try:
-        return -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
+        v: np.ndarray = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H_hat), g_hat)
+        return v
     except np.linalg.LinAlgError as exc:
         raise LinearSolveError(f"reduced Hessian is not positive definite: {exc}") from None
+
+
+def _dense(C: Any) -> np.ndarray:
+    """``C`` (scipy sparse, which has no type stubs, or an array) as a dense array."""
+    dense: np.ndarray = C.toarray() if sp.issparse(C) else np.asarray(C)
+    return dense
