@@ -76,7 +76,6 @@ from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 log = logging.getLogger(__name__)
 
 
-
 def _log_rate(h: np.ndarray) -> float:
     """Contraction rate per step of the positive sequence ``h``: exp of the least-squares slope
     of log h (a geometric sequence gives its ratio; a noisy one its trend)."""
