@@ -11,7 +11,7 @@ through the Schur complement, eqs. 8–11), applied by the retraction ``z ← Re
 Each *trial* solves for ξ at the current μ and evaluates the cost at the retracted point.
 
 Predicted decrease (of the *undamped* model, as in Madsen, Nielsen & Tingleff, "Methods for
-non-linear least squares problems", 2004, eq. 3.14; from ``(H + μI) ξ = −g``)::
+non-linear least squares problems", 2004, Sec. 3.2; from ``(H + μI) ξ = −g``)::
 
     L(0) − L(ξ) = −⟨g, ξ⟩ − ½⟨ξ, H ξ⟩ = ½ (μ ‖ξ‖² − ⟨g, ξ⟩)  > 0  for ξ ≠ 0.
 
