@@ -95,49 +95,49 @@ def _is_se3_tangent(xi: np.ndarray) -> bool:
     return n == 6
 
 
-def exp(xi):
+def exp(xi: np.ndarray) -> np.ndarray:
     return se3_exp(xi) if _is_se3_tangent(xi) else se2_exp(xi)
 
 
-def log(T):
+def log(T: np.ndarray) -> np.ndarray:
     return se3_log(T) if _is_se3_matrix(T) else se2_log(T)
 
 
-def inverse(T):
+def inverse(T: np.ndarray) -> np.ndarray:
     return se3_inverse(T) if _is_se3_matrix(T) else se2_inverse(T)
 
 
-def compose(A, B):
+def compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     _is_se3_matrix(A)
     return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
 
 
-def between(A, B):
+def between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return inverse(A) @ np.asarray(B, dtype=np.float64)
 
 
-def adjoint(T):
+def adjoint(T: np.ndarray) -> np.ndarray:
     return se3_adjoint(T) if _is_se3_matrix(T) else se2_adjoint(T)
 
 
-def right_jacobian(xi):
+def right_jacobian(xi: np.ndarray) -> np.ndarray:
     return se3_right_jacobian(xi) if _is_se3_tangent(xi) else se2_right_jacobian(xi)
 
 
-def right_jacobian_inv(xi):
+def right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
     return se3_right_jacobian_inv(xi) if _is_se3_tangent(xi) else se2_right_jacobian_inv(xi)
 
 
-def retract(T, xi):
+def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     return np.asarray(T, dtype=np.float64) @ exp(xi)
 
 
-def geodesic_distance(A, B):
+def geodesic_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """‖Log(A⁻¹ B)‖ over the whole tangent."""
     return np.linalg.norm(log(between(A, B)), axis=-1)
 
 
-def chordal_distance(A, B):
+def chordal_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """‖A − B‖_F over the upper d × (d+1) block."""
     A = np.asarray(A, dtype=np.float64)
     d = A.shape[-1] - 1
