@@ -63,6 +63,7 @@ from dran_edge.geometry.so3 import (
     hat3,
     quat_wxyz_from_rotmat,
     rotmat_from_quat_wxyz,
+    so3_angle,
     so3_exp,
     so3_left_jacobian,
     so3_left_jacobian_inv,

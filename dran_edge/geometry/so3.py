@@ -121,6 +121,14 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return k[..., None] * v
 
 
+def so3_angle(R: np.ndarray) -> np.ndarray:
+    """θ = ‖Log(R)‖ in [0, π] from the trace (tr R = 1 + 2 cos θ), arccos((tr R − 1) / 2):
+    ``(..., 3, 3) -> (...)``. Cheaper than ``so3_log`` and what thresholds and noise models
+    need; near θ = 0 and π the arccos loses precision (≈ 1e-8 rad), use ``so3_log`` there."""
+    R = np.asarray(R, dtype=np.float64)
+    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) * 0.5, -1.0, 1.0))
+
+
 def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
     """J_l(φ) = I + (1 − cos θ)/θ² Φ + (θ − sin θ)/θ³ Φ² (Solà eq. 145); also SE(3)'s V(φ)."""
     phi = np.asarray(phi, dtype=np.float64)

@@ -83,46 +83,21 @@ def gauge_anchor(config: AgentConfig) -> bool:
     return all(config.robot_id < q for q in config.neighbours)
 
 
-def rotation_angle(R: np.ndarray) -> float:
-    """|Log(R)| in radians (a cheap form for thresholds and noise models)."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) * 0.5, -1.0, 1.0)))
-
-
 def diag_covariance(noise: NoiseModel) -> np.ndarray:
     return np.diag([noise.sigma_translation_m**2] * 3 + [noise.sigma_rotation_rad**2] * 3)
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    """Inverse of one SE(3) matrix (unbatched fast path of geo.se3_inverse)."""
-    out = np.eye(4)
-    Rt = T[:3, :3].T
-    out[:3, :3] = Rt
-    out[:3, 3] = -Rt @ T[:3, 3]
-    return out
-
-
-def _adj(T: np.ndarray) -> np.ndarray:
-    """Adj(T) of one SE(3) matrix, [[R, [t]x R], [0, R]] (unbatched geo.se3_adjoint)."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    out = np.zeros((6, 6))
-    out[:3, :3] = R
-    out[3:, 3:] = R
-    out[:3, 3:] = tx @ R
-    return out
 
 
 def compose_cov(Z_ab: np.ndarray, S_ab: np.ndarray, Z_bc: np.ndarray, S_bc: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
     """(Z_ac, Σ_ac) of two chained measurements (right noise; independent)."""
-    Ad = _adj(_inv(Z_bc))
+    Ad = geo.se3_adjoint(geo.se3_inverse(Z_bc))
     return Z_ab @ Z_bc, Ad @ S_ab @ Ad.T + S_bc
 
 
 def invert_cov(Z_ab: np.ndarray, S_ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(Z_ba, Σ_ba): the same measurement seen from the other end."""
-    Ad = _adj(Z_ab)
-    return _inv(Z_ab), Ad @ S_ab @ Ad.T
+    Ad = geo.se3_adjoint(Z_ab)
+    return geo.se3_inverse(Z_ab), Ad @ S_ab @ Ad.T
 
 
 def fuse(Z1: np.ndarray, S1: np.ndarray, Z2: np.ndarray, S2: np.ndarray
@@ -249,7 +224,7 @@ class KeyframeGraph:
         travelled ``path_m`` and angle turned ``turn_rad`` (default: those of Z itself)."""
         n = self.config.odometry_noise
         dt = float(np.linalg.norm(Z[:3, 3])) if path_m is None else path_m
-        dr = rotation_angle(Z[:3, :3]) if turn_rad is None else turn_rad
+        dr = float(geo.so3_angle(Z[:3, :3])) if turn_rad is None else turn_rad
         st = n.sigma_translation_m + n.per_metre * dt
         sr = n.sigma_rotation_rad + n.per_radian * dr
         return np.diag([st * st] * 3 + [sr * sr] * 3)
@@ -329,7 +304,7 @@ class KeyframeGraph:
         if prev_kf is not None and ev.stamp_ns > prev_kf[0]:
             D = geo.se3_between(prev_kf[1], T)
             cum = (prev_kf[2] + float(np.linalg.norm(D[:3, 3])),
-                   prev_kf[3] + rotation_angle(D[:3, :3]))
+                   prev_kf[3] + float(geo.so3_angle(D[:3, :3])))
         else:
             cum = (0.0, 0.0) if prev_kf is None else (prev_kf[2], prev_kf[3])
         if prev_kf is None or ev.stamp_ns > prev_kf[0]:
@@ -347,7 +322,7 @@ class KeyframeGraph:
                 return False
             Z = geo.se3_between(self.node_odom[last], T)
             dist = float(np.linalg.norm(Z[:3, 3]))
-            ang = rotation_angle(Z[:3, :3])
+            ang = float(geo.so3_angle(Z[:3, :3]))
             dt_s = (ev.stamp_ns - self.node_stamp[last]) * 1e-9
             if (dist < b.keyframe_min_distance_m and ang < b.keyframe_min_angle_rad
                     and dt_s < b.keyframe_max_interval_s):
@@ -783,7 +758,7 @@ class KeyframeGraph:
         if np.all(np.diag(S_rr) < 1e6):
             items.append((NONE, int(keys[r]), T_mean[r], S_rr + 1e-12 * np.eye(6), KIND_PRIOR))
         S_rr_inv = np.linalg.pinv(S_rr, hermitian=True)
-        T_r_inv = _inv(T_mean[r])
+        T_r_inv = geo.se3_inverse(T_mean[r])
         others = [i for i in range(len(keys)) if i != r]
         so = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in others]) if others else \
             np.zeros(0, np.int64)
