@@ -234,3 +234,12 @@ def test_se3_inverse_and_adjoint_one_pose_equals_batch(batch, seed):
     np.testing.assert_allclose(g.se3_adjoint(Ti), np.linalg.inv(g.se3_adjoint(T)), atol=1e-9)
     for one, inv in zip(T.reshape(-1, 4, 4), Ti.reshape(-1, 4, 4)):
         assert np.array_equal(g.se3_inverse(one), inv)
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+def test_se3_transform_points_is_the_homogeneous_product(batch):
+    rng = np.random.default_rng(7)
+    T = g.se3_exp(tangents(rng, batch, "uniform", 3))
+    P = rng.normal(size=batch + (5, 3))
+    want = (T[..., None, :, :] @ np.concatenate([P, np.ones(batch + (5, 1))], -1)[..., None])
+    np.testing.assert_allclose(g.se3_transform_points(T, P), want[..., :3, 0], atol=1e-12)

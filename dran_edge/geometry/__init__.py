@@ -58,6 +58,7 @@ from dran_edge.geometry.se3 import (
     se3_retract,
     se3_right_jacobian,
     se3_right_jacobian_inv,
+    se3_transform_points,
 )
 from dran_edge.geometry.so3 import (
     hat3,

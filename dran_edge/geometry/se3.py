@@ -52,6 +52,11 @@ def se3_inverse(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def se3_transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Points ``P (..., N, 3)`` in frame b -> frame a by ``T_a_b (..., 4, 4)``: R p + t."""
+    return np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3]
+
+
 def se3_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """A B (``T_a_c = se3_compose(T_a_b, T_b_c)``)."""
     return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
