@@ -62,7 +62,7 @@ class IngestServer:
     from other threads.
     """
 
-    def __init__(self, path: str | Path, on_record: Callable[[Record], None],
+    def __init__(self, path: str | Path, on_record: Callable[[Record], object],
                  on_frame: Callable[[Record], None] | None = None, mode: int = 0o660,
                  log_every_s: float = 10.0):
         self.path = Path(path)

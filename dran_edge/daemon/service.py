@@ -39,8 +39,9 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, BinaryIO, Callable
 
 from dran_edge.comms.ingest import KIND_OBSERVATIONS, Record, encode_event
 from dran_edge.config import RobotConfig, config_to_dict, parse_address
@@ -81,6 +82,9 @@ __all__ = [
     "resolve_dirs",
 ]
 
+if TYPE_CHECKING:
+    from dran_edge.daemon.ingest_server import IngestServer
+
 log = logging.getLogger(__name__)
 
 #: 2: the core is an RobotCore; its state's keys ("agent", "graph", "online") sit at the top
@@ -97,7 +101,7 @@ class Daemon:
         cfg: RobotConfig,
         *,
         record_dir: str | Path | None = None,
-        environ: dict | None = None,
+        environ: Mapping[str, str] | None = None,
         agent_factory: Callable[[RobotConfig, dict | None], AgentLike] = default_agent_factory,
         transport_factory: Callable[[RobotConfig, int], Transport | None]
         = default_transport_factory,
@@ -105,7 +109,7 @@ class Daemon:
         notifier: Notifier | None = None,
     ):
         self.cfg = cfg
-        self.environ = os.environ if environ is None else environ
+        self.environ: Mapping[str, str] = os.environ if environ is None else environ
         self.record_dir = Path(record_dir) if record_dir else None
         self.agent_factory = agent_factory
         self.transport_factory = transport_factory
@@ -123,12 +127,12 @@ class Daemon:
         self._last_checkpoint = 0.0
         self._last_watchdog = float("-inf")
         self._last_status = float("-inf")
-        self.ingest = None
+        self.ingest: IngestServer | None = None
         self.perception: PerceptionWorker | None = None
         self.status_server: StatusServer | None = None
         self.transport: Transport | None = None
         self.live: Any = None
-        self._record_file = None
+        self._record_file: BinaryIO | None = None
 
     # ------------------------------------------------------------------ start-up
     def start(self) -> None:
@@ -395,6 +399,7 @@ class Daemon:
         the record directory as it is."""
         from dran_edge.formats.recorded import write_recorded_mission
 
+        assert self.record_dir is not None
         try:
             path = write_recorded_mission(self.record_dir)
             log.info("recording: wrote %s", path)

@@ -7,6 +7,7 @@ import logging
 import os
 import time
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
@@ -42,7 +43,7 @@ class Transport(Protocol):
     def close(self) -> None: ...
 
 
-def resolve_dirs(cfg: RobotConfig, environ: dict | None = None) -> tuple[Path, Path]:
+def resolve_dirs(cfg: RobotConfig, environ: Mapping[str, str] | None = None) -> tuple[Path, Path]:
     """(state_dir, runtime_dir): config, else systemd's $STATE_DIRECTORY/$RUNTIME_DIRECTORY."""
     env = os.environ if environ is None else environ
     state = cfg.resolve(cfg.daemon.state_dir)

@@ -214,7 +214,7 @@ class FactorStore:
         else:
             self._marginalize_out(n, self._reanchor_loops(n, slots))
         seg = self.node_segment.get(n)
-        stamps, nodes = self.seg_nodes.get(seg, ([], []))
+        stamps, nodes = self.seg_nodes.get(seg, ([], [])) if seg is not None else ([], [])
         if n in nodes:
             i = nodes.index(n)
             del stamps[i], nodes[i]
@@ -313,9 +313,10 @@ class FactorStore:
         return self.obj_est[key - OBJ] if key >= OBJ else self.node_est[key]
 
     def _prior_block(self, keys_arr: np.ndarray) -> MarginalPrior:
-        pk = self.prior["keys"]
-        return MarginalPrior(np.searchsorted(keys_arr, pk)[None], self.prior["T_lin"],
-                             self.prior["W"], self.prior["e"])
+        prior = self.prior
+        assert prior is not None
+        return MarginalPrior(np.searchsorted(keys_arr, prior["keys"])[None], prior["T_lin"],
+                             prior["W"], prior["e"])
 
     def _blocks(self, fa: dict, keys: np.ndarray, residual: str) -> list:
         """Factor blocks (odometry, loop, observation, prior) over variables ``keys`` (sorted)."""

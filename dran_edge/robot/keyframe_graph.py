@@ -126,7 +126,8 @@ class KeyframeGraph(FactorStore):
         self.odo_stamps: deque[int] = deque(maxlen=ODOMETRY_BUFFER)
         self.odo_poses: deque[np.ndarray] = deque(maxlen=ODOMETRY_BUFFER)
         self.odo_segments: deque[int] = deque(maxlen=ODOMETRY_BUFFER)
-        self.kf_buffer: dict[int, tuple[int, np.ndarray]] = {}  # stamp -> (segment, T_odom)
+        # stamp -> (segment, T_odom, path m, turn rad)
+        self.kf_buffer: dict[int, tuple[int, np.ndarray, float, float]] = {}
         self.kf_order: deque[int] = deque()
         self.pending_obs: deque[ObservationBatch] = deque(maxlen=PENDING_OBSERVATIONS)
         self.counters: dict[str, int] = {}
@@ -466,7 +467,8 @@ class KeyframeGraph(FactorStore):
             g.node_segment[k] = int(state["node_segment"][i])
             g.node_odom[k] = np.array(state["node_odom"][i])
             g.node_est[k] = np.array(state["node_est"][i])
-            g.node_cum[k] = tuple(float(v) for v in state["node_cum"][i])
+            d_m, r_rad = (float(v) for v in state["node_cum"][i])
+            g.node_cum[k] = (d_m, r_rad)
             g.adj[k] = set()
         for i, k in enumerate(np.asarray(state["objects"]).tolist()):
             g.obj_est[k] = np.array(state["obj_est"][i])
@@ -489,7 +491,7 @@ class KeyframeGraph(FactorStore):
         for s, sg, T, c in zip(np.asarray(state["kf_stamps"]).tolist(),
                                np.asarray(state["kf_segments"]).tolist(), state["kf_poses"],
                                np.asarray(state["kf_cum"]).tolist()):
-            g.kf_buffer[s] = (sg, np.array(T), c[0], c[1])
+            g.kf_buffer[s] = (sg, np.array(T), float(c[0]), float(c[1]))
             g.kf_order.append(s)
         g.kf_last = {int(sg): (int(st), np.array(T), float(d), float(r))
                      for sg, st, T, d, r in state["kf_last"]}

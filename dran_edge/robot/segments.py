@@ -81,6 +81,7 @@ class Segmenter:
             reason = "first odometry"
         elif self.last_stamp_ns is not None:
             gap_s = (stamp_ns - self.last_stamp_ns) * 1e-9
+            assert self.last_T is not None  # set with last_stamp_ns
             d = geo.se3_between(self.last_T, T_odom_body)
             jump_m = float(np.linalg.norm(d[:3, 3]))
             jump_rad = float(geo.so3_angle(d[:3, :3]))
