@@ -33,7 +33,7 @@ from dran_edge import geometry as geo
 
 def project(K: np.ndarray, T: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Pixels ``(..., N, 2)`` of points ``P (..., N, 3)`` seen by poses ``T (..., 4, 4)``."""
-    p = np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3]
+    p = geo.se3_transform_points(T, P)
     return p[..., :2] / p[..., 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
 
 
@@ -44,7 +44,7 @@ def linearise(K: np.ndarray, T: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, 
     translation row ``D_i R`` (module docstring), which saves forming the 3x6 point Jacobian.
     """
     R = T[..., :3, :3]
-    p = np.einsum("...ij,...nj->...ni", R, P) + T[..., None, :3, 3]
+    p = geo.se3_transform_points(T, P)
     inv_z = 1.0 / p[..., 2:3]
     xy = p[..., :2] * inv_z  # normalised coordinates (..., N, 2)
     f = K[[0, 1], [0, 1]]

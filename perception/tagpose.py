@@ -154,7 +154,7 @@ def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: 
     h, w = depth_mm.shape
     pts = np.zeros((T.shape[0], 1, _DEPTH_GRID.shape[0], 3))
     pts[..., :2] = _DEPTH_GRID * (size_m[:, None, None, None] / 2)
-    p = np.einsum("...ij,...nj->...ni", T[..., :3, :3], pts) + T[..., None, :3, 3]
+    p = geo.se3_transform_points(T, pts)
     z = p[..., 2]
     u = np.rint(K[0, 0] * p[..., 0] / z + K[0, 2]).astype(np.int64)
     v = np.rint(K[1, 1] * p[..., 1] / z + K[1, 2]).astype(np.int64)

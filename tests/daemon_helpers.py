@@ -24,7 +24,7 @@ def feed_and_drain(d, events, max_ticks: int = 200) -> None:
         s.sendall(b"".join(encode_event(e) for e in events))
     for _ in range(max_ticks):
         d.tick()
-        if d.ingest.counters["records"] == len(events) and d.journal.pending_count == 0:
+        if d.ingest.counters.records == len(events) and d.journal.pending_count == 0:
             break
 
 

@@ -40,7 +40,7 @@ def test_ticks_feed_the_real_agent_and_report(tmp_path):
     for _ in range(5):
         d.tick()
     d.shutdown()
-    assert d.ingest.counters["records"] == len(m.events)
+    assert d.ingest.counters.records == len(m.events)
     assert d.last_estimate is not None and len(d.last_estimate.keyframe_stamps_ns) > 20
     log = d.notifier.log
     assert log[0].startswith("READY=1") and log[-1] == "STOPPING=1"
@@ -125,7 +125,7 @@ def test_perception_batches_are_journalled_and_applied(tmp_path):
         s.sendall(b"".join(encode_event(e) for e in rest))
     for _ in range(100):
         d.tick()
-        if d.ingest.counters["records"] == len(rest):
+        if d.ingest.counters.records == len(rest):
             break
     for b in batches:  # as the perception worker would hand them over
         d.observations.put(b)
@@ -134,7 +134,7 @@ def test_perception_batches_are_journalled_and_applied(tmp_path):
     qsize = d.cfg.camera.queue_size
     assert len(batches) > qsize  # more than the queue holds: the oldest are dropped, counted
     assert d.observations.dropped == len(batches) - qsize
-    assert d.counters["applied_ObservationBatch"] == qsize
+    assert d.counters.applied["ObservationBatch"] == qsize
     assert d.graph.counters.get("observations_added", 0) > 0
     assert np.isfinite(d.last_estimate.cost)
 
@@ -156,7 +156,7 @@ def test_record_writes_the_consumed_bytes(tmp_path):
         s.sendall(b"garbage" + data)
     for _ in range(200):
         d.tick()
-        if d.ingest.counters["records"] == len(m.events) and d.journal.pending_count == 0:
+        if d.ingest.counters.records == len(m.events) and d.journal.pending_count == 0:
             break
     d.shutdown()
     robot = rec / "robots" / "testbot"

@@ -68,7 +68,7 @@ def test_forwarded_frames_become_graph_observations(tmp_path):
     finally:
         d.request_stop()
         d.shutdown()
-    assert d.ingest.counters["frames"] == 1
+    assert d.ingest.counters.frames == 1
     assert d.perception.batches == 1 and d.perception.errors == 0
-    assert d.counters["applied_ObservationBatch"] == 1
+    assert d.counters.applied["ObservationBatch"] == 1
     assert d.graph.object_ids().tolist() == [2]

@@ -200,3 +200,46 @@ def test_dispatch_rejects_bad_shapes():
         g.exp(np.zeros(5))
     with pytest.raises(ValueError, match="shape"):
         g.log(np.eye(5))
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+@settings(max_examples=25, deadline=None)
+@given(seed=seeds)
+def test_so3_angle_is_the_norm_of_log(batch, seed):
+    """The trace form agrees with ‖Log(R)‖ (scipy's magnitude) away from θ = 0 and π, and one
+    rotation gives the same number as the same rotation inside a batch."""
+    rng = np.random.default_rng(seed)
+    phi = rotvecs(rng, batch, "uniform")
+    theta = np.linalg.norm(phi, axis=-1)
+    phi = phi * (np.clip(theta, 1e-3, np.pi - 1e-3) / np.maximum(theta, 1e-300))[..., None]
+    R = g.so3_exp(phi)
+    angle = g.so3_angle(R)
+    assert angle.shape == batch
+    want = Rotation.from_matrix(R.reshape(-1, 3, 3)).magnitude().reshape(batch)
+    np.testing.assert_allclose(angle, want, atol=1e-7)
+    flat = R.reshape(-1, 3, 3)
+    assert all(float(g.so3_angle(r)) == a for r, a in zip(flat, angle.reshape(-1)))
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+@settings(max_examples=25, deadline=None)
+@given(seed=seeds)
+def test_se3_inverse_and_adjoint_one_pose_equals_batch(batch, seed):
+    """T T⁻¹ = I (numpy's general inverse as oracle); Adj(T⁻¹) = Adj(T)⁻¹; a pose alone gives
+    the bits it gives inside a batch (callers use the same function for both)."""
+    rng = np.random.default_rng(seed)
+    T = g.se3_exp(tangents(rng, batch, "uniform", 3))
+    Ti = g.se3_inverse(T)
+    np.testing.assert_allclose(Ti, np.linalg.inv(T), atol=1e-10)
+    np.testing.assert_allclose(g.se3_adjoint(Ti), np.linalg.inv(g.se3_adjoint(T)), atol=1e-9)
+    for one, inv in zip(T.reshape(-1, 4, 4), Ti.reshape(-1, 4, 4)):
+        assert np.array_equal(g.se3_inverse(one), inv)
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+def test_se3_transform_points_is_the_homogeneous_product(batch):
+    rng = np.random.default_rng(7)
+    T = g.se3_exp(tangents(rng, batch, "uniform", 3))
+    P = rng.normal(size=batch + (5, 3))
+    want = (T[..., None, :, :] @ np.concatenate([P, np.ones(batch + (5, 1))], -1)[..., None])
+    np.testing.assert_allclose(g.se3_transform_points(T, P), want[..., :3, 0], atol=1e-12)

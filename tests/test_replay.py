@@ -3,7 +3,6 @@ recorded observations against re-detection."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import platform
 import shutil
@@ -23,10 +22,9 @@ GOLDEN = ROOT / "tests" / "data" / "golden" / "tiny_replay.json"
 
 @pytest.fixture(scope="module")
 def regen():
-    spec = importlib.util.spec_from_file_location("regen_golden", ROOT / "tools" / "regen_golden.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    import golden_helpers
+
+    return golden_helpers
 
 
 @pytest.fixture(scope="module")
@@ -197,14 +195,10 @@ def test_redetect_stays_within_tolerance_of_the_recording(regen, redetected):
     were missed and the others moved by up to 2.5 mm and 0.51 degrees (the rendered frames
     themselves differ: OpenCV's warps and blur). Tolerances above, on this machine's frames and
     perception against the x86-64 recording."""
-    spec = importlib.util.spec_from_file_location("redetect_diff",
-                                                  ROOT / "tools" / "redetect_diff.py")
-    rdd = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(rdd)
     one_side, total = 0, 0
     for name in ("dingo1", "dingo2", "dingo3"):
         stored = _observations((regen.GOLDEN_RUN / "robots" / name / "ingest.bin").read_bytes())
-        st = rdd.compare(stored, redetected[name])
+        st = regen.compare(stored, redetected[name])
         assert st["max_translation_m"] < REDETECT_T_MAX_M, (name, st)
         assert st["max_rotation_deg"] < REDETECT_R_MAX_DEG, (name, st)
         one_side += st["only_recorded"] + st["only_here"]

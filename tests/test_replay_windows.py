@@ -97,7 +97,7 @@ def test_daemon_refuses_a_replay_after_restart(tmp_path, clean_stop):
     bus.advance()
     d.tick()
     assert d.transport.link.verifier.counts.accepted == 1
-    assert d.counters["window_saves"] == 1
+    assert d.counters.window_saves == 1
     if clean_stop:
         d.shutdown()
         # the final checkpoint alone must carry the windows

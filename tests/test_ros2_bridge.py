@@ -111,7 +111,7 @@ def test_bridge_into_a_real_daemon_and_its_estimate_back(tmp_path):
     assert client.flush(5.0)
     for _ in range(300):
         d.tick()
-        if d.ingest.counters["records"] >= n and d.journal.pending_count == 0 \
+        if d.ingest.counters.records >= n and d.journal.pending_count == 0 \
                 and d.last_estimate is not None:
             break
     try:
@@ -119,7 +119,7 @@ def test_bridge_into_a_real_daemon_and_its_estimate_back(tmp_path):
     finally:
         client.stop()
         d.shutdown()
-    assert d.ingest.counters["records"] == n and core.skipped == {}
+    assert d.ingest.counters.records == n and core.skipped == {}
     est = estimate_from_status(st)
     assert est is not None and len(est["stamps_ns"]) > 3
     assert np.all(np.diff(est["stamps_ns"]) > 0)

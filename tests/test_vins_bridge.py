@@ -201,7 +201,7 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
     resets = [e for e in events if isinstance(e, VioReset)]
     loops = [e for e in events if isinstance(e, LoopClosure)]
     assert len(odo) == 5 and len(kfs) == 2 and len(resets) == 1 and len(loops) == 1, events
-    assert server.counters["rejected"] == 0
+    assert server.counters.rejected == 0
     assert abs(odo[2].stamp_ns - 1_700_000_000_200_000_000) < 1000  # double-second stamps
     np.testing.assert_allclose(odo[2].T_odom_body[:3, 3], [0.2, 0.4, 0.5])
     assert odo[0].covariance is None  # all-zero ROS covariance = unknown

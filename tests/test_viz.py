@@ -67,7 +67,7 @@ def test_daemon_live_view_reaches_a_websocket_client(tmp_path):
         stats = json.loads(got["/testbot/stats"][-1])
         assert stats["round"] is not None and stats["round"] > 0 and stats["keyframes"] > 0
         assert len(got["/testbot/path"][-1]) > 100  # a protobuf PosesInFrame with poses
-        assert d.counters.get("live_view_errors", 0) == 0 and d.live.published >= 2
+        assert d.counters.live_view_errors == 0 and d.live.published >= 2
     finally:
         d.shutdown()
 

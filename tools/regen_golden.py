@@ -21,52 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-GOLDEN = ROOT / "tests" / "data" / "golden" / "tiny_replay.json"
-GOLDEN_RUN = ROOT / "tests" / "data" / "golden" / "tiny_run"
-#: Replay options of the golden summary (and of the tests that compare with it).
-SETTLE_ROUNDS = 10
-
-
-def simulate_tiny(directory: Path) -> Path:
-    """Simulate the tiny mission with rendered frames into ``directory/run``; returns it."""
-    from dran_edge.sim.writer import write_run
-    from dran_edge.sim.mission import SimParams, generate_mission
-
-    params = SimParams(**json.loads(GOLDEN.with_suffix(".params.json").read_text()))
-    return write_run(generate_mission(params), directory / "run", frames="render", workers=1)
-
-
-def replay_tiny(run: Path, redetect: bool = False) -> dict:
-    """Replay ``run`` with the golden options; returns the report."""
-    from dran_edge.replay.run import ReplayOptions, replay_run
-
-    opt = ReplayOptions(workers=1, settle_rounds=SETTLE_ROUNDS, redetect=redetect)
-    return replay_run(run, opt).report
-
-
-def tiny_run(directory: Path) -> dict:
-    """Simulate the tiny mission into ``directory/run`` and replay it; returns the report."""
-    return replay_tiny(simulate_tiny(directory))
-
-
-def store_recorded_run(run: Path, dest: Path = GOLDEN_RUN) -> None:
-    """Copy ``run`` to ``dest`` as robots record it: without frames and outputs."""
-    if dest.exists():
-        shutil.rmtree(dest)
-    shutil.copytree(run, dest, ignore=shutil.ignore_patterns("frames", "out", "eval"))
-
-
-def replay_stored(directory: Path, src: Path = GOLDEN_RUN) -> dict:
-    """Replay a copy of the stored recorded run (the tests never write into tests/data)."""
-    run = directory / "stored"
-    shutil.copytree(src, run)
-    return replay_tiny(run)
+sys.path.insert(0, str(ROOT / "tests"))
+from golden_helpers import GOLDEN, replay_stored, simulate_tiny, store_recorded_run  # noqa: E402
 
 
 def main(argv=None) -> int:

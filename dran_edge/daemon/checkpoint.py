@@ -86,8 +86,10 @@ def dumps(state: dict) -> bytes:
     tree = _flatten(state, arrays)
     meta = json.dumps({"format": FORMAT, "state": tree}, allow_nan=True).encode("utf-8")
     buf = io.BytesIO()
+    # numpy's stub types **kwds as savez's own keywords (allow_pickle: bool); they are arrays
     np.savez(buf, __meta__=np.frombuffer(meta, dtype=np.uint8),
-             __crc__=np.array([_crc(meta, arrays)], dtype=np.uint32), **arrays)
+             __crc__=np.array([_crc(meta, arrays)], dtype=np.uint32),
+             **arrays)  # type: ignore[arg-type]
     return buf.getvalue()
 
 

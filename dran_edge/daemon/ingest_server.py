@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from dran_edge.comms.ingest import KIND_FRAME, IngestDecodeError, Record, StreamDecoder
+from dran_edge.daemon.counters import IngestCounters
 from dran_edge.errors import DranError
 
 log = logging.getLogger(__name__)
@@ -57,16 +58,17 @@ class IngestServer:
 
     Runs in its own thread (:meth:`start`); ``on_record`` is called from that thread for every
     good non-frame record, ``on_frame`` for forwarded frames (None: frames are counted and
-    dropped). Counters (``counters``) are plain ints safe to read from other threads.
+    dropped). Counters (``counters``, an :class:`IngestCounters`) are plain ints safe to read
+    from other threads.
     """
 
-    def __init__(self, path: str | Path, on_record: Callable[[Record], None],
+    def __init__(self, path: str | Path, on_record: Callable[[Record], object],
                  on_frame: Callable[[Record], None] | None = None, mode: int = 0o660,
                  log_every_s: float = 10.0):
         self.path = Path(path)
         self.on_record = on_record
         self.on_frame = on_frame
-        self.counters: Counter = Counter()
+        self.counters = IngestCounters()
         self.rejected: Counter = Counter()
         self._ratelog = RateLimitedLog(log, log_every_s)
         self._stop = threading.Event()
@@ -112,7 +114,7 @@ class IngestServer:
             try:
                 self.poll(0.2)
             except Exception:  # the server must outlive any bug in a handler
-                self.counters["handler_errors"] += 1
+                self.counters.handler_errors += 1
                 log.exception("ingest: unexpected error while handling input")
 
     # ------------------------------------------------------------------ work
@@ -129,14 +131,14 @@ class IngestServer:
         except (BlockingIOError, InterruptedError):
             return
         if len(self._clients) >= MAX_CLIENTS:
-            self.counters["clients_refused"] += 1
+            self.counters.clients_refused += 1
             self._ratelog.warning("clients", f"ingest: refusing a client, {MAX_CLIENTS} connected")
             conn.close()
             return
         conn.setblocking(False)
         self._clients[conn] = StreamDecoder()
         self._sel.register(conn, selectors.EVENT_READ, "client")
-        self.counters["clients_accepted"] += 1
+        self.counters.clients_accepted += 1
         log.info("ingest: client connected (%d connected)", len(self._clients))
 
     def _drop(self, conn: socket.socket) -> None:
@@ -162,19 +164,19 @@ class IngestServer:
             self._drop(conn)
             log.info("ingest: client disconnected (%d connected)", len(self._clients))
             return
-        self.counters["bytes"] += len(data)
+        self.counters.bytes += len(data)
         for item in self._clients[conn].feed(data):
             if isinstance(item, IngestDecodeError):
                 self._reject(item)
             elif item.kind == KIND_FRAME:
-                self.counters["frames"] += 1
+                self.counters.frames += 1
                 if self.on_frame is not None:
                     self.on_frame(item)
             else:
-                self.counters["records"] += 1
+                self.counters.records += 1
                 self.on_record(item)
 
     def _reject(self, err: IngestDecodeError) -> None:
         self.rejected[err.reason] += 1
-        self.counters["rejected"] += 1
+        self.counters.rejected += 1
         self._ratelog.warning(err.reason, f"ingest: {err}")

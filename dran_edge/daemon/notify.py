@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+from collections.abc import Mapping
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +39,7 @@ def _own_notify(message: str, path: str) -> bool:
 class Notifier:
     """sd_notify for one process; a no-op (said once) without ``$NOTIFY_SOCKET``."""
 
-    def __init__(self, environ: dict | None = None, prefer_library: bool = True):
+    def __init__(self, environ: Mapping[str, str] | None = None, prefer_library: bool = True):
         env = os.environ if environ is None else environ
         self.socket_path = env.get("NOTIFY_SOCKET") or None
         self.watchdog_usec = 0
@@ -53,7 +54,7 @@ class Notifier:
         # libsystemd's sd_notify reads $NOTIFY_SOCKET from the process environment itself.
         if prefer_library and self.socket_path and env is os.environ:
             try:
-                from systemd import daemon as sd_daemon
+                from systemd import daemon as sd_daemon  # type: ignore[attr-defined]
 
                 self._library = sd_daemon
             except ImportError:

@@ -26,401 +26,70 @@ then accept our restarted sequence numbers). The link's replay windows (per send
 epoch, highest sequence, bitmap) are written to ``replay_windows.json`` after every tick that
 accepted a datagram and restored at start, so a datagram captured before a restart (even a
 kill -9) is not accepted again (docs/wire-format.md, "Acceptance rules").
+
+This module is the run loop and the checkpoint glue; the rest sits by job next to it:
+``wiring`` (config -> core, link and perception factories), ``workers`` (queue, perception
+thread), ``status`` (status document and socket), ``windows`` (replay windows on disk),
+``counters`` (typed counters). Names callers have imported from here are re-exported.
 """
 
 from __future__ import annotations
 
-import collections
-import json
 import logging
 import os
-import socket
 import threading
 import time
-import zlib
-from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, BinaryIO, Callable
 
-import numpy as np
-
-from dran_edge.daemon.checkpoint import CheckpointStore, atomic_write, next_boot_epoch
 from dran_edge.comms.ingest import KIND_OBSERVATIONS, Record, encode_event
 from dran_edge.config import RobotConfig, config_to_dict, parse_address
-from dran_edge.errors import DependencyError, DranError
-from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
+from dran_edge.daemon.checkpoint import CheckpointStore, next_boot_epoch
+from dran_edge.daemon.counters import DaemonCounters, TickStats
 from dran_edge.daemon.journal import IngestJournal
 from dran_edge.daemon.notify import Notifier
+from dran_edge.daemon.status import StatusServer, status_document, status_line
+from dran_edge.daemon.windows import ReplayWindows
+from dran_edge.daemon.wiring import (
+    AgentLike,
+    LinkTransport,
+    Transport,
+    default_agent_factory,
+    default_perception_factory,
+    default_transport_factory,
+    fleet_id,
+    resolve_dirs,
+)
+from dran_edge.daemon.workers import DropOldestQueue, PerceptionWorker
+from dran_edge.errors import DranError
+from dran_edge.events import EstimateUpdate, Health, Outgoing, Tick
+
+__all__ = [
+    "STATE_FORMAT",
+    "AgentLike",
+    "Daemon",
+    "DropOldestQueue",
+    "LinkTransport",
+    "PerceptionWorker",
+    "StatusServer",
+    "TickStats",
+    "Transport",
+    "default_agent_factory",
+    "default_perception_factory",
+    "default_transport_factory",
+    "fleet_id",
+    "resolve_dirs",
+]
+
+if TYPE_CHECKING:
+    from dran_edge.daemon.ingest_server import IngestServer
 
 log = logging.getLogger(__name__)
 
 #: 2: the core is an RobotCore; its state's keys ("agent", "graph", "online") sit at the top
 #: level of the checkpoint next to the daemon's own.
 STATE_FORMAT = 2
-
-
-# --------------------------------------------------------------------------- plumbing
-class AgentLike(Protocol):
-    """What the daemon needs of the robot's core (:class:`~dran_edge.robot.core.RobotCore`)."""
-
-    local_graph: Any
-
-    def handle(self, event: Any) -> list: ...
-
-    def to_state(self) -> dict: ...
-
-
-class Transport(Protocol):
-    """What the daemon needs of the neighbour link (``RadioLink`` below is the real one)."""
-
-    def send(self, message: Any, to: tuple[int, ...]) -> None: ...
-
-    def receive(self) -> list: ...
-
-    def stats(self) -> dict: ...
-
-    def close(self) -> None: ...
-
-
-class DropOldestQueue:
-    """A bounded FIFO between threads: when full, the oldest item is dropped and counted."""
-
-    def __init__(self, maxlen: int):
-        self._q: collections.deque = collections.deque()
-        self.maxlen = maxlen
-        self.dropped = 0
-        self.put_count = 0
-        self._cv = threading.Condition()
-
-    def put(self, item: Any) -> None:
-        with self._cv:
-            if len(self._q) >= self.maxlen:
-                self._q.popleft()
-                self.dropped += 1
-            self._q.append(item)
-            self.put_count += 1
-            self._cv.notify()
-
-    def get(self, timeout_s: float) -> Any:
-        """The oldest item, or None after ``timeout_s``."""
-        with self._cv:
-            if not self._q:
-                self._cv.wait(timeout_s)
-            return self._q.popleft() if self._q else None
-
-    def drain(self) -> list:
-        with self._cv:
-            items = list(self._q)
-            self._q.clear()
-            return items
-
-    def __len__(self) -> int:
-        with self._cv:
-            return len(self._q)
-
-
-class PerceptionWorker:
-    """Runs ``produce()`` (frame -> ObservationBatch or None) in a thread into a drop-oldest queue."""
-
-    def __init__(self, produce: Callable[[], ObservationBatch | None], out: DropOldestQueue):
-        self.produce = produce
-        self.out = out
-        self.errors = 0
-        self.batches = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="perception", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                batch = self.produce()
-            except StopIteration:
-                log.info("perception: frame source ended")
-                return
-            except Exception:
-                self.errors += 1
-                log.exception("perception: a frame failed; continuing")
-                self._stop.wait(0.1)
-                continue
-            if batch is not None:
-                self.batches += 1
-                self.out.put(batch)
-
-
-#: At most this many (newest) keyframes in the status document's ``estimate`` section.
-STATUS_MAX_KEYFRAMES = 5000
-
-
-def _estimate_section(est) -> dict | None:
-    """The latest estimate for the ROS 2 bridge (dran_edge/ros/bridge2.py): keyframes as rows
-    ``[stamp_ns, x, y, z, qx, qy, qz, qw]`` (world frame, newest STATUS_MAX_KEYFRAMES) and
-    objects as ``[object_id, x, y, z, qx, qy, qz, qw]``."""
-    if est is None or len(est.keyframe_stamps_ns) == 0:
-        return None
-    from dran_edge import geometry as geo
-
-    order = np.argsort(np.asarray(est.keyframe_stamps_ns))[-STATUS_MAX_KEYFRAMES:]
-    v = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_body)[order])
-    kf = [[int(s)] + [round(float(x), 9) for x in row]
-          for s, row in zip(np.asarray(est.keyframe_stamps_ns)[order].tolist(), v)]
-    objs = []
-    if len(est.object_ids):
-        w = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_object))
-        objs = [[int(i)] + [round(float(x), 9) for x in row] for i, row in zip(est.object_ids, w)]
-    return {"round": int(est.round), "keyframes": kf, "objects": objs}
-
-
-class StatusServer:
-    """Unix stream socket: each connection gets the latest status as one JSON document."""
-
-    def __init__(self, path: Path, snapshot: Callable[[], dict], mode: int = 0o660):
-        self.path = Path(path)
-        self.snapshot = snapshot
-        if self.path.exists() or self.path.is_symlink():
-            self.path.unlink()
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
-        old = os.umask(0o777 & ~mode)
-        try:
-            self._sock.bind(str(self.path))
-        finally:
-            os.umask(old)
-        self._sock.listen(4)
-        self._sock.settimeout(0.2)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="status", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except (socket.timeout, BlockingIOError):
-                continue
-            except OSError:
-                if self._stop.is_set():
-                    return
-                continue
-            try:
-                conn.settimeout(1.0)
-                conn.sendall(json.dumps(self.snapshot(), default=_json_default).encode() + b"\n")
-            except OSError:
-                pass
-            finally:
-                conn.close()
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self._sock.close()
-        try:
-            self.path.unlink()
-        except FileNotFoundError:
-            pass
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)
-
-
-@dataclass
-class TickStats:
-    """Tick timing: lag against the absolute deadline and duration of the round."""
-
-    ticks: int = 0
-    late: int = 0
-    missed: int = 0
-    lag_max_s: float = 0.0
-    lag_last_s: float = 0.0
-    round_last_s: float = 0.0
-    round_max_s: float = 0.0
-    round_total_s: float = 0.0
-    agent_errors: int = 0
-    durations: collections.deque = field(default_factory=lambda: collections.deque(maxlen=120))
-
-    def as_dict(self) -> dict:
-        return {
-            "ticks": self.ticks, "late": self.late, "missed": self.missed,
-            "lag_max_s": self.lag_max_s, "lag_last_s": self.lag_last_s,
-            "solve_last_s": self.round_last_s, "solve_max_s": self.round_max_s,
-            "solve_mean_s": self.round_total_s / self.ticks if self.ticks else 0.0,
-            "agent_errors": self.agent_errors,
-        }
-
-
-def resolve_dirs(cfg: RobotConfig, environ: dict | None = None) -> tuple[Path, Path]:
-    """(state_dir, runtime_dir): config, else systemd's $STATE_DIRECTORY/$RUNTIME_DIRECTORY."""
-    env = os.environ if environ is None else environ
-    state = cfg.resolve(cfg.daemon.state_dir)
-    if state is None:
-        sd = env.get("STATE_DIRECTORY", "").split(":")[0]
-        state = Path(sd) if sd else Path.cwd() / "dran-edge-state"
-    runtime = cfg.resolve(cfg.daemon.runtime_dir)
-    if runtime is None:
-        rd = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
-        runtime = Path(rd) if rd else state / "run"
-    return state, runtime
-
-
-def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
-    """The robot's core: an :class:`~dran_edge.robot.core.RobotCore`, from ``state`` (its
-    :meth:`~dran_edge.robot.core.RobotCore.to_state`) when given; a fresh one anchored at
-    ``robot.T_world_odom`` when the config has it."""
-    try:
-        from dran_edge.robot.core import RobotCore
-    except ImportError as exc:
-        raise DependencyError(f"the DRAN agent (dran_edge.robot.core) is not available: {exc}"
-                              ) from None
-    if state is not None:
-        return RobotCore.from_state(cfg.agent, state)
-    T_world_odom = None
-    if cfg.robot.T_world_odom:
-        from dran_edge import geometry as geo
-
-        T_world_odom = geo.se3_from_xyz_quat_xyzw(np.asarray(cfg.robot.T_world_odom, np.float64))
-    return RobotCore(cfg.agent, T_world_odom)
-
-
-class LinkTransport:
-    """The daemon's neighbour link: comms' authenticated ``NeighbourLink`` over RADIO/DISH.
-
-    ``neighbours`` (id -> name) are listed in the status from the start ("never heard" until a
-    datagram of theirs is accepted). ``heartbeat_period_s`` > 0: ``heartbeat`` sends an
-    entry-less message to each neighbour this link sent nothing for that long (counted)."""
-
-    def __init__(self, link: Any, neighbours: dict[int, str] | None = None,
-                 heartbeat_period_s: float = 0.0):
-        self.link = link
-        self.neighbours = dict(neighbours or {})
-        self.heartbeat_period_s = float(heartbeat_period_s)
-        self._last_sent_ns: dict[int, int] = {}
-        self.heartbeats_sent = 0
-        self.heartbeats_received = 0
-
-    def send(self, message: Any, to: tuple[int, ...]) -> None:
-        self.link.send_message(message, to)
-        now = time.time_ns()
-        for j in to:
-            self._last_sent_ns[j] = now
-
-    def heartbeat(self, now_ns: int, round_: int = 0) -> int:
-        """Send a heartbeat to every neighbour not sent anything for ``heartbeat_period_s``."""
-        if self.heartbeat_period_s <= 0:
-            return 0
-        from dran_edge.messages import NeighbourMessage
-
-        due = tuple(j for j in self.neighbours
-                    if now_ns - self._last_sent_ns.get(j, -(1 << 62))
-                    >= self.heartbeat_period_s * 1e9)
-        if due:
-            self.send(NeighbourMessage(self.link.policy.self_id, max(0, int(round_)), now_ns), due)
-            self.heartbeats_sent += len(due)
-        return len(due)
-
-    def receive(self) -> list:
-        now = time.time_ns()
-        out = []
-        for m in self.link.poll(now):
-            if not (m.separators or m.objects or m.init):
-                self.heartbeats_received += 1
-            out.append(NeighbourData(now, m))
-        return out
-
-    def stats(self) -> dict:
-        snap = self.link.counters.snapshot()
-        now = time.time_ns()
-        neighbours = {}
-        peers = snap["peers"]  # keyed by str(robot id) or "unknown"
-        names = {str(j): name for j, name in self.neighbours.items()}
-        for peer in sorted(set(names) | set(peers), key=lambda p: (not p.isdigit(), p.zfill(6))):
-            c = peers.get(peer, {})
-            heard = c.get("last_heard_ns")
-            neighbours[peer] = {
-                "name": names.get(peer, ""),
-                "bytes_sent": c.get("bytes_sent", 0), "bytes_received": c.get("bytes_received", 0),
-                "datagrams_rejected": c.get("datagrams_rejected", 0),
-                "last_heard_s_ago": None if not heard else round((now - heard) * 1e-9, 1),
-            }
-        return {**snap["totals"], "neighbours": neighbours,
-                "next_sequence": self.link.next_sequence,
-                "heartbeats_sent": self.heartbeats_sent,
-                "heartbeats_received": self.heartbeats_received}
-
-    def to_state(self) -> dict:
-        return self.link.to_state()
-
-    def restore(self, state: dict | None) -> int:
-        return self.link.restore(state)
-
-    def close(self) -> None:
-        self.link.transport.close()
-
-
-def fleet_id(fleet: str) -> int:
-    """16-bit fleet id of the datagram header (CRC-32 of the name; as the replay computes it)."""
-    return zlib.crc32(fleet.encode("utf-8")) & 0xFFFF
-
-
-def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | None:
-    """RADIO/DISH to the configured neighbours, authenticated by ``comms.auth``'s key policy."""
-    if cfg.comms.transport == "none":
-        return None
-    from dran_edge.comms.auth import AuthPolicy
-    from dran_edge.comms.keys import credentials_from_config
-    from dran_edge.comms.link import NeighbourLink
-    from dran_edge.comms.radio import RadioParams, RadioTransport
-
-    key = credentials_from_config(cfg)
-    neighbours = {}
-    for n in cfg.neighbours:
-        host, port = parse_address(n.address, "address")
-        neighbours[n.id] = f"udp://{host}:{port}" if ":" not in host else f"udp://[{host}]:{port}"
-    bind = cfg.comms.bind_address
-    bind = f"[{bind}]" if ":" in bind else bind
-    params = RadioParams(group=cfg.robot.fleet, bind=f"udp://{bind}:{cfg.comms.port}",
-                         neighbours=neighbours, max_datagram_bytes=cfg.comms.datagram_max_bytes)
-    ids = {n.id for n in cfg.neighbours}
-    policy = AuthPolicy(fleet_id=fleet_id(cfg.robot.fleet), self_id=cfg.robot.id,
-                        fleet_robots=frozenset(ids | set(cfg.comms.allow_relay_from)
-                                               | {cfg.robot.id}),
-                        neighbours=frozenset(ids), relay_from=frozenset(cfg.comms.allow_relay_from))
-    radio: Any = RadioTransport(params)
-    drop_file = os.environ.get("DRAN_EDGE_DROP_FILE")
-    if drop_file:  # set by `dran-edge rehearse` only (docs/rehearsal.md)
-        from dran_edge.comms.drop_hook import DropHookTransport
-
-        log.warning("rehearsal drop hook on: datagram loss by %s", drop_file)
-        radio = DropHookTransport(radio, drop_file, seed=cfg.robot.id * 7919 + boot_epoch)
-    link = NeighbourLink(radio, key=key, policy=policy, boot_epoch=boot_epoch,
-                         max_datagram_bytes=cfg.comms.datagram_max_bytes,
-                         delta_every=cfg.comms.delta_every)
-    return LinkTransport(link, {n.id: n.name for n in cfg.neighbours},
-                         cfg.comms.heartbeat_period_s)
-
-
-def default_perception_factory(cfg: RobotConfig, frames: DropOldestQueue
-                               ) -> Callable[[], ObservationBatch | None] | None:
-    if cfg.camera.source == "none":
-        return None
-    try:
-        from dran_edge.perception.pipeline import make_observation_source  # perception issue
-    except ImportError as exc:
-        raise DependencyError(
-            f"camera.source is {cfg.camera.source!r} but the perception pipeline is not "
-            f"available ({exc}); set camera.source: none to run without a camera") from None
-    return make_observation_source(cfg, frames)
 
 
 # --------------------------------------------------------------------------- the daemon
@@ -432,7 +101,7 @@ class Daemon:
         cfg: RobotConfig,
         *,
         record_dir: str | Path | None = None,
-        environ: dict | None = None,
+        environ: Mapping[str, str] | None = None,
         agent_factory: Callable[[RobotConfig, dict | None], AgentLike] = default_agent_factory,
         transport_factory: Callable[[RobotConfig, int], Transport | None]
         = default_transport_factory,
@@ -440,7 +109,7 @@ class Daemon:
         notifier: Notifier | None = None,
     ):
         self.cfg = cfg
-        self.environ = os.environ if environ is None else environ
+        self.environ: Mapping[str, str] = os.environ if environ is None else environ
         self.record_dir = Path(record_dir) if record_dir else None
         self.agent_factory = agent_factory
         self.transport_factory = transport_factory
@@ -448,29 +117,44 @@ class Daemon:
         self.notifier = notifier or Notifier(self.environ)
         self.state_dir, self.runtime_dir = resolve_dirs(cfg, self.environ)
         self.stats = TickStats()
-        self.counters: collections.Counter = collections.Counter()
+        self.counters = DaemonCounters()
         self.agent_health: dict = {}
         self.last_estimate: EstimateUpdate | None = None
         self.applied_position: tuple[int, int] | None = None
         self._stop = threading.Event()
         self._status: dict = {"state": "starting", "robot": cfg.robot.name}
-        self._started_mono = time.monotonic()
+        self.started_mono = time.monotonic()
         self._last_checkpoint = 0.0
         self._last_watchdog = float("-inf")
         self._last_status = float("-inf")
-        self.ingest = None
+        self.ingest: IngestServer | None = None
         self.perception: PerceptionWorker | None = None
         self.status_server: StatusServer | None = None
         self.transport: Transport | None = None
         self.live: Any = None
-        self._record_file = None
+        self._record_file: BinaryIO | None = None
 
     # ------------------------------------------------------------------ start-up
     def start(self) -> None:
-        cfg = self.cfg
+        """Checkpoint and journal back, then the transport, queues, servers and live view."""
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self.runtime_dir.mkdir(parents=True, exist_ok=True)
         self.boot_epoch = next_boot_epoch(self.state_dir, clock_floor_s=time.time())
+        saved = self._load_checkpoint()
+        self._open_io(saved)
+        self._publish_status("running")
+        self.notifier.ready(status_line(self))
+        cfg = self.cfg
+        log.info("dran-edge ready: robot %s (id %d), boot epoch %d, state %s, ingest %s, "
+                 "camera %s, transport %s, systemd notify %s", cfg.robot.name, cfg.robot.id,
+                 self.boot_epoch, self.state_dir,
+                 self.ingest.path if self.ingest else "off", cfg.camera.source,
+                 cfg.comms.transport, self.notifier.backend)
+
+    def _load_checkpoint(self) -> dict | None:
+        """The newest usable checkpoint (None: start afresh), the core built from it, the
+        journalled records after its position queued for re-applying."""
+        cfg = self.cfg
         self.checkpoints = CheckpointStore(self.state_dir)
         saved = self.checkpoints.load()
         if saved is not None and saved.get("robot_id") != cfg.robot.id:
@@ -484,7 +168,7 @@ class Daemon:
         if saved is not None:
             pos = saved.get("journal_position")
             self.applied_position = (int(pos[0]), int(pos[1])) if pos else None
-            self.counters.update(saved.get("counters", {}))
+            self.counters = DaemonCounters.from_dict(saved.get("counters", {}))
             log.info("resuming from checkpoint (journal position %s)", self.applied_position)
         try:
             self.agent = self.agent_factory(cfg, saved)
@@ -500,8 +184,14 @@ class Daemon:
         recovered = self.journal.read_after(self.applied_position)
         if recovered:
             log.info("re-applying %d journalled records not in the checkpoint", len(recovered))
-            self.counters["recovered_records"] += len(recovered)
+            self.counters.recovered_records += len(recovered)
         self.journal.requeue(recovered)
+        return saved
+
+    def _open_io(self, saved: dict | None) -> None:
+        """Recording, transport (its replay windows restored), queues, perception thread,
+        ingest and status sockets, live view."""
+        cfg = self.cfg
         if self.record_dir is not None:
             robot_dir = self.record_dir / "robots" / cfg.robot.name
             robot_dir.mkdir(parents=True, exist_ok=True)
@@ -511,7 +201,8 @@ class Daemon:
                                                                  sort_keys=False))
             self._record_file = open(robot_dir / "ingest.bin", "ab")
         self.transport = self.transport_factory(cfg, self.boot_epoch)
-        self._restore_windows(saved)
+        self.windows = ReplayWindows(self.state_dir, self.transport, self.counters)
+        self.windows.restore(saved)
         self.frames = DropOldestQueue(cfg.camera.queue_size)
         self.observations = DropOldestQueue(cfg.camera.queue_size)
         produce = self.perception_factory(cfg, self.frames)
@@ -536,13 +227,6 @@ class Daemon:
             log.info("live view: Foxglove WebSocket server on ws://%s:%d", host, self.live.port)
         if self.perception is not None:
             self.perception.start()
-        self._publish_status("running")
-        self.notifier.ready(self._status_line())
-        log.info("dran-edge ready: robot %s (id %d), boot epoch %d, state %s, ingest %s, "
-                 "camera %s, transport %s, systemd notify %s", cfg.robot.name, cfg.robot.id,
-                 self.boot_epoch, self.state_dir,
-                 self.ingest.path if self.ingest else "off", cfg.camera.source,
-                 cfg.comms.transport, self.notifier.backend)
 
     # ------------------------------------------------------------------ the loop
     def request_stop(self) -> None:
@@ -582,7 +266,7 @@ class Daemon:
             try:
                 self.journal.append(Record(KIND_OBSERVATIONS, batch, encode_event(batch)))
             except (ValueError, TypeError) as exc:
-                self.counters["observations_unencodable"] += 1
+                self.counters.observations_unencodable += 1
                 log.warning("dropping an observation batch that does not encode: %s", exc)
         outputs: list = []
         for record, pos in self.journal.take_pending():
@@ -594,7 +278,7 @@ class Daemon:
                 log.exception("local graph failed on %s; the record is dropped",
                               type(record.event).__name__)
             self.applied_position = pos
-            self.counters[f"applied_{type(record.event).__name__}"] += 1
+            self.counters.applied[type(record.event).__name__] += 1
             if self._record_file is not None:
                 self._record_file.write(record.raw)
         if self.transport is not None:
@@ -615,7 +299,7 @@ class Daemon:
         self.stats.round_total_s += dt
         self._dispatch(outputs)
         self._heartbeat()
-        self._save_windows()
+        self.windows.save()
         self.journal.sync()
         if self._record_file is not None:
             self._record_file.flush()
@@ -629,11 +313,11 @@ class Daemon:
             try:
                 self.live.publish(self.last_estimate, self._status)
             except Exception:
-                self.counters["live_view_errors"] += 1
+                self.counters.live_view_errors += 1
                 log.exception("live view: publishing failed; the daemon goes on")
         if now - self._last_status >= self.cfg.daemon.status_period_s:
             self._last_status = now
-            line = self._status_line()
+            line = status_line(self)
             self.notifier.status(line)
             log.info("status: %s", line)
 
@@ -655,13 +339,13 @@ class Daemon:
         for out in outputs:
             if isinstance(out, Outgoing):
                 if self.transport is None:
-                    self.counters["outgoing_without_transport"] += 1
+                    self.counters.outgoing_without_transport += 1
                     continue
                 try:
                     self.transport.send(out.message, out.to)
-                    self.counters["messages_sent"] += 1
+                    self.counters.messages_sent += 1
                 except Exception:
-                    self.counters["send_errors"] += 1
+                    self.counters.send_errors += 1
                     log.exception("transport send failed")
             elif isinstance(out, EstimateUpdate):
                 self.last_estimate = out
@@ -674,58 +358,10 @@ class Daemon:
             return
         est = self.last_estimate
         try:
-            self.counters["heartbeats_sent"] += beat(time.time_ns(), est.round if est else 0)
+            self.counters.heartbeats_sent += beat(time.time_ns(), est.round if est else 0)
         except Exception:
-            self.counters["send_errors"] += 1
+            self.counters.send_errors += 1
             log.exception("heartbeat send failed")
-
-    # ------------------------------------------------------------------ replay windows
-    @property
-    def windows_path(self) -> Path:
-        return self.state_dir / "replay_windows.json"
-
-    def _restore_windows(self, saved: dict | None) -> None:
-        """Replay windows back from the checkpoint and from ``replay_windows.json`` (the newer
-        of the two per sender wins: restoring only ever raises a window)."""
-        restore = getattr(self.transport, "restore", None)
-        if restore is None:
-            return
-        sources = [(saved or {}).get("transport")]
-        try:
-            sources.append(json.loads(self.windows_path.read_text()))
-        except FileNotFoundError:
-            pass
-        except (OSError, ValueError) as exc:
-            log.error("ignoring %s: %s", self.windows_path, exc)
-        n = 0
-        for state in sources:
-            if isinstance(state, dict):
-                try:
-                    n += restore(state)
-                except (TypeError, ValueError, IndexError) as exc:
-                    log.error("ignoring saved replay windows: %s", exc)
-        if n:
-            log.info("replay windows restored for %d sender(s)", n)
-        self._saved_windows = self._windows_rows()
-
-    def _windows_rows(self) -> list | None:
-        to_state = getattr(self.transport, "to_state", None)
-        return None if to_state is None else to_state().get("windows")
-
-    def _save_windows(self) -> None:
-        """Write the replay windows when a tick moved them (atomic and fsynced, like the
-        checkpoint), so that even a kill -9 loses no accepted (epoch, sequence)."""
-        rows = self._windows_rows()
-        if rows is None or rows == getattr(self, "_saved_windows", None):
-            return
-        try:
-            atomic_write(self.windows_path, json.dumps({"windows": rows}).encode())
-        except OSError:
-            self.counters["window_save_errors"] += 1
-            log.exception("could not save the replay windows")
-            return
-        self._saved_windows = rows
-        self.counters["window_saves"] += 1
 
     def _maybe_watchdog(self, now: float) -> None:
         interval = self.notifier.watchdog_interval_s
@@ -735,7 +371,7 @@ class Daemon:
         if now - self._last_watchdog >= interval - 0.5 * self.cfg.comms.period_s:
             self._last_watchdog = now
             self.notifier.watchdog()
-            self.counters["watchdog_pings"] += 1
+            self.counters.watchdog_pings += 1
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
@@ -747,7 +383,7 @@ class Daemon:
             "robot_id": self.cfg.robot.id,
             "boot_epoch": self.boot_epoch,
             "journal_position": list(self.applied_position) if self.applied_position else None,
-            "counters": dict(self.counters),
+            "counters": self.counters.as_dict(),
             "ticks": self.stats.ticks,
             "transport": (self.transport.to_state()  # type: ignore[attr-defined]
                           if self.transport is not None and hasattr(self.transport, "to_state")
@@ -763,6 +399,7 @@ class Daemon:
         the record directory as it is."""
         from dran_edge.formats.recorded import write_recorded_mission
 
+        assert self.record_dir is not None
         try:
             path = write_recorded_mission(self.record_dir)
             log.info("recording: wrote %s", path)
@@ -774,12 +411,12 @@ class Daemon:
         try:
             n = self.checkpoints.save(self.state())
         except Exception:
-            self.counters["checkpoint_errors"] += 1
+            self.counters.checkpoint_errors += 1
             log.exception("checkpoint failed; will retry")
             return
         self._last_checkpoint = time.monotonic()
-        self.counters["checkpoints"] += 1
-        self.counters["checkpoint_bytes"] = n
+        self.counters.checkpoints += 1
+        self.counters.checkpoint_bytes = n
         self.stats_checkpoint_s = time.perf_counter() - t
         if self.applied_position is not None:
             self.journal.prune(self.applied_position)
@@ -789,64 +426,7 @@ class Daemon:
         return dict(self._status)
 
     def _publish_status(self, state: str) -> None:
-        est = self.last_estimate
-        ingest = self.ingest
-        transport_stats: dict = {}
-        if self.transport is not None:
-            try:
-                transport_stats = self.transport.stats()
-            except Exception:
-                transport_stats = {"error": "stats unavailable"}
-        self._status = {
-            "state": state,
-            "robot": {"id": self.cfg.robot.id, "name": self.cfg.robot.name,
-                      "fleet": self.cfg.robot.fleet},
-            "pid": os.getpid(),
-            "boot_epoch": getattr(self, "boot_epoch", None),
-            "uptime_s": time.monotonic() - self._started_mono,
-            "rounds": self.stats.as_dict(),
-            "graph": {"nodes": self.graph.num_nodes if hasattr(self, "graph") else 0,
-                      "factors": self.graph.num_factors if hasattr(self, "graph") else 0,
-                      **({} if est is None else {
-                "round": est.round, "keyframes": int(len(est.keyframe_stamps_ns)),
-                "objects": len(est.object_ids), "cost": est.cost,
-                "consensus_error": est.consensus_error, "converged": est.converged})},
-            "graph_counters": dict(self.graph.counters) if hasattr(self, "graph") else {},
-            "neighbours": transport_stats.get("neighbours", {}),
-            "transport": transport_stats,
-            "ingest": None if ingest is None else {
-                "socket": str(ingest.path), **dict(ingest.counters),
-                "rejected_by_reason": dict(ingest.rejected)},
-            "journal": {"pending": self.journal.pending_count if hasattr(self, "journal") else 0,
-                        "position": self.applied_position},
-            "queues": {"observations_dropped": self.observations.dropped
-                       if hasattr(self, "observations") else 0,
-                       "frames_dropped": self.frames.dropped if hasattr(self, "frames") else 0},
-            "perception": None if self.perception is None else {
-                "batches": self.perception.batches, "errors": self.perception.errors},
-            "counters": dict(self.counters),
-            "agent": self.agent_health,
-            "estimate": _estimate_section(est),
-            "systemd": self.notifier.backend,
-        }
-
-    def _status_line(self) -> str:
-        s = self._status
-        graph = s.get("graph") or {}
-        ingest = s.get("ingest") or {}
-        return (f"rounds={self.stats.ticks} late={self.stats.late} "
-                f"solve_ms={1e3 * self.stats.round_last_s:.1f} "
-                f"keyframes={graph.get('keyframes', 0)} objects={graph.get('objects', 0)} "
-                f"records={ingest.get('records', 0)} rejected={ingest.get('rejected', 0)} "
-                f"obs_dropped={s.get('queues', {}).get('observations_dropped', 0)} "
-                f"neighbours={self._heard_line(s.get('neighbours') or {})}")
-
-    @staticmethod
-    def _heard_line(neighbours: dict) -> str:
-        """``heard/configured``: neighbours heard within the last 10 s, of those listed."""
-        heard = sum(1 for n in neighbours.values()
-                    if n.get("last_heard_s_ago") is not None and n["last_heard_s_ago"] < 10.0)
-        return f"{heard}/{len(neighbours)}"
+        self._status = status_document(self, state)
 
     # ------------------------------------------------------------------ shutdown
     def shutdown(self) -> None:

@@ -58,11 +58,13 @@ from dran_edge.geometry.se3 import (
     se3_retract,
     se3_right_jacobian,
     se3_right_jacobian_inv,
+    se3_transform_points,
 )
 from dran_edge.geometry.so3 import (
     hat3,
     quat_wxyz_from_rotmat,
     rotmat_from_quat_wxyz,
+    so3_angle,
     so3_exp,
     so3_left_jacobian,
     so3_left_jacobian_inv,

@@ -41,10 +41,20 @@ def se3_from_rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def se3_inverse(T: np.ndarray) -> np.ndarray:
-    """T⁻¹ = [[Rᵀ, −Rᵀ t], [0, 1]]."""
+    """T⁻¹ = [[Rᵀ, −Rᵀ t], [0, 1]] (one pose or a batch; built in place, so that one pose costs
+    little more than the three assignments: the bounded graph calls it per factor)."""
     T = np.asarray(T, dtype=np.float64)
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    return se3_from_rt(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+    out = np.zeros(T.shape[:-2] + (4, 4))
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3:4])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Points ``P (..., N, 3)`` in frame b -> frame a by ``T_a_b (..., 4, 4)``: R p + t."""
+    return np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3]
 
 
 def se3_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:

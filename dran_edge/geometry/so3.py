@@ -62,7 +62,7 @@ def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
     d21, d12 = R[..., 2, 1], R[..., 1, 2]
     d02, d20 = R[..., 0, 2], R[..., 2, 0]
     d10, d01 = R[..., 1, 0], R[..., 0, 1]
-    cands = []
+    cand_list = []
     for k, diag in enumerate((1 + tr, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22)):
         big = 0.5 * np.sqrt(np.maximum(diag, 1e-300))
         f = 0.25 / big
@@ -74,11 +74,11 @@ def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
             q = ((d02 - d20) * f, (d01 + d10) * f, big, (d12 + d21) * f)
         else:
             q = ((d10 - d01) * f, (d02 + d20) * f, (d12 + d21) * f, big)
-        cands.append(np.stack(q, axis=-1))
-    cands = np.stack(cands, axis=-2)  # (..., 4 candidates, 4)
-    q = np.take_along_axis(cands, choice[..., None, None], axis=-2)[..., 0, :]
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
+        cand_list.append(np.stack(q, axis=-1))
+    cands = np.stack(cand_list, axis=-2)  # (..., 4 candidates, 4)
+    quat = np.take_along_axis(cands, choice[..., None, None], axis=-2)[..., 0, :]
+    quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    return np.where(quat[..., :1] < 0, -quat, quat)
 
 
 def rotmat_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
@@ -119,6 +119,14 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     w_safe = np.where(small, w, 1.0)
     k = np.where(small, 2.0 / w_safe * (1 - n_sq / (3 * w_safe**2)), 2 * np.arctan2(n, w) / n)
     return k[..., None] * v
+
+
+def so3_angle(R: np.ndarray) -> np.ndarray:
+    """θ = ‖Log(R)‖ in [0, π] from the trace (tr R = 1 + 2 cos θ), arccos((tr R − 1) / 2):
+    ``(..., 3, 3) -> (...)``. Cheaper than ``so3_log`` and what thresholds and noise models
+    need; near θ = 0 and π the arccos loses precision (≈ 1e-8 rad), use ``so3_log`` there."""
+    R = np.asarray(R, dtype=np.float64)
+    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) * 0.5, -1.0, 1.0))
 
 
 def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:

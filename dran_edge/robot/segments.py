@@ -81,9 +81,10 @@ class Segmenter:
             reason = "first odometry"
         elif self.last_stamp_ns is not None:
             gap_s = (stamp_ns - self.last_stamp_ns) * 1e-9
+            assert self.last_T is not None  # set with last_stamp_ns
             d = geo.se3_between(self.last_T, T_odom_body)
             jump_m = float(np.linalg.norm(d[:3, 3]))
-            jump_rad = float(np.arccos(np.clip((np.trace(d[:3, :3]) - 1.0) * 0.5, -1.0, 1.0)))
+            jump_rad = float(geo.so3_angle(d[:3, :3]))
             if gap_s > b.segment_gap_s:
                 reason = f"odometry gap {gap_s:.2f} s"
             elif jump_m > b.segment_jump_m:

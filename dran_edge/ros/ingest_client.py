@@ -78,10 +78,12 @@ class IngestClient:
             if self._sock is None and not self._connect():
                 time.sleep(self.retry_s)
                 continue
+            sock = self._sock
+            assert sock is not None  # connected just above
             try:
-                self._sock.sendall(rec)
+                sock.sendall(rec)
             except OSError:
-                self._sock.close()
+                sock.close()
                 self._sock = None
                 continue
             with self._cv:

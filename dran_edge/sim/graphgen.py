@@ -74,37 +74,6 @@ def synthetic_graph(
     return _generated_graph(dim, T.copy(), edges, Z, info), T
 
 
-def city_trajectory(
-    num_poses: int, block_m: float = 10.0, blocks: int = 12, step_m: float = 1.0, seed: int = 0
-) -> np.ndarray:
-    """(n, 3, 3) true SE(2) poses of a robot driving a long random route on a city street grid.
-
-    The streets are the lines x = k·block_m and y = k·block_m of a ``blocks``×``blocks`` grid; the
-    robot advances ``step_m`` per pose and picks a random street (never a U-turn unless at the
-    border) at every intersection, so it revisits the same streets many times, as a car or a
-    long indoor dataset does.
-    """
-    rng = np.random.default_rng(seed)
-    steps = int(round(block_m / step_m))
-    heading = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])
-    cell, d = np.array([0, 0]), 0
-    xy, yaw = [], []
-    while len(xy) < num_poses:
-        options = []
-        for nd in ((d + 1) % 4, d, (d + 3) % 4):
-            nxt = cell + heading[nd]
-            if np.all((nxt >= 0) & (nxt <= blocks)):
-                options.append(nd)
-        d = int(rng.choice(options)) if options else (d + 2) % 4
-        start = cell * block_m
-        for s in range(steps):
-            xy.append(start + heading[d] * s * step_m)
-            yaw.append(np.arctan2(heading[d][1], heading[d][0]))
-        cell = cell + heading[d]
-    xy, yaw = np.asarray(xy[:num_poses], float), np.asarray(yaw[:num_poses])
-    return geo.se2_from_xy_theta(np.column_stack([xy, yaw]))
-
-
 def city_graph(
     num_poses: int = 15000,
     loop_fraction: float = 0.1,
@@ -117,7 +86,8 @@ def city_graph(
     blocks: int = 12,
     seed: int = 0,
 ) -> tuple[G2oGraph, np.ndarray]:
-    """A long noisy 2D trajectory on a street grid (:func:`city_trajectory`) with loop closures.
+    """A long noisy 2D trajectory on a street grid (:func:`road_trajectory`, one pose per metre)
+    with loop closures.
 
     Odometry links consecutive poses; about ``loop_fraction``·n loop closures link a pose to a
     random earlier pose (at least ``min_gap`` poses back) within ``loop_radius_m``. Noise as in
@@ -128,7 +98,7 @@ def city_graph(
     """
     from scipy.spatial import cKDTree
 
-    T = city_trajectory(num_poses, block_m, blocks, seed=seed)
+    T = road_trajectory(2, num_poses, seed, step_m=1.0, block_m=block_m, blocks=blocks)
     n = T.shape[0]
     rng = np.random.default_rng(seed + 1)
     pos = T[:, :2, 2]
