@@ -725,7 +725,7 @@ def _entry_records(message: NeighbourMessage, dim: int, delta: dl.DeltaEncoder |
             value = _encode_poses(v[None], dim)
         kinds.append(KIND_INIT)
         who = _varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
-        if delta is None:
+        if delta is None or not stage.delta_allowed:
             ids.append(bytes([int(stage)]) + who)
             values.append(value)
             continue

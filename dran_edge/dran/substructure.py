@@ -172,7 +172,8 @@ def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
     return sum(v.size for p in partition.parts for v in p.separators_for.values()) * b * ncol
 
 
-def _expand(positions: np.ndarray, b: int) -> np.ndarray:
+def expand(positions: np.ndarray, b: int) -> np.ndarray:
+    """Scalar rows of the blocks at ``positions`` (block size b)."""
     return (positions[:, None] * b + np.arange(b)[None]).ravel()
 
 
@@ -207,9 +208,9 @@ def condense(part, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int
     size b) condensed onto its boundary, the gauge vertex held at ``X_gauge``. The interior
     block must be positive definite (no pivoting)."""
     Q = sp.csr_matrix(Q)
-    rhs = rhs - Q[:, _expand(np.array([gauge]), b)] @ X_gauge
+    rhs = rhs - Q[:, expand(np.array([gauge]), b)] @ X_gauge
     st = _structure(part, partition, gauge)
-    rb, ri = _expand(st.B, b), _expand(st.I, b)
+    rb, ri = expand(st.B, b), expand(st.I, b)
     Q_B = Q[rb][:, rb]
     Q_BB = np.stack([Q_B[i * b:(i + 1) * b][:, j * b:(j + 1) * b].toarray() for i, j in st.pairs]) \
         if len(st.pairs) else np.zeros((0, b, b))
@@ -220,7 +221,7 @@ def condense(part, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int
         Q_IB = Q[ri][:, rb].tocsr()
         Y = lu.solve(np.column_stack([Q_IB.toarray(), rhs[ri]]))
         for C, N in st.comps:  # Y is zero outside each piece's own rows and neighbours
-            rc, rn = _expand(C, b), _expand(N, b)
+            rc, rn = expand(C, b), expand(N, b)
             Qc = Q_IB[rc][:, rn].toarray()
             P = -Qc.T @ Y[rc][:, rn]
             pieces.append(0.5 * (P + P.T))
@@ -286,7 +287,7 @@ def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0):
     return B, g, pieces, take(nscalars).copy()
 
 
-def _missing(what: str) -> None:
+def missing(what: str) -> None:
     raise RuntimeError(f"substructured solve: {what} (a lost datagram?); it needs every "
                        "message delivered: over lossy links use InitParams(direct='never')")
 
@@ -326,10 +327,10 @@ def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange, kind: In
                 flat = np.concatenate([v for _, v in chunks])
                 if [k for k, _ in chunks] != list(range(len(chunks))) or \
                         flat.size < 1 + int(round(flat[0])):
-                    _missing(f"robot {o}'s condensed system reached robot {q} incomplete")
+                    missing(f"robot {o}'s condensed system reached robot {q} incomplete")
                 bundles[q][o] = flat[1:1 + int(round(flat[0]))]
     if len(bundles[tree.root]) != R:
-        _missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
+        missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
                  f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
     return bundles[tree.root], rounds
 
@@ -344,9 +345,9 @@ def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
     g_glob = np.zeros((Bglob.size * b, ncol))
     for B, g, pieces, _ in unpacked:
         at = np.searchsorted(Bglob, B)
-        np.add.at(g_glob, _expand(at, b), g)
+        np.add.at(g_glob, expand(at, b), g)
         for loc_idx, P in pieces:
-            idx = _expand(at[loc_idx], b)
+            idx = expand(at[loc_idx], b)
             rows.append(np.repeat(idx, idx.size))
             cols.append(np.tile(idx, idx.size))
             vals.append(P.ravel())
@@ -392,7 +393,7 @@ def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict, ex
     for r, B in enumerate(boundaries):
         lost = [int(v) for v in B.tolist() if int(v) not in known[r]]
         if lost:
-            _missing(f"robot {r} did not receive the boundary values {lost[:5]}")
+            missing(f"robot {r} did not receive the boundary values {lost[:5]}")
     return known, [list(o.values()) for o in others], rounds
 
 
@@ -423,10 +424,10 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
     views = []  # 4. back-substitution of each robot's interior
     for r, loc in enumerate(locs):
         view = X0.copy()
-        view[_expand(np.array([gauge]), b)] = X_gauge
+        view[expand(np.array([gauge]), b)] = X_gauge
         Xb = boundary_values(loc, known[r], ncol)
-        view[_expand(loc.B, b)] = Xb
+        view[expand(loc.B, b)] = Xb
         if loc.I.size:
-            view[_expand(loc.I, b)] = loc.back_substitute(Xb)
+            view[expand(loc.I, b)] = loc.back_substitute(Xb)
         views.append(view)
     return views, rounds
