@@ -41,16 +41,19 @@ init); the asynchronous daemon does not run it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
 
 from dran_edge import geometry as geo
 from dran_edge.dran import substructure
-from dran_edge.dran.partition import Partition
+from dran_edge.dran.dist_init import Exchange
+from dran_edge.dran.partition import Partition, RobotPart
 from dran_edge.messages import InitEntry, InitStage
-from dran_edge.solver.factors import BetweenFactors, isotropic_whitening
+from dran_edge.solver.factors import BetweenFactors, Factor, isotropic_whitening
 from dran_edge.solver.lm import block_normal_equations
 
 
@@ -82,15 +85,16 @@ class RefineResult:
     """Accepted steps."""
     trials: int = 0
     """Gathers after the first."""
-    F_history: list = field(default_factory=list)
+    F_history: list[float] = field(default_factory=list)
     """F (SE-Sync) at the start and after every accepted step, as the root summed it."""
-    mu_history: list = field(default_factory=list)
+    mu_history: list[float] = field(default_factory=list)
     reason: str = ""
     ratio_floats: float = 0.0
     """One step's floats over one round's separator values (``step_budget``'s test)."""
 
 
-def step_ratio(partition: Partition, dim: int, gauge: int = 0, tree=None) -> float:
+def step_ratio(partition: Partition, dim: int, gauge: int = 0,
+               tree: substructure.RobotTree | None = None) -> float:
     """Floats of one refinement step over one round in which every separator pose travels."""
     b = geo.dof(dim)
     tree = tree or substructure.robot_tree(partition)
@@ -98,7 +102,7 @@ def step_ratio(partition: Partition, dim: int, gauge: int = 0, tree=None) -> flo
         substructure.iteration_floats(partition, b, 1), 1)
 
 
-def share(part, n: int, dim: int, edges: np.ndarray, measurements: np.ndarray,
+def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np.ndarray,
           W: np.ndarray, poses: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, float]:
     """Robot's share (H⁽ʳ⁾, g⁽ʳ⁾, f_r) at ``poses``: n·dof square, its edges with the
     inter-robot ones at half weight (``W`` the (m, r) whitening of all edges)."""
@@ -107,7 +111,7 @@ def share(part, n: int, dim: int, edges: np.ndarray, measurements: np.ndarray,
     scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
     block = BetweenFactors(edges[eidx], measurements[eidx], W[eidx] * np.sqrt(scale)[:, None],
                            residual="chordal")
-    Hb, gb, cost = block_normal_equations(block, poses)
+    Hb, gb, cost = block_normal_equations(cast(Factor, block), poses)
     idx = substructure.expand(edges[eidx].reshape(-1), b).reshape(len(eidx), 2 * b)
     rows = np.repeat(idx, 2 * b, axis=1).ravel()
     cols = np.tile(idx, (1, 2 * b)).ravel()
@@ -166,7 +170,7 @@ class LMRule:
         return accept, False, ""
 
 
-def _step_entry(owner, d: int, b: int):
+def _step_entry(owner: np.ndarray, d: int, b: int) -> Callable[[int, np.ndarray], InitEntry]:
     def to_entry(v: int, step: np.ndarray) -> InitEntry:
         value = np.zeros(d * d)
         value[:b] = step.ravel()
@@ -175,7 +179,7 @@ def _step_entry(owner, d: int, b: int):
 
 
 def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa: np.ndarray,
-           tau: np.ndarray, partition: Partition, poses: np.ndarray, exchange,
+           tau: np.ndarray, partition: Partition, poses: np.ndarray, exchange: Exchange,
            params: RefineParams = RefineParams(), gauge: int = 0,
            wire_dtype: type | None = np.float32) -> RefineResult:
     """Refine ``poses`` (every robot starts from them) by exact distributed LM steps (module
@@ -250,7 +254,8 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
             H, g = shares[r]
             rob.pred = float(-g @ delta - 0.5 * delta @ (H @ delta))
             moved = np.concatenate([loc.I, loc.B])
-            rob.T[moved] = geo.retract(rob.T_acc[moved], delta.reshape(n, b)[moved])
+            rob.T[moved] = geo.retract(rob.T_acc[moved],  # type: ignore[no-untyped-call]
+                                       delta.reshape(n, b)[moved])
         if stop:
             res.reason = reason
             break
