@@ -63,7 +63,7 @@ class RefineParams:
 
     mode: str = "auto"
     """"auto" (refine when ``step_budget`` allows), "always" or "never"."""
-    max_steps: int = 10
+    max_steps: int = 20
     """Gathers after the first (accepted or rejected trials) at most."""
     rel_tol: float = 1e-5
     """Stop after an accepted step that lowered F by less than this fraction."""
@@ -87,6 +87,8 @@ class RefineResult:
     """Gathers after the first."""
     F_history: list[float] = field(default_factory=list)
     """F (SE-Sync) at the start and after every accepted step, as the root summed it."""
+    F_rounds: list[int] = field(default_factory=list)
+    """The rounds (exchanges so far) at which the root knew each ``F_history`` value."""
     mu_history: list[float] = field(default_factory=list)
     reason: str = ""
     ratio_floats: float = 0.0
@@ -224,6 +226,7 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
         accept, stop, reason = root.decide(F, pred, res.trials)  # 2. the root's rule
         if accept and (was_trial or not res.F_history):
             res.F_history.append(F)
+            res.F_rounds.append(res.rounds)
             res.mu_history.append(root.mu)
         step = accept and not stop
         control = InitEntry(InitStage.REFINE_CONTROL, tree.root, 0, np.resize(

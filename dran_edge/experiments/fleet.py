@@ -240,15 +240,23 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> di
     if params is None:
         return {}
     r0, b0 = fleet.round, fleet.traffic.bytes_total
+    sent = [b0]  # bytes after each exchange
+
+    def exchange(stage, iteration: int, outgoing: dict) -> dict:
+        incoming = fleet.init_exchange(stage, iteration, outgoing)
+        sent.append(fleet.traffic.bytes_total)
+        return incoming
+
     if lossy:
         res = exact_gn.RefineResult(poses.copy(), False, reason="lossy links")
     else:
         res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
-                              poses, fleet.init_exchange, params)
+                              poses, exchange, params)
     return {"poses_refined": res.poses, "refine_mode": params.mode, "refine_used": res.used,
             "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
             "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
             "refine_trials": res.trials, "refine_F_history": res.F_history,
+            "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
             "refine_step_over_round_floats": res.ratio_floats}
 
 
@@ -292,8 +300,9 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     record where it fired, via ``callback``). The result also holds ``poses_init``.
     ``refine`` (an ``exact_gn.RefineParams``): after the init, exact distributed LM steps over
     the same bus (``dran_edge.dran.exact_gn``; not over lossy links, which its tree protocol
-    cannot take); the result then also holds ``refine_*`` numbers, ``objective_refined`` and
-    ``poses_refined``, where DRAN starts."""
+    cannot take); the result then also holds ``refine_*`` numbers (``refine_curve``: (rounds,
+    bytes since the init, F as the root summed it) at every accepted point), ``objective_refined``
+    and ``poses_refined``, where DRAN starts."""
     import dataclasses
     import types
 

@@ -133,8 +133,9 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
     """Every number of one case (module docstring); ``curve`` holds (round, bytes so far, F)
     per round, round 0 being the initialisation's end. ``refine`` (``exact_gn.RefineParams``):
     exact LM steps after the init (``run_g2o_dran``); their rounds count on the same axis (the
-    curve jumps from round 0 to the refinement's end, then one point per DRAN round, cut at
-    ``rounds``), so the checkpoints and the 1 % / 0.1 % rounds compare like for like."""
+    curve has a point where the root learnt F at each accepted point of the refinement, one at
+    its end, then one per DRAN round, cut at ``rounds``), so the checkpoints and the 1 % / 0.1 %
+    rounds and bytes compare like for like."""
     from dran_edge.experiments.dgs import run_g2o_dgs
     from dran_edge.dran.dist_init import InitParams
     from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup
@@ -189,9 +190,10 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
     curve[0] = (0, res["bytes_init"], F_init)
     r0 = res["init_rounds"]  # bus rounds -> rounds after the init
     curve[1:] = [(k - r0, b, f) for k, b, f in curve[1:] if k - r0 <= rounds]
-    if refine is not None:
-        curve.insert(1, (res["refine_rounds"], res["bytes_init"] + res["refine_bytes"],
-                         res["objective_refined"]))
+    if refine is not None:  # the root's F at each accepted point, then the refinement's end
+        curve[1:1] = [(k, res["bytes_init"] + b, f) for k, b, f in res["refine_curve"][1:]] + [
+            (res["refine_rounds"], res["bytes_init"] + res["refine_bytes"],
+             res["objective_refined"])]
     if stop["round"] is not None:
         stop["round"] -= r0
     out = {

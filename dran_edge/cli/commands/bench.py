@@ -166,8 +166,8 @@ def _add_refine_options(p) -> None:
                    help="exact distributed Levenberg-Marquardt steps by substructuring after the "
                         "init (dran_edge/dran/exact_gn.py, docs/dran.md): auto where one step "
                         "costs at most 100 rounds' separator values, always, or off (default)")
-    p.add_argument("--refine-steps", type=int, default=10, metavar="K",
-                   help="at most K refinement trials after the start point (default 10)")
+    p.add_argument("--refine-steps", type=int, default=20, metavar="K",
+                   help="at most K refinement trials after the start point (default 20)")
     p.add_argument("--refine-tol", type=float, default=1e-5,
                    help="stop refining after an accepted step lowering F by less than this "
                         "fraction (default 1e-5)")
