@@ -26,6 +26,12 @@ Exact up to the wire's float32 values, in 2 × height rounds per stage. Bytes gr
 |B_r|² (a dense S_r per robot), so ``dist_init`` uses it where it costs no more than a number
 of block iterations would (``direct_floats`` against ``iteration_floats``): chain-like graphs
 with few loops, where the block iterations converge slowest, have small boundaries.
+
+The steps are generic in the share: ``condense`` takes any robot share ``Q⁽ʳ⁾ X = rhs⁽ʳ⁾``
+(block size b, SPD interior block, non-zero blocks only on the robot's edges), ``pack`` /
+``gather`` / ``solve_interface`` / ``scatter`` move and solve it, optionally with scalars that
+travel with the condensed system and entries the root adds to the scatter. ``solve_direct``
+composes them for an init stage, ``dran_edge.dran.exact_gn`` for Gauss–Newton steps.
 """
 
 from __future__ import annotations
