@@ -76,3 +76,22 @@ def test_refinement_never_raises_the_cost_from_a_bad_start():
     assert np.all(np.diff(res.F_history) < 0)
     assert F(res.poses) == pytest.approx(res.F_history[-1], rel=1e-12)
     assert res.F_history[-1] < F(T0)
+
+
+def test_run_g2o_dran_refines_over_the_bus_and_counts_its_rounds_and_bytes():
+    from dran_edge.experiments.fleet import run_g2o_dran, table1_setup
+
+    case = Case("car2d", 240, 1, robots=3)
+    g, _ = make_graph(case)
+    part = make_partition(case, g)
+    cfg, kw = table1_setup(g.dim)
+    off = run_g2o_dran(g, 3, cfg, max_rounds=3, partition=part, **kw)
+    on = run_g2o_dran(g, 3, cfg, max_rounds=3, partition=part,
+                      refine=exact_gn.RefineParams(mode="auto"), **kw)
+    assert not any(k.startswith("refine") for k in off)
+    assert on["refine_used"] and on["refine_rounds"] > 0 and on["refine_bytes"] > 0
+    assert on["objective_init"] == off["objective_init"]
+    assert on["objective_refined"] < 0.9 * on["objective_init"]
+    assert on["rounds_total"] == on["init_rounds"] + on["refine_rounds"] + on["rounds"]
+    assert on["bytes_total"] > on["bytes_init"] + on["refine_bytes"]
+    assert [k for k, _, _ in on["refine_curve"]] == sorted(k for k, _, _ in on["refine_curve"])
