@@ -91,6 +91,8 @@ class RefineResult:
     """The rounds (exchanges so far) at which the root knew each ``F_history`` value."""
     mu_history: list[float] = field(default_factory=list)
     reason: str = ""
+    converged: bool = False
+    """Stopped on ``rel_tol`` (an accepted step lowered F by less than that fraction)."""
     ratio_floats: float = 0.0
     """One step's floats over one round's separator values (``step_budget``'s test)."""
 
@@ -260,7 +262,7 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
             rob.T[moved] = geo.retract(rob.T_acc[moved],  # type: ignore[no-untyped-call]
                                        delta.reshape(n, b)[moved])
         if stop:
-            res.reason = reason
+            res.reason, res.converged = reason, reason.startswith("relative decrease")
             break
         res.trials += 1
     res.steps = len(res.F_history) - 1

@@ -256,6 +256,7 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> di
             "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
             "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
             "refine_trials": res.trials, "refine_F_history": res.F_history,
+            "refine_converged": res.converged,
             "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
             "refine_step_over_round_floats": res.ratio_floats}
 
@@ -302,7 +303,9 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     the same bus (``dran_edge.dran.exact_gn``; not over lossy links, which its tree protocol
     cannot take); the result then also holds ``refine_*`` numbers (``refine_curve``: (rounds,
     bytes since the init, F as the root summed it) at every accepted point), ``objective_refined``
-    and ``poses_refined``, where DRAN starts."""
+    and ``poses_refined``, where DRAN starts. A refinement that stopped on its relative-decrease
+    test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
+    (``stopped_by`` "refine")."""
     import dataclasses
     import types
 
@@ -352,8 +355,11 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
-    rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
-    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
+    if stop and refined.get("refine_converged"):  # the root's global test already held
+        rounds, reasons = 0, ["refine"]
+    else:
+        rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
+        reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
     merged = start.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
