@@ -15,34 +15,37 @@ from dran_edge.solver.lm import build_plan, linearize
 from dran_edge.solver.objective import sesync_objective, sesync_weights
 
 
-def _central_step(g, poses, mu):
-    """One centralized damped Gauss–Newton step (A + μ diag A) u = −g_x, every vertex but the
-    gauge private (``solver.lm``'s own linearisation)."""
+def _central_step(g, poses, mu, exact=False):
+    """One centralized damped step (A + μ diag A_GN) u = −g_x, every vertex but the gauge
+    private (``solver.lm``'s own linearisation; A the Gauss–Newton or the exact Hessian)."""
     graph = pose_graph(g, "chordal", "sesync")
     plan = build_plan(graph)
-    lin = linearize(graph, plan, poses)
-    A = lin.A + mu * sp.diags(lin.A.diagonal())
+    lin = linearize(graph, plan, poses, exact_hessian=exact)
+    A_gn = linearize(graph, plan, poses).A
+    A = lin.A + mu * sp.diags(A_gn.diagonal())
     u = spla.spsolve(sp.csc_matrix(A), -lin.g_x)
     out = poses.copy()
     out[plan.private_vars] = geo.retract(poses[plan.private_vars], u.reshape(-1, plan.dof))
     return out
 
 
-@pytest.mark.parametrize("case", [Case("car2d", 240, 1, robots=3),
-                                  Case("car3d", 200, 2, robots=3, split="interleaved")])
-def test_condensed_step_equals_the_centralized_step(case):
+@pytest.mark.parametrize("case,hessian", [
+    (Case("car2d", 240, 1, robots=3), "gauss_newton"),
+    (Case("car3d", 200, 2, robots=3, split="interleaved"), "gauss_newton"),
+    (Case("car3d", 200, 2, robots=3, split="interleaved"), "exact")])
+def test_condensed_step_equals_the_centralized_step(case, hessian):
     g, _ = make_graph(case)
     part = make_partition(case, g)
     assert case.split == "contiguous" or len(part.parts[0].neighbours) == 2  # loops across
     kappa, tau = sesync_weights(g.dim, g.information)
-    T0 = initial_poses(g, "odometry")
+    T0 = initial_poses(g, "chordal" if hessian == "exact" else "odometry")
     mu = 1e-3
     res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, T0,
-                          direct_exchange, exact_gn.RefineParams(mode="always", max_steps=1,
-                                                                 mu_init=mu, rel_tol=0.0),
-                          wire_dtype=None)
-    assert res.used and res.steps == 1 and res.rounds > 0
-    T1 = _central_step(g, T0, mu)
+                          direct_exchange, exact_gn.RefineParams(
+                              mode="always", max_steps=1, mu_init=mu, rel_tol=0.0,
+                              hessian=hessian, newton_switch=np.inf), wire_dtype=None)
+    assert res.used and res.steps == 1 and res.rounds > 0 and res.indefinite == 0
+    T1 = _central_step(g, T0, mu, exact=hessian == "exact")
     np.testing.assert_allclose(res.poses, T1, atol=1e-9)
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     assert res.F_history[0] == pytest.approx(F(T0), rel=1e-12)

@@ -18,7 +18,8 @@ graph (2 × height rounds):
 2. the root sums ``F = 2 Σ f_r`` and decides (the rule below); when it takes a step it solves
    the interface system;
 3. down the tree: the boundary steps (``REFINE_STEP``, every robot's boundary, float32) and the
-   decision (``REFINE_CONTROL``: accept, μ for the next condensation, stop);
+   decision (``REFINE_CONTROL``: flags accepted / stop / step / exact Hessian next, and μ for
+   the next condensation);
 4. every robot back-substitutes its interior step and retracts ``T ⊕ δ`` (own vertices and
    anchors: the copies of a vertex stay identical, the root rounds its own values to float32
    like everybody's).
@@ -73,6 +74,17 @@ class RefineParams:
     mu_max: float = 1e8
     step_budget: float = 100.0
     """"auto": one step may send at most this many rounds' worth of separator values."""
+    hessian: str = "gauss_newton"
+    """"gauss_newton" (H⁽ʳ⁾ = J_rᵀJ_r) or "exact": the chordal residual's second-order terms
+    added (``solver.factors.BetweenFactors.second_order``, damped Newton), used once an accepted
+    step lowered F by less than ``newton_switch`` (near the optimum, where Gauss–Newton
+    converges linearly on large residuals); a system that is not positive definite (a robot's
+    interior or the root's interface) takes no step, raises μ and falls back to Gauss–Newton
+    until the next such step. Measured (docs/notes/generalisation.md): no faster on noisy3d
+    (Newton steps rejected there, as in the centralized LM), 8 instead of 11 steps to 1e-7 on
+    a car3d chain."""
+    newton_switch: float = 1e-2
+    """See ``hessian``; ``inf``: the exact Hessian from the first step."""
 
 
 @dataclass
@@ -91,6 +103,8 @@ class RefineResult:
     """The rounds (exchanges so far) at which the root knew each ``F_history`` value."""
     mu_history: list[float] = field(default_factory=list)
     reason: str = ""
+    indefinite: int = 0
+    """Gathers whose (exact-Hessian) system was not positive definite (no step taken)."""
     converged: bool = False
     """Stopped on ``rel_tol`` (an accepted step lowered F by less than that fraction)."""
     ratio_floats: float = 0.0
@@ -107,9 +121,11 @@ def step_ratio(partition: Partition, dim: int, gauge: int = 0,
 
 
 def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np.ndarray,
-          W: np.ndarray, poses: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, float]:
-    """Robot's share (H⁽ʳ⁾, g⁽ʳ⁾, f_r) at ``poses``: n·dof square, its edges with the
-    inter-robot ones at half weight (``W`` the (m, r) whitening of all edges)."""
+          W: np.ndarray, poses: np.ndarray, exact: bool = False
+          ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
+    """Robot's share (H⁽ʳ⁾, g⁽ʳ⁾, f_r, diag J_rᵀJ_r) at ``poses``: n·dof square, its edges with
+    the inter-robot ones at half weight (``W`` the (m, r) whitening of all edges); ``exact``
+    adds the second-order terms to H⁽ʳ⁾ (not to the returned diagonal, the damping's scale)."""
     b = geo.dof(dim)
     eidx = np.concatenate([part.intra_edges, part.inter_edges]).astype(np.int64)
     scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
@@ -121,7 +137,12 @@ def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np
     cols = np.tile(idx, (1, 2 * b)).ravel()
     H = sp.csr_matrix((Hb.ravel(), (rows, cols)), shape=(n * b, n * b))
     g = np.bincount(idx.ravel(), weights=gb.ravel(), minlength=n * b)
-    return H, g, cost
+    D = H.diagonal()
+    if exact:
+        H2 = block.second_order(poses)
+        assert H2 is not None  # the chordal residual has them
+        H = H + sp.csr_matrix((H2.ravel(), (rows, cols)), shape=(n * b, n * b))
+    return H, g, cost, D
 
 
 def _split(x: float) -> list[float]:
@@ -136,6 +157,7 @@ class _Robot:
     T: np.ndarray  # current (trial) poses
     mu: float
     pred: float = 0.0
+    exact: bool = False  # model of the next condensation (the root's word)
 
 
 class LMRule:
@@ -146,6 +168,8 @@ class LMRule:
         self.p, self.mu, self.nu, self.wire_dtype = p, p.mu_init, 2.0, wire_dtype
         self.F_acc = np.inf
         self.trial = False  # the gathered point is a trial (else the accepted point)
+        self.last_rel = np.inf  # relative decrease of the last accepted trial
+        self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch  # next model
 
     def decide(self, F: float, pred: float, trials: int) -> tuple[bool, bool, str]:
         """(accepted, stop, reason) for the point just gathered; updates μ."""
@@ -164,7 +188,10 @@ class LMRule:
             self.mu = float(self.wire_dtype(self.mu))
         if accept:
             self.F_acc = F
+            if rel is not None:
+                self.last_rel = rel
         self.trial = accept
+        self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch
         if accept and rel is not None and rel < p.rel_tol:
             return accept, True, f"relative decrease {rel:.1e} < {p.rel_tol:g}"
         if trials >= p.max_steps:
@@ -172,6 +199,14 @@ class LMRule:
         if self.mu > p.mu_max:
             return accept, True, f"mu {self.mu:.1e} > {p.mu_max:g}"
         return accept, False, ""
+
+    def indefinite(self) -> None:
+        """The gathered (accepted) point's system is not positive definite: no step; more
+        damping, and Gauss–Newton for the next condensation."""
+        self.mu, self.nu = self.mu * self.nu, self.nu * 2
+        if self.wire_dtype is not None:
+            self.mu = float(self.wire_dtype(self.mu))
+        self.trial, self.exact, self.last_rel = False, False, np.inf
 
 
 def _step_entry(owner: np.ndarray, d: int, b: int) -> Callable[[int, np.ndarray], InitEntry]:
@@ -205,25 +240,25 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
     b, d = geo.dof(dim), dim
     W = isotropic_whitening(kappa, tau, "chordal", dim)
     mu0 = params.mu_init if wire_dtype is None else float(wire_dtype(params.mu_init))
-    robots = [_Robot(poses.copy(), poses.copy(), mu0)
-              for _ in partition.parts]
     root = LMRule(params, wire_dtype)
+    robots = [_Robot(poses.copy(), poses.copy(), mu0, exact=root.exact) for _ in partition.parts]
     res = RefineResult(poses, True, ratio_floats=ratio)
     to_entry = _step_entry(partition.owner, d, b)
     no_boundary = [np.zeros(0, np.int64)] * len(robots)
     while True:
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
-            H, g, cost = share(part, n, dim, edges, measurements, W, rob.T)
-            loc = substructure.condense(part, partition, H + rob.mu * sp.diags(H.diagonal()),
+            H, g, cost, D = share(part, n, dim, edges, measurements, W, rob.T, rob.exact)
+            loc = substructure.condense(part, partition, H + rob.mu * sp.diags(D),
                                         -g[:, None], b, gauge, np.zeros((b, 1)))
             locs.append(loc)
             shares.append((H, g))
-            packed.append(substructure.pack(loc, b, _split(cost) + _split(rob.pred)))
+            packed.append(substructure.pack(loc, b, _split(cost) + _split(rob.pred)
+                                            + [float(loc.positive_definite)]))
         bundle, res.rounds = substructure.gather(tree, packed, d, exchange,
                                                  InitStage.REFINE_SCHUR, res.rounds)
-        values, scalars = substructure.solve_interface(bundle, b, 1, 4)
-        F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:].sum())
+        values, scalars, pd = substructure.solve_interface(bundle, b, 1, 5)
+        F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:4].sum())
         was_trial = root.trial
         accept, stop, reason = root.decide(F, pred, res.trials)  # 2. the root's rule
         if accept and (was_trial or not res.F_history):
@@ -231,8 +266,13 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
             res.F_rounds.append(res.rounds)
             res.mu_history.append(root.mu)
         step = accept and not stop
-        control = InitEntry(InitStage.REFINE_CONTROL, tree.root, 0, np.resize(
-            np.array([float(accept), root.mu, float(stop)] + [0.0] * (d * d - 3)), (d, d)))
+        if step and not (pd and scalars[:, 4].all()):
+            step = False
+            root.indefinite()
+            res.indefinite += 1
+        flags = int(accept) | int(stop) << 1 | int(step) << 2 | int(root.exact) << 3
+        control = InitEntry(InitStage.REFINE_CONTROL, tree.root, 0,
+                            np.resize(np.array([flags, root.mu] + [0.0] * (d * d - 2)), (d, d)))
         if step and wire_dtype is not None:  # what the other robots receive
             values = {v: x.astype(wire_dtype).astype(np.float64) for v, x in values.items()}
         known, extra, res.rounds = substructure.scatter(  # 3. steps and decision down
@@ -244,12 +284,14 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
             ctl = [e for e in extra[r] if InitStage(e.stage) == InitStage.REFINE_CONTROL]
             if not ctl:
                 substructure.missing(f"robot {r} did not receive the root's decision")
-            acc, mu, stp = np.asarray(ctl[0].value, float).ravel()[:3]
-            rob.mu = float(mu)
+            flags_f, mu = np.asarray(ctl[0].value, float).ravel()[:2]
+            flags = int(round(flags_f))
+            acc, stepping = flags & 1, flags & 4
+            rob.mu, rob.exact = float(mu), bool(flags & 8)
             if acc:
                 rob.T_acc = rob.T.copy()
             rob.T, rob.pred = rob.T_acc.copy(), 0.0
-            if stp or not acc:
+            if not stepping:
                 continue
             delta = np.zeros(n * b)  # 4. back-substitute, predicted decrease, retract
             X_B = substructure.boundary_values(loc, known[r], 1)

@@ -203,6 +203,11 @@ class Condensed:
     def I(self) -> np.ndarray:
         return self.st.I
 
+    @property
+    def positive_definite(self) -> bool:
+        """The interior block's LU pivots (no pivoting, symmetric mode) are all positive."""
+        return self.lu is None or bool(np.all(self.lu.U.diagonal() > 0))
+
     def back_substitute(self, X_B: np.ndarray) -> np.ndarray:
         """Interior values ``X_I = (Q⁽ʳ⁾_II)⁻¹ (rhs_I − Q_IB X_B)`` for boundary values X_B."""
         return self.lu.solve(self.rhs_I - self.Q_IB @ X_B) if self.I.size else self.rhs_I
@@ -342,9 +347,10 @@ def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange, kind: In
 
 
 def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
-                    ) -> tuple[dict, np.ndarray]:
+                    ) -> tuple[dict, np.ndarray, bool]:
     """Step 2: the root assembles ``Σ S_r``, ``Σ g_r`` from the gathered vectors and solves;
-    returns ``{boundary vertex: (b, ncol) value}`` and the (R, nscalars) scalars by robot."""
+    returns ``{boundary vertex: (b, ncol) value}``, the (R, nscalars) scalars by robot and
+    whether ``Σ S_r`` is positive definite (its LU pivots, no pivoting, all positive)."""
     unpacked = [_unpack(bundle[o], b, ncol, nscalars) for o in sorted(bundle)]
     Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
     rows, cols, vals = [], [], []
@@ -357,15 +363,16 @@ def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
             rows.append(np.repeat(idx, idx.size))
             cols.append(np.tile(idx, idx.size))
             vals.append(P.ravel())
-    X_B = np.zeros_like(g_glob)
+    X_B, pd = np.zeros_like(g_glob), True
     if Bglob.size:
         S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                shape=(Bglob.size * b,) * 2)
-        X_B = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                        options={"SymmetricMode": True}).solve(g_glob)
+        lu = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        X_B, pd = lu.solve(g_glob), bool(np.all(lu.U.diagonal() > 0))
     X_B = X_B.reshape(Bglob.size, b, ncol)
     scalars = np.array([u[3] for u in unpacked]).reshape(len(unpacked), nscalars)
-    return {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}, scalars
+    return {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}, scalars, pd
 
 
 def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict, exchange,
@@ -424,7 +431,7 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
         Q, rhs = _stage_share(p, n, b, edges, M, c_of(p.robot_id), w)
         locs.append(condense(p, partition, Q, rhs, b, gauge, X_gauge))
     bundle, rounds = gather(tree, [pack(loc, b) for loc in locs], d, exchange, schur_kind, 0)
-    root_values, _ = solve_interface(bundle, b, ncol)
+    root_values, _, _ = solve_interface(bundle, b, ncol)
     known, _, rounds = scatter(tree, [loc.B for loc in locs], root_values, exchange, value_kind,
                                to_entry, from_entry, rounds)
     views = []  # 4. back-substitution of each robot's interior
