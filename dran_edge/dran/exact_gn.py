@@ -12,9 +12,10 @@ graph (2 × height rounds):
 1. every robot linearises its share at its current poses (own vertices and anchors), damps it
    with Marquardt's ``μ diag(H⁽ʳ⁾)`` (the robots' damping terms sum to ``μ diag(H)``: one
    consistent global damping), condenses ``(H⁽ʳ⁾ + μ diag H⁽ʳ⁾) δ = −g⁽ʳ⁾`` onto its boundary
-   and sends it up (``REFINE_SCHUR``) with two scalars: its cost share f_r at those poses and
-   the decrease its share's model predicted for the step that led there,
-   ``ℓ_r = −g⁽ʳ⁾ᵀδ − ½ δᵀH⁽ʳ⁾δ`` (each as a float32 pair hi + lo, ~1e-14 relative);
+   and sends it up (``REFINE_SCHUR``) with its cost share f_r at those poses and the decrease
+   its share's model predicted for the step that led there, ``ℓ_r = −g⁽ʳ⁾ᵀδ − ½ δᵀH⁽ʳ⁾δ``
+   (each as a float32 pair hi + lo, ~1e-14 relative), and whether its interior block was
+   positive definite (``RefineParams.hessian`` "exact" can make it indefinite);
 2. the root sums ``F = 2 Σ f_r`` and decides (the rule below); when it takes a step it solves
    the interface system;
 3. down the tree: the boundary steps (``REFINE_STEP``, every robot's boundary, float32) and the
