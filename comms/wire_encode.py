@@ -159,7 +159,7 @@ class _EntryRecords:
         self.kinds.append(KIND_INIT)
         who = _varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
         d = None
-        if self.delta is not None:
+        if self.delta is not None and stage.delta_allowed:
             key = ("i", int(stage), int(e.owner_robot), int(e.keyframe_id))
             d = self.as_delta(key, dl.LINEAR if rotation else dl.POSE, v, lambda: (
                 np.frombuffer(value, "<f4").astype(np.float64).reshape(dim, dim)

@@ -39,12 +39,27 @@ class InitStage(enum.IntEnum):
     #: robot tree; ``owner_robot`` is the robot whose system it is, ``keyframe_id`` the chunk.
     ROTATION_SCHUR = 5
     TRANSLATION_SCHUR = 6
+    #: Exact Gauss–Newton refinement (``dran_edge.dran.exact_gn``), d x d floats each:
+    #: REFINE_SCHUR: chunks of a robot's condensed damped Gauss–Newton system and its cost
+    #: scalars, up the robot tree (as the SCHUR stages); REFINE_STEP: the step of one boundary
+    #: vertex (``keyframe_id``; its dof tangent values first, row-major, zero-padded) down the
+    #: tree; REFINE_CONTROL: the root's decision (``keyframe_id`` 0), down the tree.
+    REFINE_SCHUR = 7
+    REFINE_STEP = 8
+    REFINE_CONTROL = 9
 
     @property
     def matrix_valued(self) -> bool:
         """True when the value is a d x d matrix (else a pose)."""
         return self in (InitStage.ROTATION, InitStage.ROTATION_FRAME, InitStage.ROTATION_SCHUR,
-                        InitStage.TRANSLATION_SCHUR)
+                        InitStage.TRANSLATION_SCHUR) or not self.delta_allowed
+
+    @property
+    def delta_allowed(self) -> bool:
+        """False for the refinement stages: their values always travel absolute (float32),
+        never as quantised deltas (a condensed system needs every digit float32 keeps)."""
+        return self not in (InitStage.REFINE_SCHUR, InitStage.REFINE_STEP,
+                            InitStage.REFINE_CONTROL)
 
 
 @dataclass(frozen=True, eq=False)

@@ -301,7 +301,7 @@ def test_bad_counts_nan_and_nonunit_quaternion():
     with pytest.raises(DecodeError, match="NaN"):
         codec.decode_datagram(_header_with_counts(0, 0, 1, b"\x01\x07\x05" + rot_nan + bytes(0)))
     with pytest.raises(DecodeError, match="stage"):
-        codec.decode_datagram(_header_with_counts(0, 0, 1, b"\x07\x07\x05" + bytes(36)))
+        codec.decode_datagram(_header_with_counts(0, 0, 1, b"\x0f\x07\x05" + bytes(36)))
     with pytest.raises(DecodeError, match="support"):  # support 65 536
         codec.decode_datagram(_header_with_counts(0, 1, 0, b"\x01\x02\x00\x80\x80\x04" + pose))
 

@@ -126,3 +126,26 @@ def test_truncated_delta_datagrams_are_decode_errors():
     for cut in range(1, 8):
         with pytest.raises(DecodeError):
             codec.decode_datagram(body[:-cut] + bytes(codec.TAG_BYTES), dl.DeltaDecoder())
+
+
+@pytest.mark.parametrize("stage", [InitStage.REFINE_SCHUR, InitStage.REFINE_STEP,
+                                   InitStage.REFINE_CONTROL])
+def test_refinement_values_always_travel_absolute_in_float32(stage):
+    """A condensed system needs every digit float32 keeps: no quantised deltas, even for a
+    key whose value barely moved (a ROTATION entry in its place goes as a delta)."""
+    enc, dec = dl.DeltaEncoder(absolute_every=1000), dl.DeltaDecoder()
+    rng = np.random.default_rng(1)
+    V = rng.normal(0, 1, (N, 3, 3))
+    sizes = {}
+    for kind in (stage, InitStage.ROTATION):
+        for rnd in (1, 2):
+            V = V + 1e-3 * rnd
+            msg = NeighbourMessage(2, rnd, rnd * 500_000_000, (), (),
+                                   tuple(InitEntry(kind, 2, 40 + i, V[i]) for i in range(N)))
+            grams = _encode(msg, enc)
+            got = np.stack([e.value for e in codec.decode_datagram(grams[0].data, dec).init])
+            sizes[kind, rnd] = len(grams[0].data)
+        if kind == stage:
+            assert np.array_equal(got, V.astype(np.float32).astype(np.float64))
+    assert sizes[stage, 2] == sizes[stage, 1]
+    assert sizes[InitStage.ROTATION, 2] < 0.6 * sizes[InitStage.ROTATION, 1]

@@ -158,8 +158,7 @@ def normal_equations(n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.nda
     return Q, Bv
 
 
-def _expand(positions: np.ndarray, b: int) -> np.ndarray:
-    return (positions[:, None] * b + np.arange(b)[None]).ravel()
+_expand = substructure.expand
 
 
 def greedy_colouring(partition: Partition) -> np.ndarray:

@@ -26,6 +26,12 @@ Exact up to the wire's float32 values, in 2 × height rounds per stage. Bytes gr
 |B_r|² (a dense S_r per robot), so ``dist_init`` uses it where it costs no more than a number
 of block iterations would (``direct_floats`` against ``iteration_floats``): chain-like graphs
 with few loops, where the block iterations converge slowest, have small boundaries.
+
+The steps are generic in the share: ``condense`` takes any robot share ``Q⁽ʳ⁾ X = rhs⁽ʳ⁾``
+(block size b, SPD interior block, non-zero blocks only on the robot's edges), ``pack`` /
+``gather`` / ``solve_interface`` / ``scatter`` move and solve it, optionally with scalars that
+travel with the condensed system and entries the root adds to the scatter. ``solve_direct``
+composes them for an init stage, ``dran_edge.dran.exact_gn`` for Gauss–Newton steps.
 """
 
 from __future__ import annotations
@@ -172,12 +178,15 @@ def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
     return sum(v.size for p in partition.parts for v in p.separators_for.values()) * b * ncol
 
 
-def _expand(positions: np.ndarray, b: int) -> np.ndarray:
+def expand(positions: np.ndarray, b: int) -> np.ndarray:
+    """Scalar rows of the blocks at ``positions`` (block size b)."""
     return (positions[:, None] * b + np.arange(b)[None]).ravel()
 
 
 @dataclass
-class _Local:
+class Condensed:
+    """One robot's share of a block-sparse SPD system condensed onto its boundary."""
+
     st: _Structure
     lu: object
     Q_IB: sp.csr_matrix
@@ -194,19 +203,25 @@ class _Local:
     def I(self) -> np.ndarray:
         return self.st.I
 
+    @property
+    def positive_definite(self) -> bool:
+        """The interior block's LU pivots (no pivoting, symmetric mode) are all positive."""
+        return self.lu is None or bool(np.all(self.lu.U.diagonal() > 0))
 
-def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: int,
-           X_gauge: np.ndarray) -> _Local:
-    """Robot's share Q⁽ʳ⁾ (inter-robot edges at half weight) condensed onto its boundary."""
-    from dran_edge.dran.dist_init import normal_equations
+    def back_substitute(self, X_B: np.ndarray) -> np.ndarray:
+        """Interior values ``X_I = (Q⁽ʳ⁾_II)⁻¹ (rhs_I − Q_IB X_B)`` for boundary values X_B."""
+        return self.lu.solve(self.rhs_I - self.Q_IB @ X_B) if self.I.size else self.rhs_I
 
-    eidx = np.concatenate([part.intra_edges, part.inter_edges])
-    scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
-    Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c[eidx], w[eidx] * scale)
-    Q = Q.tocsr()
-    rhs = Bv - Q[:, _expand(np.array([gauge]), b)] @ X_gauge
+
+def condense(part, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int, gauge: int,
+             X_gauge: np.ndarray) -> Condensed:
+    """Robot's share ``Q⁽ʳ⁾ X = rhs⁽ʳ⁾`` (n·b square, its own and anchor vertices only; block
+    size b) condensed onto its boundary, the gauge vertex held at ``X_gauge``. The interior
+    block must be positive definite (no pivoting)."""
+    Q = sp.csr_matrix(Q)
+    rhs = rhs - Q[:, expand(np.array([gauge]), b)] @ X_gauge
     st = _structure(part, partition, gauge)
-    rb, ri = _expand(st.B, b), _expand(st.I, b)
+    rb, ri = expand(st.B, b), expand(st.I, b)
     Q_B = Q[rb][:, rb]
     Q_BB = np.stack([Q_B[i * b:(i + 1) * b][:, j * b:(j + 1) * b].toarray() for i, j in st.pairs]) \
         if len(st.pairs) else np.zeros((0, b, b))
@@ -217,15 +232,27 @@ def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: in
         Q_IB = Q[ri][:, rb].tocsr()
         Y = lu.solve(np.column_stack([Q_IB.toarray(), rhs[ri]]))
         for C, N in st.comps:  # Y is zero outside each piece's own rows and neighbours
-            rc, rn = _expand(C, b), _expand(N, b)
+            rc, rn = expand(C, b), expand(N, b)
             Qc = Q_IB[rc][:, rn].toarray()
             P = -Qc.T @ Y[rc][:, rn]
             pieces.append(0.5 * (P + P.T))
             g[rn] -= Qc.T @ Y[rc, rb.size:]
-    return _Local(st, lu, Q_IB, rhs[ri], Q_BB, pieces, g)
+    return Condensed(st, lu, Q_IB, rhs[ri], Q_BB, pieces, g)
 
 
-def _pack(loc: _Local, b: int) -> np.ndarray:
+def _stage_share(part, n: int, b: int, edges, M, c, w) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Robot's share of a linear init stage: its edges, inter-robot ones at half weight."""
+    from dran_edge.dran.dist_init import normal_equations
+
+    eidx = np.concatenate([part.intra_edges, part.inter_edges])
+    scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
+    Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c[eidx], w[eidx] * scale)
+    return Q.tocsr(), Bv
+
+
+def pack(loc: Condensed, b: int, scalars=()) -> np.ndarray:
+    """The condensed system as one float vector (docs/wire-format.md, SCHUR stages), followed
+    by ``scalars`` (values that travel with it, e.g. the robot's cost share)."""
     st = loc.st
     out = [[st.B.size], st.B.astype(float), loc.g.ravel(), [len(st.pairs)]]
     for (i, j), blk in zip(st.pairs, loc.Q_BB):
@@ -233,11 +260,13 @@ def _pack(loc: _Local, b: int) -> np.ndarray:
     out.append([len(st.comps)])
     for (_, N), P in zip(st.comps, loc.pieces):
         out += [[N.size], N.astype(float), P[np.triu_indices(P.shape[0])]]
+    out.append(np.asarray(scalars, float))
     return np.concatenate([np.asarray(x, float) for x in out])
 
 
-def _unpack(flat: np.ndarray, b: int, ncol: int):
-    """(B ids, g, pieces): the condensed system as (boundary-local indices, dense block) terms."""
+def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0):
+    """(B ids, g, pieces, scalars): the condensed system as (boundary-local indices, dense
+    block) terms, and the ``nscalars`` values after it."""
     pos = 0
 
     def take(k):
@@ -266,11 +295,11 @@ def _unpack(flat: np.ndarray, b: int, ncol: int):
         P = np.zeros((k, k))
         P[np.triu_indices(k)] = take(k * (k + 1) // 2)
         pieces.append((N, P + np.triu(P, 1).T))
-    return B, g, pieces, pos
+    return B, g, pieces, take(nscalars).copy()
 
 
-def _missing(what: str) -> None:
-    raise RuntimeError(f"substructured init stage: {what} (a lost datagram?); it needs every "
+def missing(what: str) -> None:
+    raise RuntimeError(f"substructured solve: {what} (a lost datagram?); it needs every "
                        "message delivered: over lossy links use InitParams(direct='never')")
 
 
@@ -283,6 +312,110 @@ def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
     return list(pad.reshape(-1, d, d))
 
 
+def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange, kind: InitStage,
+           rounds: int) -> tuple[dict, int]:
+    """Step 1 (module docstring): every robot's packed vector travels up the tree as ``kind``
+    chunks (d × d); returns the root's ``{origin robot: packed vector}`` and the rounds count."""
+    R = len(packed)
+    bundles = [{r: packed[r]} for r in range(R)]
+    for level in range(tree.height, 0, -1):
+        outgoing: dict[int, list] = {}
+        for r in np.flatnonzero(tree.depth == level):
+            entries = [InitEntry(kind, int(o), k, ch)
+                       for o, flat in sorted(bundles[r].items())
+                       for k, ch in enumerate(_chunks(flat, d))]
+            outgoing[int(r)] = [(int(tree.parent[r]), entries)]
+        incoming = exchange(kind, rounds, outgoing)
+        rounds += 1
+        for q, entries in incoming.items():
+            parts: dict[int, dict] = {}
+            for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
+                if InitStage(e.stage) == kind:
+                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
+                        np.asarray(e.value, float).ravel()
+            for o, by_index in parts.items():
+                chunks = sorted(by_index.items())
+                flat = np.concatenate([v for _, v in chunks])
+                if [k for k, _ in chunks] != list(range(len(chunks))) or \
+                        flat.size < 1 + int(round(flat[0])):
+                    missing(f"robot {o}'s condensed system reached robot {q} incomplete")
+                bundles[q][o] = flat[1:1 + int(round(flat[0]))]
+    if len(bundles[tree.root]) != R:
+        missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
+                 f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
+    return bundles[tree.root], rounds
+
+
+def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
+                    ) -> tuple[dict, np.ndarray, bool]:
+    """Step 2: the root assembles ``Σ S_r``, ``Σ g_r`` from the gathered vectors and solves;
+    returns ``{boundary vertex: (b, ncol) value}``, the (R, nscalars) scalars by robot and
+    whether ``Σ S_r`` is positive definite (its LU pivots, no pivoting, all positive)."""
+    unpacked = [_unpack(bundle[o], b, ncol, nscalars) for o in sorted(bundle)]
+    Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
+    rows, cols, vals = [], [], []
+    g_glob = np.zeros((Bglob.size * b, ncol))
+    for B, g, pieces, _ in unpacked:
+        at = np.searchsorted(Bglob, B)
+        np.add.at(g_glob, expand(at, b), g)
+        for loc_idx, P in pieces:
+            idx = expand(at[loc_idx], b)
+            rows.append(np.repeat(idx, idx.size))
+            cols.append(np.tile(idx, idx.size))
+            vals.append(P.ravel())
+    X_B, pd = np.zeros_like(g_glob), True
+    if Bglob.size:
+        S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                               shape=(Bglob.size * b,) * 2)
+        lu = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        X_B, pd = lu.solve(g_glob), bool(np.all(lu.U.diagonal() > 0))
+    X_B = X_B.reshape(Bglob.size, b, ncol)
+    scalars = np.array([u[3] for u in unpacked]).reshape(len(unpacked), nscalars)
+    return {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}, scalars, pd
+
+
+def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict, exchange,
+            kind: InitStage, to_entry: Callable, from_entry: Callable, rounds: int,
+            extra: list | None = None) -> tuple[list[dict], list[list], int]:
+    """Step 3: each link carries the boundary values its subtree needs as ``kind`` entries
+    (``to_entry(v, X_v)`` / ``from_entry(entry)``), plus the root's ``extra`` entries (which
+    every robot receives). Returns per robot ``{vertex: value}`` and its extra entries."""
+    R = len(boundaries)
+    known: list[dict] = [dict() for _ in range(R)]
+    known[tree.root] = dict(root_values)
+    others: list[dict] = [dict() for _ in range(R)]  # keyed: a duplicated datagram repeats
+    others[tree.root] = {(int(e.stage), int(e.owner_robot), int(e.keyframe_id)): e
+                         for e in extra or []}
+    for level in range(1, tree.height + 1):
+        outgoing: dict[int, list] = {}
+        for c in np.flatnonzero(tree.depth == level):
+            p = int(tree.parent[c])
+            need = np.unique(np.concatenate([boundaries[q] for q in tree.subtree(int(c))]))
+            outgoing.setdefault(p, []).append(
+                (int(c), [to_entry(int(v), known[p][int(v)]) for v in need.tolist()]
+                 + list(others[p].values())))
+        incoming = exchange(kind, rounds, outgoing)
+        rounds += 1
+        for q, entries in incoming.items():
+            for e in entries:
+                if InitStage(e.stage) == kind:
+                    known[q][int(e.keyframe_id)] = from_entry(e)
+                else:
+                    others[q][(int(e.stage), int(e.owner_robot), int(e.keyframe_id))] = e
+    for r, B in enumerate(boundaries):
+        lost = [int(v) for v in B.tolist() if int(v) not in known[r]]
+        if lost:
+            missing(f"robot {r} did not receive the boundary values {lost[:5]}")
+    return known, [list(o.values()) for o in others], rounds
+
+
+def boundary_values(loc: Condensed, known: dict, ncol: int) -> np.ndarray:
+    """The (|B|·b, ncol) stacked values of the robot's boundary from ``known``."""
+    return np.concatenate([known[int(v)] for v in loc.B.tolist()]) if loc.B.size else \
+        np.zeros((0, ncol))
+
+
 def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray,
                  M: np.ndarray, c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
                  X_gauge: np.ndarray, exchange, schur_kind: InitStage, value_kind: InitStage,
@@ -291,88 +424,23 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
     """Solve the stage exactly (module docstring). Returns each robot's view ((n·b, ncol):
     its own vertices and anchors solved, the rest ``X0``) and the rounds used. ``to_entry(v,
     X_v)`` / ``from_entry(entry)`` convert one separator value to / from its init entry."""
-    R = partition.num_robots
     ncol = X0.shape[1]
     tree = tree or robot_tree(partition)
-    locs = [_local(p, partition, n, b, edges, M, c_of(p.robot_id), w, gauge, X_gauge)
-            for p in partition.parts]
-    rounds = 0
-    # 1. gather: bundles[r] = {origin robot: packed floats} known at r
-    bundles = [{r: _pack(locs[r], b)} for r in range(R)]
-    for level in range(tree.height, 0, -1):
-        outgoing: dict[int, list] = {}
-        for r in np.flatnonzero(tree.depth == level):
-            entries = [InitEntry(schur_kind, int(o), k, ch)
-                       for o, flat in sorted(bundles[r].items())
-                       for k, ch in enumerate(_chunks(flat, d))]
-            outgoing[int(r)] = [(int(tree.parent[r]), entries)]
-        incoming = exchange(schur_kind, rounds, outgoing)
-        rounds += 1
-        for q, entries in incoming.items():
-            parts: dict[int, dict] = {}
-            for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
-                if InitStage(e.stage) == schur_kind:
-                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
-                        np.asarray(e.value, float).ravel()
-            for o, by_index in parts.items():
-                chunks = sorted(by_index.items())
-                flat = np.concatenate([v for _, v in chunks])
-                if [k for k, _ in chunks] != list(range(len(chunks))) or \
-                        flat.size < 1 + int(round(flat[0])):
-                    _missing(f"robot {o}'s condensed system reached robot {q} incomplete")
-                bundles[q][o] = flat[1:1 + int(round(flat[0]))]
-    # 2. the root assembles Σ S_r, Σ g_r and solves
-    root = tree.root
-    if len(bundles[tree.root]) != R:
-        _missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
-                 f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
-    unpacked = [_unpack(bundles[root][o], b, ncol) for o in range(R)]
-    Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
-    rows, cols, vals = [], [], []
-    g_glob = np.zeros((Bglob.size * b, ncol))
-    for B, g, pieces, _ in unpacked:
-        at = np.searchsorted(Bglob, B)
-        np.add.at(g_glob, _expand(at, b), g)
-        for loc_idx, P in pieces:
-            idx = _expand(at[loc_idx], b)
-            rows.append(np.repeat(idx, idx.size))
-            cols.append(np.tile(idx, idx.size))
-            vals.append(P.ravel())
-    X_B = np.zeros_like(g_glob)
-    if Bglob.size:
-        S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                               shape=(Bglob.size * b,) * 2)
-        X_B = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                        options={"SymmetricMode": True}).solve(g_glob)
-    X_B = X_B.reshape(Bglob.size, b, ncol)
-    # 3. scatter: known[r] = {vertex: value} the robot holds
-    known = [dict() for _ in range(R)]
-    known[root] = {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}
-    for level in range(1, tree.height + 1):
-        outgoing = {}
-        for c in np.flatnonzero(tree.depth == level):
-            p = int(tree.parent[c])
-            need = np.unique(np.concatenate([locs[q].B for q in tree.subtree(int(c))]))
-            outgoing.setdefault(p, []).append(
-                (int(c), [to_entry(int(v), known[p][int(v)]) for v in need.tolist()]))
-        incoming = exchange(value_kind, rounds, outgoing)
-        rounds += 1
-        for q, entries in incoming.items():
-            for e in entries:
-                if InitStage(e.stage) == value_kind:
-                    known[q][int(e.keyframe_id)] = from_entry(e)
-    # 4. back-substitution of each robot's interior
-    views = []
+    locs = []
+    for p in partition.parts:
+        Q, rhs = _stage_share(p, n, b, edges, M, c_of(p.robot_id), w)
+        locs.append(condense(p, partition, Q, rhs, b, gauge, X_gauge))
+    bundle, rounds = gather(tree, [pack(loc, b) for loc in locs], d, exchange, schur_kind, 0)
+    root_values, _, _ = solve_interface(bundle, b, ncol)
+    known, _, rounds = scatter(tree, [loc.B for loc in locs], root_values, exchange, value_kind,
+                               to_entry, from_entry, rounds)
+    views = []  # 4. back-substitution of each robot's interior
     for r, loc in enumerate(locs):
-        lost = [int(v) for v in loc.B.tolist() if int(v) not in known[r]]
-        if lost:
-            _missing(f"robot {r} did not receive the separator values {lost[:5]}")
         view = X0.copy()
-        view[_expand(np.array([gauge]), b)] = X_gauge
-        Xb = np.concatenate([known[r][int(v)] for v in loc.B.tolist()]) if loc.B.size else \
-            np.zeros((0, ncol))
-        view[_expand(loc.B, b)] = Xb
+        view[expand(np.array([gauge]), b)] = X_gauge
+        Xb = boundary_values(loc, known[r], ncol)
+        view[expand(loc.B, b)] = Xb
         if loc.I.size:
-            view[_expand(loc.I, b)] = loc.lu.solve(loc.rhs_I - loc.Q_IB @ Xb)
+            view[expand(loc.I, b)] = loc.back_substitute(Xb)
         views.append(view)
     return views, rounds

@@ -223,9 +223,42 @@ def default_init_params(links: BusParams | None = None, partitions=()):
     datagrams (that protocol needs every message; the block iterations tolerate losses)."""
     from dran_edge.dran.dist_init import InitParams
 
-    lossy = bool(partitions) or (links is not None and (
-        links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values())))
+    lossy = bool(partitions) or _lossy(links)
     return InitParams(gauss_seidel=True, direct="never" if lossy else "auto")
+
+
+def _lossy(links: BusParams | None) -> bool:
+    return links is not None and (
+        links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values()))
+
+
+def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> dict:
+    """``run_g2o_dran``'s refinement (``exact_gn.refine`` over the fleet's bus): {} when
+    ``params`` is None, else the ``refine_*`` numbers and ``poses_refined``."""
+    from dran_edge.dran import exact_gn
+
+    if params is None:
+        return {}
+    r0, b0 = fleet.round, fleet.traffic.bytes_total
+    sent = [b0]  # bytes after each exchange
+
+    def exchange(stage, iteration: int, outgoing: dict) -> dict:
+        incoming = fleet.init_exchange(stage, iteration, outgoing)
+        sent.append(fleet.traffic.bytes_total)
+        return incoming
+
+    if lossy:
+        res = exact_gn.RefineResult(poses.copy(), False, reason="lossy links")
+    else:
+        res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
+                              poses, exchange, params)
+    return {"poses_refined": res.poses, "refine_mode": params.mode, "refine_used": res.used,
+            "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
+            "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
+            "refine_trials": res.trials, "refine_F_history": res.F_history,
+            "refine_converged": res.converged,
+            "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
+            "refine_step_over_round_floats": res.ratio_floats}
 
 
 def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop: str = "steps"):
@@ -256,7 +289,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
                  links: BusParams | None = None, partitions=(), callback=None,
                  schedule: str = "parallel", delta_every: int = 0,
                  initial_poses: np.ndarray | None = None, partition=None,
-                 stop: bool = True) -> dict:
+                 stop: bool = True, refine=None) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
     network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
@@ -266,7 +299,14 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     distributed init (no init rounds or bytes). ``partition`` (a ``partition.Partition`` of
     ``num_robots`` robots): use this split instead of the contiguous one. ``stop=False``: run
     all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
-    record where it fired, via ``callback``). The result also holds ``poses_init``."""
+    record where it fired, via ``callback``). The result also holds ``poses_init``.
+    ``refine`` (an ``exact_gn.RefineParams``): after the init, exact distributed LM steps over
+    the same bus (``dran_edge.dran.exact_gn``; not over lossy links, which its tree protocol
+    cannot take); the result then also holds ``refine_*`` numbers (``refine_curve``: (rounds,
+    bytes since the init, F as the root summed it) at every accepted point), ``objective_refined``
+    and ``poses_refined``, where DRAN starts. A refinement that stopped on its relative-decrease
+    test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
+    (``stopped_by`` "refine")."""
     import dataclasses
     import types
 
@@ -292,6 +332,11 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)
+    start, refined = init.poses, _refine(g, part, init.poses, kappa, tau, fleet, refine,
+                                         lossy=bool(partitions) or _lossy(links))
+    if refined:
+        start = refined["poses_refined"]
+        refined["objective_refined"] = F(start)
     agents = []
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
     K = stop_rounds_for(bus, config)
@@ -299,30 +344,33 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
                                   colour=int(colour[r]), colours=int(colour.max()) + 1,
                                   stop_rounds=K)
-        prob = LocalProblem.from_partition(g, part, r, init.poses, kappa, tau, cfg.residual)
+        prob = LocalProblem.from_partition(g, part, r, start, kappa, tau, cfg.residual)
         agent = Agent(cfg, prob, weights=W[r])
         # the init's last exchange left every robot with its neighbours' separators
         for p in part.parts:
             if p.robot_id == r:
                 continue
             for v in p.vertices[np.isin(p.vertices, part.parts[r].anchors)].tolist():
-                agent.anchors[(p.robot_id, v)] = init.poses[v].copy()
+                agent.anchors[(p.robot_id, v)] = start[v].copy()
         agents.append(agent)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
-    rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
-    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
-    merged = init.poses.copy()
+    if stop and refined.get("refine_converged"):  # the root's global test already held
+        rounds, reasons = 0, ["refine"]
+    else:
+        rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
+        reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
+    merged = start.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
-    return {
+    return refined | {
         "poses": merged,
         "poses_init": init.poses,
         "rounds": rounds,
         "stopped_by": "+".join(reasons) if rounds < cap else None,
         "init_rounds": init_rounds,
-        "rounds_total": init_rounds + rounds,
+        "rounds_total": init_rounds + refined.get("refine_rounds", 0) + rounds,
         "bytes_init": init_bytes,
         "bytes_total": fleet.traffic.bytes_total,
         "datagrams": fleet.traffic.datagrams,

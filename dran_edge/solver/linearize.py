@@ -28,7 +28,7 @@ class Linearization:
     """Σ ½ ρ(‖W r‖²) at the linearisation point."""
 
 
-def _block_normal_equations(
+def block_normal_equations(
     block: Factor, poses: np.ndarray, exact_hessian: bool = False
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """(JᵀJ blocks (m, kd, kd), Jᵀr (m, kd), cost) of one factor block, with IRLS weights; with
@@ -65,7 +65,7 @@ def linearize(
     """
     Hs, gs, cost = [], [], 0.0
     for block in graph.factors:
-        H, g, c = _block_normal_equations(block, poses, exact_hessian)
+        H, g, c = block_normal_equations(block, poses, exact_hessian)
         Hs.append(H.ravel())
         gs.append(g.ravel())
         cost += c

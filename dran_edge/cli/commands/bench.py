@@ -65,6 +65,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="distributed init per stage: solve it exactly by substructuring where "
                         "that costs at most 20 block iterations' values (auto, default), always, "
                         "or block Gauss-Seidel iterations only (never; docs/dran.md)")
+    _add_refine_options(g)
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
     o = sub.add_parser("objects", help="object simulation sweeps",
@@ -154,10 +155,34 @@ def _add_suite_parser(sub) -> None:
     s.add_argument("--init", choices=("auto", "always", "never"), default="auto",
                    help="InitParams.direct: substructured exact init where it is cheap (auto), "
                         "always, or the block Gauss-Seidel iterations only (never)")
+    _add_refine_options(s)
     s.add_argument("--no-dgs", action="store_true", help="skip the DGS baseline")
     s.add_argument("-o", "--out", metavar="DIR", default=None,
                    help="write suite.json, suite.md and the plots (suite_FAMILY.png) here")
     s.add_argument("--json", action="store_true", help="print one JSON object per graph")
+
+
+def _add_refine_options(p) -> None:
+    p.add_argument("--refine", choices=("off", "auto", "always"), default="off",
+                   help="exact distributed Levenberg-Marquardt steps by substructuring after the "
+                        "init (dran_edge/dran/exact_gn.py, docs/dran.md): auto where one step "
+                        "costs at most 100 rounds' separator values, always, or off (default)")
+    p.add_argument("--refine-steps", type=int, default=20, metavar="K",
+                   help="at most K refinement trials after the start point (default 20)")
+    p.add_argument("--refine-tol", type=float, default=1e-5,
+                   help="stop refining after an accepted step lowering F by less than this "
+                        "fraction (default 1e-5)")
+
+
+def _refine_params(args):
+    from dran_edge.dran.exact_gn import RefineParams
+    from dran_edge.errors import InputError
+
+    if args.refine == "off":
+        return None
+    if args.refine_steps < 0:
+        raise InputError(f"--refine-steps must be at least 0, got {args.refine_steps}")
+    return RefineParams(mode=args.refine, max_steps=args.refine_steps, rel_tol=args.refine_tol)
 
 
 def run_g2o(args) -> int:
@@ -185,7 +210,7 @@ def run_g2o(args) -> int:
             bar("DRAN rounds", k, args.max_rounds or k)
 
         res = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, callback=cb,
-                           init_params=init_params, **run_kw)
+                           init_params=init_params, refine=_refine_params(args), **run_kw)
     else:
         res = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY,
                           init_params=init_params)
@@ -193,7 +218,10 @@ def run_g2o(args) -> int:
         write_g2o(args.out, g, res["poses"])
     report = {"dataset": Path(args.dataset).stem, "method": args.method, "robots": args.robots,
               "init": args.init}
-    report.update({k: v for k, v in res.items() if k not in ("poses", "poses_init")})
+    if args.refine != "off":
+        report["refine"] = args.refine
+    report.update({k: v for k, v in res.items()
+                   if k not in ("poses", "poses_init", "poses_refined")})
     report.update(_reference(g, res, skip=args.no_reference))
     if args.json:
         print(json.dumps(report))
@@ -328,14 +356,16 @@ def run_suite_cmd(args) -> int:
     rows = []
     for k, case in enumerate(cases):
         note(f"[{k + 1}/{len(cases)}] {case.name}")
-        row = suite.run_case(case, rounds=rounds, init_direct=args.init, dgs=not args.no_dgs)
+        row = suite.run_case(case, rounds=rounds, init_direct=args.init, dgs=not args.no_dgs,
+                             refine=_refine_params(args))
         rows.append(row)
         if args.json:
             print(json.dumps({k: v for k, v in row.items() if k != "curve"}), flush=True)
         if args.out:  # after every graph: a long run leaves its partial results
             Path(args.out).mkdir(parents=True, exist_ok=True)
             (Path(args.out) / "suite.json").write_text(json.dumps(
-                {"rounds": rounds, "init": args.init, "rows": rows}, indent=1))
+                {"rounds": rounds, "init": args.init, "refine": args.refine,
+                 "rows": rows}, indent=1))
     table = suite.markdown_table(rows)
     worst = suite.worst_by_family(rows)
     if not args.json:
@@ -348,6 +378,7 @@ def run_suite_cmd(args) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "suite.json").write_text(json.dumps({"rounds": rounds, "init": args.init,
+                                                    "refine": args.refine,
                                                     "rows": rows, "worst": worst}, indent=1))
         (out / "suite.md").write_text(table + "\n")
         suite.plot(rows, out)
