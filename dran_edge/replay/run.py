@@ -438,7 +438,7 @@ def _metrics(run: rd.Run) -> dict:
     from dran_edge.evaluation.score import EvalOptions, evaluate_run
 
     try:
-        ev = evaluate_run(run.root, EvalOptions(plots=False))
+        ev = evaluate_run(run.root, EvalOptions(plots=False)).report
     except InputError as exc:
         log.warning("evaluation failed: %s", exc)
         return {"evaluation_error": str(exc)}
