@@ -147,13 +147,13 @@ def _ingest_records(run: rd.Run, name: str) -> tuple[list[bytes], np.ndarray, Co
 def _perceived_records(run: rd.Run, name: str) -> list[tuple[int, bytes]]:
     """Observation records of the robot's recorded frames, by replay's perception pipeline."""
     from dran_edge.comms.ingest import iter_records
-    from dran_edge.replay.run import _perceive_window
+    from dran_edge.replay.perception import perceive_window
 
     cfg = run.load_config(name)
     if cfg.camera.source != "recorded" or run.frames_dir(name) is None:
         return []
     calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
-    _, _, records, _ = _perceive_window((str(run.config_path(name)), str(calib), name, 0,
+    _, _, records, _ = perceive_window((str(run.config_path(name)), str(calib), name, 0,
                                          2**63 - 1))
     out = []
     for raw in records:
