@@ -25,6 +25,7 @@ import logging
 import time
 from collections import defaultdict
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,11 @@ from dran_edge.dran.consensus import metropolis_hastings_matrix
 from dran_edge.errors import DecodeError
 from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
 from dran_edge.messages import InitStage, NeighbourMessage
+
+if TYPE_CHECKING:
+    from dran_edge.config import AgentConfig
+    from dran_edge.dran.partition import Partition
+    from dran_edge.formats.g2o import G2oGraph
 
 log = logging.getLogger(__name__)
 
@@ -251,6 +257,31 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop:
     return cfg, kw
 
 
+def _table1_agents(g: G2oGraph, part: Partition, init_poses: np.ndarray,
+                   W: list[dict[int, float]], config: AgentConfig, colour: np.ndarray, stop_rounds: int, kappa: np.ndarray,
+                   tau: np.ndarray) -> list[Agent]:
+    """One agent per part of the split, started at ``init_poses`` and holding its neighbours'
+    separators (the distributed init's last exchange left every robot with them)."""
+    import dataclasses
+
+    from dran_edge.dran.agent import LocalProblem
+
+    agents = []
+    for r in range(len(part.parts)):
+        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
+                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
+                                  stop_rounds=stop_rounds)
+        prob = LocalProblem.from_partition(g, part, r, init_poses, kappa, tau, cfg.residual)
+        agent = Agent(cfg, prob, weights=W[r])
+        for p in part.parts:
+            if p.robot_id == r:
+                continue
+            for v in p.vertices[np.isin(p.vertices, part.parts[r].anchors)].tolist():
+                agent.anchors[(p.robot_id, v)] = init_poses[v].copy()
+        agents.append(agent)
+    return agents
+
+
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
                  links: BusParams | None = None, partitions=(), callback=None,
                  schedule: str = "parallel", delta_every: int = 0,
@@ -266,10 +297,8 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     ``num_robots`` robots): use this split instead of the contiguous one. ``stop=False``: run
     all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
     record where it fired, via ``callback``). The result also holds ``poses_init``."""
-    import dataclasses
     import types
 
-    from dran_edge.dran.agent import LocalProblem
     from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
@@ -291,22 +320,9 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)
-    agents = []
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
-    K = stop_rounds_for(bus, config)
-    for r in range(num_robots):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
-                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
-                                  stop_rounds=K)
-        prob = LocalProblem.from_partition(g, part, r, init.poses, kappa, tau, cfg.residual)
-        agent = Agent(cfg, prob, weights=W[r])
-        # the init's last exchange left every robot with its neighbours' separators
-        for p in part.parts:
-            if p.robot_id == r:
-                continue
-            for v in p.vertices[np.isin(p.vertices, part.parts[r].anchors)].tolist():
-                agent.anchors[(p.robot_id, v)] = init.poses[v].copy()
-        agents.append(agent)
+    agents = _table1_agents(g, part, init.poses, W, config, colour,
+                            stop_rounds_for(bus, config), kappa, tau)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
