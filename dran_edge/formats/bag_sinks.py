@@ -261,7 +261,8 @@ class MocapSink:
     def write(self, path: Path, up_axis: str, order: list[str]) -> int | None:
         """Write the CSV (bodies in ``order``); returns the stamp of its time 0 (None: no pose)."""
         from dran_edge import geometry as geo
-        from dran_edge.formats.motive import _up_rotation, make_take, write_motive_csv
+        from dran_edge.formats.motive import up_rotation
+        from dran_edge.formats.motive_write import make_take, write_motive_csv
 
         bodies = [b for b in order if self.stamps.get(b)]
         if not bodies:
@@ -272,7 +273,7 @@ class MocapSink:
         rows = all_s[keep]
         t0 = int(rows[0])
         R_up = np.eye(4)
-        R_up[:3, :3] = _up_rotation(up_axis)
+        R_up[:3, :3] = up_rotation(up_axis)
         poses = {}
         for b in bodies:
             s = np.asarray(self.stamps[b], np.int64)

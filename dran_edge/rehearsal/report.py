@@ -17,7 +17,8 @@ import numpy as np
 from dran_edge.rehearsal import faults as fl
 
 if TYPE_CHECKING:
-    from dran_edge.rehearsal.fleet import Fleet, RehearsalOptions, _Daemon
+    from dran_edge.rehearsal.fleet import Fleet, RehearsalOptions
+    from dran_edge.rehearsal.robot_daemon import RobotDaemon
     from dran_edge.robot.core import RobotCore
 
 log = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ def round_row(k: int, stamp_ns: int, statuses: dict[int, dict]) -> dict:
             "converged_robots": conv, "datagrams_lost": 0}
 
 
-def _record_counts(d: _Daemon) -> Counter:
+def _record_counts(d: RobotDaemon) -> Counter:
     """Multiset of the raw records the daemon applied, from its ``--record`` stream (a record
     re-applied from the journal after a crash appears twice there)."""
     from dran_edge.comms.ingest import IngestDecodeError, iter_records
@@ -75,7 +76,7 @@ def _record_counts(d: _Daemon) -> Counter:
                    if not isinstance(item, IngestDecodeError))
 
 
-def _accounting(d: _Daemon) -> dict:
+def _accounting(d: RobotDaemon) -> dict:
     """Nothing accepted is lost: every record a daemon reported as accepted (its status'
     ``ingest.records`` at the last poll on that connection) was applied, by that daemon or,
     after a crash, by its successor from the journal."""

@@ -222,7 +222,7 @@ def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
         rd.write_yaml(d / "robot.yaml", _robot_config(m, r, render),
                       header=f"{r.name}: config used for this run (docs/config.md)")
     # mocap
-    from dran_edge.formats.motive import make_take, write_motive_csv
+    from dran_edge.formats.motive_write import make_take, write_motive_csv
 
     take = make_take(m.mocap_time_s, sim.mocap_poses(m), take_name="simulated",
                      frame_rate_hz=m.params.mocap_rate_hz)
