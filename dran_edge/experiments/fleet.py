@@ -25,7 +25,7 @@ import logging
 import time
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -141,7 +141,8 @@ class Fleet:
             self.sequence[sender] += len(grams)
             return grams
 
-        grams = None if self.delta_every else encode()
+        # with deltas, one encoding per link below
+        grams: list[Any] = [] if self.delta_every else encode()
         for q in to:
             if self.ids[q] not in up:
                 continue
@@ -297,8 +298,6 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     ``num_robots`` robots): use this split instead of the contiguous one. ``stop=False``: run
     all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
     record where it fired, via ``callback``). The result also holds ``poses_init``."""
-    import types
-
     from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
@@ -312,28 +311,28 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     W = neighbour_weights(bus)
     fleet = Fleet([], bus, delta_every=delta_every)
     if initial_poses is not None:
-        init = types.SimpleNamespace(poses=np.asarray(initial_poses, np.float64).copy())
+        init_poses = np.asarray(initial_poses, np.float64).copy()
     else:
-        init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
-                                        part, fleet.init_exchange,
-                                        init_params or default_init_params(links, partitions))
+        init_poses = distributed_chordal_init(
+            g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
+            fleet.init_exchange, init_params or default_init_params(links, partitions)).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
-    F_init = F(init.poses)
+    F_init = F(init_poses)
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
-    agents = _table1_agents(g, part, init.poses, W, config, colour,
+    agents = _table1_agents(g, part, init_poses, W, config, colour,
                             stop_rounds_for(bus, config), kappa, tau)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
     rounds = fleet.run(cap, min_rounds=1 if stop else cap, callback=callback)
     reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
-    merged = init.poses.copy()
+    merged = init_poses.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
     return {
         "poses": merged,
-        "poses_init": init.poses,
+        "poses_init": init_poses,
         "rounds": rounds,
         "stopped_by": "+".join(reasons) if rounds < cap else None,
         "init_rounds": init_rounds,

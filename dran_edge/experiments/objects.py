@@ -145,10 +145,10 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         T_gt = geo.se3_from_rt(_look_along(d + 1e-9), P)
         n = T_gt.shape[0]
         Z_odo = geo.se3_between(T_gt[:-1], T_gt[1:]) @ _noise(rng, n - 1, sr, st)
-        x0 = [T_gt[0]]
+        chain = [T_gt[0]]
         for Z in Z_odo:
-            x0.append(x0[-1] @ Z)
-        x0 = np.stack(x0)
+            chain.append(chain[-1] @ Z)
+        x0 = np.stack(chain)
         dist = np.linalg.norm(P[:, None, :] - obj_t[None], axis=2)
         pi, oi = np.nonzero(dist < params.range_m)
         Z_obs = geo.se3_between(T_gt[pi], gt_objects[oi]) @ _noise(rng, pi.size, sr, st)
@@ -199,7 +199,7 @@ def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGrap
     off = np.concatenate([[0], np.cumsum(sizes)])
     M = sc.params.num_objects
     N = off[-1] + M
-    blocks = []
+    blocks: list[BetweenFactors | PriorFactors] = []
     x0 = [p.x0 for p in sc.problems]
     y0 = np.broadcast_to(np.eye(4), (M, 4, 4)).copy()
     seen = np.zeros(M, bool)
@@ -217,7 +217,8 @@ def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGrap
             if not seen[oid]:
                 y0[oid] = p.x0[p.obs_own[k]] @ p.obs_T[k]
                 seen[oid] = True
-    graph = PoseGraph(3, kinds_array(N), tuple(blocks))
+    # frozen factor dataclasses against Factor's settable attributes (solver/factors.py)
+    graph = PoseGraph(3, kinds_array(N), tuple(blocks))  # type: ignore[arg-type]
     return graph, np.concatenate(x0 + [y0]), off
 
 

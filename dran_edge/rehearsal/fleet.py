@@ -202,7 +202,8 @@ class Fleet:
                     st = query_status(d.status_path, timeout_s=1.0)
                 except DranError:
                     continue
-                if st.get("state") == "running" and st.get("pid") == d.proc.pid:
+                pid = d.proc.pid if d.proc is not None else None
+                if st.get("state") == "running" and st.get("pid") == pid:
                     waiting.remove(d)
             if waiting and time.monotonic() > end:
                 raise DranError(f"daemons not up after {timeout_s:g} s: "
@@ -219,7 +220,7 @@ class Fleet:
         for d in self.daemons.values():
             if d.proc is not None and d.proc.poll() is None:
                 d.proc.send_signal(signal.SIGTERM)
-        codes = {}
+        codes: dict[str, int | None] = {}
         end = time.monotonic() + timeout_s
         for d in self.daemons.values():
             if d.proc is None:

@@ -59,13 +59,15 @@ class RobotDaemon:
         return self.runtime_dir / "status.sock"
 
 
-def ingest_records(run: rd.Run, name: str) -> tuple[list[bytes], np.ndarray, Counter]:
+def ingest_records(run: rd.Run, name: str) -> tuple[list[bytes], np.ndarray, Counter[str]]:
     """The robot's records (raw bytes) and release stamps: a record goes out once the mission
     clock passes its stamp and every earlier record's (file order is kept, as replay does)."""
     from dran_edge.comms.ingest import IngestDecodeError, iter_records
     from dran_edge.replay.robots import event_stamp
 
-    raws, stamps, rejected = [], [], Counter()
+    raws: list[bytes] = []
+    stamps: list[int] = []
+    rejected: Counter[str] = Counter()
     release = 0
     for item in iter_records(run.read_ingest(name)):
         if isinstance(item, IngestDecodeError):

@@ -232,12 +232,12 @@ def make_world(p: SimParams, rng: np.random.Generator) -> World:
     spacing = p.arena_m / max(cols, rows)
     cells = [(r, c) for r in range(rows) for c in range(cols)]
     chosen = rng.permutation(len(cells))[: p.objects]
-    xy = []
+    centres = []
     for k in sorted(chosen.tolist()):
         r, c = cells[k]
         jitter = rng.uniform(-0.2, 0.2, size=2) * spacing
-        xy.append([(c + 0.5) * spacing + jitter[0], (r + 0.5) * spacing + jitter[1]])
-    xy = np.asarray(xy) - p.arena_m / 2
+        centres.append([(c + 0.5) * spacing + jitter[0], (r + 0.5) * spacing + jitter[1]])
+    xy = np.asarray(centres) - p.arena_m / 2
     yaw = rng.uniform(-math.pi, math.pi, size=p.objects)
     T = yaw_pose(xy[:, 0], xy[:, 1], p.box_size_m / 2, yaw)
     return World(np.arange(p.objects), T, p.box_size_m, p.tag_size_m, face_tags(p.box_size_m))

@@ -29,7 +29,11 @@ from dran_edge.errors import DependencyError
 from dran_edge.viz import messages as vm
 
 
-def _foxglove():
+Track = tuple[np.ndarray, np.ndarray]
+"""(stamps_ns, T_world_body (n, 4, 4))."""
+
+
+def _foxglove() -> Any:
     try:
         import foxglove
     except ImportError:
@@ -38,10 +42,10 @@ def _foxglove():
     return foxglove
 
 
-def _channels(foxglove, ctx, names: list[str], with_mocap: bool) -> dict:
+def _channels(foxglove: Any, ctx: Any, names: list[str], with_mocap: bool) -> dict[str, Any]:
     from foxglove.channels import PosesInFrameChannel, SceneUpdateChannel
 
-    ch = {}
+    ch: dict[str, Any] = {}
     for n in names:
         ch[f"/{n}/path"] = PosesInFrameChannel(f"/{n}/path", context=ctx)
         ch[f"/{n}/path_init"] = PosesInFrameChannel(f"/{n}/path_init", context=ctx)
@@ -56,8 +60,10 @@ def _channels(foxglove, ctx, names: list[str], with_mocap: bool) -> dict:
     return ch
 
 
-def _mocap(run: rd.Run):
-    """(time offset to add to mocap seconds -> robot ns, robot paths, object poses) or None."""
+def _mocap(run: rd.Run
+           ) -> tuple[dict[str, Track], dict[int, np.ndarray]] | None:
+    """(robot paths {name: (stamps_ns, T_world_body)} in the robots' clock, object poses
+    {id: T_world_object}) of the run's mocap, or None without one."""
     from dran_edge import geometry as geo
     from dran_edge.formats import motive
 
@@ -82,10 +88,6 @@ def _mocap(run: rd.Run):
             first = int(np.argmax(b.valid))
             objects[o.id] = b.T_world_marker[first] @ geo.se3_inverse(o.T_object_marker)
     return paths, objects
-
-
-Track = tuple[np.ndarray, np.ndarray]
-"""(stamps_ns, T_world_body (n, 4, 4))."""
 
 
 class _Log:
