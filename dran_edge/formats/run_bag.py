@@ -309,11 +309,11 @@ def _robot_mapping(run, r, prefix, topics, used, per_robot, ext) -> dict:
 
 
 def _write_mocap(run: rd.Run, bag: _BagOut, msgs: _Msgs) -> dict[str, str]:
-    from dran_edge.formats.motive import _up_rotation, read_motive_csv
+    from dran_edge.formats.motive import read_motive_csv, up_rotation
 
     take = read_motive_csv(run.mocap_path, up_axis=run.mission.mocap_up_axis)
     R_motive_world = np.eye(4)
-    R_motive_world[:3, :3] = _up_rotation(run.mission.mocap_up_axis).T
+    R_motive_world[:3, :3] = up_rotation(run.mission.mocap_up_axis).T
     start = run.mission.mocap_start_ns or run.mission.start_ns
     stamps = start + np.round(take.time_s * 1e9).astype(np.int64)
     bodies = {}
