@@ -20,7 +20,8 @@ otherwise merged.g2o solved centrally (:mod:`dran_edge.evaluation.centralized`, 
 SR_cost's SE-Sync costs F_init, F_k and F*); without merged.g2o, ``cost_init / cost_final /
 cost_centralized`` of out/report.json. Per round, SR_cost needs the latter (the convention of
 rounds.csv's cost column). One trajectory alone is scored by
-:mod:`dran_edge.evaluation.traj_score`; the plots are drawn by :mod:`dran_edge.evaluation.plots`.
+:mod:`dran_edge.evaluation.traj_score`; the multi-robot metrics are in
+:mod:`dran_edge.evaluation.fleet_metrics`, the plots in :mod:`dran_edge.evaluation.plots`.
 """
 
 from __future__ import annotations
@@ -33,10 +34,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dran_edge import geometry as geo
 from dran_edge.errors import InputError
 from dran_edge.evaluation import align, metrics
 from dran_edge.evaluation.centralized import centralized_from_g2o
+from dran_edge.evaluation.fleet_metrics import ObjectPlotData, inter_robot_errors, object_maps
 from dran_edge.evaluation.report import json_safe, summary_markdown
 from dran_edge.evaluation.run_inputs import (
     RobotTracks,
@@ -44,7 +45,6 @@ from dran_edge.evaluation.run_inputs import (
     read_ground_truth,
     read_replay_report,
 )
-from dran_edge.formats import motive
 from dran_edge.formats.run_outputs import read_rounds_csv
 
 if TYPE_CHECKING:
@@ -78,21 +78,6 @@ class EvalOptions:
     """Solve merged.g2o centrally when no centralized trajectories are given."""
     plots: bool = True
     """Write PNG plots (needs matplotlib, the ``eval`` extra)."""
-
-
-@dataclass(frozen=True)
-class ObjectPlotData:
-    """The robots' aligned object copies and the objects' ground truth, for trajectories.png."""
-
-    ids: list[int]
-    names: list[str]
-    Y: np.ndarray
-    """(robots, objects, 4, 4) aligned copies (identity where absent)."""
-    present: np.ndarray
-    """(robots, objects) bool."""
-    gt: np.ndarray
-    """(objects, 4, 4) mocap ground truth (NaN where unknown)."""
-    y_avg: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -370,8 +355,10 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     per_robot, overall, aligned = _trajectory_metrics(robots, alignments, opt)
     _success_rates(per_robot, overall, scored, notes)
     # Inter-robot relative poses at common instants (no alignment needed).
-    inter = _inter_robot(robots, aligned, offset_info.get("time_offset_s", 0.0), opt)
-    objects_rep, obj_plot = _objects(mission, robots, take, alignments.get("final", {}), notes)
+    inter = inter_robot_errors(robots, aligned, offset_info.get("time_offset_s", 0.0),
+                               opt.inter_robot_rate_hz, opt.max_gap_s)
+    objects_rep, obj_plot = object_maps(mission, robots, take, alignments.get("final", {}),
+                                        notes)
     rounds_rep = _rounds_report(rounds, round_cost_ref, replay_report, notes)
 
     report = {
@@ -392,102 +379,6 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     plot_data = RunPlotData(robots=robots, aligned=aligned, rounds=rounds, objects=obj_plot,
                             round_cost_ref=round_cost_ref, comm_graph=list(mission.comm_graph))
     return RunEvaluation(json_safe(report), plot_data)
-
-
-def _inter_robot(robots: dict[str, RobotTracks], aligned: dict[str, dict[str, np.ndarray]],
-                 offset: float, opt: EvalOptions) -> dict[str, Any]:
-    """Robot b seen from robot a, for every pair, at common instants: the aligned final
-    estimates (with the paper's per-robot frames these differ from the files)."""
-    out: dict[str, Any] = {"pairs": {}}
-    tr_all, rot_all = [], []
-    scored = [n for n in robots if "final" in aligned.get(n, {})]
-    for i, a in enumerate(scored):
-        for b in scored[i + 1:]:
-            sa, Ta = robots[a].assoc["final"].stamps_s, aligned[a]["final"]
-            sb, Tb = robots[b].assoc["final"].stamps_s, aligned[b]["final"]
-            lo, hi = max(sa[0], sb[0]), min(sa[-1], sb[-1])
-            if hi - lo < 1.0 / opt.inter_robot_rate_hz:
-                continue
-            grid = np.arange(lo, hi, 1.0 / opt.inter_robot_rate_hz)
-            Ea, oka = align.interpolate_track(sa, Ta, grid, max_gap_s=5.0)
-            Eb, okb = align.interpolate_track(sb, Tb, grid, max_gap_s=5.0)
-            Ga, gka = robots[a].ground_truth_at(grid + offset, opt.max_gap_s)
-            Gb, gkb = robots[b].ground_truth_at(grid + offset, opt.max_gap_s)
-            ok = oka & okb & gka & gkb
-            if not ok.any():
-                continue
-            r = metrics.inter_robot_error(Ea[ok], Ga[ok], Eb[ok], Gb[ok])
-            out["pairs"][f"{a}-{b}"] = r
-            t, ang = metrics.relative_errors(Ea[ok], Ga[ok], Eb[ok], Gb[ok])
-            tr_all.append(t)
-            rot_all.append(ang)
-    if tr_all:
-        t, ang = np.concatenate(tr_all), np.concatenate(rot_all)
-        out["trans_rmse_m"] = float(np.sqrt(np.mean(t * t)))
-        out["rot_rmse_deg"] = float(np.sqrt(np.mean(ang * ang)))
-    return out
-
-
-def _objects(mission: Mission, robots: dict[str, RobotTracks], take: motive.MotiveTake | None,
-             final_align: dict[str, align.Alignment], notes: list[str]
-             ) -> tuple[dict[str, Any], ObjectPlotData | None]:
-    """The report's ``objects`` section (CE, Bias, per-object errors) and the plot's data."""
-    names = list(robots)
-    ids = sorted({oid for rb in robots.values() for oid in rb.objects}
-                 | {o.id for o in mission.objects})
-    if not ids or not any(rb.objects for rb in robots.values()):
-        notes.append("objects: no out/<robot>/objects.csv; CE and Bias not computed")
-        return {}, None
-    col = {oid: k for k, oid in enumerate(ids)}
-    N, m = len(names), len(ids)
-    Y = np.tile(np.eye(4), (N, m, 1, 1))
-    present = np.zeros((N, m), bool)
-    for i, n in enumerate(names):
-        for oid, T in robots[n].objects.items():
-            Y[i, col[oid]] = T
-            present[i, col[oid]] = True
-    ce, y_avg = metrics.consistency_error(Y, present)
-    rep: dict[str, Any] = {"count": m, "copies": int(present.sum()), "ce": ce}
-    gt = np.full((m, 4, 4), np.nan)
-    if take is not None:
-        for o in mission.objects:
-            body = o.mocap_body or (o.name if o.name in take.bodies else None)
-            if body is None:
-                continue
-            if body not in take.bodies:
-                raise InputError(f"object {o.name}: mocap_body {body!r} is not a rigid body of "
-                                 f"the Motive take; it has: {', '.join(sorted(take.bodies))}",
-                                 path=take.path)
-            b = take.bodies[body]
-            if not b.valid.any():
-                notes.append(f"object {o.name}: never tracked by mocap")
-                continue
-            T = b.T_world_marker[b.valid] @ geo.se3_inverse(o.T_object_marker)
-            if o.id in col:
-                gt[col[o.id]] = metrics.frechet_mean_se3(T, np.ones(len(T)))
-    has_gt = np.all(np.isfinite(gt), axis=(-1, -2))
-    Y_al = Y.copy()
-    if final_align:
-        for i, n in enumerate(names):
-            if n in final_align:
-                Y_al[i] = final_align[n].apply(Y[i])
-    if has_gt.any():
-        rep["bias"] = metrics.object_bias(Y_al, present, gt)
-        _, y_avg_al = metrics.consistency_error(Y_al, present)
-        rep["bias_of_mean"] = metrics.object_bias_of_mean(y_avg_al, gt)
-        tr, rot = metrics.object_errors(Y_al, present, gt)
-        rep["per_object"] = {
-            str(oid): {
-                "copies": int(present[:, k].sum()),
-                "trans_err_m": {names[i]: tr[i, k] for i in range(N) if present[i, k]},
-                "rot_err_deg": {names[i]: rot[i, k] for i in range(N) if present[i, k]},
-            }
-            for oid, k in col.items() if has_gt[k]
-        }
-    else:
-        notes.append("objects: no object has a mocap rigid body; Bias not computed")
-    return rep, ObjectPlotData(ids=ids, names=names, Y=Y_al, present=present, gt=gt,
-                               y_avg=y_avg)
 
 
 # ----------------------------------------------------------------------------------- output

@@ -369,7 +369,7 @@ def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
                          "and some are not (expected all blank when occluded)",
                          path=path, line=first + r + 1)
     n = table.shape[0]
-    valid: np.ndarray = ~occluded
+    valid = np.asarray(~occluded, dtype=bool)
     nr = len(rot_axes)
     rot = values[:, :nr]
     pos_m = values[:, nr:] * scale_m
