@@ -90,7 +90,8 @@ class RunPlotData:
     rounds: dict[str, np.ndarray] | None
     objects: ObjectPlotData | None
     round_cost_ref: dict[str, float] | None
-    comm_graph: list[Any]
+    comm_graph: list[tuple[int, int]]
+    """Undirected communication links (robot id pairs): the per-link bytes of rounds.png."""
 
 
 @dataclass(frozen=True)
