@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from dran_edge.cli import app as cli
 from dran_edge.evaluation import score as evaluate
-from dran_edge.formats import motive, tum
+from dran_edge.formats import motive_write, tum
 from dran_edge.errors import InputError
 
 START_NS = 1_700_000_000_000_000_000
@@ -73,7 +73,7 @@ def make_run(root: Path, *, with_start_ns=True, rounds_text=None, robot2_body="d
     bodies["dingo1"][1200:1230] = np.nan  # a 0.25 s occlusion
     for oid, T in OBJECTS.items():
         bodies[f"box{oid}"] = np.broadcast_to(T, (len(t_m), 4, 4)).copy()
-    motive.write_motive_csv(root / "mocap.csv", motive.make_take(t_m, bodies, take_name="t"))
+    motive_write.write_motive_csv(root / "mocap.csv", motive_write.make_take(t_m, bodies, take_name="t"))
     truth = {}
     out = root / "out"
     for k, name in ((0, "dingo1"), (1, "dingo2")):
@@ -160,7 +160,7 @@ def test_eval_run_with_paper_alignment(tmp_path):
 def test_eval_run_estimates_the_clock_offset(tmp_path):
     make_run(tmp_path / "run", with_start_ns=False)
     report = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(align="se3",
-                                                                          plots=False))
+                                                                          plots=False)).report
     assert report["time"]["source"] == "estimated"
     assert report["time"]["time_offset_s"] == pytest.approx(-MOCAP_START_NS * 1e-9, abs=0.01)
     a = report["robots"]["dingo1"]["final"]["alignment"]
@@ -176,7 +176,7 @@ def test_eval_run_tolerates_missing_optional_files(tmp_path):
         p.unlink()
     for p in (out / "centralized").rglob("*.tum"):
         p.unlink()
-    report = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    report = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False)).report
     assert "sr_ate_pct" not in report["overall"]
     assert report["objects"] == {} and report["rounds"] == {}
     assert any("merged.g2o absent" in n for n in report["notes"])
@@ -274,7 +274,7 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
     (out / "merged_vertices.csv").write_text("vertex_id,kind,name,stamp_ns\n" + "\n".join(rows)
                                             + "\n")
     (out / "report.json").unlink()
-    r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False)).report
     for name in ("dingo1", "dingo2"):
         e = r["robots"][name]
         assert e["centralized"]["matched_poses"] == 40
@@ -314,11 +314,11 @@ def test_eval_run_error_when_no_robot_matches_a_body(tmp_path):
         "mocap_body: dingo2, ", ""))
     other = tmp_path / "other.csv"
     t = np.arange(0, 50, 1 / 30)
-    motive.write_motive_csv(other, motive.make_take(t, {"robotA": _track(t, 0)}))
+    motive_write.write_motive_csv(other, motive_write.make_take(t, {"robotA": _track(t, 0)}))
     with pytest.raises(InputError, match=r"no robot of mission.yaml matches a rigid body .*"
                                          r"robots: dingo1, dingo2; bodies: robotA"):
         evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False,
                                                                      mocap_path=str(other)))
     # With the run's own mocap the robots match by name, without mocap_body.
-    r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False)).report
     assert set(r["robots"]) == {"dingo1", "dingo2"}

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dran_edge.formats import motive
+from dran_edge.formats import motive, motive_write
 from dran_edge.errors import InputError
 
 DATA = Path(__file__).parent / "data" / "motive"
@@ -166,9 +166,9 @@ def test_writer_round_trip(tmp_path, rotation_type, units):
     t = np.arange(n) / 120.0
     A, B = _random_poses(rng, n), _random_poses(rng, n)
     A[[3, 4, 10]] = np.nan
-    take = motive.make_take(t, {"dingo1": A, "box0": B}, take_name="sim")
+    take = motive_write.make_take(t, {"dingo1": A, "box0": B}, take_name="sim")
     p = tmp_path / "gt.csv"
-    motive.write_motive_csv(p, take, rotation_type=rotation_type, length_units=units)
+    motive_write.write_motive_csv(p, take, rotation_type=rotation_type, length_units=units)
     raw = p.read_bytes()
     assert raw.count(b"\r\n") == n + 7
     back = motive.read_motive_csv(p)
@@ -186,9 +186,9 @@ def test_writer_header_rows_as_motive_writes_them(tmp_path):
     T = np.tile(np.eye(4), (2, 1, 1))
     T[:, :3, 3] = [1.0, 3.0, 0.2]  # ours (Z-up) -> Motive (1.0, 0.2, -3.0)
     T[:, :3, :3] = R_C  # a rigid body whose axes are Motive's world axes: identity in the file
-    take = motive.make_take([0.0, 1 / 120], {"dingo1": T}, take_name="run01")
+    take = motive_write.make_take([0.0, 1 / 120], {"dingo1": T}, take_name="run01")
     p = tmp_path / "gt.csv"
-    motive.write_motive_csv(p, take)
+    motive_write.write_motive_csv(p, take)
     lines = p.read_text().splitlines()
     assert lines[0].startswith("Format Version,1.23,Take Name,run01,Take Notes,,Capture Frame "
                                "Rate,120.000000,Export Frame Rate,120.000000,Capture Start Time,")

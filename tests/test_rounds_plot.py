@@ -6,6 +6,7 @@ import shutil
 
 import numpy as np
 
+from dran_edge.evaluation import plots
 from dran_edge.evaluation import score as evaluate
 
 
@@ -14,13 +15,13 @@ def test_round_panels_name_their_quantities():
               "consensus_error": np.array([0.1, 0.05, 0.02, 0.024]),
               "bytes_round": np.array([600.0, 300, 300, 0]),
               "bytes_total": np.array([600.0, 900, 1200, 1200])}
-    panels = evaluate.round_panels(rounds, None, n_robots=3, n_links=2)
+    panels = plots.round_panels(rounds, None, n_robots=3, n_links=2)
     titles = [t for t, _, _ in panels]
     assert "not the summary's CE" in titles[1] and "grows as the graphs grow" in titles[0]
     per = dict((t.split(":")[0], y) for t, _, y in panels)
     assert np.array_equal(per["bytes sent per round"], [[200, 100, 100, 0], [300, 150, 150, 0]])
     ref = {"F_init": 20.0, "F_star": 4.0}
-    sr = evaluate.round_panels(rounds, ref, 3, 2)[0]
+    sr = plots.round_panels(rounds, ref, 3, 2)[0]
     assert sr[1] == "SR_cost (%)" and np.allclose(sr[2], (20 - rounds["cost"]) / 16 * 100)
 
 

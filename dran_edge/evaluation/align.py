@@ -175,6 +175,71 @@ def _smooth(w, smooth_n):
     return w
 
 
+def _speed_signals(stamps_est_s: np.ndarray, T_est: np.ndarray, time_ref_s: np.ndarray,
+                   T_ref: np.ndarray, vr: np.ndarray, initial_offset_s: float, rate_hz: float,
+                   smooth_s: float, signal: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """(estimate speeds, mocap speeds, j0): both resampled at ``rate_hz`` on grids of the same
+    phase in the estimate's clock, the mocap's shifted by ``initial_offset_s``; mocap sample 0
+    is estimate grid step ``j0``. NaN where a signal is undefined."""
+    step = 1.0 / rate_hz
+    # Smooth over at least three estimate periods: differencing sparse, noisy poses at the grid
+    # rate otherwise turns pose noise into large angular-speed spikes.
+    est_period_s = float(np.median(np.diff(stamps_est_s)))
+    smooth_n = max(1, int(round(max(smooth_s, 3.0 * est_period_s) * rate_hz)))
+    est_grid = np.arange(stamps_est_s[0], stamps_est_s[-1], step)
+    if len(est_grid) < 3:
+        raise InputError("time offset: the estimate spans less than three resampling steps")
+    # The mocap grid in the estimate's clock (shifted by the initial offset), same phase.
+    lo = time_ref_s[vr][0] - initial_offset_s
+    hi = time_ref_s[vr][-1] - initial_offset_s
+    j0 = int(np.floor((lo - est_grid[0]) / step)) if len(est_grid) else 0
+    j1 = int(np.ceil((hi - est_grid[0]) / step)) if len(est_grid) else 0
+    ref_grid_est_clock = est_grid[0] + np.arange(j0, j1 + 1) * step
+    speed = _angular_speed if signal == "angular" else _linear_speed
+    e = speed(stamps_est_s, T_est, None, est_grid, 10 * step + 1.0, smooth_n)
+    r = speed(time_ref_s, T_ref, vr, ref_grid_est_clock + initial_offset_s, 0.25, smooth_n)
+    return e, r, j0
+
+
+def _lag_correlation(e: np.ndarray, r: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(rho, n, var_e, var_r) per lag L = k − (len(e) − 1): the normalised cross-correlation
+    of the finite samples of ``e`` and ``r`` over their overlap, its sample count and the
+    (unnormalised) variances of both signals there."""
+    me, mr = np.isfinite(e), np.isfinite(r)
+    e0, r0 = np.where(me, e, 0.0), np.where(mr, r, 0.0)
+    fe, fr = me.astype(float), mr.astype(float)
+    # Sums over the overlap of each lag L (est sample i pairs with ref sample i + L), eq.:
+    # z[k] = sum_i a[i + L] b[i] with L = k - (n_e - 1).
+    S_er = correlate(r0, e0, mode="full", method="auto")
+    n = correlate(fr, fe, mode="full", method="auto")
+    S_e = correlate(fr, e0, mode="full", method="auto")
+    S_ee = correlate(fr, e0 * e0, mode="full", method="auto")
+    S_r = correlate(r0, fe, mode="full", method="auto")
+    S_rr = correlate(r0 * r0, fe, mode="full", method="auto")
+    n = np.round(n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = S_er - S_e * S_r / n
+        ve = S_ee - S_e**2 / n
+        vr_ = S_rr - S_r**2 / n
+        rho = cov / np.sqrt(ve * vr_)
+    return rho, n, ve, vr_
+
+
+def _peak(rho: np.ndarray, ok: np.ndarray) -> tuple[int, float]:
+    """(k, frac): the best admissible lag and its sub-sample refinement (a parabola through
+    the peak and its neighbours, within ±0.5 step)."""
+    rho_ok = np.where(ok, rho, -np.inf)
+    k = int(np.argmax(rho_ok))
+    frac = 0.0
+    if 0 < k < len(rho) - 1 and ok[k - 1] and ok[k + 1]:
+        a, b, c = rho[k - 1], rho[k], rho[k + 1]
+        den = a - 2 * b + c
+        if den < 0:
+            frac = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+    return k, frac
+
+
 def estimate_time_offset(
     stamps_est_s: np.ndarray,
     T_est: np.ndarray,
@@ -208,48 +273,18 @@ def estimate_time_offset(
     if initial_offset_s is None:
         initial_offset_s = float(time_ref_s[vr][0] - stamps_est_s[0])
     step = 1.0 / rate_hz
-    # Smooth over at least three estimate periods: differencing sparse, noisy poses at the grid
-    # rate otherwise turns pose noise into large angular-speed spikes.
-    est_period_s = float(np.median(np.diff(stamps_est_s)))
-    smooth_n = max(1, int(round(max(smooth_s, 3.0 * est_period_s) * rate_hz)))
-    est_grid = np.arange(stamps_est_s[0], stamps_est_s[-1], step)
-    if len(est_grid) < 3:
-        raise InputError("time offset: the estimate spans less than three resampling steps")
-    # The mocap grid in the estimate's clock (shifted by the initial offset), same phase.
-    lo = time_ref_s[vr][0] - initial_offset_s
-    hi = time_ref_s[vr][-1] - initial_offset_s
-    j0 = int(np.floor((lo - est_grid[0]) / step)) if len(est_grid) else 0
-    j1 = int(np.ceil((hi - est_grid[0]) / step)) if len(est_grid) else 0
-    ref_grid_est_clock = est_grid[0] + np.arange(j0, j1 + 1) * step
-    speed = _angular_speed if signal == "angular" else _linear_speed
-    e = speed(stamps_est_s, T_est, None, est_grid, 10 * step + 1.0, smooth_n)
-    r = speed(time_ref_s, T_ref, vr, ref_grid_est_clock + initial_offset_s, 0.25, smooth_n)
+    e, r, j0 = _speed_signals(stamps_est_s, T_est, time_ref_s, T_ref, vr, initial_offset_s,
+                              rate_hz, smooth_s, signal)
     n_e, n_r = len(e), len(r)
     min_n = int(min_overlap_s * rate_hz)
     if n_e < 3 or n_r < 3 or min(n_e, n_r) < min(min_n, 3):
         raise InputError("time offset: trajectories too short to correlate")
-    me, mr = np.isfinite(e), np.isfinite(r)
-    e0, r0 = np.where(me, e, 0.0), np.where(mr, r, 0.0)
-    fe, fr = me.astype(float), mr.astype(float)
-    # Sums over the overlap of each lag L (est sample i pairs with ref sample i + L), eq.:
-    # z[k] = sum_i a[i + L] b[i] with L = k - (n_e - 1).
-    S_er = correlate(r0, e0, mode="full", method="auto")
-    n = correlate(fr, fe, mode="full", method="auto")
-    S_e = correlate(fr, e0, mode="full", method="auto")
-    S_ee = correlate(fr, e0 * e0, mode="full", method="auto")
-    S_r = correlate(r0, fe, mode="full", method="auto")
-    S_rr = correlate(r0 * r0, fe, mode="full", method="auto")
-    n = np.round(n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cov = S_er - S_e * S_r / n
-        ve = S_ee - S_e**2 / n
-        vr_ = S_rr - S_r**2 / n
-        rho = cov / np.sqrt(ve * vr_)
+    rho, n, ve, vr_ = _lag_correlation(e, r)
     L = np.arange(n_e + n_r - 1) - (n_e - 1)
     offset_of_L = initial_offset_s + (L + j0) * step
     # A lag must overlap at least half of the shorter signal (and min_overlap_s when the signals
     # allow it): short overlaps give spurious high correlations.
-    half = int(0.5 * min(me.sum(), mr.sum()))
+    half = int(0.5 * min(np.isfinite(e).sum(), np.isfinite(r).sum()))
     need = max(half, min(min_n, 2 * half))
     ok = (n >= max(need, 3)) & np.isfinite(rho) & (ve > 1e-12 * n) & (vr_ > 1e-12 * n)
     if max_offset_s is not None:
@@ -258,14 +293,7 @@ def estimate_time_offset(
         raise InputError(f"time offset: no lag with enough overlap and {signal} motion (does "
                          f"the robot {'turn' if signal == 'angular' else 'move'}? does the "
                          "estimate overlap the reference in time?); give --time-offset S")
-    rho_ok = np.where(ok, rho, -np.inf)
-    k = int(np.argmax(rho_ok))
-    frac = 0.0
-    if 0 < k < len(rho) - 1 and ok[k - 1] and ok[k + 1]:
-        a, b, c = rho[k - 1], rho[k], rho[k + 1]
-        den = a - 2 * b + c
-        if den < 0:
-            frac = float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
+    k, frac = _peak(rho, ok)
     return TimeOffset(float(offset_of_L[k] + frac * step), float(rho[k]), float(n[k] * step))
 
 

@@ -66,7 +66,8 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
     for part in partition.parts:
         e = np.concatenate([part.intra_edges, part.inter_edges])
         block = edge_factors(g.dim, g.edges[e], g.measurements[e], g.information[e], "chordal", "sesync")
-        graph = PoseGraph(g.dim, kinds_array(n, fixed=fixed), (block,))
+        # frozen factor dataclasses against Factor's settable attributes (solver/factors.py)
+        graph = PoseGraph(g.dim, kinds_array(n, fixed=fixed), (block,))  # type: ignore[arg-type]
         plan = build_plan(graph)
         lin = linearize(graph, plan, poses)
         slot = np.full(n, -1)

@@ -14,6 +14,7 @@ for the Metropolis–Hastings weights, which need the neighbours' degrees) and `
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -30,8 +31,9 @@ class DranNode:
     """Robot ``robot_id`` of the simulated scenario, driven round by round."""
 
     def __init__(self, robot_id: int, neighbours: list[int], config: dict):
-        sim = SimParams(**{k: tuple(v) if isinstance(v, list) else v
-                           for k, v in config.get("sim", {}).items()})
+        sim_kw: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                  for k, v in config.get("sim", {}).items()}
+        sim = SimParams(**sim_kw)
         scenario = make_scenario(sim)
         n = sim.num_robots
         A = np.zeros((n, n), dtype=bool)

@@ -25,6 +25,7 @@ import logging
 import time
 from collections import defaultdict
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +37,11 @@ from dran_edge.dran.consensus import metropolis_hastings_matrix
 from dran_edge.errors import DecodeError
 from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
 from dran_edge.messages import InitStage, NeighbourMessage
+
+if TYPE_CHECKING:
+    from dran_edge.config import AgentConfig
+    from dran_edge.dran.partition import Partition
+    from dran_edge.formats.g2o import G2oGraph
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +141,8 @@ class Fleet:
             self.sequence[sender] += len(grams)
             return grams
 
-        grams = None if self.delta_every else encode()
+        # with deltas, one encoding per link below
+        grams: list[Any] = [] if self.delta_every else encode()
         for q in to:
             if self.ids[q] not in up:
                 continue
@@ -285,6 +292,31 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop:
     return cfg, kw
 
 
+def _table1_agents(g: G2oGraph, part: Partition, init_poses: np.ndarray,
+                   W: list[dict[int, float]], config: AgentConfig, colour: np.ndarray, stop_rounds: int, kappa: np.ndarray,
+                   tau: np.ndarray) -> list[Agent]:
+    """One agent per part of the split, started at ``init_poses`` and holding its neighbours'
+    separators (the distributed init's last exchange left every robot with them)."""
+    import dataclasses
+
+    from dran_edge.dran.agent import LocalProblem
+
+    agents = []
+    for r in range(len(part.parts)):
+        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
+                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
+                                  stop_rounds=stop_rounds)
+        prob = LocalProblem.from_partition(g, part, r, init_poses, kappa, tau, cfg.residual)
+        agent = Agent(cfg, prob, weights=W[r])
+        for p in part.parts:
+            if p.robot_id == r:
+                continue
+            for v in p.vertices[np.isin(p.vertices, part.parts[r].anchors)].tolist():
+                agent.anchors[(p.robot_id, v)] = init_poses[v].copy()
+        agents.append(agent)
+    return agents
+
+
 def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
                  links: BusParams | None = None, partitions=(), callback=None,
                  schedule: str = "parallel", delta_every: int = 0,
@@ -307,10 +339,6 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     and ``poses_refined``, where DRAN starts. A refinement that stopped on its relative-decrease
     test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
     (``stopped_by`` "refine")."""
-    import dataclasses
-    import types
-
-    from dran_edge.dran.agent import LocalProblem
     from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
@@ -324,35 +352,22 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     W = neighbour_weights(bus)
     fleet = Fleet([], bus, delta_every=delta_every)
     if initial_poses is not None:
-        init = types.SimpleNamespace(poses=np.asarray(initial_poses, np.float64).copy())
+        init_poses = np.asarray(initial_poses, np.float64).copy()
     else:
-        init = distributed_chordal_init(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau,
-                                        part, fleet.init_exchange,
-                                        init_params or default_init_params(links, partitions))
+        init_poses = distributed_chordal_init(
+            g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
+            fleet.init_exchange, init_params or default_init_params(links, partitions)).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
-    F_init = F(init.poses)
-    start, refined = init.poses, _refine(g, part, init.poses, kappa, tau, fleet, refine,
+    F_init = F(init_poses)
+    start, refined = init_poses, _refine(g, part, init_poses, kappa, tau, fleet, refine,
                                          lossy=bool(partitions) or _lossy(links))
     if refined:
         start = refined["poses_refined"]
         refined["objective_refined"] = F(start)
-    agents = []
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
-    K = stop_rounds_for(bus, config)
-    for r in range(num_robots):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
-                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
-                                  stop_rounds=K)
-        prob = LocalProblem.from_partition(g, part, r, start, kappa, tau, cfg.residual)
-        agent = Agent(cfg, prob, weights=W[r])
-        # the init's last exchange left every robot with its neighbours' separators
-        for p in part.parts:
-            if p.robot_id == r:
-                continue
-            for v in p.vertices[np.isin(p.vertices, part.parts[r].anchors)].tolist():
-                agent.anchors[(p.robot_id, v)] = start[v].copy()
-        agents.append(agent)
+    agents = _table1_agents(g, part, start, W, config, colour,
+                            stop_rounds_for(bus, config), kappa, tau)
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
@@ -366,7 +381,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
         merged[p.vertices] = agents[r].x
     return refined | {
         "poses": merged,
-        "poses_init": init.poses,
+        "poses_init": init_poses,
         "rounds": rounds,
         "stopped_by": "+".join(reasons) if rounds < cap else None,
         "init_rounds": init_rounds,

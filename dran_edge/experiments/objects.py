@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +44,9 @@ from dran_edge.errors import InputError
 from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
 from dran_edge.solver.graph import PoseGraph, kinds_array
 from dran_edge.solver.lm import LMParams, evaluate_cost, solve
+
+if TYPE_CHECKING:
+    from dran_edge.experiments.fleet import Fleet
 
 
 @dataclass(frozen=True)
@@ -141,10 +145,10 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
         T_gt = geo.se3_from_rt(_look_along(d + 1e-9), P)
         n = T_gt.shape[0]
         Z_odo = geo.se3_between(T_gt[:-1], T_gt[1:]) @ _noise(rng, n - 1, sr, st)
-        x0 = [T_gt[0]]
+        chain = [T_gt[0]]
         for Z in Z_odo:
-            x0.append(x0[-1] @ Z)
-        x0 = np.stack(x0)
+            chain.append(chain[-1] @ Z)
+        x0 = np.stack(chain)
         dist = np.linalg.norm(P[:, None, :] - obj_t[None], axis=2)
         pi, oi = np.nonzero(dist < params.range_m)
         Z_obs = geo.se3_between(T_gt[pi], gt_objects[oi]) @ _noise(rng, pi.size, sr, st)
@@ -195,7 +199,7 @@ def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGrap
     off = np.concatenate([[0], np.cumsum(sizes)])
     M = sc.params.num_objects
     N = off[-1] + M
-    blocks = []
+    blocks: list[BetweenFactors | PriorFactors] = []
     x0 = [p.x0 for p in sc.problems]
     y0 = np.broadcast_to(np.eye(4), (M, 4, 4)).copy()
     seen = np.zeros(M, bool)
@@ -213,7 +217,8 @@ def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGrap
             if not seen[oid]:
                 y0[oid] = p.x0[p.obs_own[k]] @ p.obs_T[k]
                 seen[oid] = True
-    graph = PoseGraph(3, kinds_array(N), tuple(blocks))
+    # frozen factor dataclasses against Factor's settable attributes (solver/factors.py)
+    graph = PoseGraph(3, kinds_array(N), tuple(blocks))  # type: ignore[arg-type]
     return graph, np.concatenate(x0 + [y0]), off
 
 
@@ -239,6 +244,69 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
                        object_min_views=min_views if min_views is not None else 2 if robust else 1)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Reference:
+    """The centralized reference of a scenario and the start's metrics (F_init, ATE_init)."""
+
+    graph: PoseGraph
+    init: np.ndarray
+    n_x: int
+    """Number of robot poses (the rest of ``init`` are objects)."""
+    gt_x: np.ndarray
+    F_init: float
+    F_star: float
+    ate0: float
+    ate_star: float
+
+
+def _reference(sc: Scenario, config: AgentConfig) -> _Reference:
+    """The reference (F*, ATE*): the centralized LM with the agents' kernels.
+
+    With outliers it solves the same seed's scenario without them (same trajectories, noise
+    and start; see make_scenario), so SR_cost and SR_ATE say how close the fleet gets, despite
+    the outliers, to what a centralized solver gets without them. Over all factors the
+    centralized LM has no gating, and the wrong ids drag it metres away (ATE* 3–23 m at 20 %,
+    docs/notes/benchmarks-history.md).
+    """
+    ref_sc = sc
+    if sc.params.outlier_ratio > 0:
+        ref_sc = make_scenario(dataclasses.replace(sc.params, outlier_ratio=0.0), sc.problems[0].residual)
+    graph, init, off = centralized(
+        ref_sc, make_kernel(config.robust_kernel, config.robust_threshold),
+        make_kernel(config.robust_kernel, config.object_kernel_width))
+    ref = solve(graph, init, LMParams(max_iterations=100))
+    gt_x = np.concatenate(sc.gt_robots)
+    n_x = int(off[-1])
+    return _Reference(graph, init, n_x, gt_x, evaluate_cost(graph, init), ref.cost,
+                      metrics.ate_log_rmse(init[:n_x], gt_x),
+                      metrics.ate_log_rmse(ref.poses[:n_x], gt_x))
+
+
+def _snapshot(sc: Scenario, ref: _Reference, agents: list[Agent], fleet: Fleet
+              ) -> dict[str, Any]:
+    """The paper's metrics of the fleet's current estimate (objects: the robots' mean)."""
+    M = sc.params.num_objects
+    Y = np.broadcast_to(np.eye(4), (len(agents), M, 4, 4)).copy()
+    present = np.zeros((len(agents), M), bool)
+    for i, a in enumerate(agents):
+        for oid, T in a.y.items():
+            Y[i, oid], present[i, oid] = T, True
+    x = np.concatenate([a.x for a in agents])
+    have = present.any(axis=0)
+    y_mean = ref.init[ref.n_x:].copy()
+    if have.any():
+        y_mean[have] = metrics.object_mean(Y[:, have], present[:, have])
+    F_k = evaluate_cost(ref.graph, np.concatenate([x, y_mean]))
+    ate_k = metrics.ate_log_rmse(x, ref.gt_x)
+    ce = metrics.consistency_error(Y[:, have], present[:, have])[0] if have.any() else 0.0
+    bias = metrics.object_bias(Y[:, have], present[:, have], sc.gt_objects[have]) if have.any() else 0.0
+    return {"round": fleet.round, "F": F_k, "SR_cost": metrics.sr_cost(ref.F_init, F_k, ref.F_star),
+            "F_over_Fstar": metrics.cost_ratio(F_k, ref.F_star),
+            "ATE": ate_k, "SR_ATE": metrics.sr_ate(ref.ate0, ate_k, ref.ate_star),
+            "ATE_over_ATEstar": metrics.ate_ratio(ate_k, ref.ate_star), "CE": float(ce),
+            "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
+
+
 def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
                 max_rounds: int = 200, seed: int = 0, history_every: int = 0,
                 progress=None) -> dict:
@@ -254,25 +322,7 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     from dran_edge.comms.bus import Bus, BusParams
     from dran_edge.experiments.fleet import Fleet, neighbour_weights, stop_rounds_for
 
-    # The reference (F*, ATE*): the centralized LM with the agents' kernels. With outliers it
-    # solves the same seed's scenario without them (same trajectories, noise and start; see
-    # make_scenario), so SR_cost and SR_ATE say how close the fleet gets, despite the outliers,
-    # to what a centralized solver gets without them. Over all factors the centralized LM has
-    # no gating, and the wrong ids drag it metres away (ATE* 3–23 m at 20 %,
-    # docs/notes/benchmarks-history.md).
-    ref_sc = sc
-    if sc.params.outlier_ratio > 0:
-        ref_sc = make_scenario(dataclasses.replace(sc.params, outlier_ratio=0.0), sc.problems[0].residual)
-    graph, init, off = centralized(
-        ref_sc, make_kernel(config.robust_kernel, config.robust_threshold),
-        make_kernel(config.robust_kernel, config.object_kernel_width))
-    ref = solve(graph, init, LMParams(max_iterations=100))
-    M = sc.params.num_objects
-    gt_x = np.concatenate(sc.gt_robots)
-    n_x = off[-1]
-    F_init, F_star = evaluate_cost(graph, init), ref.cost
-    ate0 = metrics.ate_log_rmse(init[:n_x], gt_x)
-    ate_star = metrics.ate_log_rmse(ref.poses[:n_x], gt_x)
+    ref = _reference(sc, config)
     bus = Bus(range(len(sc.problems)), graph=comm_graph,
               params=dataclasses.replace(links or BusParams(), seed=seed))
     W = neighbour_weights(bus)
@@ -285,39 +335,18 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     fleet = Fleet(agents, bus)
     history = []
 
-    def snapshot() -> dict:
-        Y = np.broadcast_to(np.eye(4), (len(agents), M, 4, 4)).copy()
-        present = np.zeros((len(agents), M), bool)
-        for i, a in enumerate(agents):
-            for oid, T in a.y.items():
-                Y[i, oid], present[i, oid] = T, True
-        x = np.concatenate([a.x for a in agents])
-        have = present.any(axis=0)
-        y_mean = init[n_x:].copy()
-        if have.any():
-            y_mean[have] = metrics.object_mean(Y[:, have], present[:, have])
-        F_k = evaluate_cost(graph, np.concatenate([x, y_mean]))
-        ate_k = metrics.ate_log_rmse(x, gt_x)
-        ce = metrics.consistency_error(Y[:, have], present[:, have])[0] if have.any() else 0.0
-        bias = metrics.object_bias(Y[:, have], present[:, have], sc.gt_objects[have]) if have.any() else 0.0
-        return {"round": fleet.round, "F": F_k, "SR_cost": metrics.sr_cost(F_init, F_k, F_star),
-                "F_over_Fstar": metrics.cost_ratio(F_k, F_star),
-                "ATE": ate_k, "SR_ATE": metrics.sr_ate(ate0, ate_k, ate_star),
-                "ATE_over_ATEstar": metrics.ate_ratio(ate_k, ate_star), "CE": float(ce),
-                "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
-
     def cb(k, _fleet):
         if history_every and k % history_every == 0:
-            history.append(snapshot())
+            history.append(_snapshot(sc, ref, agents, fleet))
         if progress is not None:
             progress("rounds", k, max_rounds)
 
     rounds = fleet.run(max_rounds, callback=cb)
-    out = snapshot()
+    out = _snapshot(sc, ref, agents, fleet)
     reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
     out.update({"rounds": rounds, "stopped_by": "+".join(reasons) if rounds < max_rounds else None,
-                "F_init": F_init, "F_star": F_star, "ATE_init": ate0,
-                "ATE_star": ate_star, "history": history,
+                "F_init": ref.F_init, "F_star": ref.F_star, "ATE_init": ref.ate0,
+                "ATE_star": ref.ate_star, "history": history,
                 "local_step_ms_median": float(np.median(fleet.step_ms)),
                 "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,
                 "consensus_conflicts": sum(a.counters["consensus_conflicts"] for a in agents)})

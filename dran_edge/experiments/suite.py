@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -128,6 +130,74 @@ def _first(curve: list, ratio: float, F_star: float):
     return None, None
 
 
+class _CurveRecorder:
+    """The DRAN callback of :func:`run_case`: (round, bytes so far, F) per round in ``curve``
+    (round 0, the initialisation's end, filled in by the caller), and in ``stop`` the round
+    where every robot had reported convergence for three rounds in a row (with F, bytes, ATE)."""
+
+    def __init__(self, part: Any, shape: tuple[int, int, int],
+                 F: Callable[[np.ndarray], float], T_true: np.ndarray):
+        self.part, self.shape, self.F, self.T_true = part, shape, F, T_true
+        self.curve: list[tuple[int, Any, Any]] = []
+        self.stop: dict[str, Any] = {"round": None}
+        self.streak = 0
+
+    def merged(self, fleet: Any) -> np.ndarray:
+        T = np.zeros(self.shape)  # every vertex is some robot's
+        for r, p in enumerate(self.part.parts):
+            T[p.vertices] = fleet.agents[r].x
+        return T
+
+    def __call__(self, k: int, fleet: Any) -> None:
+        if k == 1:  # round 0: the initialisation's end (F filled in by the caller)
+            self.curve.append((0, None, None))
+        done = all(e is not None and e.converged for e in fleet.estimates)
+        self.streak = self.streak + 1 if done else 0
+        T = self.merged(fleet)
+        # the bus round (the caller makes it relative to the init's end)
+        self.curve.append((fleet.round, fleet.traffic.bytes_total, self.F(T)))
+        k = self.curve[-1][0]
+        if self.streak >= 3 and self.stop["round"] is None:
+            self.stop.update(round=k, F=self.curve[-1][2], bytes=self.curve[-1][1],
+                             ate=ate_m(T, self.T_true))
+
+
+def _curve_numbers(curve: list[tuple[int, Any, Any]], stop: dict[str, Any], F_star: float,
+                   rounds: int, checkpoints: Sequence[int]) -> dict[str, Any]:
+    """F/F* at the checkpoints, the convergence stop, and the first round and bytes within
+    1 % and 0.1 % of F*."""
+    out: dict[str, Any] = {}
+    for c in checkpoints:  # the last point at or before round c
+        if c <= rounds and curve[-1][0] >= c:
+            out[f"F_over_F_star_at_{c}"] = [f for k, _, f in curve if k <= c][-1] / F_star
+    out["stop_round"] = stop["round"]
+    if stop["round"] is not None:
+        out.update(stop_F_over_F_star=stop["F"] / F_star, stop_bytes=stop["bytes"],
+                   stop_ATE_m=stop["ate"])
+    for ratio, key in ((1.01, "1pct"), (1.001, "01pct")):
+        k, b = _first(curve, ratio, F_star)
+        out[f"round_at_{key}"], out[f"bytes_at_{key}"] = k, b
+    return out
+
+
+def _curve_after_init(rec: _CurveRecorder, res: dict[str, Any], rounds: int, refined: bool
+                      ) -> tuple[list[tuple[int, Any, Any]], dict[str, Any]]:
+    """The recorder's curve and stop on the axis of rounds after the init: round 0 is the
+    init's end; with a refinement, the root's F at each of its accepted points and at its end
+    come first (their rounds count), then DRAN's rounds, cut at ``rounds``."""
+    curve, stop = rec.curve, rec.stop
+    curve[0] = (0, res["bytes_init"], res["objective_init"])
+    r0 = res["init_rounds"]  # bus rounds -> rounds after the init
+    curve[1:] = [(k - r0, b, f) for k, b, f in curve[1:] if k - r0 <= rounds]
+    if refined:
+        curve[1:1] = [(k, res["bytes_init"] + b, f) for k, b, f in res["refine_curve"][1:]] + [
+            (res["refine_rounds"], res["bytes_init"] + res["refine_bytes"],
+             res["objective_refined"])]
+    if stop["round"] is not None:
+        stop["round"] -= r0
+    return curve, stop
+
+
 def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: bool = True,
              checkpoints=CHECKPOINTS, refine=None) -> dict:
     """Every number of one case (module docstring); ``curve`` holds (round, bytes so far, F)
@@ -154,48 +224,15 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
     F_star, F_chordal = central.objective_final, central.objective_init
     t_central = time.perf_counter() - t0
     cfg, run_kw = table1_setup(g.dim)
-    curve: list = []
-    stop = {"round": None}
-    streak = [0]
-
-    shape = (g.num_vertices, g.dim + 1, g.dim + 1)
-
-    def merged(fleet):
-        T = np.zeros(shape)  # every vertex is some robot's
-        for r, p in enumerate(part.parts):
-            T[p.vertices] = fleet.agents[r].x
-        return T
-
-    def cb(k, fleet):
-        done = all(e is not None and e.converged for e in fleet.estimates)
-        streak[0] = streak[0] + 1 if done else 0
-        T = merged(fleet)
-        curve.append((fleet.round, fleet.traffic.bytes_total, F(T)))  # bus round: made relative
-        k = curve[-1][0]
-        if streak[0] >= 3 and stop["round"] is None:
-            stop.update(round=k, F=curve[-1][2], bytes=curve[-1][1], ate=ate_m(T, T_true))
-
-    def cb_first(k, fleet):
-        if k == 1:  # round 0: the initialisation's end (F filled in below)
-            curve.append((0, None, None))
-        cb(k, fleet)
-
+    rec = _CurveRecorder(part, (g.num_vertices, g.dim + 1, g.dim + 1), F, T_true)
     t1 = time.perf_counter()
     res = run_g2o_dran(g, case.robots, cfg, init_params=InitParams(gauss_seidel=True,
                                                                    direct=init_direct),
-                       max_rounds=rounds, callback=cb_first, partition=part, stop=False,
+                       max_rounds=rounds, callback=rec, partition=part, stop=False,
                        refine=refine, **run_kw)
     t_dran = time.perf_counter() - t1
     F_init = res["objective_init"]
-    curve[0] = (0, res["bytes_init"], F_init)
-    r0 = res["init_rounds"]  # bus rounds -> rounds after the init
-    curve[1:] = [(k - r0, b, f) for k, b, f in curve[1:] if k - r0 <= rounds]
-    if refine is not None:  # the root's F at each accepted point, then the refinement's end
-        curve[1:1] = [(k, res["bytes_init"] + b, f) for k, b, f in res["refine_curve"][1:]] + [
-            (res["refine_rounds"], res["bytes_init"] + res["refine_bytes"],
-             res["objective_refined"])]
-    if stop["round"] is not None:
-        stop["round"] -= r0
+    curve, stop = _curve_after_init(rec, res, rounds, refined=refine is not None)
     out = {
         "case": case.name, "family": case.family, "seed": case.seed, "dim": g.dim,
         "poses": g.num_vertices, "edges": g.num_edges, "robots": case.robots,
@@ -213,16 +250,7 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
         "dran_F_end_over_F_star": curve[-1][2] / F_star,
         "dran_ATE_end_m": ate_m(res["poses"], T_true),
     }
-    for c in checkpoints:  # the last point at or before round c
-        if c <= rounds and curve[-1][0] >= c:
-            out[f"F_over_F_star_at_{c}"] = [f for k, _, f in curve if k <= c][-1] / F_star
-    out["stop_round"] = stop["round"]
-    if stop["round"] is not None:
-        out.update(stop_F_over_F_star=stop["F"] / F_star, stop_bytes=stop["bytes"],
-                   stop_ATE_m=stop["ate"])
-    for ratio, key in ((1.01, "1pct"), (1.001, "01pct")):
-        k, b = _first(curve, ratio, F_star)
-        out[f"round_at_{key}"], out[f"bytes_at_{key}"] = k, b
+    out.update(_curve_numbers(curve, stop, F_star, rounds, checkpoints))
     if dgs:
         t2 = time.perf_counter()
         d = run_g2o_dgs(g, case.robots, initial_poses=res["poses_init"], partition=part,

@@ -70,10 +70,13 @@ class RobotMap:
         if self.reset:
             out["reset"] = self.reset
         if self.loops is not None:
-            if self.loops.form == "vins":
-                out["loops"] = self.loops.topic
+            lp = self.loops
+            if lp.form == "vins":
+                assert lp.topic is not None  # _loops requires it for this form
+                out["loops"] = lp.topic
             else:
-                out["loop_old"], out["loop_cur"] = self.loops.old, self.loops.cur
+                assert lp.old is not None and lp.cur is not None  # required for pose_pair
+                out["loop_old"], out["loop_cur"] = lp.old, lp.cur
         if self.image is not None:
             out["image"] = self.image.topic
             if self.image.depth:
@@ -124,6 +127,12 @@ def _topic(n: rd._Node, key: str, required: bool = False) -> str | None:
     return v
 
 
+def _required_topic(n: rd._Node, key: str) -> str:
+    v = _topic(n, key, True)
+    assert v is not None  # _topic raises for a missing required key
+    return v
+
+
 def _image(n: rd._Node) -> ImageMap:
     n.check({"topic"}, {"camera_info", "depth", "T_body_camera", "depth_unit_m", "max_rate_hz",
                         "encode"})
@@ -134,7 +143,7 @@ def _image(n: rd._Node) -> ImageMap:
     unit = n.get("depth_unit_m", "float", 0.001)
     if (rate is not None and rate <= 0) or unit <= 0:
         raise n._err(f"{n.where}: max_rate_hz and depth_unit_m must be > 0", n.where)
-    return ImageMap(_topic(n, "topic", True), _topic(n, "camera_info"), _topic(n, "depth"),
+    return ImageMap(_required_topic(n, "topic"), _topic(n, "camera_info"), _topic(n, "depth"),
                     n.get("T_body_camera", "pose"), unit, rate, enc)
 
 
@@ -142,10 +151,11 @@ def _loops(n: rd._Node) -> LoopMap:
     form = n.data.get("form", "vins")
     if form == "vins":
         n.check({"topic"}, {"form"})
-        return LoopMap("vins", topic=_topic(n, "topic", True))
+        return LoopMap("vins", topic=_required_topic(n, "topic"))
     if form == "pose_pair":
         n.check({"old", "cur", "form"})
-        return LoopMap("pose_pair", old=_topic(n, "old", True), cur=_topic(n, "cur", True))
+        return LoopMap("pose_pair", old=_required_topic(n, "old"),
+                        cur=_required_topic(n, "cur"))
     raise n._err(f"{n.key('form')}: expected one of {LOOP_FORMS}, got {form!r}", n.key("form"))
 
 
@@ -164,7 +174,7 @@ def _robot(n: rd._Node, path: str, lines: dict) -> RobotMap:
         loops = _loops(rd._Node(n.get("loops", "dict"), n.key("loops"), path, lines))
     if "image" in n.data:
         image = _image(rd._Node(n.get("image", "dict"), n.key("image"), path, lines))
-    return RobotMap(rid, n.get("name", "name"), _topic(n, "odometry", True), n.get("bag", "str"),
+    return RobotMap(rid, n.get("name", "name"), _required_topic(n, "odometry"), n.get("bag", "str"),
                     n.get("clock_offset_ns", "int", 0), _topic(n, "keyframes"), every,
                     _topic(n, "reset"), loops, image, n.get("config", "str"),
                     n.get("mocap_body", "str"), n.get("T_body_marker", "pose", np.eye(4)),

@@ -20,7 +20,7 @@ import numpy as np
 
 from dran_edge.errors import InputError
 from dran_edge.formats import ros_msgs as rm
-from dran_edge.formats.bag_map import BagMapping, RobotMap
+from dran_edge.formats.bag_map import BagMapping, ImageMap, RobotMap
 
 #: Record order at equal stamps (the simulator's): reset, odometry, keyframe, loop.
 _KIND_ORDER = {4: 0, 1: 1, 2: 2, 3: 3}
@@ -58,13 +58,20 @@ class RobotSink:
         self._pair_old: deque = deque()
         self._pair_cur: deque = deque()
         self._pending: OrderedDict[int, _Pending] = OrderedDict()
-        self._frames_csv = None
+        self._frames_file: Any = None
+        self._frames_csv: Any = None  # csv writer of frames/frames.csv, once a frame came
         self._frame_n = 0
         self._last_frame_ns = 0
         self._last_keep_ns = 0
         self._decided: OrderedDict[int, bool] = OrderedDict()
         self.camera: dict | None = None
         self.frame_size: tuple[int, int] | None = None
+
+    @property
+    def _image_map(self) -> ImageMap:
+        """The robot's image mapping: image roles are routed only to a robot that has one."""
+        assert self.r.image is not None
+        return self.r.image
 
     # -------------------------------------------------------------- records
     def _emit(self, item: rm.Item) -> None:
@@ -118,9 +125,9 @@ class RobotSink:
             if self._monotonic("keyframes", it.stamp_ns):
                 self._emit(it)
         elif role == "reset":
-            it = rm.reset_record(msg, self._last_odom_ns, off, stamp)
-            if it is not None:
-                self._emit(it)
+            reset = rm.reset_record(msg, self._last_odom_ns, off, stamp)
+            if reset is not None:
+                self._emit(reset)
         elif role == "loops":
             old, cur, v, inl = rm.vins_loop_parts(msg)
             self._loop(old, cur, v, inl)
@@ -134,7 +141,7 @@ class RobotSink:
             self._image(role, msg, receive_ns + off if recv else rm.stamp_ns(msg.header) + off)
         elif role == "camera_info":
             if self.camera is None:
-                im = self.r.image
+                im = self._image_map
                 if im.T_body_camera is None:
                     raise InputError(f"robots: {self.r.name}.image: T_body_camera is needed to "
                                      "build the camera file from camera_info (or give calib with "
@@ -144,10 +151,11 @@ class RobotSink:
     def _loop(self, old: int, cur: int, v: tuple, inliers: int) -> None:
         """A loop between two keyframes given by their header stamps (robot clock)."""
         if self.mapping.clock == "receive":
-            old, cur = self._receive_of(old), self._receive_of(cur)
-            if old is None or cur is None:
+            old_r, cur_r = self._receive_of(old), self._receive_of(cur)
+            if old_r is None or cur_r is None:
                 self.skipped["loop_unknown_keyframe"] += 1
                 return
+            old, cur = old_r, cur_r
         off = self.r.clock_offset_ns
         self._emit(rm.loop_record(old + off, cur + off, v, inliers))
 
@@ -167,7 +175,7 @@ class RobotSink:
         before any pixel is decoded."""
         if s in self._decided:
             return self._decided[s]
-        rate = self.r.image.max_rate_hz
+        rate = self._image_map.max_rate_hz
         keep = not rate or not self._last_keep_ns or \
             s - self._last_keep_ns >= int(1e9 / rate) - 1000
         if keep:
@@ -182,13 +190,13 @@ class RobotSink:
     def _image(self, role: str, msg: Any, s: int) -> None:
         if not self._monotonic(role, s) or not self.keep_frame(role, s):
             return
-        img = rm.image_file(msg, depth=role == "depth", encode=self.r.image.encode)
+        img = rm.image_file(msg, depth=role == "depth", encode=self._image_map.encode)
         slot = self._pending.setdefault(s, _Pending())
         if role == "image":
             slot.colour = img
         else:
             slot.depth = img
-        want_depth = self.r.image.depth is not None
+        want_depth = self._image_map.depth is not None
         while len(self._pending) > _PENDING_IMAGES:
             old_s, old = self._pending.popitem(last=False)
             if old.colour is not None:
@@ -200,28 +208,30 @@ class RobotSink:
             self._write_frame(s, slot)
 
     def _write_frame(self, s: int, slot: _Pending) -> None:
+        colour = slot.colour
+        assert colour is not None  # _image writes a frame once its colour image came
         if s <= self._last_frame_ns:
             self.skipped["non_monotonic:frames"] += 1
             return
         fdir = self.dir / "frames"
         if self._frames_csv is None:
             (fdir / "colour").mkdir(parents=True, exist_ok=True)
-            if self.r.image.depth:
+            if self._image_map.depth:
                 (fdir / "depth").mkdir(parents=True, exist_ok=True)
             self._frames_file = open(fdir / "frames.csv", "w", newline="", encoding="utf-8")
             self._frames_csv = csv.writer(self._frames_file, lineterminator="\n")
             from dran_edge.perception.sources import FRAMES_CSV_HEADER
 
             self._frames_csv.writerow(FRAMES_CSV_HEADER)
-        cname = f"colour/{self._frame_n:06d}{slot.colour.suffix}"
-        (fdir / cname).write_bytes(slot.colour.data)
+        cname = f"colour/{self._frame_n:06d}{colour.suffix}"
+        (fdir / cname).write_bytes(colour.data)
         dname = ""
         if slot.depth is not None:
             dname = f"depth/{self._frame_n:06d}{slot.depth.suffix}"
             (fdir / dname).write_bytes(slot.depth.data)
         self._frames_csv.writerow([s, cname, dname, self.r.name])
-        if slot.colour.width and self.frame_size is None:
-            self.frame_size = (slot.colour.width, slot.colour.height)
+        if colour.width and colour.height is not None and self.frame_size is None:
+            self.frame_size = (colour.width, colour.height)
         self._frame_n += 1
         self._last_frame_ns = s
         self.counts["frames"] += 1
@@ -235,7 +245,7 @@ class RobotSink:
         if left:
             self.skipped["loop_unpaired"] += left
         for slot in self._pending.values():
-            if slot.colour is not None and self.r.image.depth is None:
+            if slot.colour is not None and self._image_map.depth is None:
                 continue
             self.skipped["colour_without_depth" if slot.colour else "depth_without_colour"] += 1
 
@@ -246,7 +256,7 @@ class MocapSink:
     def __init__(self, offset_ns: int):
         self.offset_ns = offset_ns
         self.stamps: dict[str, list[int]] = {}
-        self.poses: dict[str, list[np.ndarray]] = {}
+        self.poses: dict[str, list[tuple[float, ...]]] = {}
         self.skipped: Counter = Counter()
 
     def handle(self, body: str, msg: Any) -> None:
@@ -261,7 +271,8 @@ class MocapSink:
     def write(self, path: Path, up_axis: str, order: list[str]) -> int | None:
         """Write the CSV (bodies in ``order``); returns the stamp of its time 0 (None: no pose)."""
         from dran_edge import geometry as geo
-        from dran_edge.formats.motive import _up_rotation, make_take, write_motive_csv
+        from dran_edge.formats.motive import up_rotation
+        from dran_edge.formats.motive_write import make_take, write_motive_csv
 
         bodies = [b for b in order if self.stamps.get(b)]
         if not bodies:
@@ -272,7 +283,7 @@ class MocapSink:
         rows = all_s[keep]
         t0 = int(rows[0])
         R_up = np.eye(4)
-        R_up[:3, :3] = _up_rotation(up_axis)
+        R_up[:3, :3] = up_rotation(up_axis)
         poses = {}
         for b in bodies:
             s = np.asarray(self.stamps[b], np.int64)

@@ -86,7 +86,7 @@ def bag_size_bytes(p: Path) -> int:
 
 def _select(reader, bag_name: str, wanted: dict[str, tuple[str, str]]) -> dict[str, Any]:
     """topic -> connection for the mapped topics in this bag; checks the message types."""
-    out = {}
+    out: dict[str, Any] = {}
     for c in reader.connections:
         if c.topic not in wanted:
             continue
@@ -200,7 +200,7 @@ def _read_one(reader, path: Path, wanted, sinks, mocap, found, stats, progress) 
 
 def _check_found(per_bag, found, bags, mapping) -> None:
     """Every mapped topic must be in (at least one of) its bags."""
-    topics_in: dict[str, set[str]] = {}
+    topics_in: dict[tuple[str, str, str], set[str]] = {}
     for wanted, b in zip(per_bag, bags):
         for t, (owner, role) in wanted.items():
             topics_in.setdefault((t, owner, role), set()).add(str(b))
@@ -237,11 +237,13 @@ def _finish(root: Path, mapping: BagMapping, sinks: dict[str, RobotSink], mocap,
             elif s.counts["frames"]:
                 raise InputError(f"robot {r.name}: no camera_info message and no "
                                  f"cameras/{r.name}.yaml in calib", path=mapping.path)
-    start = mapping.start_ns or min(s.first_ns for s in sinks.values())
-    end = max(s.last_ns for s in sinks.values())
+    # every robot has a first (and so a last) stamp: checked above
+    start = mapping.start_ns or min(s.first_ns for s in sinks.values() if s.first_ns is not None)
+    end = max(s.last_ns for s in sinks.values() if s.last_ns is not None)
     duration = mapping.duration_s or max((end - start) / 1e9, 1e-3)
     mocap_start = None
     if mocap is not None:
+        assert mapping.mocap is not None  # a mocap sink exists only for a mocap mapping
         mocap_start = mocap.write(root / "mocap.csv", mapping.mocap.up_axis,
                                   list(mapping.mocap.bodies))
     mission = rd.Mission(

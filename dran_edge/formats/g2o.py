@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -164,12 +164,10 @@ def _check_information(
         )
 
 
-def read_g2o(path: str | Path) -> G2oGraph:
-    """Parse a g2o file (see module docstring); raises InputError on any malformed line."""
-    path = str(path)
+def _read_text(path: str) -> str:
     try:
         with open(path, encoding="utf-8") as fh:
-            text = fh.read()
+            return fh.read()
     except OSError as exc:
         raise InputError(f"cannot read the file: {exc.strerror}", path=path) from None
     except UnicodeDecodeError:
@@ -177,22 +175,81 @@ def read_g2o(path: str | Path) -> G2oGraph:
             "the file is not UTF-8 text, expected a g2o text file", path=path
         ) from None
 
-    dim: int | None = None
-    vertex_rows: dict[int, tuple[list[float], int]] = {}
-    edge_ids: list[tuple[int, int]] = []
-    edge_nums: list[list[float]] = []
-    edge_lines: list[int] = []
-    fix_ids: list[tuple[int, int]] = []
 
-    def set_dim(d: int, tag: str, lineno: int) -> None:
-        nonlocal dim
-        if dim is None:
-            dim = d
-        elif dim != d:
+@dataclass
+class _Records:
+    """The records of a g2o file as parsed, line by line (numbers not yet converted to poses)."""
+
+    path: str
+    dim: int | None = None
+    vertex_rows: dict[int, tuple[list[float], int]] = field(default_factory=dict)
+    """Vertex id -> (pose numbers, line)."""
+    edge_ids: list[tuple[int, int]] = field(default_factory=list)
+    edge_nums: list[list[float]] = field(default_factory=list)
+    edge_lines: list[int] = field(default_factory=list)
+    fix_ids: list[tuple[int, int]] = field(default_factory=list)
+    """(vertex id, line) of every id named by a FIX line."""
+
+    def set_dim(self, d: int, tag: str, lineno: int) -> None:
+        if self.dim is None:
+            self.dim = d
+        elif self.dim != d:
             raise InputError(
-                f"{tag} mixes {d}D records into a {dim}D graph", path=path, line=lineno
+                f"{tag} mixes {d}D records into a {self.dim}D graph", path=self.path, line=lineno
             )
 
+    def add_vertex(self, tag: str, tokens: list[str], lineno: int) -> None:
+        path = self.path
+        d = _VERTEX[tag]
+        self.set_dim(d, tag, lineno)
+        expected = 1 + _VERTEX_NUMBERS[d]
+        if len(tokens) - 1 != expected:
+            raise InputError(
+                f"{tag} has {len(tokens) - 1} fields, expected {expected} (id and pose)",
+                path=path,
+                line=lineno,
+            )
+        vid = _parse_id(tokens[1], path, lineno, tag)
+        if vid in self.vertex_rows:
+            raise InputError(
+                f"{tag}: vertex {vid} is defined twice (first on line {self.vertex_rows[vid][1]})",
+                path=path,
+                line=lineno,
+            )
+        self.vertex_rows[vid] = (_parse_floats(tokens[2:], path, lineno, tag), lineno)
+
+    def add_edge(self, tag: str, tokens: list[str], lineno: int) -> None:
+        path = self.path
+        d = _EDGE[tag]
+        self.set_dim(d, tag, lineno)
+        expected = 2 + _EDGE_NUMBERS[d]
+        if len(tokens) - 1 != expected:
+            raise InputError(
+                f"{tag} has {len(tokens) - 1} fields, expected {expected} "
+                "(two ids, measurement, upper-triangular information)",
+                path=path,
+                line=lineno,
+            )
+        i = _parse_id(tokens[1], path, lineno, tag)
+        j = _parse_id(tokens[2], path, lineno, tag)
+        if i == j:
+            raise InputError(
+                f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno
+            )
+        self.edge_ids.append((i, j))
+        self.edge_nums.append(_parse_floats(tokens[3:], path, lineno, tag))
+        self.edge_lines.append(lineno)
+
+    def add_fix(self, tokens: list[str], lineno: int) -> None:
+        if len(tokens) < 2:
+            raise InputError("FIX names no vertex id", path=self.path, line=lineno)
+        for tok in tokens[1:]:
+            self.fix_ids.append((_parse_id(tok, self.path, lineno, "FIX"), lineno))
+
+
+def _parse_records(text: str, path: str) -> _Records:
+    """Every record of the file, checked field by field (InputError naming the line)."""
+    rec = _Records(path)
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
@@ -200,48 +257,11 @@ def read_g2o(path: str | Path) -> G2oGraph:
         tokens = line.split()
         tag = tokens[0]
         if tag in _VERTEX:
-            d = _VERTEX[tag]
-            set_dim(d, tag, lineno)
-            expected = 1 + _VERTEX_NUMBERS[d]
-            if len(tokens) - 1 != expected:
-                raise InputError(
-                    f"{tag} has {len(tokens) - 1} fields, expected {expected} (id and pose)",
-                    path=path,
-                    line=lineno,
-                )
-            vid = _parse_id(tokens[1], path, lineno, tag)
-            if vid in vertex_rows:
-                raise InputError(
-                    f"{tag}: vertex {vid} is defined twice (first on line {vertex_rows[vid][1]})",
-                    path=path,
-                    line=lineno,
-                )
-            vertex_rows[vid] = (_parse_floats(tokens[2:], path, lineno, tag), lineno)
+            rec.add_vertex(tag, tokens, lineno)
         elif tag in _EDGE:
-            d = _EDGE[tag]
-            set_dim(d, tag, lineno)
-            expected = 2 + _EDGE_NUMBERS[d]
-            if len(tokens) - 1 != expected:
-                raise InputError(
-                    f"{tag} has {len(tokens) - 1} fields, expected {expected} "
-                    "(two ids, measurement, upper-triangular information)",
-                    path=path,
-                    line=lineno,
-                )
-            i = _parse_id(tokens[1], path, lineno, tag)
-            j = _parse_id(tokens[2], path, lineno, tag)
-            if i == j:
-                raise InputError(
-                    f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno
-                )
-            edge_ids.append((i, j))
-            edge_nums.append(_parse_floats(tokens[3:], path, lineno, tag))
-            edge_lines.append(lineno)
+            rec.add_edge(tag, tokens, lineno)
         elif tag == "FIX":
-            if len(tokens) < 2:
-                raise InputError("FIX names no vertex id", path=path, line=lineno)
-            for tok in tokens[1:]:
-                fix_ids.append((_parse_id(tok, path, lineno, "FIX"), lineno))
+            rec.add_fix(tokens, lineno)
         else:
             raise InputError(
                 f"unsupported record {tag!r}; expected one of "
@@ -249,53 +269,80 @@ def read_g2o(path: str | Path) -> G2oGraph:
                 path=path,
                 line=lineno,
             )
-
-    if dim is None or not edge_ids:
+    if rec.dim is None or not rec.edge_ids:
         raise InputError(
             "no edges found, expected at least one EDGE_SE2 or EDGE_SE3:QUAT line", path=path
         )
+    return rec
 
-    ij = np.asarray(edge_ids, dtype=np.int64)
-    vertex_ids = np.union1d(np.fromiter(vertex_rows.keys(), np.int64, len(vertex_rows)), ij.ravel())
+
+def _vertex_poses(rec: _Records, dim: int, vertex_ids: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(poses, has_pose) of every vertex: the VERTEX line's pose, else the identity."""
     n, D = vertex_ids.shape[0], dim + 1
     poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
     has_pose = np.zeros(n, dtype=bool)
-    if vertex_rows:
-        vids = np.fromiter(vertex_rows.keys(), np.int64, len(vertex_rows))
-        rows = np.asarray([v[0] for v in vertex_rows.values()])
-        vlines = np.asarray([v[1] for v in vertex_rows.values()])
+    if rec.vertex_rows:
+        vids = np.fromiter(rec.vertex_rows.keys(), np.int64, len(rec.vertex_rows))
+        rows = np.asarray([v[0] for v in rec.vertex_rows.values()])
+        vlines = np.asarray([v[1] for v in rec.vertex_rows.values()])
         pos = np.searchsorted(vertex_ids, vids)
         if dim == 2:
             poses[pos] = geo.se2_from_xy_theta(rows)
         else:
-            R = _rotation_from_quat_xyzw(rows[:, 3:7], vlines, path, "VERTEX_SE3:QUAT")
+            R = _rotation_from_quat_xyzw(rows[:, 3:7], vlines, rec.path, "VERTEX_SE3:QUAT")
             poses[pos] = geo.se3_from_rt(R, rows[:, :3])
         has_pose[pos] = True
+    return poses, has_pose
 
-    nums = np.asarray(edge_nums)
-    lines = np.asarray(edge_lines, dtype=np.int64)
+
+def _edge_arrays(rec: _Records, dim: int, ij: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(measurements, information, lines) of the edges; the information checked."""
+    nums = np.asarray(rec.edge_nums)
+    lines = np.asarray(rec.edge_lines, dtype=np.int64)
     if dim == 2:
         measurements = geo.se2_from_xy_theta(nums[:, :3])
         information = _upper_to_full(nums[:, 3:], 3)
         tag = "EDGE_SE2"
     else:
-        R = _rotation_from_quat_xyzw(nums[:, 3:7], lines, path, "EDGE_SE3:QUAT")
+        R = _rotation_from_quat_xyzw(nums[:, 3:7], lines, rec.path, "EDGE_SE3:QUAT")
         measurements = geo.se3_from_rt(R, nums[:, :3])
         information = _upper_to_full(nums[:, 7:], 6)
         tag = "EDGE_SE3:QUAT"
-    _check_information(tag, ij, information, lines, path, dim)
+    _check_information(tag, ij, information, lines, rec.path, dim)
+    return measurements, information, lines
 
+
+def _fixed_vertices(rec: _Records, vertex_ids: np.ndarray) -> np.ndarray:
+    """(n,) bool of the vertices named by FIX lines (each must be a vertex of the graph)."""
+    n = vertex_ids.shape[0]
     fixed = np.zeros(n, dtype=bool)
-    for vid, lineno in fix_ids:
+    for vid, lineno in rec.fix_ids:
         k = int(np.searchsorted(vertex_ids, vid))
         if k >= n or vertex_ids[k] != vid:
             raise InputError(
                 f"FIX names vertex {vid}, which no VERTEX or EDGE line defines",
-                path=path,
+                path=rec.path,
                 line=lineno,
             )
         fixed[k] = True
+    return fixed
 
+
+def read_g2o(path: str | Path) -> G2oGraph:
+    """Parse a g2o file (see module docstring); raises InputError on any malformed line."""
+    path = str(path)
+    rec = _parse_records(_read_text(path), path)
+    dim = rec.dim
+    assert dim is not None  # _parse_records raises without records
+    ij = np.asarray(rec.edge_ids, dtype=np.int64)
+    vertex_ids = np.union1d(
+        np.fromiter(rec.vertex_rows.keys(), np.int64, len(rec.vertex_rows)), ij.ravel()
+    )
+    poses, has_pose = _vertex_poses(rec, dim, vertex_ids)
+    measurements, information, lines = _edge_arrays(rec, dim, ij)
+    fixed = _fixed_vertices(rec, vertex_ids)
     return G2oGraph(
         dim=dim,
         vertex_ids=vertex_ids,

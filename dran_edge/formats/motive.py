@@ -1,4 +1,4 @@
-"""OptiTrack Motive CSV: read rigid-body tracks, and write ground truth in the same format.
+"""OptiTrack Motive CSV: read rigid-body tracks (written by :mod:`dran_edge.formats.motive_write`).
 
 Layout of a Motive CSV export with header (format versions 1.2x; docs/motive.md has the details)::
 
@@ -30,12 +30,10 @@ This is a pure core module (numpy, scipy, stdlib).
 from __future__ import annotations
 
 import csv
-import io
 import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -55,7 +53,8 @@ LENGTH_UNITS_M = {"Meters": 1.0, "Centimeters": 0.01, "Millimeters": 0.001}
 EULER_ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
 ROTATION_TYPES = ("Quaternion",) + EULER_ORDERS
 
-_AXES = "XYZ"
+#: Motive's axis names, in column order.
+AXES = "XYZ"
 
 
 @dataclass(frozen=True)
@@ -113,47 +112,12 @@ class MotiveTake:
             ) from None
 
 
-def make_take(
-    time_s: np.ndarray,
-    T_world_marker: Mapping[str, np.ndarray],
-    *,
-    take_name: str = "dran-edge",
-    frame_rate_hz: float | None = None,
-    body_ids: Mapping[str, str] | None = None,
-    capture_start_time: str = "2026-01-01 12.00.00.000 PM",
-) -> MotiveTake:
-    """A take from poses in our Z-up world (what the mission simulator has), ready to write.
-
-    ``T_world_marker[name]`` is ``(n, 4, 4)``; a pose holding NaN marks an occluded frame.
-    """
-    time_s = np.asarray(time_s, dtype=np.float64).reshape(-1)
-    n = len(time_s)
-    if frame_rate_hz is None:
-        frame_rate_hz = 1.0 / float(np.median(np.diff(time_s))) if n > 1 else 120.0
-    bodies = {}
-    for k, (name, T) in enumerate(T_world_marker.items()):
-        T = np.asarray(T, dtype=np.float64)
-        if T.shape != (n, 4, 4):
-            raise ValueError(f"body {name!r}: expected poses ({n}, 4, 4), got {T.shape}")
-        valid = np.all(np.isfinite(T), axis=(-1, -2))
-        bid = str(body_ids[name]) if body_ids and name in body_ids else str(k + 1)
-        bodies[name] = MotiveBody(name, bid, T, valid, np.full(n, np.nan))
-    return MotiveTake(
-        frame=np.arange(n, dtype=np.int64),
-        time_s=time_s,
-        bodies=bodies,
-        take_name=take_name,
-        capture_frame_rate_hz=float(frame_rate_hz),
-        export_frame_rate_hz=float(frame_rate_hz),
-        capture_start_time=capture_start_time,
-    )
-
-
 # --------------------------------------------------------------------------------------------
 # reading
 
 
-def _up_rotation(up_axis: str) -> np.ndarray:
+def up_rotation(up_axis: str) -> np.ndarray:
+    """Rotation taking coordinates of the ``up_axis``-up world into our Z-up world."""
     if up_axis == "y":
         return R_ZUP_YUP
     if up_axis == "z":
@@ -181,17 +145,8 @@ def _float_or_nan(text: str) -> float:
 def _euler_to_rotmat(angles_deg_xyz: np.ndarray, order: str) -> np.ndarray:
     """Rotation matrices from angles about X, Y, Z (degrees, columns by axis) in Motive's
     relative (intrinsic) ``order``."""
-    by_order = np.stack([angles_deg_xyz[:, _AXES.index(a)] for a in order], axis=-1)
+    by_order = np.stack([angles_deg_xyz[:, AXES.index(a)] for a in order], axis=-1)
     return Rotation.from_euler(order, by_order, degrees=True).as_matrix()
-
-
-def _rotmat_to_euler(R: np.ndarray, order: str) -> np.ndarray:
-    """Angles about X, Y, Z (degrees, columns by axis) of ``R`` in the intrinsic ``order``."""
-    by_order = Rotation.from_matrix(R).as_euler(order, degrees=True)
-    out = np.empty_like(by_order)
-    for k, a in enumerate(order):
-        out[:, _AXES.index(a)] = by_order[:, k]
-    return out
 
 
 def _parse_table(
@@ -396,7 +351,7 @@ def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
                 i_axis: int, path: str, body_id: str) -> MotiveBody:
     """One rigid body's track: all its rotation/position cells blank (occluded) or none."""
     rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
-    need = [("Rotation", a) for a in rot_axes] + [("Position", a) for a in _AXES]
+    need = [("Rotation", a) for a in rot_axes] + [("Position", a) for a in AXES]
     missing = [f"{c} {a}" for c, a in need if (c, a) not in cols]
     if missing:
         raise InputError(
@@ -414,7 +369,7 @@ def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
                          "and some are not (expected all blank when occluded)",
                          path=path, line=first + r + 1)
     n = table.shape[0]
-    valid = ~occluded
+    valid = np.asarray(~occluded, dtype=bool)
     nr = len(rot_axes)
     rot = values[:, :nr]
     pos_m = values[:, nr:] * scale_m
@@ -450,7 +405,7 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
     export: missing header rows, unknown rotation type or units, malformed or partial cells.
     """
     path = str(path)
-    R_up = _up_rotation(up_axis)
+    R_up = up_rotation(up_axis)
     lines = _read_text(path).splitlines()
     rows = list(csv.reader(lines[:40]))
     meta = _check_metadata(rows, path)
@@ -487,84 +442,3 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
         length_units=units,
         path=path,
     )
-
-
-# --------------------------------------------------------------------------------------------
-# writing
-
-
-def write_motive_csv(
-    path: str | Path,
-    take: MotiveTake,
-    *,
-    rotation_type: str = "Quaternion",
-    length_units: str = "Meters",
-    up_axis: str = "y",
-    line_terminator: str = "\r\n",
-) -> None:
-    """Write ``take`` as Motive exports it (format 1.23, rigid bodies, header rows included).
-
-    Poses in ``take`` are in our Z-up world and metres; the file gets Motive's Y-up world
-    (``up_axis="y"``), the chosen units and rotation type. Occluded frames become blank cells.
-    Motive runs on Windows, so lines end in CRLF by default.
-    """
-    if rotation_type not in ROTATION_TYPES:
-        raise ValueError(f"rotation_type must be one of {ROTATION_TYPES}, got {rotation_type!r}")
-    if length_units not in LENGTH_UNITS_M:
-        raise ValueError(f"length_units must be one of {tuple(LENGTH_UNITS_M)}")
-    R_up = _up_rotation(up_axis)
-    scale = 1.0 / LENGTH_UNITS_M[length_units]
-    n = len(take.time_s)
-    rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
-    per_body = len(rot_axes) + 4
-
-    meta = [
-        ("Format Version", "1.23"),
-        ("Take Name", take.take_name),
-        ("Take Notes", ""),
-        ("Capture Frame Rate", f"{take.capture_frame_rate_hz:.6f}"),
-        ("Export Frame Rate", f"{take.export_frame_rate_hz:.6f}"),
-        ("Capture Start Time", take.capture_start_time),
-        ("Capture Start Frame", str(int(take.frame[0]) if n else 0)),
-        ("Total Frames in Take", str(n)),
-        ("Total Exported Frames", str(n)),
-        ("Rotation Type", rotation_type),
-        ("Length Units", length_units),
-        ("Coordinate Space", "Global"),
-    ]
-    names = ["", "Name"]
-    types = ["", "Type"]
-    ids_ = ["", "ID"]
-    comps = ["", ""]
-    axes = ["Frame", "Time (Seconds)"]
-    blocks = [take.frame.astype(np.int64).astype(str)[:, None],
-              np.char.mod("%.6f", take.time_s)[:, None]]
-    for body in take.bodies.values():
-        types += ["Rigid Body"] * per_body
-        names += [body.name] * per_body
-        ids_ += [body.body_id] * per_body
-        comps += ["Rotation"] * len(rot_axes) + ["Position"] * 3 + ["Mean Marker Error"]
-        axes += list(rot_axes) + list(_AXES) + [""]
-        valid = body.valid & np.all(np.isfinite(body.T_world_marker), axis=(-1, -2))
-        T = np.where(valid[:, None, None], body.T_world_marker, np.eye(4))
-        R = R_up.T @ T[:, :3, :3]
-        pos = (T[:, :3, 3] @ R_up) * scale
-        if rotation_type == "Quaternion":
-            rot = geo.quat_xyzw_from_rotmat(R)
-        else:
-            rot = _rotmat_to_euler(R, rotation_type)
-        mme = np.where(np.isfinite(body.mean_marker_error_m), body.mean_marker_error_m, 0.0)
-        num = np.concatenate([rot, pos, (mme * scale)[:, None]], axis=1)
-        txt = np.char.mod("%.6f", num)
-        txt[~valid] = ""
-        blocks.append(txt)
-    table = np.concatenate(blocks, axis=1) if n else np.empty((0, len(axes)), dtype=str)
-
-    out = io.StringIO(newline="")
-    w = csv.writer(out, lineterminator=line_terminator)
-    w.writerow([c for kv in meta for c in kv])
-    w.writerow([])
-    for row in (types, names, ids_, comps, axes):
-        w.writerow(row)
-    w.writerows(table.tolist())
-    Path(path).write_text(out.getvalue(), encoding="utf-8", newline="")

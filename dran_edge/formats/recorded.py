@@ -24,7 +24,8 @@ def ingest_span(path: str | Path, chunk: int = 1 << 20) -> tuple[int, int] | Non
     from dran_edge.comms.ingest import StreamDecoder
 
     dec = StreamDecoder()
-    lo = hi = None
+    lo: int | None = None
+    hi: int | None = None
     with open(path, "rb") as f:
         while data := f.read(chunk):
             for rec in dec.feed(data):
@@ -37,7 +38,7 @@ def ingest_span(path: str | Path, chunk: int = 1 << 20) -> tuple[int, int] | Non
                     continue
                 lo = s if lo is None else min(lo, s)
                 hi = s if hi is None else max(hi, s)
-    return None if lo is None else (int(lo), int(hi))
+    return None if lo is None or hi is None else (int(lo), int(hi))
 
 
 def _robot_yaml(path: Path) -> tuple[int, str, str, tuple[int, ...]]:
@@ -62,7 +63,10 @@ def recorded_mission(run_dir: str | Path) -> rd.Mission:
             old = rd.read_mission(root / "mission.yaml")
         except InputError:
             old = None  # rebuilt from the recordings below
-    robots, spans, links, fleet = [], [], set(), None
+    robots: list[rd.RunRobot] = []
+    spans: list[tuple[int, int]] = []
+    links: set[tuple[int, int]] = set()
+    fleet: str | None = None
     for d in sorted(p for p in (root / "robots").glob("*") if p.is_dir()):
         if not (d / "robot.yaml").exists() or not (d / "ingest.bin").exists():
             continue
@@ -78,6 +82,7 @@ def recorded_mission(run_dir: str | Path) -> rd.Mission:
     if not robots:
         raise InputError("no robot with robot.yaml and a non-empty ingest.bin under robots/",
                          path=str(root))
+    assert fleet is not None  # set by the first robot
     ids = {r.id for r in robots}
     mocap_file = old.mocap_file if old else None
     if mocap_file is None and (root / "mocap.csv").exists():

@@ -139,10 +139,11 @@ def odometry_record(msg: Any, offset_ns: int = 0, stamp: int | None = None) -> I
     """nav_msgs/Odometry -> ODOMETRY; an all-zero pose covariance means 'unknown' (none sent)."""
     s = _check_stamp((stamp_ns(msg.header) if stamp is None else stamp) + offset_ns, "odometry")
     v = pose_vector(_pose_of(msg))
-    cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(36)
-    if not cov.any():
+    cov_in = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(36)
+    cov: np.ndarray | None = cov_in
+    if not cov_in.any():
         cov = None
-    elif not np.isfinite(cov).all():
+    elif not np.isfinite(cov_in).all():
         raise MessageError("non_finite", "odometry covariance with NaN or inf")
     try:
         data = ingest.pack_odometry(s, v[:3], v[3:], cov)
@@ -161,6 +162,8 @@ def keyframe_record(msg: Any, offset_ns: int = 0, stamp: int | None = None) -> I
 def keyframe_from_odometry(item: Item) -> Item:
     """A KEYFRAME at an odometry record's stamp and pose (no keyframe topic in the bag)."""
     v = item.pose
+    if v is None:
+        raise ValueError("keyframe_from_odometry: the record has no pose")
     return Item(item.stamp_ns, ingest.KIND_KEYFRAME,
                 ingest.pack_keyframe(item.stamp_ns, v[:3], v[3:]), v)
 

@@ -31,6 +31,7 @@ import csv
 import struct
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -167,9 +168,13 @@ def _robot_messages(run: rd.Run, name: str, msgs: _Msgs, raw_images: bool
             import cv2
 
             c = cv2.imdecode(np.frombuffer(cbytes, np.uint8), cv2.IMREAD_UNCHANGED)
+            if c is None:
+                raise InputError("cannot decode the image", path=str(fdir / colour))
             yield "image", s, s, msgs.image(s, c, "mono8" if c.ndim == 2 else "bgr8")
             if dbytes is not None:
                 d = cv2.imdecode(np.frombuffer(dbytes, np.uint8), cv2.IMREAD_UNCHANGED)
+                if d is None:
+                    raise InputError("cannot decode the depth image", path=str(fdir / depth))
                 yield "depth", s, s, msgs.image(s, d, "16UC1")
         else:
             yield "image", s, s, msgs.compressed(s, cbytes, "mono8; png compressed")
@@ -199,21 +204,23 @@ def _image_topics(raw: bool) -> dict[str, tuple[str, str]]:
 
 
 class _BagOut:
-    def __init__(self, path: Path, fmt: str, ts):
+    def __init__(self, path: Path, fmt: str, ts: Any):
         self.fmt, self.ts = fmt, ts
+        self.w: Any
         if fmt == "ros1":
-            from rosbags.rosbag1 import Writer
+            from rosbags.rosbag1 import Writer as Ros1Writer
 
-            self.w = Writer(path)
+            self.w = Ros1Writer(path)
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2 import StoragePlugin
+            from rosbags.rosbag2 import Writer as Ros2Writer
 
             plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-            self.w = Writer(path, version=9, storage_plugin=plugin)
+            self.w = Ros2Writer(path, version=9, storage_plugin=plugin)
         self.w.open()
-        self.conns: dict[str, object] = {}
+        self.conns: dict[str, Any] = {}
 
-    def write(self, topic: str, msgtype: str, receive_ns: int, msg) -> None:
+    def write(self, topic: str, msgtype: str, receive_ns: int, msg: Any) -> None:
         if topic not in self.conns:
             self.conns[topic] = self.w.add_connection(topic, msgtype, typestore=self.ts)
         data = (self.ts.serialize_ros1(msg, msgtype) if self.fmt == "ros1"
@@ -244,7 +251,7 @@ def write_run_bags(run_dir: str | Path, out_dir: str | Path, fmt: str, *,
     paths, robots_map = [], []
     single = None if per_robot else _BagOut(out / f"run{ext}", fmt, ts)
     for r in run.mission.robots:
-        bag = _BagOut(out / f"{r.name}{ext}", fmt, ts) if per_robot else single
+        bag = single if single is not None else _BagOut(out / f"{r.name}{ext}", fmt, ts)
         prefix = "" if per_robot else f"/{r.name}"
         rows = sorted(_robot_messages(run, r.name, msgs, raw_images),
                       key=lambda x: (x[2] + LATENCY_NS[x[0]], x[1]))
@@ -257,7 +264,7 @@ def write_run_bags(run_dir: str | Path, out_dir: str | Path, fmt: str, *,
             bag.close()
             paths.append(out / f"{r.name}{ext}")
         robots_map.append(_robot_mapping(run, r, prefix, topics, used, per_robot, ext))
-    mapping = {"format": "dran-edge-bag-map/1", "fleet": run.mission.fleet,
+    mapping: dict[str, Any] = {"format": "dran-edge-bag-map/1", "fleet": run.mission.fleet,
                "start_ns": run.mission.start_ns, "duration_s": run.mission.duration_s,
                "calib": str((run.calib_dir).resolve()) if (run.calib_dir / "tags.yaml").exists()
                else None,
@@ -265,8 +272,8 @@ def write_run_bags(run_dir: str | Path, out_dir: str | Path, fmt: str, *,
     if mapping["calib"] is None:
         del mapping["calib"]
     if run.mocap_path is not None:
-        mbag = _BagOut(out / f"mocap{ext}", fmt, ts) if per_robot else single
-        bodies = _write_mocap(run, mbag, msgs)
+        mbag = single if single is not None else _BagOut(out / f"mocap{ext}", fmt, ts)
+        bodies = _write_mocap(run, run.mocap_path, mbag, msgs)
         if per_robot:
             mbag.close()
             paths.append(out / f"mocap{ext}")
@@ -308,12 +315,12 @@ def _robot_mapping(run, r, prefix, topics, used, per_robot, ext) -> dict:
     return d
 
 
-def _write_mocap(run: rd.Run, bag: _BagOut, msgs: _Msgs) -> dict[str, str]:
-    from dran_edge.formats.motive import _up_rotation, read_motive_csv
+def _write_mocap(run: rd.Run, mocap_path: Path, bag: _BagOut, msgs: _Msgs) -> dict[str, str]:
+    from dran_edge.formats.motive import read_motive_csv, up_rotation
 
-    take = read_motive_csv(run.mocap_path, up_axis=run.mission.mocap_up_axis)
+    take = read_motive_csv(mocap_path, up_axis=run.mission.mocap_up_axis)
     R_motive_world = np.eye(4)
-    R_motive_world[:3, :3] = _up_rotation(run.mission.mocap_up_axis).T
+    R_motive_world[:3, :3] = up_rotation(run.mission.mocap_up_axis).T
     start = run.mission.mocap_start_ns or run.mission.start_ns
     stamps = start + np.round(take.time_s * 1e9).astype(np.int64)
     bodies = {}

@@ -118,7 +118,8 @@ class _Node:
     def key(self, name: str) -> str:
         return f"{self.where}.{name}" if self.where else name
 
-    def check(self, required: set[str], optional: set[str] = frozenset()) -> None:
+    def check(self, required: set[str], optional: frozenset[str] | set[str] = frozenset()
+              ) -> None:
         for k in self.data:
             if k not in required and k not in optional:
                 raise self._err(f"{self.key(str(k))}: unknown key (allowed: "

@@ -13,6 +13,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -238,7 +239,9 @@ def read_bag_trajectory(path: str | Path, topic: str) -> Trajectory:
 
     reader, p = open_bag(path)
     topic = topic if topic.startswith("/") else "/" + topic
-    stamps, rows, dropped = [], [], 0
+    stamps: list[int] = []
+    rows: list[Any] = []
+    dropped = 0
     try:
         with reader:
             conns = [c for c in reader.connections if c.topic == topic]

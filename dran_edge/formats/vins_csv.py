@@ -42,6 +42,7 @@ import re
 import shutil
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -227,54 +228,52 @@ def build_ingest(stamps: np.ndarray, T: np.ndarray, kf_stamps: np.ndarray,
                                              "loops": loops_used, "resets": resets}
 
 
-def convert(args: argparse.Namespace) -> dict:
-    out = Path(args.out)
-    stamps, T = read_vins_csv(args.no_loop_csv, 11 if not args.lenient else 8)
-    if args.loop_csv:
-        kf_stamps, _ = read_vins_csv(args.loop_csv, 8)
-    else:
-        kf_stamps = stamps[:: max(1, args.keyframe_every)]
-    loops = read_pose_graph_loops(args.pose_graph) if args.pose_graph else []
-    data, counts = build_ingest(stamps, T, kf_stamps, loops, int(args.gap_s * 1e9))
-    robot_dir = out / "robots" / args.name
-    if (robot_dir / "ingest.bin").exists() and not args.force:
-        raise InputError(f"robot {args.name} already exists in the run (use --force to replace)",
-                         path=str(robot_dir))
-    robot_dir.mkdir(parents=True, exist_ok=True)
-    (robot_dir / "ingest.bin").write_bytes(data)
-    frames = 0
+def _copy_frames(args: argparse.Namespace, robot_dir: Path) -> int:
+    """The images of ``--images`` as the robot's recorded colour frames (copied, or linked
+    with ``--symlink``) with their frames.csv; returns the frame count."""
+    imgs = image_stamps(args.images)
+    fdir = robot_dir / "frames"
+    (fdir / "colour").mkdir(parents=True, exist_ok=True)
+    lines = ["stamp_ns,colour,depth,camera_id"]
+    for s, p in imgs:
+        dest = fdir / "colour" / f"{s}{p.suffix.lower()}"
+        if args.symlink:
+            dest.unlink(missing_ok=True)
+            dest.symlink_to(p.resolve())
+        else:
+            shutil.copyfile(p, dest)
+        lines.append(f"{s},colour/{dest.name},,{args.name}")
+    (fdir / "frames.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return len(imgs)
+
+
+def _copy_calibration(args: argparse.Namespace, out: Path, frames: int) -> dict[str, str]:
+    """The calibration of ``--calib`` into the run's calib/; returns the robot's camera
+    config section (recorded frames when there are frames and a calibration)."""
     camera = {"source": "none"}
-    if args.images:
-        imgs = image_stamps(args.images)
-        fdir = robot_dir / "frames"
-        (fdir / "colour").mkdir(parents=True, exist_ok=True)
-        lines = ["stamp_ns,colour,depth,camera_id"]
-        for s, p in imgs:
-            dest = fdir / "colour" / f"{s}{p.suffix.lower()}"
-            if args.symlink:
-                dest.unlink(missing_ok=True)
-                dest.symlink_to(p.resolve())
-            else:
-                shutil.copyfile(p, dest)
-            lines.append(f"{s},colour/{dest.name},,{args.name}")
-        (fdir / "frames.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
-        frames = len(imgs)
-    if args.calib:
-        src = Path(args.calib)
-        if not (src / "tags.yaml").exists() or not (src / "cameras" / f"{args.name}.yaml").exists():
-            raise InputError(f"expected tags.yaml and cameras/{args.name}.yaml in the calibration "
-                             "folder (docs/calibration.md)", path=str(src))
-        (out / "calib" / "cameras").mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(src / "tags.yaml", out / "calib" / "tags.yaml")
-        shutil.copyfile(src / "cameras" / f"{args.name}.yaml",
-                        out / "calib" / "cameras" / f"{args.name}.yaml")
-        if frames:
-            camera = {"source": "recorded", "calib_dir": "../../calib",
-                      "tags_file": "../../calib/tags.yaml", "recording": "frames"}
-    # mission.yaml: create or extend
+    if not args.calib:
+        return camera
+    src = Path(args.calib)
+    if not (src / "tags.yaml").exists() or not (src / "cameras" / f"{args.name}.yaml").exists():
+        raise InputError(f"expected tags.yaml and cameras/{args.name}.yaml in the calibration "
+                         "folder (docs/calibration.md)", path=str(src))
+    (out / "calib" / "cameras").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src / "tags.yaml", out / "calib" / "tags.yaml")
+    shutil.copyfile(src / "cameras" / f"{args.name}.yaml",
+                    out / "calib" / "cameras" / f"{args.name}.yaml")
+    if frames:
+        camera = {"source": "recorded", "calib_dir": "../../calib",
+                  "tags_file": "../../calib/tags.yaml", "recording": "frames"}
+    return camera
+
+
+def _update_mission(args: argparse.Namespace, out: Path, stamps: np.ndarray) -> rd.Mission:
+    """Creates or extends the run's mission.yaml with this robot, its links and its span."""
     mpath = out / "mission.yaml"
     start = int(stamps.min())
     end = int(stamps.max())
+    robots: list[rd.RunRobot]
+    edges: set[tuple[int, int]]
     if mpath.exists():
         m = rd.read_mission(mpath)
         robots = [r for r in m.robots if r.name != args.name]
@@ -304,15 +303,44 @@ def convert(args: argparse.Namespace) -> dict:
                    tuple(sorted(robots, key=lambda r: r.id)), objects, tuple(sorted(edges)),
                    mocap_file, mocap_start, "y", None)
     rd.write_mission(out, m)
+    return m
+
+
+def _write_robot_config(args: argparse.Namespace, robot_dir: Path, m: rd.Mission,
+                        camera: dict[str, str]) -> None:
+    """The robot's robot.yaml: its id, fleet, neighbours on loopback and camera section."""
     from dran_edge.config import config_from_dict, config_to_dict
 
     nb = sorted(b if a == args.id else a for a, b in m.comm_graph if args.id in (a, b))
     cfg = config_from_dict({
-        "robot": {"id": args.id, "name": args.name, "fleet": fleet},
+        "robot": {"id": args.id, "name": args.name, "fleet": m.fleet},
         "neighbours": [{"id": n, "address": f"127.0.0.1:{47600 + n}"} for n in nb],
         "comms": {"bind_address": "127.0.0.1", "port": 47600 + args.id},
         "camera": camera,
     })
     rd.write_yaml(robot_dir / "robot.yaml", config_to_dict(cfg),
                   header=f"{args.name}: generated by dran-edge import-vins (docs/config.md)")
+
+
+def convert(args: argparse.Namespace) -> dict[str, Any]:
+    """One robot's VINS-Mono CSVs (and images, calibration, mocap) into the run ``args.out``;
+    returns the record counts."""
+    out = Path(args.out)
+    stamps, T = read_vins_csv(args.no_loop_csv, 11 if not args.lenient else 8)
+    if args.loop_csv:
+        kf_stamps, _ = read_vins_csv(args.loop_csv, 8)
+    else:
+        kf_stamps = stamps[:: max(1, args.keyframe_every)]
+    loops = read_pose_graph_loops(args.pose_graph) if args.pose_graph else []
+    data, counts = build_ingest(stamps, T, kf_stamps, loops, int(args.gap_s * 1e9))
+    robot_dir = out / "robots" / args.name
+    if (robot_dir / "ingest.bin").exists() and not args.force:
+        raise InputError(f"robot {args.name} already exists in the run (use --force to replace)",
+                         path=str(robot_dir))
+    robot_dir.mkdir(parents=True, exist_ok=True)
+    (robot_dir / "ingest.bin").write_bytes(data)
+    frames = _copy_frames(args, robot_dir) if args.images else 0
+    camera = _copy_calibration(args, out, frames)
+    m = _update_mission(args, out, stamps)
+    _write_robot_config(args, robot_dir, m, camera)
     return {**counts, "frames": frames, "robot": args.name, "run": str(out)}

@@ -12,10 +12,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from dran_edge.rehearsal.fleet import _Daemon
+    from dran_edge.rehearsal.robot_daemon import RobotDaemon
 
 
-def clock_env(d: _Daemon) -> dict:
+def clock_env(d: RobotDaemon) -> dict:
     """libfaketime for a robot whose wall clock the faults may step (docs/rehearsal.md)."""
     if not d.faketime_lib:
         return {}
@@ -33,7 +33,7 @@ def find_faketime() -> str | None:
     return next((p for p in FAKETIME_PATHS if Path(p).exists()), None)
 
 
-def clock_step(d: _Daemon, step_s: float) -> dict:
+def clock_step(d: RobotDaemon, step_s: float) -> dict:
     if not d.faketime_lib:
         return {"by": "skipped", "reason": "libfaketime is not installed (a robot's wall clock "
                                            "cannot be stepped alone without it)"}
@@ -42,7 +42,7 @@ def clock_step(d: _Daemon, step_s: float) -> dict:
     return {"by": "libfaketime", "offset_s": d.clock_offset_s}
 
 
-def write_faketime(d: _Daemon) -> None:
+def write_faketime(d: RobotDaemon) -> None:
     path = d.state_dir.parent / "faketime"
     tmp = path.with_name("faketime.tmp")
     tmp.write_text(f"{d.clock_offset_s:+.3f}\n")

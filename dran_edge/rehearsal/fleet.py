@@ -23,6 +23,9 @@
    output format (``OUT/out``), scored by :func:`dran_edge.evaluation.score.evaluate_run` like
    ``dran-edge eval``; ``OUT/rehearsal.json`` has the metrics, per-robot daemon counters, the
    status timeline and the fault checks (nothing accepted lost; rejoin).
+
+One robot's daemon (its state, records and robot.yaml) is in :mod:`.robot_daemon`; the report
+in :mod:`.report`.
 """
 
 from __future__ import annotations
@@ -37,10 +40,8 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -51,6 +52,12 @@ from dran_edge.comms.drop_hook import write_rules
 from dran_edge.rehearsal.clock import clock_env, clock_step, find_faketime, write_faketime
 from dran_edge.rehearsal.netns import make_net
 from dran_edge.rehearsal.report import RehearsalResult, finish, round_row, sample
+from dran_edge.rehearsal.robot_daemon import (
+    RobotDaemon,
+    daemon_config,
+    ingest_records,
+    perceived_records,
+)
 
 log = logging.getLogger(__name__)
 
@@ -86,102 +93,6 @@ class RehearsalOptions:
             raise InputError(f"--settle-rounds: expected >= 0, got {self.settle_rounds}")
 
 
-# ------------------------------------------------------------------------------ one robot
-@dataclass
-class _Daemon:
-    """One robot's daemon process and what the rehearsal knows about it."""
-
-    id: int
-    name: str
-    k: int
-    config: Path
-    state_dir: Path
-    runtime_dir: Path
-    record_dir: Path
-    log_path: Path
-    drop_file: Path
-    records: list[bytes]
-    release_ns: np.ndarray
-    proc: subprocess.Popen | None = None
-    next_record: int = 0
-    queue: list[int] = field(default_factory=list)
-    sock: socket.socket | None = None
-    connections: list[dict] = field(default_factory=list)
-    """Per connection: pid of the daemon, indices sent on it, records it reported accepted."""
-    samples: list[dict] = field(default_factory=list)
-    last_status: dict | None = None
-    starts: int = 0
-    clock_offset_s: float = 0.0
-    faketime_lib: str | None = None
-    """libfaketime preloaded into this daemon (a robot with a clock step), else None."""
-    rejected_in_file: Counter = field(default_factory=Counter)
-    """Records of the run's ingest.bin that do not decode (never sent), by reason."""
-
-    @property
-    def ingest_path(self) -> Path:
-        return self.runtime_dir / "ingest.sock"
-
-    @property
-    def status_path(self) -> Path:
-        return self.runtime_dir / "status.sock"
-
-
-def _ingest_records(run: rd.Run, name: str) -> tuple[list[bytes], np.ndarray, Counter]:
-    """The robot's records (raw bytes) and release stamps: a record goes out once the mission
-    clock passes its stamp and every earlier record's (file order is kept, as replay does)."""
-    from dran_edge.comms.ingest import IngestDecodeError, iter_records
-    from dran_edge.replay.robots import event_stamp
-
-    raws, stamps, rejected = [], [], Counter()
-    release = 0
-    for item in iter_records(run.read_ingest(name)):
-        if isinstance(item, IngestDecodeError):
-            rejected[item.reason] += 1
-            continue
-        release = max(release, event_stamp(item.event))
-        raws.append(item.raw)
-        stamps.append(release)
-    return raws, np.asarray(stamps, np.int64), rejected
-
-
-def _perceived_records(run: rd.Run, name: str) -> list[tuple[int, bytes]]:
-    """Observation records of the robot's recorded frames, by replay's perception pipeline."""
-    from dran_edge.comms.ingest import iter_records
-    from dran_edge.replay.run import _perceive_window
-
-    cfg = run.load_config(name)
-    if cfg.camera.source != "recorded" or run.frames_dir(name) is None:
-        return []
-    calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
-    _, _, records, _ = _perceive_window((str(run.config_path(name)), str(calib), name, 0,
-                                         2**63 - 1))
-    out = []
-    for raw in records:
-        for item in iter_records(raw):
-            out.append((int(item.event.stamp_ns), item.raw))
-    return out
-
-
-def _config_dict(run: rd.Run, info: rd.RunRobot, ep, neighbours: list[tuple[int, str, Any]],
-                 key_file: Path, d: _Daemon, period_s: float) -> dict:
-    from dran_edge.config import config_to_dict
-
-    cfg = config_to_dict(run.load_config(info.name))
-    cfg["neighbours"] = [{"id": j, "name": nm, "address": nep.dish} for j, nm, nep in neighbours]
-    if info.T_world_odom is not None:
-        from dran_edge import geometry as geo
-
-        cfg["robot"]["T_world_odom"] = [round(float(v), 12) for v in
-                                        geo.se3_to_xyz_quat_xyzw(info.T_world_odom)]
-    cfg["comms"].update(transport="udp", bind_address=ep.address, port=ep.port,
-                        key_file=str(key_file), period_s=period_s)
-    cfg["ingest"].update(enabled=True, socket_path=str(d.ingest_path))
-    cfg["camera"].update(source="none", recording="", calib_dir="", tags_file="")
-    cfg["daemon"].update(state_dir=str(d.state_dir), runtime_dir=str(d.runtime_dir),
-                         checkpoint_period_s=max(0.5, 4 * period_s), status_period_s=5.0)
-    return cfg
-
-
 # ------------------------------------------------------------------------------ the fleet
 class Fleet:
     """The daemons of one rehearsal, their network, feeding and faults (module docstring)."""
@@ -211,18 +122,18 @@ class Fleet:
         try:
             key_file = self.out / "fleet.key"
             write_fleet_key(key_file)
-            self.daemons: dict[int, _Daemon] = {}
+            self.daemons: dict[int, RobotDaemon] = {}
             for k, info in enumerate(infos):
                 base = self.out / "daemons" / info.name
                 base.mkdir(parents=True, exist_ok=True)
-                raws, release, rejected = _ingest_records(self.src, info.name)
-                perceived = _perceived_records(self.src, info.name)
+                raws, release, rejected = ingest_records(self.src, info.name)
+                perceived = perceived_records(self.src, info.name)
                 if perceived:
                     merged = sorted([(int(s), i, r) for i, (s, r) in enumerate(zip(release, raws))]
                                     + [(s, len(raws) + i, r) for i, (s, r) in enumerate(perceived)])
                     release = np.array([m[0] for m in merged], np.int64)
                     raws = [m[2] for m in merged]
-                d = _Daemon(info.id, info.name, k, base / "robot.yaml", base / "state",
+                d = RobotDaemon(info.id, info.name, k, base / "robot.yaml", base / "state",
                             self._tmp / str(k), base / "record", base / "daemon.log",
                             base / "drop.json", raws, release, rejected_in_file=rejected)
                 self.daemons[info.id] = d
@@ -230,7 +141,7 @@ class Fleet:
                 d = self.daemons[info.id]
                 nbrs = [(j, self.names[j], self.net.endpoints[self.daemons[j].k])
                         for j in self.mission.neighbours(info.id)]
-                cfg = _config_dict(self.src, info, self.net.endpoints[k], nbrs, key_file, d,
+                cfg = daemon_config(self.src, info, self.net.endpoints[k], nbrs, key_file, d,
                                    self.period_s / opt.speed)
                 d.config.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
                 load_config(d.config)  # what the daemon will load: fail here, not in it
@@ -259,7 +170,7 @@ class Fleet:
         return (self.mission_ns() - self.mission.start_ns) * 1e-9
 
     # -------------------------------------------------------------------- processes
-    def start(self, d: _Daemon) -> None:
+    def start(self, d: RobotDaemon) -> None:
         env = {k: v for k, v in os.environ.items()
                if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "STATE_DIRECTORY",
                             "RUNTIME_DIRECTORY", "INVOCATION_ID", "JOURNAL_STREAM", "LISTEN_FDS")}
@@ -277,7 +188,7 @@ class Fleet:
         d.starts += 1
         d.last_status = None
 
-    def wait_up(self, ds: list[_Daemon], timeout_s: float) -> None:
+    def wait_up(self, ds: list[RobotDaemon], timeout_s: float) -> None:
         from dran_edge.daemon.status import query_status
 
         end = time.monotonic() + timeout_s
@@ -291,14 +202,15 @@ class Fleet:
                     st = query_status(d.status_path, timeout_s=1.0)
                 except DranError:
                     continue
-                if st.get("state") == "running" and st.get("pid") == d.proc.pid:
+                pid = d.proc.pid if d.proc is not None else None
+                if st.get("state") == "running" and st.get("pid") == pid:
                     waiting.remove(d)
             if waiting and time.monotonic() > end:
                 raise DranError(f"daemons not up after {timeout_s:g} s: "
                                 f"{', '.join(d.name for d in waiting)} (logs in {self.out}/daemons)")
             time.sleep(0.1)
 
-    def kill(self, d: _Daemon) -> None:
+    def kill(self, d: RobotDaemon) -> None:
         if d.proc is not None and d.proc.poll() is None:
             os.kill(d.proc.pid, signal.SIGKILL)
             d.proc.wait(timeout=30)
@@ -308,7 +220,7 @@ class Fleet:
         for d in self.daemons.values():
             if d.proc is not None and d.proc.poll() is None:
                 d.proc.send_signal(signal.SIGTERM)
-        codes = {}
+        codes: dict[str, int | None] = {}
         end = time.monotonic() + timeout_s
         for d in self.daemons.values():
             if d.proc is None:
@@ -323,7 +235,7 @@ class Fleet:
         return codes
 
     # -------------------------------------------------------------------- feeding
-    def feed(self, d: _Daemon, now_ns: int) -> None:
+    def feed(self, d: RobotDaemon, now_ns: int) -> None:
         end = int(np.searchsorted(d.release_ns, now_ns, side="right"))
         if end > d.next_record:
             d.queue.extend(range(d.next_record, end))
@@ -349,7 +261,7 @@ class Fleet:
         d.connections[-1]["sent"].extend(batch)
         d.queue = []
 
-    def _disconnect(self, d: _Daemon) -> None:
+    def _disconnect(self, d: RobotDaemon) -> None:
         if d.sock is not None:
             d.sock.close()
             d.sock = None

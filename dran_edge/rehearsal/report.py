@@ -10,14 +10,16 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from dran_edge.rehearsal import faults as fl
 
 if TYPE_CHECKING:
-    from dran_edge.rehearsal.fleet import Fleet, RehearsalOptions, _Daemon
+    from dran_edge.rehearsal.fleet import Fleet, RehearsalOptions
+    from dran_edge.rehearsal.robot_daemon import RobotDaemon
+    from dran_edge.robot.core import RobotCore
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +64,7 @@ def round_row(k: int, stamp_ns: int, statuses: dict[int, dict]) -> dict:
             "converged_robots": conv, "datagrams_lost": 0}
 
 
-def _record_counts(d: _Daemon) -> Counter:
+def _record_counts(d: RobotDaemon) -> Counter:
     """Multiset of the raw records the daemon applied, from its ``--record`` stream (a record
     re-applied from the journal after a crash appears twice there)."""
     from dran_edge.comms.ingest import IngestDecodeError, iter_records
@@ -74,7 +76,7 @@ def _record_counts(d: _Daemon) -> Counter:
                    if not isinstance(item, IngestDecodeError))
 
 
-def _accounting(d: _Daemon) -> dict:
+def _accounting(d: RobotDaemon) -> dict:
     """Nothing accepted is lost: every record a daemon reported as accepted (its status'
     ``ingest.records`` at the last poll on that connection) was applied, by that daemon or,
     after a crash, by its successor from the journal."""
@@ -113,7 +115,7 @@ def _collect(fleet: Fleet) -> dict:
         if state is None:
             log.warning("%s left no checkpoint", d.name)
             continue
-        core = default_agent_factory(cfg, state)
+        core = cast("RobotCore", default_agent_factory(cfg, state))
         last = core.agent.current_estimate(fleet.mission.start_ns)
         results[rid] = robot_result(rid, d.name, core, last,
                                     health=dict(state.get("counters", {})))
@@ -122,7 +124,7 @@ def _collect(fleet: Fleet) -> dict:
 
 def finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
             exit_codes: dict, wall0: float, phases: dict) -> RehearsalResult:
-    from dran_edge.replay.run import _json_clean, _metrics, write_outputs
+    from dran_edge.replay.outputs import evaluation_metrics, json_clean, write_outputs
 
     run = fleet.run
     run.out_dir.mkdir(exist_ok=True)
@@ -130,7 +132,7 @@ def finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
     results = _collect(fleet)
     write_outputs(run, results, rows)
     phases["collect"] = time.perf_counter() - t
-    robots = {}
+    robots: dict[str, dict[str, Any]] = {}
     for rid, d in fleet.daemons.items():
         last = d.samples[-1] if d.samples else {}
         robots[d.name] = {
@@ -162,13 +164,13 @@ def finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
     }
     t = time.perf_counter()
     if opt.evaluate and fleet.mission.mocap_file:
-        report.update(_metrics(run))
+        report.update(evaluation_metrics(run))
     phases["evaluate"] = time.perf_counter() - t
     report["rehearsal_wall_s"] = round(time.perf_counter() - wall0, 3)
     report["phases_wall_s"] = {k: round(v, 3) for k, v in phases.items()}
     timeline = {d.name: d.samples for d in fleet.daemons.values()}
-    (fleet.out / "timeline.json").write_text(json.dumps(_json_clean(timeline)) + "\n")
-    (fleet.out / "rehearsal.json").write_text(json.dumps(_json_clean(report), indent=2) + "\n")
+    (fleet.out / "timeline.json").write_text(json.dumps(json_clean(timeline)) + "\n")
+    (fleet.out / "rehearsal.json").write_text(json.dumps(json_clean(report), indent=2) + "\n")
     return RehearsalResult(report, fleet.out)
 
 
@@ -187,7 +189,7 @@ def _rejoin(fleet: Fleet) -> list[dict]:
         for rid in f.robots:
             nbrs = fleet.mission.neighbours(rid)
             if f.kind == "partition":
-                nbrs = [j for j in nbrs if j not in f.robots]
+                nbrs = tuple(j for j in nbrs if j not in f.robots)
             heard_by = {}
             for j in nbrs:
                 heard_by[fleet.names[j]] = _first_heard(fleet.daemons[j].samples, rid, t_end,

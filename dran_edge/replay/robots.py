@@ -22,7 +22,7 @@ import traceback
 import zlib
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from dran_edge.blas import set_blas_threads
 from dran_edge.formats import run_dir as rd
 from dran_edge.errors import DranError, InputError
 from dran_edge.events import EstimateUpdate, Health, NeighbourData, ObservationBatch, Outgoing, Tick
+
+if TYPE_CHECKING:
+    from dran_edge.robot.core import RobotCore
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +46,7 @@ def fleet_id(fleet: str) -> int:
     return zlib.crc32(fleet.encode("utf-8")) & 0xFFFF
 
 
-def make_core(cfg, robot: rd.RunRobot):
+def make_core(cfg: Any, robot: rd.RunRobot) -> RobotCore:
     """The robot's agent as the daemon builds it (ingest events in, outputs out).
 
     The run's ``T_world_odom`` (the paper's protocol: the robot's initial frame in the world,
@@ -51,17 +54,19 @@ def make_core(cfg, robot: rd.RunRobot):
     """
     from dran_edge.daemon.service import default_agent_factory
 
-    core = default_agent_factory(cfg, None)  # an RobotCore: bounded local graph + agent
+    # a RobotCore: bounded local graph + agent
+    core = cast("RobotCore", default_agent_factory(cfg, None))
     if robot.T_world_odom is not None:
         core.set_world_frame(robot.T_world_odom)
     return core
 
 
-def decode_ingest(data: bytes, what: str) -> tuple[list, Counter]:
+def decode_ingest(data: bytes, what: str) -> tuple[list[Any], Counter[str]]:
     """Events of ingest bytes through the daemon's stream decoder; rejects counted by reason."""
     from dran_edge.comms.ingest import IngestDecodeError, iter_records
 
-    events, rejected = [], Counter()
+    events: list[Any] = []
+    rejected: Counter[str] = Counter()
     for item in iter_records(data):
         if isinstance(item, IngestDecodeError):
             rejected[item.reason] += 1
@@ -88,7 +93,7 @@ class Mailbox:
         return True
 
     def receive(self, max_datagrams: int | None = None) -> list[tuple[int | None, bytes]]:
-        out = [(None, d) for d in self.inbox]
+        out: list[tuple[int | None, bytes]] = [(None, d) for d in self.inbox]
         self.inbox = []
         return out
 
@@ -99,7 +104,7 @@ class Mailbox:
 class BufferedUdp:
     """A RADIO/DISH transport whose received datagrams are collected before each round."""
 
-    def __init__(self, radio):
+    def __init__(self, radio: Any) -> None:
         self.radio = radio
         self.buffer: list[tuple[int | None, bytes]] = []
         self.outbox: list[tuple[int, bytes]] = []
@@ -369,7 +374,7 @@ class WorkerPool:
             self._procs.append(p)
         spans = [s for s in (_unwrap(c.recv()) for c in self._conns) if s is not None]
         self._span = (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
-        self._last = self._span[1] if spans else 0
+        self._last = self._span[1] if self._span is not None else 0
         self._ids_of = [[ids[k] for k in range(len(specs)) if k % workers == w]
                         for w in range(workers)]
 
@@ -385,7 +390,10 @@ class WorkerPool:
             if mine:
                 conn.send(("add", mine))
 
-    def step(self, t_k: int, inboxes: dict[int, list[bytes]]) -> dict[int, dict]:
+    def step(self, t_k: int, inboxes: dict[int, list[bytes]] | None) -> dict[int, dict]:
+        """One round of every robot; ``inboxes`` as for :meth:`RobotRunner.step` (the pool
+        runs the bus transport only: None is no datagram)."""
+        inboxes = inboxes or {}
         for conn, ids in zip(self._conns, self._ids_of):
             conn.send(("step", (t_k, {i: inboxes.get(i, []) for i in ids})))
         return self._gather()

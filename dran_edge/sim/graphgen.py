@@ -16,14 +16,15 @@ from dran_edge.formats.g2o import G2oGraph
 
 def grid_trajectory(dim: int, side: int, layers: int = 1, step_m: float = 1.0) -> np.ndarray:
     """(n, D, D) true poses along a boustrophedon path over a side×side grid (× layers in 3D)."""
-    pts, yaw = [], []
+    pt_list: list[tuple[float, float, float]] = []
+    yaw_list: list[float] = []
     for layer in range(layers if dim == 3 else 1):
         for row in range(side):
             cols = range(side) if row % 2 == 0 else range(side - 1, -1, -1)
             for col in cols:
-                pts.append((col * step_m, row * step_m, layer * step_m))
-                yaw.append(0.0 if row % 2 == 0 else np.pi)
-    pts, yaw = np.asarray(pts), np.asarray(yaw)
+                pt_list.append((col * step_m, row * step_m, layer * step_m))
+                yaw_list.append(0.0 if row % 2 == 0 else np.pi)
+    pts, yaw = np.asarray(pt_list), np.asarray(yaw_list)
     if dim == 2:
         return geo.se2_from_xy_theta(np.column_stack([pts[:, :2], yaw]))
     rng = np.random.default_rng(12345)
@@ -174,7 +175,8 @@ def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
     layers = max(2, side // 6) if dim == 3 else 1
     lim = np.array([side - 1, side - 1, layers - 1])
     p, h = np.zeros(3, dtype=np.int64), 0
-    pts, hs = [], []
+    pt_list: list[np.ndarray] = []
+    hs: list[int] = []
     for _ in range(num_poses):
         if rng.random() < turn_probability or np.any((p + dirs[h] < 0) | (p + dirs[h] > lim)):
             back = (h + 2) % 4 if h < 4 else 9 - h
@@ -182,9 +184,9 @@ def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
                   and k != back]
             h = int(rng.choice(ok))
         p = p + dirs[h]
-        pts.append(p.copy())
+        pt_list.append(p.copy())
         hs.append(h)
-    pts = np.asarray(pts, dtype=np.float64)
+    pts = np.asarray(pt_list, dtype=np.float64)
     yaw = np.array([(k if k < 4 else 0) * np.pi / 2 for k in hs])
     if dim == 2:
         return geo.se2_from_xy_theta(np.column_stack([pts[:, :2], yaw]))
@@ -235,7 +237,7 @@ def graph_from_trajectory(T: np.ndarray, loops: np.ndarray, sigma_t_m, sigma_r_r
     if anisotropy != 1.0:
         scales = np.geomspace(1.0, anisotropy, dim) / np.sqrt(anisotropy)
         if dim == 2:
-            Q = geo.so2_exp(rng.uniform(-np.pi, np.pi, m))
+            Q = geo.so2_exp(np.asarray(rng.uniform(-np.pi, np.pi, m)))
         else:
             Q = geo.so3_exp(rng.normal(size=(m, 3)) * 2.0)
         cov[:, :dim, :dim] = Q @ np.diag((st * scales) ** 2) @ np.swapaxes(Q, 1, 2)

@@ -31,7 +31,8 @@ A mission is generated from :class:`SimParams` and one seed, deterministically:
 - **Mocap.** Every robot and box as a Motive rigid body (pivot offsets ``T_body_marker``,
   ``T_object_marker``) at ``mocap_rate_hz``, with a few short occlusions of robot bodies.
 
-This module is pure numpy; :mod:`dran_edge.sim.writer` turns a :class:`Mission` into a run
+This module is pure numpy; the VIO, keyframe and loop models are in :mod:`dran_edge.sim.sensors`;
+:mod:`dran_edge.sim.writer` turns a :class:`Mission` into a run
 directory (frames rendered by the perception renderer, ingest records, Motive CSV).
 """
 
@@ -45,6 +46,13 @@ import numpy as np
 
 from dran_edge import geometry as geo
 from dran_edge.errors import InputError
+from dran_edge.sim.sensors import (
+    select_keyframes,
+    simulate_loops,
+    simulate_vio,
+    stamps_at_rate,
+    yaw_pose,
+)
 
 #: Wall-clock-like stamp of the mission start (2026-01-01T00:00:00Z), nanoseconds.
 DEFAULT_START_NS = 1_767_225_600_000_000_000
@@ -178,19 +186,6 @@ def _object_marker(box_size_m: float) -> np.ndarray:
     return geo.se3_from_rt(np.eye(3), np.array([0.0, 0.0, box_size_m / 2]))
 
 
-def _yaw_pose(x: np.ndarray, y: np.ndarray, z: np.ndarray | float, yaw: np.ndarray) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    T = np.zeros(np.shape(yaw) + (4, 4))
-    T[..., 0, 0], T[..., 0, 1], T[..., 1, 0], T[..., 1, 1] = c, -s, s, c
-    T[..., 2, 2] = T[..., 3, 3] = 1.0
-    T[..., 0, 3], T[..., 1, 3], T[..., 2, 3] = x, y, z
-    return T
-
-
-def _yaw_of(T: np.ndarray) -> np.ndarray:
-    return np.arctan2(T[..., 1, 0], T[..., 0, 0])
-
-
 # ------------------------------------------------------------------------------------- world
 @dataclass(frozen=True, eq=False)
 class World:
@@ -237,14 +232,14 @@ def make_world(p: SimParams, rng: np.random.Generator) -> World:
     spacing = p.arena_m / max(cols, rows)
     cells = [(r, c) for r in range(rows) for c in range(cols)]
     chosen = rng.permutation(len(cells))[: p.objects]
-    xy = []
+    centres = []
     for k in sorted(chosen.tolist()):
         r, c = cells[k]
         jitter = rng.uniform(-0.2, 0.2, size=2) * spacing
-        xy.append([(c + 0.5) * spacing + jitter[0], (r + 0.5) * spacing + jitter[1]])
-    xy = np.asarray(xy) - p.arena_m / 2
+        centres.append([(c + 0.5) * spacing + jitter[0], (r + 0.5) * spacing + jitter[1]])
+    xy = np.asarray(centres) - p.arena_m / 2
     yaw = rng.uniform(-math.pi, math.pi, size=p.objects)
-    T = _yaw_pose(xy[:, 0], xy[:, 1], p.box_size_m / 2, yaw)
+    T = yaw_pose(xy[:, 0], xy[:, 1], p.box_size_m / 2, yaw)
     return World(np.arange(p.objects), T, p.box_size_m, p.tag_size_m, face_tags(p.box_size_m))
 
 
@@ -276,7 +271,7 @@ class CirclePath:
         t_s = np.asarray(t_s, dtype=np.float64)
         xy = self._xy(t_s)
         d = self._xy(t_s + 1e-3) - self._xy(t_s - 1e-3)
-        return _yaw_pose(xy[..., 0], xy[..., 1], self.height_m, np.arctan2(d[..., 1], d[..., 0]))
+        return yaw_pose(xy[..., 0], xy[..., 1], self.height_m, np.arctan2(d[..., 1], d[..., 0]))
 
 
 def _random_path(p: SimParams, rng: np.random.Generator) -> CirclePath:
@@ -381,119 +376,6 @@ class Mission:
     """(k,) Motive times from take start (= mission start)."""
 
 
-def _stamps(start_ns: int, duration_s: float, rate_hz: float, offset_s: float = 0.0) -> np.ndarray:
-    n = int(math.floor((duration_s - offset_s) * rate_hz)) + 1
-    return start_ns + np.round((offset_s + np.arange(n) / rate_hz) * 1e9).astype(np.int64)
-
-
-def _simulate_vio(p: SimParams, T_world_body: np.ndarray, t_s: np.ndarray,
-                  rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """VIO output with drift and resets.
-
-    Returns (keep mask over samples, T_odom_body, segment, T_world_odom per segment).
-    """
-    n = len(t_s)
-    lam = p.resets_per_min / 60.0 * max(p.duration_s - 40.0, 0.0)
-    n_resets = int(rng.poisson(lam)) if lam > 0 else 0
-    reset_t = np.sort(rng.uniform(20.0, max(p.duration_s - 20.0, 20.0), size=n_resets))
-    keep = np.ones(n, bool)
-    segment = np.zeros(n, np.int64)
-    for k, tr in enumerate(reset_t):
-        keep &= ~((t_s >= tr) & (t_s < tr + p.reset_gap_s))
-        segment[t_s >= tr + p.reset_gap_s] = k + 1
-    keep[0] = True
-    # true increments, planar: yaw and body-frame translation
-    yaw = _yaw_of(T_world_body)
-    dt = np.diff(t_s, prepend=t_s[0])
-    rel = geo.se3_between(T_world_body[:-1], T_world_body[1:])
-    d_xy = np.concatenate([np.zeros((1, 2)), rel[:, :2, 3]])
-    d_yaw = np.concatenate([[0.0], np.diff(np.unwrap(yaw))])
-    n_seg = int(segment.max()) + 1
-    scale = 1.0 + p.scale_error_sigma * rng.standard_normal(n_seg)
-    bias0 = p.yaw_bias_sigma_rad_s * rng.standard_normal(n_seg)
-    walk = np.cumsum(p.yaw_bias_walk_rad_s_sqrt_s * np.sqrt(dt) * rng.standard_normal(n))
-    yaw_err = d_yaw * 0 + (bias0[segment] + walk) * dt + p.step_noise_rad * rng.standard_normal(n)
-    xy_noise = p.step_noise_m * rng.standard_normal((n, 2))
-    z_walk = p.height_walk_m_sqrt_s * np.sqrt(dt) * rng.standard_normal(n)
-    tilt = p.tilt_noise_rad * rng.standard_normal((n, 2))
-    T_odom_body = np.empty((n, 4, 4))
-    starts = np.flatnonzero(keep & np.r_[True, segment[1:] != segment[:-1]])
-    T_world_odom = np.stack([T_world_body[s] for s in starts])
-    for s_idx, s in enumerate(starts):
-        end = starts[s_idx + 1] if s_idx + 1 < len(starts) else n
-        sl = slice(s, end)
-        inc_yaw = d_yaw[sl] + yaw_err[sl]
-        inc_yaw[0] = 0.0
-        est_yaw = np.cumsum(inc_yaw)
-        # translation increments rotated by the estimated heading (before the step)
-        heading = np.r_[0.0, est_yaw[:-1]]
-        dxy = d_xy[sl] * scale[s_idx] + xy_noise[sl]
-        dxy[0] = 0.0
-        c, s_ = np.cos(heading), np.sin(heading)
-        step = np.stack([c * dxy[:, 0] - s_ * dxy[:, 1], s_ * dxy[:, 0] + c * dxy[:, 1]], -1)
-        xy = np.cumsum(step, axis=0)
-        z = np.cumsum(z_walk[sl]) - z_walk[s]
-        T = _yaw_pose(xy[:, 0], xy[:, 1], z, est_yaw)
-        R_tilt = geo.so3_exp(np.column_stack([tilt[sl], np.zeros(end - s)]))
-        T[:, :3, :3] = T[:, :3, :3] @ R_tilt
-        T_odom_body[sl] = T
-    return keep, T_odom_body, segment, T_world_odom
-
-
-def _keyframes(p: SimParams, T: np.ndarray, t_s: np.ndarray, segment: np.ndarray) -> np.ndarray:
-    """Indices of VIO keyframes (sequential by nature: each depends on the last one)."""
-    out = [0]
-    last = 0
-    xy, yaw = T[:, :2, 3], _yaw_of(T)
-    for i in range(1, len(t_s)):
-        if segment[i] != segment[last]:
-            out.append(i)
-            last = i
-            continue
-        dyaw = abs(math.remainder(yaw[i] - yaw[last], 2 * math.pi))
-        if (np.hypot(*(xy[i] - xy[last])) >= p.keyframe_distance_m
-                or dyaw >= p.keyframe_angle_rad or t_s[i] - t_s[last] >= p.keyframe_interval_s):
-            out.append(i)
-            last = i
-    return np.asarray(out, dtype=np.int64)
-
-
-def _loops(p: SimParams, T_true_kf: np.ndarray, t_kf: np.ndarray, rng: np.random.Generator
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    n = len(t_kf)
-    xy, yaw = T_true_kf[:, :2, 3], _yaw_of(T_true_kf)
-    pairs, meas, outlier = [], [], []
-    last_t = -1e9
-    for cur in range(p.loop_min_age_kf, n):
-        if t_kf[cur] - last_t < p.loop_min_interval_s:
-            continue
-        old = np.arange(cur - p.loop_min_age_kf + 1)
-        d = np.hypot(*(xy[old] - xy[cur]).T)
-        dyaw = np.abs(np.remainder(yaw[old] - yaw[cur] + np.pi, 2 * np.pi) - np.pi)
-        cand = old[(d < p.loop_max_distance_m) & (dyaw < p.loop_max_yaw_rad)]
-        if len(cand) == 0 or rng.random() >= p.loop_probability:
-            continue
-        if rng.random() < p.loop_outlier_fraction:
-            o = int(rng.integers(0, cur - p.loop_min_age_kf + 1))
-            T = geo.se3_from_rt(geo.so3_exp(np.array([0, 0, rng.uniform(-0.5, 0.5)])),
-                                np.r_[rng.uniform(-1.4, 1.4, size=2), 0.0])
-            pairs.append((o, cur))
-            meas.append(T)
-            outlier.append(True)
-        else:
-            o = int(cand[0])
-            T_true = geo.se3_between(T_true_kf[o], T_true_kf[cur])
-            xi = np.r_[p.loop_noise_m * rng.standard_normal(3),
-                       p.loop_noise_rad * rng.standard_normal(3)]
-            pairs.append((o, cur))
-            meas.append(T_true @ geo.se3_exp(xi))
-            outlier.append(False)
-        last_t = t_kf[cur]
-    if not pairs:
-        return np.zeros((0, 2), np.int64), np.zeros((0, 4, 4)), np.zeros(0, bool)
-    return np.asarray(pairs, np.int64), np.stack(meas), np.asarray(outlier)
-
-
 def comm_graph(n: int, edge_probability: float, rng: np.random.Generator
                ) -> tuple[tuple[int, int], ...]:
     """A random connected graph on 0..n-1: a random spanning tree plus extra edges."""
@@ -549,17 +431,17 @@ def generate_mission(p: SimParams) -> Mission:
 
 
 def _robot(p: SimParams, robot_id: int, path: CirclePath, vio_rng, loop_rng) -> RobotMission:
-    stamps = _stamps(p.start_ns, p.duration_s, p.odom_rate_hz)
+    stamps = stamps_at_rate(p.start_ns, p.duration_s, p.odom_rate_hz)
     t_s = (stamps - p.start_ns) / 1e9
     T_wb = path.poses(t_s)
-    keep, T_ob, segment, T_wo = _simulate_vio(p, T_wb, t_s, vio_rng)
+    keep, T_ob, segment, T_wo = simulate_vio(p, T_wb, t_s, vio_rng)
     stamps, T_wb, T_ob, segment, t_s = stamps[keep], T_wb[keep], T_ob[keep], segment[keep], t_s[keep]
     reset_stamps = stamps[np.flatnonzero(np.diff(segment)) + 1]
-    kf = _keyframes(p, T_ob, t_s, segment)
-    pairs, meas, outl = _loops(p, T_wb[kf], t_s[kf], loop_rng)
+    kf = select_keyframes(p, T_ob, t_s, segment)
+    pairs, meas, outl = simulate_loops(p, T_wb[kf], t_s[kf], loop_rng)
     if p.frame_rate_hz > 0:
         # frames start half a frame period in, so they are not synchronous with odometry
-        f_stamps = _stamps(p.start_ns, p.duration_s, p.frame_rate_hz, 0.5 / p.frame_rate_hz
+        f_stamps = stamps_at_rate(p.start_ns, p.duration_s, p.frame_rate_hz, 0.5 / p.frame_rate_hz
                            + 0.0137 * robot_id)
     else:
         f_stamps = np.zeros(0, np.int64)

@@ -11,6 +11,7 @@ origin, as VINS-Mono's ``clearState()``). Seeded and deterministic; pure numpy.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -45,46 +46,17 @@ def vio_mission(n_keyframes: int, seed: int = 0, *, keyframe_spacing_m: float = 
                 ) -> Mission:
     rng = np.random.default_rng(seed)
     dt_kf_ns = int(keyframe_spacing_m / speed_mps * 1e9)
-    k = np.arange(n_keyframes)
-    s = k * keyframe_spacing_m
-    theta = s / radius_m
-    wobble = 1.0 + 0.15 * np.sin(0.37 * theta)
-    xyz = np.stack([radius_m * wobble * np.cos(theta), radius_m * wobble * np.sin(theta),
-                    0.05 * np.sin(0.5 * theta)], axis=1)
-    yaw = theta + np.pi / 2
-    R = geo.so3_exp(np.stack([np.zeros_like(yaw), np.zeros_like(yaw), yaw], axis=1))
-    T_true = geo.se3_from_rt(R, xyz)
-    stamps = t0_ns + k.astype(np.int64) * dt_kf_ns
-    # VIO: noisy increments, restarted at the origin frame at each reset keyframe
-    T_odom = np.empty_like(T_true)
-    T_odom[0] = T_true[0]
+    xyz, T_true = _true_path(n_keyframes, keyframe_spacing_m, radius_m)
+    stamps = t0_ns + np.arange(n_keyframes).astype(np.int64) * dt_kf_ns
     resets = set(reset_at)
-    for i in range(1, n_keyframes):
-        if i in resets:
-            T_odom[i] = np.eye(4)
-            continue
-        d = geo.se3_between(T_true[i - 1], T_true[i])
-        noise = np.concatenate([rng.normal(0, drift_t, 3), rng.normal(0, drift_r, 3)])
-        T_odom[i] = T_odom[i - 1] @ d @ geo.se3_exp(noise)
-    ang = np.linspace(0, 2 * np.pi, n_objects, endpoint=False)
-    obj_xyz = np.stack([7.5 * np.cos(ang), 7.5 * np.sin(ang), np.full(n_objects, 0.4)], axis=1)
-    obj_R = geo.so3_exp(np.stack([np.zeros(n_objects), np.zeros(n_objects), ang + np.pi], 1))
-    T_obj = geo.se3_from_rt(obj_R, obj_xyz)
-    events: list = []
+    T_odom = _vio_odometry(T_true, resets, rng, drift_t, drift_r)
+    T_obj = _objects_on_circle(n_objects)
+    events: list[Any] = []
     obs_cov = np.diag([obs_sigma[0] ** 2] * 3 + [obs_sigma[1] ** 2] * 3)
     for i in range(n_keyframes):
         if i in resets:
             events.append(VioReset(int(stamps[i] - dt_kf_ns // 2), "estimator_failure"))
-        # odometry at 10 Hz up to this keyframe (within the same VIO frame)
-        if i > 0 and i not in resets:
-            n_sub = max(1, dt_kf_ns // 100_000_000)
-            for j in range(1, n_sub + 1):
-                st = int(stamps[i - 1] + j * dt_kf_ns // n_sub)
-                T, _ = geo.se3_interpolate(stamps[i - 1:i + 1], T_odom[i - 1:i + 1],
-                                           np.array([st]))
-                events.append(OdometrySample(st, T[0]))
-        else:
-            events.append(OdometrySample(int(stamps[i]), T_odom[i].copy()))
+        events += _odometry_samples(i, stamps, T_odom, dt_kf_ns, resets)
         events.append(Keyframe(int(stamps[i]), T_odom[i].copy()))
         if i % loop_every == 0 and i > 50:
             d = np.linalg.norm(xyz[: i - 50] - xyz[i], axis=1)
@@ -97,22 +69,91 @@ def vio_mission(n_keyframes: int, seed: int = 0, *, keyframe_spacing_m: float = 
                                           rel @ geo.se3_exp(noise), 60))
         # tag observations at a frame stamp between keyframes (needs interpolation)
         if i + 1 < n_keyframes and (i + 1) not in resets:
-            st = int(stamps[i] + dt_kf_ns // 3)
-            Tb, _ = geo.se3_interpolate(stamps[i:i + 2], T_true[i:i + 2], np.array([st]))
-            rel = geo.se3_between(Tb[0], T_obj)
-            seen = np.flatnonzero((np.linalg.norm(rel[:, :3, 3], axis=1) < obs_range_m)
-                                  & (rel[:, 0, 3] > 0))
-            if len(seen):
-                obs = []
-                for o in seen:
-                    noise = np.concatenate([rng.normal(0, obs_sigma[0], 3),
-                                            rng.normal(0, obs_sigma[1], 3)])
-                    obs.append(ObjectObservation(st, int(o), rel[o] @ geo.se3_exp(noise), obs_cov))
+            batch = _tag_observations(int(stamps[i] + dt_kf_ns // 3), stamps[i:i + 2],
+                                      T_true[i:i + 2], T_obj, rng, obs_sigma, obs_cov,
+                                      obs_range_m)
+            if batch is not None:
                 # the frame arrives after the odometry that brackets it
-                events.append(("after", int(stamps[i + 1]), ObservationBatch(st, tuple(obs))))
-    # place deferred observation batches right after the keyframe that follows them
-    out: list = []
-    deferred: list = []
+                events.append(("after", int(stamps[i + 1]), batch))
+    return Mission(_place_deferred(events), stamps, T_true, np.arange(n_objects), T_obj)
+
+
+def _true_path(n_keyframes: int, keyframe_spacing_m: float, radius_m: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(positions, T_world_body) of the keyframes on a wobbly circle, heading along it."""
+    s = np.arange(n_keyframes) * keyframe_spacing_m
+    theta = s / radius_m
+    wobble = 1.0 + 0.15 * np.sin(0.37 * theta)
+    xyz = np.stack([radius_m * wobble * np.cos(theta), radius_m * wobble * np.sin(theta),
+                    0.05 * np.sin(0.5 * theta)], axis=1)
+    yaw = theta + np.pi / 2
+    R = geo.so3_exp(np.stack([np.zeros_like(yaw), np.zeros_like(yaw), yaw], axis=1))
+    return xyz, geo.se3_from_rt(R, xyz)
+
+
+def _vio_odometry(T_true: np.ndarray, resets: set[int], rng: np.random.Generator,
+                  drift_t: float, drift_r: float) -> np.ndarray:
+    """VIO: noisy increments, restarted at the origin frame at each reset keyframe."""
+    T_odom = np.empty_like(T_true)
+    T_odom[0] = T_true[0]
+    for i in range(1, len(T_true)):
+        if i in resets:
+            T_odom[i] = np.eye(4)
+            continue
+        d = geo.se3_between(T_true[i - 1], T_true[i])
+        noise = np.concatenate([rng.normal(0, drift_t, 3), rng.normal(0, drift_r, 3)])
+        T_odom[i] = T_odom[i - 1] @ d @ geo.se3_exp(noise)
+    return T_odom
+
+
+def _objects_on_circle(n_objects: int) -> np.ndarray:
+    """T_world_object of the objects on a 7.5 m circle, facing its centre."""
+    ang = np.linspace(0, 2 * np.pi, n_objects, endpoint=False)
+    obj_xyz = np.stack([7.5 * np.cos(ang), 7.5 * np.sin(ang), np.full(n_objects, 0.4)], axis=1)
+    obj_R = geo.so3_exp(np.stack([np.zeros(n_objects), np.zeros(n_objects), ang + np.pi], 1))
+    return geo.se3_from_rt(obj_R, obj_xyz)
+
+
+def _odometry_samples(i: int, stamps: np.ndarray, T_odom: np.ndarray, dt_kf_ns: int,
+                      resets: set[int]) -> list[OdometrySample]:
+    """Odometry at 10 Hz up to keyframe ``i`` (within the same VIO frame); one sample at the
+    keyframe itself for the first keyframe and after a reset."""
+    if i == 0 or i in resets:
+        return [OdometrySample(int(stamps[i]), T_odom[i].copy())]
+    out = []
+    n_sub = max(1, dt_kf_ns // 100_000_000)
+    for j in range(1, n_sub + 1):
+        st = int(stamps[i - 1] + j * dt_kf_ns // n_sub)
+        T, _ = geo.se3_interpolate(stamps[i - 1:i + 1], T_odom[i - 1:i + 1], np.array([st]))
+        out.append(OdometrySample(st, T[0]))
+    return out
+
+
+def _tag_observations(stamp_ns: int, stamps_pair: np.ndarray, T_true_pair: np.ndarray,
+                      T_obj: np.ndarray, rng: np.random.Generator,
+                      obs_sigma: tuple[float, float], obs_cov: np.ndarray, obs_range_m: float
+                      ) -> ObservationBatch | None:
+    """The noisy object poses seen (ahead, within range) at ``stamp_ns`` between two
+    keyframes, or None when none is."""
+    Tb, _ = geo.se3_interpolate(stamps_pair, T_true_pair, np.array([stamp_ns]))
+    rel = geo.se3_between(Tb[0], T_obj)
+    seen = np.flatnonzero((np.linalg.norm(rel[:, :3, 3], axis=1) < obs_range_m)
+                          & (rel[:, 0, 3] > 0))
+    if not len(seen):
+        return None
+    obs = []
+    for o in seen:
+        noise = np.concatenate([rng.normal(0, obs_sigma[0], 3),
+                                rng.normal(0, obs_sigma[1], 3)])
+        obs.append(ObjectObservation(stamp_ns, int(o), rel[o] @ geo.se3_exp(noise), obs_cov))
+    return ObservationBatch(stamp_ns, tuple(obs))
+
+
+def _place_deferred(events: list[Any]) -> list[Any]:
+    """The events with each deferred ("after", stamp, batch) placed right after the keyframe
+    that follows it."""
+    out: list[Any] = []
+    deferred: list[Any] = []
     for ev in events:
         if isinstance(ev, tuple):
             deferred.append(ev)
@@ -121,4 +162,4 @@ def vio_mission(n_keyframes: int, seed: int = 0, *, keyframe_spacing_m: float = 
         if isinstance(ev, Keyframe):
             while deferred and deferred[0][1] <= ev.stamp_ns:
                 out.append(deferred.pop(0)[2])
-    return Mission(out, stamps, T_true, np.arange(n_objects), T_obj)
+    return out

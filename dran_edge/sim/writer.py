@@ -25,7 +25,7 @@ from __future__ import annotations
 import csv
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -86,7 +86,7 @@ def _robot_config(m: sim.Mission, r: sim.RobotMission, frames: bool) -> dict:
 
 
 def _ingest_bytes(m: sim.Mission, r: sim.RobotMission, frames_mode: str,
-                  perceived: list[bytes] = ()) -> bytes:
+                  perceived: Sequence[bytes] = ()) -> bytes:
     """The robot's ingest records in stamp order; ``perceived``: observation records of the
     perception pipeline on its frames (placed after the bridge's records of the same stamp)."""
     from dran_edge.comms import ingest
@@ -150,7 +150,7 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
     for start in range(0, len(T_wc), batch):
         vis, T_ct = sim.visible_tags(w, T_wc[start:start + batch], m.params)
         for j in range(vis.shape[0]):
-            f = start + j
+            frame_k = start + j
             sel = vis[j].reshape(-1)
             poses = T_ct[j].reshape(-1, 4, 4)[sel]
             light = Lighting(gain=float(rng.uniform(0.85, 1.1)), offset=float(rng.uniform(-10, 10)),
@@ -160,7 +160,7 @@ def render_robot_frames(m: sim.Mission, r: sim.RobotMission, frames_dir: Path,
                 sim.CAMERA_K, sim.CAMERA_WIDTH, sim.CAMERA_HEIGHT, poses, tag_ids[sel].tolist(),
                 w.tag_size_m, blur_sigma_px=float(rng.uniform(0.3, 0.9)), noise_sigma=1.5,
                 lighting=light, rng=rng, depth=DepthModel())
-            cname, dname = f"colour/{f:06d}.png", f"depth/{f:06d}.png"
+            cname, dname = f"colour/{frame_k:06d}.png", f"depth/{frame_k:06d}.png"
             # The rendered scene is grey (B = G = R): an 8-bit grey PNG holds it losslessly in
             # a third of the bytes, and readers load it as BGR like any colour PNG.
             assert np.array_equal(colour[..., 0], colour[..., 2])
@@ -222,7 +222,7 @@ def write_run(m: sim.Mission, out_dir: str | Path, *, frames: str = "render",
         rd.write_yaml(d / "robot.yaml", _robot_config(m, r, render),
                       header=f"{r.name}: config used for this run (docs/config.md)")
     # mocap
-    from dran_edge.formats.motive import make_take, write_motive_csv
+    from dran_edge.formats.motive_write import make_take, write_motive_csv
 
     take = make_take(m.mocap_time_s, sim.mocap_poses(m), take_name="simulated",
                      frame_rate_hz=m.params.mocap_rate_hz)

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dran_edge.evaluation import align, metrics
-from dran_edge.formats import motive, tum
+from dran_edge.formats import motive, motive_write, tum
 
 
 def _track(t):
@@ -142,7 +142,7 @@ def main() -> None:
             T[rng.random(n) < 0.01] = np.nan
             bodies[f"body{k}"] = T
         mpath = d / "mocap.csv"
-        motive.write_motive_csv(mpath, motive.make_take(t, bodies))
+        motive_write.write_motive_csv(mpath, motive_write.make_take(t, bodies))
         size_mb = mpath.stat().st_size / 1e6
         b_ours = b_base = np.inf
         for _ in range(args.repeats):

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import os
+from typing import Any
 
 from dran_edge.cli.progress import ProgressBar, note
 from dran_edge.config import Residual
@@ -37,6 +38,13 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="what", required=True, metavar="{g2o,objects,suite}")
+    _add_g2o_parser(sub)
+    _add_objects_parser(sub)
+    _add_suite_parser(sub)
+    return parser
+
+
+def _add_g2o_parser(sub: Any) -> None:
     g = sub.add_parser("g2o", help="Table 1 protocol on one g2o file")
     g.add_argument("dataset", help="a g2o file (VERTEX_SE2/SE3:QUAT, EDGE_SE2/SE3:QUAT)")
     g.add_argument("--robots", type=int, default=5, help="number of robots (default 5)")
@@ -68,6 +76,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     _add_refine_options(g)
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _add_objects_parser(sub: Any) -> None:
     o = sub.add_parser("objects", help="object simulation sweeps",
                        description="The paper's object simulation (Sec. 6.2): robots on trajectories "
                                    "through random objects, an observation whenever an object is "
@@ -116,11 +127,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                    help="scenario seed; the communication graph uses seed + 1 (default 0)")
     o.add_argument("--json", action="store_true", help="print one JSON object per run")
     o.add_argument("--plot", metavar="DIR", help="write a PNG per sweep into DIR")
-    _add_suite_parser(sub)
-    return parser
 
 
-def _add_suite_parser(sub) -> None:
+def _add_suite_parser(sub: Any) -> None:
     from dran_edge.experiments.suite import CHECKPOINTS, FAMILIES
 
     s = sub.add_parser(

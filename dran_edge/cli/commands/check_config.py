@@ -11,9 +11,16 @@ from __future__ import annotations
 
 import argparse
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from dran_edge.errors import ConfigError, DranError
+
+if TYPE_CHECKING:
+    from dran_edge.config import RobotConfig
+
+_T = TypeVar("_T")
 
 HELP = "load a robot config and everything it names (keys, calibration, tags), as 'run' does"
 
@@ -34,7 +41,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     return p
 
 
-def _collect(errors: list, check, *args) -> object:
+def _collect(errors: list[DranError], check: Callable[..., _T], *args: Any) -> _T | None:
     """Run one check; a DranError it raises is recorded, and None returned."""
     try:
         return check(*args)
@@ -133,7 +140,7 @@ def _state_errors(cfg) -> list[DranError]:
     return []
 
 
-def check_config_file(path: str | Path) -> tuple[object | None, list[DranError]]:
+def check_config_file(path: str | Path) -> tuple[RobotConfig | None, list[DranError]]:
     """(config or None, every problem found): the file's own problems, then those of what it
     names, for each section that loaded cleanly."""
     from dran_edge.config import load_config_report
@@ -161,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"dran-edge check-config: error: {e}", file=sys.stderr)
         print(f"{args.file}: {len(errors)} problem{'s' * (len(errors) != 1)}", file=sys.stderr)
         return 2
+    assert cfg is not None  # no config comes with the errors that say why
     g = cfg.agent.graph
     auth = f"{cfg.comms.auth} key" if cfg.comms.transport != "none" else "no key"
     print(f"{args.file}: ok: robot {cfg.robot.name} (id {cfg.robot.id}) in fleet "

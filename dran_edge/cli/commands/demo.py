@@ -74,8 +74,9 @@ def run(args: argparse.Namespace) -> int:
           f"simulated robots' perception), {r['bytes_total'] / 1e6:.3f} MB exchanged; "
           f"{r['replay_wall_s']:.1f} s ({r['realtime_factor']:.1f}x real time)", flush=True)
     print("[3/3] scoring against the ground truth ...", flush=True)
-    report = evaluate_run(out, EvalOptions(plots=not args.no_plots))
-    written = write_report(report, out / "eval", plots=not args.no_plots)
+    evaluation = evaluate_run(out, EvalOptions(plots=not args.no_plots))
+    written = write_report(evaluation, out / "eval", plots=not args.no_plots)
+    report = evaluation.report
     s = report["summary"]
 
     def f(v, spec):

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
@@ -66,8 +67,8 @@ def _calibration(args, width: int, height: int):
     return Calibration(cam, empty)
 
 
-def _record(frame, index, res, i, tags) -> dict:
-    det = res.detections if res is not None else None
+def _record(frame: Any, index: int, res: Any, i: int, tags: Any) -> dict[str, Any]:
+    det = res.detections
     rec = {
         "frame": index,
         "stamp_ns": int(frame.stamp_ns),
@@ -109,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     params = PipelineParams(detector=det_params, use_depth=not args.no_depth,
                             default_tag_size_m=args.tag_size)
     pipeline = None
-    detector = None if with_pose else TagDetector(det_params)
+    detector = TagDetector(det_params) if not with_pose else None
     n_frames = n_det = 0
     sq_sum, n_pts = [], []
     t0 = last_report = time.perf_counter()
@@ -132,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
                 sq_sum.extend((tp.rms_px[ok] ** 2 * 4 * tp.min_edge_px[ok] / ref).tolist())
                 n_pts.extend([4] * int(ok.sum()))
             else:
+                assert detector is not None  # made above when there is no pose to compute
                 dets: TagDetections = detector.detect(to_gray(frame.colour))
                 res = type("R", (), {"detections": dets})()
                 tags = None

@@ -121,7 +121,7 @@ def _T_body_marker(args):
 
 
 def _run_traj(args: argparse.Namespace) -> int:
-    from dran_edge.evaluation import score as evaluate
+    from dran_edge.evaluation.traj_score import evaluate_trajectory
     from dran_edge.formats import motive
     from dran_edge.formats.trajectory import read_trajectory
 
@@ -144,7 +144,8 @@ def _run_traj(args: argparse.Namespace) -> int:
         body = body or robot.mocap_body
         up = up or run.mission.mocap_up_axis
         T_bm = T_bm if T_bm is not None else robot.T_body_marker
-        own = run.mocap_path is not None and Path(mocap).resolve() == run.mocap_path.resolve()
+        own = (mocap is not None and run.mocap_path is not None
+               and Path(mocap).resolve() == run.mocap_path.resolve())
         if offset is None and run.mission.mocap_start_ns is not None and own:
             offset = -run.mission.mocap_start_ns * 1e-9
             offset_src = "mission.yaml mocap.start_ns"
@@ -170,7 +171,7 @@ def _run_traj(args: argparse.Namespace) -> int:
                              "(also KITTI) or convert them with stamps first")
         take = motive.read_motive_csv(mocap, up_axis=up or "y")
         ref_name, ref_how = body, f"Motive CSV {mocap}"
-    res = evaluate.evaluate_trajectory(
+    traj = evaluate_trajectory(
         est.stamps_s, est.T, take, body, T_body_marker=T_bm, align_kind=args.align or "se3",
         time_offset_s=offset, time_offset_source=offset_src, max_gap_s=args.max_gap,
         rpe_delta_s=args.rpe_delta, reference=ref)
@@ -179,14 +180,14 @@ def _run_traj(args: argparse.Namespace) -> int:
     if args.save_results:
         from dran_edge.evaluation.traj_outputs import write_evo_results
 
-        written.append(write_evo_results(args.save_results, res, est_name, ref_name))
+        written.append(write_evo_results(args.save_results, traj, est_name, ref_name))
     if args.plot:
         from dran_edge.evaluation.traj_outputs import plot_trajectory
 
-        written.append(plot_trajectory(args.plot, res, est_name, ref_name))
+        written.append(plot_trajectory(args.plot, traj, est_name, ref_name))
     from dran_edge.evaluation.report import json_safe
 
-    res = json_safe({k: v for k, v in res.items() if k != "_"})
+    res = json_safe(dict(traj.result))
     res["estimate"] = {"path": args.est, "format": est.format, "quat_order": est.quat_order,
                        "how": est.how}
     res["reference"] = ref_how
@@ -227,13 +228,13 @@ def _run_dir(args: argparse.Namespace) -> int:
         max_gap_s=args.max_gap, rpe_delta_s=args.rpe_delta, centralized=not args.no_centralized,
         plots=not args.no_plots)
     print(f"evaluating {args.target} ...", file=sys.stderr)
-    report = evaluate.evaluate_run(args.target, opt)
+    evaluation = evaluate.evaluate_run(args.target, opt)
     out = Path(args.out) if args.out else Path(args.target) / "eval"
-    written = evaluate.write_report(report, out, plots=opt.plots)
+    written = evaluate.write_report(evaluation, out, plots=opt.plots)
     if args.json:
-        print(json.dumps({k: v for k, v in report.items() if k != "_"}, indent=2))
+        print(json.dumps(evaluation.report, indent=2))
     else:
-        print(evaluate.summary_markdown({k: v for k, v in report.items() if k != "_"}))
+        print(evaluate.summary_markdown(evaluation.report))
         print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
