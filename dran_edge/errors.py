@@ -30,6 +30,10 @@ class InputError(DranError):
 class ConfigError(InputError):
     """A configuration file is invalid (names the key path and the reason)."""
 
+    #: The top-level section the problem is in ("comms", "neighbours", ...), where a report of
+    #: several problems gives it (``config.load_config_report``); else None.
+    section: str | None = None
+
 
 class DecodeError(DranError):
     """Bytes that crossed a boundary (radio, ingest socket, recording) do not decode."""

@@ -63,7 +63,8 @@ def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
     if isinstance(default, (list, dict, tuple)) and not isinstance(default, tuple):
         return field(default_factory=lambda: default, metadata=meta)
     if dataclasses.is_dataclass(default):
-        return field(default_factory=lambda d=default: d, metadata=meta)
+        frozen_default: Any = default
+        return field(default_factory=lambda: frozen_default, metadata=meta)
     return field(default=default, metadata=meta)
 
 

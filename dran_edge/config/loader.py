@@ -32,7 +32,7 @@ def _convert(value: Any, tp: Any, key: str, lines: dict[str, int]) -> Any:
         if value is None:
             return None
         return _convert(value, args[0], key, lines)
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return _build(tp, value, key, lines)
     if origin is tuple:
         if not isinstance(value, list):
