@@ -166,10 +166,10 @@ class Fleet:
         for i, agent in enumerate(self.agents):
             for msg in inbox[i]:
                 agent.handle(NeighbourData(stamp, msg))
-            idle = agent.counters.get("idle_rounds", 0)
+            idle = agent.counters.idle_rounds
             t0 = time.perf_counter()
             outs = agent.handle(Tick(stamp))
-            if agent.counters.get("idle_rounds", 0) == idle:  # not an idle turn of a schedule
+            if agent.counters.idle_rounds == idle:  # not an idle turn of a schedule
                 self.step_ms.append(1e3 * (time.perf_counter() - t0))
             for o in outs:
                 if isinstance(o, Outgoing):
@@ -269,7 +269,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     import dataclasses
     import types
 
-    from dran_edge.dran.agent import LocalProblem
+    from dran_edge.dran.problem import LocalProblem
     from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
