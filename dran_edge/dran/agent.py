@@ -45,8 +45,6 @@ association check, hop counts and provenance) is :mod:`dran_edge.dran.associatio
 
 from __future__ import annotations
 
-from __future__ import annotations
-
 import logging
 import math
 from collections.abc import Callable
@@ -70,7 +68,6 @@ from dran_edge.events import (
     Output,
     Tick,
 )
-from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 from dran_edge.solver.factors import Cauchy, Factor, make_kernel
 from dran_edge.solver.graph import PoseGraph, kinds_array
 from dran_edge.solver.lm import (
@@ -83,6 +80,7 @@ from dran_edge.solver.lm import (
     retract,
     schur_step,
 )
+from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 
 __all__ = ["Agent", "LocalProblem"]  # LocalProblem lives in dran_edge.dran.problem
 
@@ -91,11 +89,6 @@ log = logging.getLogger(__name__)
 _MAX_TRIALS = 6
 _MU_MIN = 1e-12
 
-AnchorKey = tuple[int, int]
-"""(owner robot, keyframe id) of a neighbour's separator held as an anchor."""
-SentKey = tuple[int, str, int]
-"""(neighbour, "s" or "o", keyframe or object id) of a value last sent."""
-
 
 def _log_rate(h: np.ndarray) -> float:
     """Contraction rate per step of the positive sequence ``h``: exp of the least-squares slope
@@ -103,6 +96,12 @@ def _log_rate(h: np.ndarray) -> float:
     k = np.arange(h.size, dtype=np.float64)
     k -= k.mean()
     return float(np.exp(np.dot(k, np.log(h)) / np.dot(k, k)))
+
+
+AnchorKey = tuple[int, int]
+"""(owner robot, keyframe id) of a neighbour's separator held as an anchor."""
+SentKey = tuple[int, str, int]
+"""(neighbour, "s" or "o", keyframe or object id) of a value last sent."""
 
 
 @dataclass(frozen=True, eq=False)
