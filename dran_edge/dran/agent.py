@@ -68,7 +68,7 @@ from dran_edge.events import (
     Output,
     Tick,
 )
-from dran_edge.solver.factors import Cauchy, Factor, make_kernel
+from dran_edge.solver.factors import Cauchy, make_kernel
 from dran_edge.solver.graph import PoseGraph, kinds_array
 from dran_edge.solver.lm import (
     LinearSolveError,
@@ -230,7 +230,7 @@ class Agent:
         return self._structure
 
     def _consensus_blocks(self, obj_slot: dict[int, int], c_base: int,
-                          pair_keys: tuple[PairKey, ...]) -> tuple[Factor, ...]:
+                          pair_keys: tuple[PairKey, ...]) -> tuple[ConsensusFactors, ...]:
         if not pair_keys:
             return ()
         var = np.array([[obj_slot[oid], c_base + i] for i, (j, oid) in enumerate(pair_keys)])
@@ -303,8 +303,9 @@ class Agent:
         c_base = n + len(s.obj_ids) + len(s.anchor_keys)
         cons = self._consensus_blocks(obj_slot, c_base, s.pair_keys)
         graph = s.graph.with_factors(*cons)
-        if cons and cons[0].kernel is not None:  # pairs under the kernel (conflicts) this round
-            self.counters.consensus_conflicts += int(np.isfinite(cons[0].kernel.scale).sum())
+        kernel = cons[0].kernel if cons else None
+        if isinstance(kernel, Cauchy):  # pairs under the kernel (conflicts) this round
+            self.counters.consensus_conflicts += int(np.isfinite(kernel.scale).sum())
         poses = self._poses(s)
         x_k = self.x.copy()
         accepted_before = self.counters.accepted

@@ -95,15 +95,15 @@ def _is_se3_tangent(xi: np.ndarray) -> bool:
     return n == 6
 
 
-def exp(xi):
+def exp(xi: np.ndarray) -> np.ndarray:
     return se3_exp(xi) if _is_se3_tangent(xi) else se2_exp(xi)
 
 
-def log(T):
+def log(T: np.ndarray) -> np.ndarray:
     return se3_log(T) if _is_se3_matrix(T) else se2_log(T)
 
 
-def inverse(T):
+def inverse(T: np.ndarray) -> np.ndarray:
     return se3_inverse(T) if _is_se3_matrix(T) else se2_inverse(T)
 
 
@@ -112,7 +112,7 @@ def compose(A, B):
     return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
 
 
-def between(A, B):
+def between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return inverse(A) @ np.asarray(B, dtype=np.float64)
 
 
@@ -128,7 +128,7 @@ def right_jacobian_inv(xi):
     return se3_right_jacobian_inv(xi) if _is_se3_tangent(xi) else se2_right_jacobian_inv(xi)
 
 
-def retract(T, xi):
+def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     return np.asarray(T, dtype=np.float64) @ exp(xi)
 
 

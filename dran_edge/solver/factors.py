@@ -100,8 +100,15 @@ def kernel_cost(kernel: Kernel | None, s: np.ndarray) -> np.ndarray:
 class Factor(Protocol):
     """A block of m factors of one type (see the module docstring)."""
 
-    variables: np.ndarray
-    kernel: Kernel | None
+    @property
+    def variables(self) -> np.ndarray:
+        """(m, k) int variable indices of the k ends of each factor."""
+        ...
+
+    @property
+    def kernel(self) -> Kernel | None:
+        """The robust kernel, or None for least squares."""
+        ...
 
     def linearize(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals ``(m, r)`` and Jacobians ``(m, k, r, dof)`` at ``poses`` (n, D, D)."""
