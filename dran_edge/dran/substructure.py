@@ -38,8 +38,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from dran_edge.dran.linear_stage import Exchange, Outgoing, block_rows, normal_equations
+from dran_edge.dran.partition import Partition, RobotPart
 from dran_edge.messages import InitEntry, InitStage
-from dran_edge.dran.partition import Partition
 
 
 @dataclass(frozen=True)
@@ -49,14 +50,15 @@ class RobotTree:
     root: int
     parent: np.ndarray
     depth: np.ndarray
-    children: tuple
+    children: tuple[tuple[int, ...], ...]
 
     @property
     def height(self) -> int:
         return int(self.depth.max(initial=0))
 
     def subtree(self, r: int) -> list[int]:
-        out, stack = [], [r]
+        out: list[int] = []
+        stack = [r]
         while stack:
             q = stack.pop()
             out.append(q)
@@ -64,7 +66,7 @@ class RobotTree:
         return out
 
 
-def _bfs(adj: list, root: int) -> np.ndarray:
+def _bfs(adj: list[list[int]], root: int) -> np.ndarray:
     depth = np.full(len(adj), -1)
     depth[root] = 0
     queue = deque([root])
@@ -97,10 +99,11 @@ def robot_tree(partition: Partition) -> RobotTree:
     return RobotTree(root, parent, depth, children)
 
 
-def boundary(part, gauge: int) -> np.ndarray:
+def boundary(part: RobotPart, gauge: int) -> np.ndarray:
     """Robot's boundary vertices B_r: its separators and anchors, without the gauge."""
     B = np.union1d(part.separators, part.anchors)
-    return B[B != gauge]
+    out: np.ndarray = B[B != gauge]
+    return out
 
 
 @dataclass(frozen=True)
@@ -110,10 +113,11 @@ class _Structure:
     B: np.ndarray  # boundary vertex positions (sorted)
     I: np.ndarray  # interior vertex positions (sorted)
     pairs: np.ndarray  # (p, 2) boundary-local (i ≤ j) pairs joined by an edge, and (i, i)
-    comps: tuple  # per connected piece C of the interior: (C local rows into I, N(C) into B)
+    #: per connected piece C of the interior: (C local rows into I, N(C) into B)
+    comps: tuple[tuple[np.ndarray, np.ndarray], ...]
 
 
-def _structure(part, partition: Partition, gauge: int) -> _Structure:
+def _structure(part: RobotPart, partition: Partition, gauge: int) -> _Structure:
     """S_r = Q_BB − Σ_C Q_BC Q_CC⁻¹ Q_CB: Q_BB has a block per boundary edge and the diagonal;
     each connected piece C of the interior fills a dense block on its boundary neighbours N(C)
     and nothing else (the pieces are independent), so only those blocks travel."""
@@ -172,18 +176,14 @@ def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
     return sum(v.size for p in partition.parts for v in p.separators_for.values()) * b * ncol
 
 
-def _expand(positions: np.ndarray, b: int) -> np.ndarray:
-    return (positions[:, None] * b + np.arange(b)[None]).ravel()
-
-
 @dataclass
 class _Local:
     st: _Structure
-    lu: object
+    lu: spla.SuperLU | None  # of Q_II (None without interior)
     Q_IB: sp.csr_matrix
     rhs_I: np.ndarray
     Q_BB: np.ndarray  # (p, b, b) blocks at st.pairs
-    pieces: list  # per interior piece: dense −Q_NC Q_CC⁻¹ Q_CN on N(C)
+    pieces: list[np.ndarray]  # per interior piece: dense −Q_NC Q_CC⁻¹ Q_CN on N(C)
     g: np.ndarray
 
     @property
@@ -195,29 +195,30 @@ class _Local:
         return self.st.I
 
 
-def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: int,
+def _local(part: RobotPart, partition: Partition, n: int, b: int, edges: np.ndarray,
+           M: np.ndarray, c: np.ndarray, w: np.ndarray, gauge: int,
            X_gauge: np.ndarray) -> _Local:
     """Robot's share Q⁽ʳ⁾ (inter-robot edges at half weight) condensed onto its boundary."""
-    from dran_edge.dran.dist_init import normal_equations
-
     eidx = np.concatenate([part.intra_edges, part.inter_edges])
     scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
     Q, Bv = normal_equations(n, b, edges[eidx], M[eidx], c[eidx], w[eidx] * scale)
     Q = Q.tocsr()
-    rhs = Bv - Q[:, _expand(np.array([gauge]), b)] @ X_gauge
+    rhs = Bv - Q[:, block_rows(np.array([gauge]), b)] @ X_gauge
     st = _structure(part, partition, gauge)
-    rb, ri = _expand(st.B, b), _expand(st.I, b)
+    rb, ri = block_rows(st.B, b), block_rows(st.I, b)
     Q_B = Q[rb][:, rb]
     Q_BB = np.stack([Q_B[i * b:(i + 1) * b][:, j * b:(j + 1) * b].toarray() for i, j in st.pairs]) \
         if len(st.pairs) else np.zeros((0, b, b))
-    g, lu, Q_IB, pieces = rhs[rb].copy(), None, sp.csr_matrix((ri.size, rb.size)), []
+    g, Q_IB = rhs[rb].copy(), sp.csr_matrix((ri.size, rb.size))
+    lu: spla.SuperLU | None = None
+    pieces: list[np.ndarray] = []
     if ri.size:
         lu = spla.splu(sp.csc_matrix(Q[ri][:, ri]), permc_spec="MMD_AT_PLUS_A",
                        diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         Q_IB = Q[ri][:, rb].tocsr()
         Y = lu.solve(np.column_stack([Q_IB.toarray(), rhs[ri]]))
         for C, N in st.comps:  # Y is zero outside each piece's own rows and neighbours
-            rc, rn = _expand(C, b), _expand(N, b)
+            rc, rn = block_rows(C, b), block_rows(N, b)
             Qc = Q_IB[rc][:, rn].toarray()
             P = -Qc.T @ Y[rc][:, rn]
             pieces.append(0.5 * (P + P.T))
@@ -227,7 +228,7 @@ def _local(part, partition: Partition, n: int, b: int, edges, M, c, w, gauge: in
 
 def _pack(loc: _Local, b: int) -> np.ndarray:
     st = loc.st
-    out = [[st.B.size], st.B.astype(float), loc.g.ravel(), [len(st.pairs)]]
+    out: list[object] = [[st.B.size], st.B.astype(float), loc.g.ravel(), [len(st.pairs)]]
     for (i, j), blk in zip(st.pairs, loc.Q_BB):
         out += [[i, j], blk.ravel()]
     out.append([len(st.comps)])
@@ -236,11 +237,16 @@ def _pack(loc: _Local, b: int) -> np.ndarray:
     return np.concatenate([np.asarray(x, float) for x in out])
 
 
-def _unpack(flat: np.ndarray, b: int, ncol: int):
-    """(B ids, g, pieces): the condensed system as (boundary-local indices, dense block) terms."""
+Piece = tuple[np.ndarray, np.ndarray]
+"""(boundary-local vertex indices, dense block on them): one term of a condensed system."""
+
+
+def _unpack(flat: np.ndarray, b: int, ncol: int) -> tuple[np.ndarray, np.ndarray, list[Piece], int]:
+    """(B ids, g, pieces, floats read): the condensed system as (boundary-local indices, dense
+    block) terms."""
     pos = 0
 
-    def take(k):
+    def take(k: int) -> np.ndarray:
         nonlocal pos
         pos += k
         if pos > flat.size:
@@ -250,7 +256,7 @@ def _unpack(flat: np.ndarray, b: int, ncol: int):
     nb = int(round(take(1)[0]))
     B = np.rint(take(nb)).astype(np.int64)
     g = take(nb * b * ncol).reshape(nb * b, ncol)
-    pieces = []
+    pieces: list[Piece] = []
     for _ in range(int(round(take(1)[0]))):
         i, j = np.rint(take(2)).astype(np.int64)
         blk = take(b * b).reshape(b, b)
@@ -285,22 +291,34 @@ def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
 
 def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray,
                  M: np.ndarray, c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
-                 X_gauge: np.ndarray, exchange, schur_kind: InitStage, value_kind: InitStage,
-                 to_entry: Callable, from_entry: Callable, X0: np.ndarray,
+                 X_gauge: np.ndarray, exchange: Exchange, schur_kind: InitStage,
+                 value_kind: InitStage, to_entry: Callable[[int, np.ndarray], InitEntry],
+                 from_entry: Callable[[InitEntry], np.ndarray], X0: np.ndarray,
                  tree: RobotTree | None = None) -> tuple[list[np.ndarray], int]:
     """Solve the stage exactly (module docstring). Returns each robot's view ((n·b, ncol):
     its own vertices and anchors solved, the rest ``X0``) and the rounds used. ``to_entry(v,
     X_v)`` / ``from_entry(entry)`` convert one separator value to / from its init entry."""
-    R = partition.num_robots
     ncol = X0.shape[1]
     tree = tree or robot_tree(partition)
     locs = [_local(p, partition, n, b, edges, M, c_of(p.robot_id), w, gauge, X_gauge)
             for p in partition.parts]
+    bundles, rounds = _gather(locs, tree, b, d, exchange, schur_kind)
+    Bglob, X_B = _solve_interface(bundles[tree.root], tree.root, b, ncol)
+    known_root = {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}
+    known, rounds = _scatter(locs, tree, known_root, exchange, value_kind, to_entry, from_entry,
+                             rounds)
+    return _back_substitute(locs, known, X0, gauge, X_gauge, b), rounds
+
+
+def _gather(locs: list[_Local], tree: RobotTree, b: int, d: int, exchange: Exchange,
+            schur_kind: InitStage) -> tuple[list[dict[int, np.ndarray]], int]:
+    """Step 1: every condensed system travels up the tree to the root, in d×d chunks. Returns
+    per robot {origin robot: packed floats} it holds, and the rounds used."""
+    R = len(locs)
     rounds = 0
-    # 1. gather: bundles[r] = {origin robot: packed floats} known at r
     bundles = [{r: _pack(locs[r], b)} for r in range(R)]
     for level in range(tree.height, 0, -1):
-        outgoing: dict[int, list] = {}
+        outgoing: Outgoing = {}
         for r in np.flatnonzero(tree.depth == level):
             entries = [InitEntry(schur_kind, int(o), k, ch)
                        for o, flat in sorted(bundles[r].items())
@@ -308,9 +326,9 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
             outgoing[int(r)] = [(int(tree.parent[r]), entries)]
         incoming = exchange(schur_kind, rounds, outgoing)
         rounds += 1
-        for q, entries in incoming.items():
-            parts: dict[int, dict] = {}
-            for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
+        for q, received in incoming.items():
+            parts: dict[int, dict[int, np.ndarray]] = {}
+            for e in received:  # a duplicated datagram repeats a chunk: keyed by its index
                 if InitStage(e.stage) == schur_kind:
                     parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
                         np.asarray(e.value, float).ravel()
@@ -321,20 +339,25 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
                         flat.size < 1 + int(round(flat[0])):
                     _missing(f"robot {o}'s condensed system reached robot {q} incomplete")
                 bundles[q][o] = flat[1:1 + int(round(flat[0]))]
-    # 2. the root assembles Σ S_r, Σ g_r and solves
-    root = tree.root
     if len(bundles[tree.root]) != R:
         _missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
                  f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
-    unpacked = [_unpack(bundles[root][o], b, ncol) for o in range(R)]
+    return bundles, rounds
+
+
+def _solve_interface(bundle: dict[int, np.ndarray], root: int, b: int, ncol: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2: the root assembles Σ S_r, Σ g_r from every robot's condensed system and solves
+    for the boundary values. Returns the boundary vertices and their (|B|, b, ncol) values."""
+    unpacked = [_unpack(bundle[o], b, ncol) for o in range(len(bundle))]
     Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
     rows, cols, vals = [], [], []
     g_glob = np.zeros((Bglob.size * b, ncol))
     for B, g, pieces, _ in unpacked:
         at = np.searchsorted(Bglob, B)
-        np.add.at(g_glob, _expand(at, b), g)
+        np.add.at(g_glob, block_rows(at, b), g)
         for loc_idx, P in pieces:
-            idx = _expand(at[loc_idx], b)
+            idx = block_rows(at[loc_idx], b)
             rows.append(np.repeat(idx, idx.size))
             cols.append(np.tile(idx, idx.size))
             vals.append(P.ravel())
@@ -344,12 +367,20 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
                                shape=(Bglob.size * b,) * 2)
         X_B = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                         options={"SymmetricMode": True}).solve(g_glob)
-    X_B = X_B.reshape(Bglob.size, b, ncol)
-    # 3. scatter: known[r] = {vertex: value} the robot holds
-    known = [dict() for _ in range(R)]
-    known[root] = {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}
+    return Bglob, X_B.reshape(Bglob.size, b, ncol)
+
+
+def _scatter(locs: list[_Local], tree: RobotTree, known_root: dict[int, np.ndarray],
+             exchange: Exchange, value_kind: InitStage,
+             to_entry: Callable[[int, np.ndarray], InitEntry],
+             from_entry: Callable[[InitEntry], np.ndarray], rounds: int
+             ) -> tuple[list[dict[int, np.ndarray]], int]:
+    """Step 3: each link down the tree carries the separator values its subtree needs. Returns
+    per robot {vertex: value} it holds, and the rounds used so far."""
+    known: list[dict[int, np.ndarray]] = [{} for _ in locs]
+    known[tree.root] = known_root
     for level in range(1, tree.height + 1):
-        outgoing = {}
+        outgoing: Outgoing = {}
         for c in np.flatnonzero(tree.depth == level):
             p = int(tree.parent[c])
             need = np.unique(np.concatenate([locs[q].B for q in tree.subtree(int(c))]))
@@ -361,18 +392,26 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
             for e in entries:
                 if InitStage(e.stage) == value_kind:
                     known[q][int(e.keyframe_id)] = from_entry(e)
-    # 4. back-substitution of each robot's interior
+    return known, rounds
+
+
+def _back_substitute(locs: list[_Local], known: list[dict[int, np.ndarray]], X0: np.ndarray,
+                     gauge: int, X_gauge: np.ndarray, b: int) -> list[np.ndarray]:
+    """Step 4: each robot solves its interior from its boundary values,
+    ``X_I = (Q⁽ʳ⁾_II)⁻¹ (Bv_I − Q_IB X_B)``; returns each robot's view."""
+    ncol = X0.shape[1]
     views = []
     for r, loc in enumerate(locs):
         lost = [int(v) for v in loc.B.tolist() if int(v) not in known[r]]
         if lost:
             _missing(f"robot {r} did not receive the separator values {lost[:5]}")
         view = X0.copy()
-        view[_expand(np.array([gauge]), b)] = X_gauge
+        view[block_rows(np.array([gauge]), b)] = X_gauge
         Xb = np.concatenate([known[r][int(v)] for v in loc.B.tolist()]) if loc.B.size else \
             np.zeros((0, ncol))
-        view[_expand(loc.B, b)] = Xb
+        view[block_rows(loc.B, b)] = Xb
         if loc.I.size:
-            view[_expand(loc.I, b)] = loc.lu.solve(loc.rhs_I - loc.Q_IB @ Xb)
+            assert loc.lu is not None  # _local factorises Q_II whenever there is an interior
+            view[block_rows(loc.I, b)] = loc.lu.solve(loc.rhs_I - loc.Q_IB @ Xb)
         views.append(view)
-    return views, rounds
+    return views

@@ -270,7 +270,8 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     import types
 
     from dran_edge.dran.problem import LocalProblem
-    from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
+    from dran_edge.dran.dist_init import distributed_chordal_init
+    from dran_edge.dran.linear_stage import greedy_colouring
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
 
