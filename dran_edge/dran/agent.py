@@ -40,25 +40,26 @@ built from a prebuilt partition (``LocalProblem.from_partition``; bench g2o, sim
 the daemon from the bounded online graph; the agent keeps estimates by keyframe id across
 ``set_problem`` calls. Which object observations and copies to trust (gating, the cross-robot
 association check, hop counts and provenance) is :mod:`dran_edge.dran.association`'s job
-(``Agent.objects``); what the agent counts is an :class:`~dran_edge.dran.counters.AgentCounters`.
+(``Agent.objects``); the local pose graph of L̂_i is assembled by
+:mod:`dran_edge.dran.local_structure`; what the agent counts is an
+:class:`~dran_edge.dran.counters.AgentCounters`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 
 from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig
 from dran_edge.dran.association import ObjectAssociation, PairKey
 from dran_edge.dran.consensus import ConsensusFactors, consensus_error, dual_update, phi, phi_dim
 from dran_edge.dran.counters import AgentCounters
+from dran_edge.dran.local_structure import LocalStructure as _Structure
+from dran_edge.dran.local_structure import AnchorKey, build_structure, consensus_factors
 from dran_edge.dran.problem import LocalProblem
 from dran_edge.events import (
     EstimateUpdate,
@@ -68,13 +69,11 @@ from dran_edge.events import (
     Output,
     Tick,
 )
-from dran_edge.solver.factors import Cauchy, make_kernel
-from dran_edge.solver.graph import PoseGraph, kinds_array
+from dran_edge.solver.factors import Cauchy
+from dran_edge.solver.graph import PoseGraph
 from dran_edge.solver.lm import (
     LinearSolveError,
     StructurePlan,
-    build_plan,
-    cholesky_factorizer,
     evaluate_cost,
     linearize,
     retract,
@@ -98,24 +97,8 @@ def _log_rate(h: np.ndarray) -> float:
     return float(np.exp(np.dot(k, np.log(h)) / np.dot(k, k)))
 
 
-AnchorKey = tuple[int, int]
-"""(owner robot, keyframe id) of a neighbour's separator held as an anchor."""
 SentKey = tuple[int, str, int]
 """(neighbour, "s" or "o", keyframe or object id) of a value last sent."""
-
-
-@dataclass(frozen=True, eq=False)
-class _Structure:
-    """The local PoseGraph of one topology and its structure plan (rebuilt when it changes)."""
-
-    key: tuple[tuple[int, ...], tuple[AnchorKey, ...], tuple[PairKey, ...], bytes]
-    graph: PoseGraph
-    plan: StructurePlan
-    obj_ids: tuple[int, ...]
-    anchor_keys: tuple[AnchorKey, ...]
-    pair_keys: tuple[PairKey, ...]  # (neighbour, object id) for each consensus factor
-    #: supernodal Cholesky of A + μI, analysed once for this structure
-    factorize: Callable[[sp.csc_matrix, float], object] | None
 
 
 class Agent:
@@ -206,71 +189,23 @@ class Agent:
     # ----------------------------------------------------------------- one round
     def _structure_for(self) -> _Structure:
         p, objects = self.problem, self.objects
-        obj_ids = tuple(sorted(self.y))
         anchor_keys = tuple(sorted({(int(o), int(a)) for o, a in zip(p.inter_owner, p.inter_anchor_id)
                                     if (int(o), int(a)) in self.anchors}))
         pair_keys = tuple(sorted(k for k in objects.neighbour_copies if k[1] in self.y and k[0] in self.w))
-        key = (obj_ids, anchor_keys, pair_keys, objects.obs_ok.tobytes())
-        if self._structure is not None and self._structure.key == key:
-            return self._structure
-        n, n_o, n_a, n_c = p.n, len(obj_ids), len(anchor_keys), len(pair_keys)
-        o_base, a_base, c_base = n, n + n_o, n + n_o + n_a
-        obj_slot = {oid: o_base + i for i, oid in enumerate(obj_ids)}
-        anc_slot = {k: a_base + i for i, k in enumerate(anchor_keys)}
-        kinds = kinds_array(n + n_o + n_a + n_c, public=np.arange(o_base, a_base),
-                            fixed=np.arange(a_base, c_base + n_c))
-        c = self.config
-        blocks = p.factors(anc_slot, obj_slot, objects.obs_ok,
-                           make_kernel(c.robust_kernel, c.robust_threshold),
-                           make_kernel(c.robust_kernel, c.object_kernel_width))
-        graph = PoseGraph(dim=p.dim, kinds=kinds, factors=blocks)
-        plan = build_plan(graph.with_factors(*self._consensus_blocks(obj_slot, c_base, pair_keys)))
-        self._structure = _Structure(key, graph, plan, obj_ids, anchor_keys, pair_keys,
-                                     cholesky_factorizer(plan))
+        key = (tuple(sorted(self.y)), anchor_keys, pair_keys, objects.obs_ok.tobytes())
+        if self._structure is None or self._structure.key != key:
+            self._structure = build_structure(
+                p, self.config, key, objects.obs_ok,
+                lambda slot, base: self._consensus_blocks(slot, base, pair_keys))
         return self._structure
 
     def _consensus_blocks(self, obj_slot: dict[int, int], c_base: int,
                           pair_keys: tuple[PairKey, ...]) -> tuple[ConsensusFactors, ...]:
-        if not pair_keys:
-            return ()
-        var = np.array([[obj_slot[oid], c_base + i] for i, (j, oid) in enumerate(pair_keys)])
-        r = phi_dim(self.config.residual, self.config.dim)
-        lam = np.stack([self.lam.get(k, np.zeros(r)) for k in pair_keys])
-        w = np.array([self.w[j] for j, _ in pair_keys])
-        c = self.config
-        # With a robust kernel configured, a Cauchy kernel bounds the pull of a neighbour's copy
-        # that stands for another hypothesis: built from a wrong tag association, it lies far
-        # away and would otherwise drag every copy to it. Its scale puts the half-weight point
-        # at φ = object_gate_m. Only conflicting pairs get it (``objects.conflicts``); every other
-        # pair stays least squares (infinite scale), so copies that differ by drift within the
-        # reaches pull fully (docs/dran.md, robustness).
-        kernel = None
-        if c.robust_kernel != "none" and c.object_gate_m > 0 and (
-                c.conflict_reach_m > 0 or c.centre_reach_m > 0):
-            conflict = self.objects.conflicts(pair_keys)
-            if conflict.any():
-                scale = float(np.sqrt(c.beta) * np.mean(w) * c.object_gate_m)
-                kernel = Cauchy(np.where(conflict, scale, np.inf))
-        return (ConsensusFactors(var, w, lam, c.beta, c.residual, kernel),)
-
+        return consensus_factors(self.config, pair_keys, obj_slot, c_base, self.lam, self.w,
+                                 self.objects.conflicts)
 
     def _poses(self, s: _Structure) -> np.ndarray:
-        p = self.problem
-        parts = [self.x]
-        D = p.dim + 1
-        if s.obj_ids:
-            parts.append(np.stack([self.y[o] for o in s.obj_ids]))
-        if s.anchor_keys:
-            parts.append(np.stack([self.anchors[k] for k in s.anchor_keys]))
-        if s.pair_keys:
-            parts.append(self._neighbour_copies(s))
-        return np.concatenate(parts) if len(parts) > 1 else self.x.reshape(-1, D, D).copy()
-
-
-    def _neighbour_copies(self, s: _Structure) -> np.ndarray:
-        """(c, D, D) the neighbours' copies y_j of the consensus pairs of ``s``, in pair order."""
-        copies = self.objects.neighbour_copies
-        return np.stack([copies[k].T_world_object for k in s.pair_keys])
+        return s.poses(self.x, self.y, self.anchors, self.objects.neighbour_copies)
 
     def _round(self, stamp_ns: int) -> list[Output]:
         c = self.config
@@ -287,7 +222,7 @@ class Agent:
         # Dual update, eq. 5b, with the newest copies of both ends.
         if s.pair_keys:
             y_i = np.stack([self.y[o] for _, o in s.pair_keys])
-            y_j = self._neighbour_copies(s)
+            y_j = s.neighbour_copies(self.objects.neighbour_copies)
             r = phi_dim(c.residual, c.dim)
             lam = np.stack([self.lam.get(k, np.zeros(r)) for k in s.pair_keys])
             w = np.array([self.w[j] for j, _ in s.pair_keys])
@@ -298,10 +233,7 @@ class Agent:
             lam = np.where(near[:, None], dual_update(lam, p_ij, w, c.beta, c.eta), lam)
             for key, value in zip(s.pair_keys, lam):
                 self.lam[key] = value
-        n = self.problem.n
-        obj_slot = {oid: n + i for i, oid in enumerate(s.obj_ids)}
-        c_base = n + len(s.obj_ids) + len(s.anchor_keys)
-        cons = self._consensus_blocks(obj_slot, c_base, s.pair_keys)
+        cons = self._consensus_blocks(s.object_slot, s.consensus_base, s.pair_keys)
         graph = s.graph.with_factors(*cons)
         kernel = cons[0].kernel if cons else None
         if isinstance(kernel, Cauchy):  # pairs under the kernel (conflicts) this round
@@ -321,7 +253,7 @@ class Agent:
         phi2 = 0.0
         if s.pair_keys:
             y_i = np.stack([self.y[o] for _, o in s.pair_keys])
-            y_j = self._neighbour_copies(s)
+            y_j = s.neighbour_copies(self.objects.neighbour_copies)
             phi2 = float(np.max(consensus_error(y_i, y_j)))
         self.last_norms = (norm_u, norm_v, phi2)
         iterations = self.counters.rounds - self.counters.idle_rounds
@@ -388,7 +320,7 @@ class Agent:
         test["tail_rel"] = d / (1.0 - rate) / L
         if s.pair_keys:
             y_i = np.stack([self.y[o] for _, o in s.pair_keys])
-            y_j = self._neighbour_copies(s)
+            y_j = s.neighbour_copies(self.objects.neighbour_copies)
             w = np.array([self.w[j] for j, _ in s.pair_keys])
             p = phi(y_i, y_j, c.residual)
             test["penalty_rel"] = 0.5 * c.beta * float(np.sum(w[:, None] ** 2 * p * p)) / L
@@ -558,8 +490,7 @@ class Agent:
     def local_cost(self) -> float:
         """L̂_i (eq. 6) at the current estimates, with the duals and neighbour copies held now."""
         s = self._structure_for()
-        cons = self._consensus_blocks({oid: self.problem.n + i for i, oid in enumerate(s.obj_ids)},
-                                      self.problem.n + len(s.obj_ids) + len(s.anchor_keys), s.pair_keys)
+        cons = self._consensus_blocks(s.object_slot, s.consensus_base, s.pair_keys)
         return evaluate_cost(s.graph.with_factors(*cons), self._poses(s))
 
 
