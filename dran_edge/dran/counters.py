@@ -1,9 +1,11 @@
 """The DRAN agent's event counters as one typed record (checkpointed with the agent).
 
 Every field is a plain ``int``; :meth:`AgentCounters.to_dict` gives ``{name: value}`` with the
-field names as keys (the checkpoint format, docs/architecture.md), :meth:`AgentCounters.update`
-reads such a dict back (keys it does not know are ignored; missing ones stay 0, so checkpoints
-written before a counter existed still load).
+field names as keys, the keys the agent's checkpoints have always used (the former ``dict`` of
+counters wrote ``idle_rounds``, ``sor_rejected`` and ``obs_corroborated`` only once they had
+been set; every key is written now). :meth:`AgentCounters.update` reads such a dict back (keys
+it does not know are ignored; missing ones keep their value, so checkpoints written before a
+counter existed still load).
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ class AgentCounters:
                 setattr(self, f.name, int(data[f.name]))
 
     # Item access by field name, for code written against the former ``dict`` of counters
-    # (``counters["accepted"] += 1``); new code uses the attributes.
+    # (``counters["accepted"] += 1`` in Agent._local_step); new code uses the attributes.
     def __getitem__(self, name: str) -> int:
         value: int = getattr(self, name)
         return value
