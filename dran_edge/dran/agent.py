@@ -171,7 +171,6 @@ class Agent:
         self.problem, self.x, self._structure = problem, x, None
         self.objects.reset(problem, x)
 
-
     def _absorb(self, msg: NeighbourMessage) -> None:
         j, rnd = int(msg.sender_id), int(msg.round)
         if msg.done_count is not None and self.nbr_done.get(j, (0, -1))[1] <= rnd:
@@ -269,7 +268,6 @@ class Agent:
         elif not self.converged:
             self.stop_reason = None
         return self._outputs(stamp_ns, s, phi2)
-
 
     # ----------------------------------------------------------------- stopping rule
     def _steps_test(self, norm_u: float, norm_v: float, phi2: float, eps: bool) -> bool:
@@ -447,7 +445,6 @@ class Agent:
             T_world_object=(np.stack([T for _, T in objects]) if objects else np.zeros((0, D, D))),
             cost=float(self.last_cost), step_norm_u=self.last_norms[0],
             step_norm_v=self.last_norms[1], consensus_error=phi2, converged=self.converged)
-
 
     # ----------------------------------------------------------------- checkpoints
     def to_state(self) -> dict[str, Any]:
