@@ -11,6 +11,10 @@ policies (docs/wire-format.md, "Authentication"; a fleet uses one):
 - ``ed25519``: one key pair per robot; the trailer is the sender's Ed25519 signature
   (RFC 8032), ``SIGNATURE_BYTES`` = 64, flagged in the header. Receivers hold only their
   neighbours' public keys, so a robot (or a thief of its secret) can sign only as itself.
+- ``pairwise``: the same key pairs, used to agree one HMAC key per ordered pair of robots
+  (X25519 + HKDF, ``comms.pairwise``); the trailer is a 16-byte tag for one receiver, flagged
+  in the header. A thief of robot 3's secret can tag only as robot 3, or "as robot 1" only to
+  robot 3 itself; an HMAC instead of a signature per datagram.
 
 ``Verifier.check`` is the only door into the agent for a datagram. It drops (and counts
 under a ``Reject`` reason) anything malformed, from another fleet, from a robot that is not
@@ -62,6 +66,7 @@ from dran_edge.comms.keys import (  # noqa: F401
     write_robot_key,
 )
 
+from dran_edge.comms.pairwise import PairwiseKeys
 from dran_edge.errors import ConfigError, DecodeError
 from dran_edge.messages import NeighbourMessage
 
@@ -103,6 +108,8 @@ class Signer:
 
     #: Datagrams for this signer are encoded with ``codec.encode_datagrams(signed=False)``.
     signed = False
+    #: One trailer for every receiver (``PairwiseSigner`` makes one per receiver).
+    pairwise = False
 
     def __init__(self, key: bytes):
         if not KEY_MIN_BYTES <= len(key) <= KEY_MAX_BYTES:
@@ -121,6 +128,7 @@ class Ed25519Signer:
     """Fills the signature slot of datagrams encoded with ``signed=True`` (the ed25519 policy)."""
 
     signed = True
+    pairwise = False
 
     def __init__(self, secret: bytes):
         if len(secret) != ED25519_KEY_BYTES:
@@ -134,8 +142,30 @@ class Ed25519Signer:
         return body + self._private.sign(body)
 
 
-def make_signer(credentials: bytes | RobotIdentity) -> Signer | Ed25519Signer:
-    """The signer of a fleet HMAC key (bytes) or of a robot's identity."""
+class PairwiseSigner:
+    """Fills the tag slot of a datagram for one receiver with that pair's key (the pairwise
+    policy; datagrams encoded with ``pairwise=True``)."""
+
+    signed = False
+    pairwise = True
+
+    def __init__(self, keys: PairwiseKeys):
+        self.keys = keys
+
+    def sign_for(self, datagram: bytes, receiver: int) -> bytes:
+        """``datagram`` with the tag of the pair (this robot, ``receiver``); KeyError when the
+        receiver has no public key."""
+        if len(datagram) < TAG_BYTES:
+            raise ValueError(f"datagram of {len(datagram)} bytes has no tag slot")
+        body = memoryview(datagram)[:-TAG_BYTES]
+        return bytes(body) + self.keys.tag_for(receiver, body)
+
+
+def make_signer(credentials: bytes | RobotIdentity | PairwiseKeys
+                ) -> Signer | Ed25519Signer | PairwiseSigner:
+    """The signer of a fleet HMAC key (bytes), a robot's identity (ed25519) or its pair keys."""
+    if isinstance(credentials, PairwiseKeys):
+        return PairwiseSigner(credentials)
     if isinstance(credentials, RobotIdentity):
         return Ed25519Signer(credentials.secret)
     return Signer(credentials)
@@ -204,14 +234,27 @@ class Verifier:
 
     ``credentials``: the fleet HMAC key (bytes; hmac policy) or a ``RobotIdentity`` (ed25519
     policy: only its ``public_keys`` are used here), or directly a mapping robot id -> public
-    keys. Under ed25519 every robot the policy accepts must have a public key."""
+    keys, or this robot's ``PairwiseKeys`` (pairwise policy). Under ed25519 and pairwise every
+    robot the policy accepts must have a public key."""
 
-    def __init__(self, credentials: bytes | RobotIdentity | Mapping, policy: AuthPolicy):
+    def __init__(self, credentials: bytes | RobotIdentity | Mapping | PairwiseKeys,
+                 policy: AuthPolicy):
         self.policy = policy
         self._key: bytes | None = None
         self._public: dict[int, tuple] = {}
+        self._pairs: PairwiseKeys | None = None
+        self._pair_index: int | None = None  # which sender key the last good tag was made with
         self._invalid_signature: type[Exception] = Exception
-        if isinstance(credentials, (RobotIdentity, Mapping)):
+        if isinstance(credentials, PairwiseKeys):
+            missing = sorted((policy.neighbours | policy.relay_from) - credentials.robots())
+            if missing:
+                raise ConfigError(
+                    f"no public key for robot(s) {missing} to agree a pair key with (neighbours "
+                    "and allow_relay_from need one: comms.public_keys_file or "
+                    "neighbours[].public_keys)"
+                )
+            self._pairs = credentials
+        elif isinstance(credentials, (RobotIdentity, Mapping)):
             keys = (credentials.public_keys if isinstance(credentials, RobotIdentity)
                     else credentials)
             missing = sorted((policy.neighbours | policy.relay_from) - set(keys))
@@ -237,7 +280,12 @@ class Verifier:
     @property
     def signed(self) -> bool:
         """True under the ed25519 policy."""
-        return self._key is None
+        return self._key is None and self._pairs is None
+
+    @property
+    def pairwise(self) -> bool:
+        """True under the pairwise policy."""
+        return self._pairs is not None
 
     def check(self, datagram: bytes, delta_for=None
               ) -> tuple[NeighbourMessage | None, Reject | None]:
@@ -254,6 +302,11 @@ class Verifier:
         return msg, reason
 
     def _authentic(self, datagram: bytes, sender: int) -> bool:
+        if self._pairs is not None:
+            view = memoryview(datagram)
+            self._pair_index = self._pairs.verify(sender, view[:-TAG_BYTES],
+                                                  bytes(view[-TAG_BYTES:]))
+            return self._pair_index is not None
         if self._key is not None:
             tag = bytes(datagram[-TAG_BYTES:])
             return hmac.compare_digest(tag, compute_tag(self._key, datagram))
@@ -284,7 +337,7 @@ class Verifier:
             return None, Reject.UNKNOWN_SENDER
         if h.sender_id not in p.neighbours and h.sender_id not in p.relay_from:
             return None, Reject.NOT_NEIGHBOUR
-        if h.signed != self.signed:
+        if h.signed != self.signed or h.pairwise != self.pairwise:
             return None, Reject.WRONG_AUTH
         if not self._authentic(datagram, h.sender_id):
             return None, Reject.BAD_TAG
@@ -298,6 +351,8 @@ class Verifier:
         except DecodeError:
             return None, Reject.MALFORMED
         self._window_commit(h.sender_id, h.boot_epoch, h.sequence)
+        if self._pairs is not None and self._pair_index is not None:
+            self._pairs.heard(h.sender_id, self._pair_index)
         return msg, None
 
     def _window_verdict(self, sender: int, epoch: int, seq: int) -> Reject | None:

@@ -61,7 +61,10 @@ _FLAG_SIGNED = 0x04
 #: counter (``NeighbourMessage.done_count``, docs/notes/stopping-rule.md). Without the flag the
 #: header is byte for byte the one before the flag existed.
 _FLAG_STATUS = 0x08
-_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA | _FLAG_SIGNED | _FLAG_STATUS
+#: Pairwise key policy (docs/wire-format.md, "Authentication", ``dran_edge.comms.pairwise``): the
+#: 16-byte tag is an HMAC with the key of this sender-receiver pair, not the fleet key.
+_FLAG_PAIRWISE = 0x10
+_FLAGS_KNOWN = _FLAG_DIM3 | _FLAG_DELTA | _FLAG_SIGNED | _FLAG_STATUS | _FLAG_PAIRWISE
 #: Largest done counter on the wire (a robot's counter saturates there; 2 varint bytes at most).
 DONE_COUNT_MAX = 255
 _INIT_DELTA_BIT = 0x80
@@ -295,6 +298,8 @@ class Header:
     signed: bool = False
     #: The sender's done counter (flag 0x08), None without the flag.
     done_count: int | None = None
+    #: Pairwise-keyed tag (flag 0x10, ``comms.pairwise``): a 16-byte tag like the fleet's.
+    pairwise: bool = False
 
     @property
     def trailer_bytes(self) -> int:
@@ -327,6 +332,8 @@ def decode_header(data: bytes) -> Header:
         raise DecodeError(f"unknown schema version {version}, this build reads {SCHEMA_VERSION}")
     if flags & ~_FLAGS_KNOWN:
         raise DecodeError(f"unknown flag bits 0x{flags & ~_FLAGS_KNOWN:02x}")
+    if flags & _FLAG_SIGNED and flags & _FLAG_PAIRWISE:
+        raise DecodeError("flags 0x04 (signed) and 0x10 (pairwise) together")
     trailer = SIGNATURE_BYTES if flags & _FLAG_SIGNED else TAG_BYTES
     if size < _HEADER_MIN_BYTES + trailer:
         raise DecodeError(
@@ -381,6 +388,7 @@ def decode_header(data: bytes) -> Header:
         bool(flags & _FLAG_DELTA),
         bool(flags & _FLAG_SIGNED),
         done_count,
+        bool(flags & _FLAG_PAIRWISE),
     )
 
 
@@ -764,6 +772,7 @@ def encode_datagrams(
     max_datagram_bytes: int = DEFAULT_MAX_DATAGRAM_BYTES,
     delta: dl.DeltaEncoder | None = None,
     signed: bool = False,
+    pairwise: bool = False,
 ) -> list[EncodedDatagram]:
     """Encode ``message`` into datagrams of at most ``max_datagram_bytes`` each.
 
@@ -773,8 +782,11 @@ def encode_datagrams(
     (the sending side of the one link this message goes over) the delta layout (flag 0x02) is
     used: separator and init entries become quantised changes where ``delta`` allows.
     ``signed``: flag 0x04 and a ``SIGNATURE_BYTES`` slot for ``auth.Ed25519Signer`` instead of
-    the ``TAG_BYTES`` HMAC slot (docs/wire-format.md).
+    the ``TAG_BYTES`` HMAC slot (docs/wire-format.md). ``pairwise``: flag 0x10, the tag slot is
+    for ``comms.pairwise`` (one datagram per receiver).
     """
+    if signed and pairwise:
+        raise EncodeError("a datagram is either signed or pairwise-tagged, not both")
     if not MIN_DATAGRAM_BYTES <= max_datagram_bytes <= HARD_CAP_BYTES:
         raise EncodeError(
             f"max_datagram_bytes must be in [{MIN_DATAGRAM_BYTES}, "
@@ -803,6 +815,7 @@ def encode_datagrams(
         | (_FLAG_DELTA if delta is not None else 0)
         | (_FLAG_SIGNED if signed else 0)
         | (_FLAG_STATUS if done is not None else 0)
+        | (_FLAG_PAIRWISE if pairwise else 0)
     )
     trailer = SIGNATURE_BYTES if signed else TAG_BYTES
     ident = (

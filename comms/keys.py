@@ -29,7 +29,7 @@ ED25519_KEY_BYTES = 32
 #: First word of a robot's secret key file (tells it apart from a fleet HMAC key).
 _ROBOT_KEY_WORD = "ed25519-secret"
 #: Key policies (the config's ``comms.auth``).
-POLICIES = ("hmac", "ed25519")
+POLICIES = ("hmac", "ed25519", "pairwise")
 
 
 def _read_secret_file(path: str, what: str) -> list[str]:
@@ -293,8 +293,9 @@ def fleet_public_keys(cfg) -> dict[int, tuple[bytes, ...]]:
 
 def credentials_from_config(cfg) -> bytes | RobotIdentity:
     """What ``comms.auth`` and ``comms.key_file`` of a robot config name: the fleet HMAC key
-    (``hmac``) or this robot's ``RobotIdentity`` (``ed25519``). ConfigError on a missing or
-    unreadable key, a key file of the other policy, or a neighbour without a public key."""
+    (``hmac``) or this robot's ``RobotIdentity`` (``ed25519``; its ``PairwiseIdentity``
+    subclass for ``pairwise``). ConfigError on a missing or unreadable key, a key file of the
+    other policy, or a neighbour without a public key."""
     key_path = cfg.resolve(cfg.comms.key_file)
     if key_path is None:
         raise ConfigError("comms.key_file: not set, but comms.transport is 'udp'",
@@ -306,7 +307,7 @@ def credentials_from_config(cfg) -> bytes | RobotIdentity:
     missing = sorted({n.id for n in cfg.neighbours} - set(keys))
     if missing:
         raise ConfigError(
-            f"comms.auth ed25519: no public key for neighbour(s) {missing} (add them to "
+            f"comms.auth {cfg.comms.auth}: no public key for neighbour(s) {missing} (add them to "
             "comms.public_keys_file, or neighbours[].public_keys)",
             path=cfg.source_path or None,
         )
@@ -317,4 +318,8 @@ def credentials_from_config(cfg) -> bytes | RobotIdentity:
             "keys (a key file of another robot, or public keys not yet exported)",
             path=str(key_path),
         )
+    if cfg.comms.auth == "pairwise":
+        from dran_edge.comms.pairwise import PairwiseIdentity
+
+        return PairwiseIdentity(secret, keys)
     return RobotIdentity(secret, keys)

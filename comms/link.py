@@ -5,10 +5,12 @@ the loopback harness all send and receive ``NeighbourMessage`` s through this on
 the bytes on the wire and their accounting are the same everywhere.
 
 - ``key``: the fleet's HMAC key (bytes) or this robot's ``auth.RobotIdentity`` (its Ed25519
-  secret and the fleet's public keys); the key policy decides the datagrams' trailer.
+  secret and the fleet's public keys; a ``pairwise.PairwiseIdentity`` for the pairwise
+  policy); the key policy decides the datagrams' trailer.
 - ``send_message(msg, to)`` encodes the message once (datagrams numbered from this robot's
   sequence counter), signs each datagram, and hands it to the transport for every robot in
-  ``to`` (the same datagram to each: replay windows are per receiver).
+  ``to`` (the same datagram to each: replay windows are per receiver; under the pairwise policy
+  the same bytes with each receiver's own tag).
 - ``poll(now_ns)`` drains the transport, verifies and decodes every datagram, counts it
   (accepted per sender and kind with last-heard time; rejected per reason), and returns the
   accepted messages. Nothing an attacker sends makes it raise.
@@ -25,6 +27,7 @@ from __future__ import annotations
 from typing import Iterable
 
 from dran_edge.comms.auth import AuthPolicy, Reject, RobotIdentity, Verifier, make_signer
+from dran_edge.comms.pairwise import PairwiseIdentity, pairwise_keys
 from dran_edge.comms.codec import DEFAULT_MAX_DATAGRAM_BYTES, encode_datagrams
 from dran_edge.comms.counters import CommCounters
 from dran_edge.comms.delta import DeltaDecoder, DeltaEncoder
@@ -50,8 +53,10 @@ class NeighbourLink:
         self.policy = policy
         self.boot_epoch = int(boot_epoch)
         self.max_datagram_bytes = int(max_datagram_bytes)
-        self._signer = make_signer(key)
-        self.verifier = Verifier(key, policy)
+        credentials = (pairwise_keys(key, policy.self_id, policy.fleet_id)
+                       if isinstance(key, PairwiseIdentity) else key)
+        self._signer = make_signer(credentials)
+        self.verifier = Verifier(credentials, policy)
         self._next_sequence = int(first_sequence)
         #: Link-level counters: bytes per neighbour and kind, rejections by reason.
         self.counters = CommCounters()
@@ -103,6 +108,7 @@ class NeighbourLink:
             max_datagram_bytes=self.max_datagram_bytes,
             delta=enc,
             signed=self._signer.signed,
+            pairwise=self._signer.pairwise,
         )
         self._next_sequence += len(grams)
         return grams
@@ -110,9 +116,14 @@ class NeighbourLink:
     def _send(self, grams: list, targets: list[int]) -> list[bytes]:
         out = []
         for g in grams:
-            data = self._signer.sign(g.data)
-            out.append(data)
-            for j in targets:
+            if self._signer.pairwise:  # one tag per receiver
+                signed = [(j, self._signer.sign_for(g.data, j)) for j in targets]
+                out += [data for _, data in signed]
+            else:
+                data = self._signer.sign(g.data)
+                signed = [(j, data) for j in targets]
+                out.append(data)
+            for j, data in signed:
                 if self.transport.send(j, data):
                     self.counters.sent(j, len(data), g.bytes_by_kind)
                 else:

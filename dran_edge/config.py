@@ -29,12 +29,54 @@ import re
 import types
 import typing
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
 from dran_edge.errors import ConfigError
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")
+
+
+_Choice = typing.TypeVar("_Choice", bound="StrChoice")
+
+
+class StrChoice(str, Enum):
+    """A choice among fixed strings, checked once where a config is loaded or built: members
+    compare equal to their strings and print, format and serialise (JSON) as them."""
+
+    def __str__(self) -> str:
+        return str.__str__(self)
+
+    def __format__(self, format_spec: str) -> str:
+        return str.__format__(self, format_spec)
+
+    @classmethod
+    def parse(cls: type[_Choice], value: Any, key: str) -> _Choice:
+        """The member named by ``value`` (a member or its string); ValueError naming ``key``,
+        the bad value and the allowed ones otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            allowed = ", ".join(repr(m.value) for m in cls)
+            raise ValueError(f"{key}: expected one of {allowed}, got {value!r}") from None
+
+
+class Residual(StrChoice):
+    """The edge residual of paper eq. 2."""
+
+    GEODESIC = "geodesic"
+    """Log(T̃⁻¹ T_p⁻¹ T_q) ∈ se(d)."""
+    CHORDAL = "chordal"
+    """The entries of T̃⁻¹ T_p⁻¹ T_q − I (rotation and translation parts)."""
+
+
+class RobustKernel(StrChoice):
+    """A robust kernel ρ on squared whitened residual norms (``none``: least squares)."""
+
+    NONE = "none"
+    HUBER = "huber"
+    CAUCHY = "cauchy"
 
 
 def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
@@ -54,7 +96,8 @@ def _check_value(value: Any, meta: dict, key: str) -> None:
         return
     choices = meta.get("choices")
     if choices is not None and value not in choices:
-        raise ConfigError(f"{key}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+        allowed = ", ".join(repr(getattr(c, "value", c)) for c in choices)
+        raise ConfigError(f"{key}: expected one of {allowed}, got {value!r}")
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         if isinstance(value, float) and not math.isfinite(value):
             raise ConfigError(f"{key}: expected a finite number, got {value!r}")
@@ -71,6 +114,11 @@ def _check_value(value: Any, meta: dict, key: str) -> None:
 def _validate_fields(obj: Any) -> None:
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
+        if isinstance(f.default, StrChoice):
+            # a string choice (from code) becomes its member, once, here
+            _check_value(value, dict(f.metadata), f.name)
+            object.__setattr__(obj, f.name, type(f.default)(value))
+            continue
         if isinstance(value, tuple):
             for i, item in enumerate(value):
                 if not dataclasses.is_dataclass(item):
@@ -159,7 +207,7 @@ class AgentConfig(_Checked):
     """Ids of the communication neighbours (copied from ``neighbours`` by the loader)."""
     dim: int = _f(3, choices=(2, 3))
     """2 for SE(2), 3 for SE(3)."""
-    residual: str = _f("geodesic", choices=("geodesic", "chordal"))
+    residual: Residual = _f(Residual.GEODESIC, choices=tuple(Residual))
     """Residual of eq. 2: geodesic Log(T~^-1 Tp^-1 Tq) or chordal."""
     beta: float = _f(1.0, lo=0.0, lo_open=True)
     """Penalty parameter beta of the augmented Lagrangian (eq. 4)."""
@@ -214,7 +262,7 @@ class AgentConfig(_Checked):
     """Maximum number of local steps (DRAN iterations) of one optimisation."""
     mu_init: float = _f(1e-4, lo=0.0, lo_open=True)
     """Initial Levenberg-Marquardt damping mu of M = J^T J + mu I (eq. 7)."""
-    robust_kernel: str = _f("huber", choices=("none", "huber", "cauchy"))
+    robust_kernel: RobustKernel = _f(RobustKernel.HUBER, choices=tuple(RobustKernel))
     """Robust kernel on loop and object residuals (whitened)."""
     robust_threshold: float = _f(1.345, lo=0.0, lo_open=True)
     """Kernel width on the whitened residual norm (1.345: 95 % efficiency for Huber)."""
@@ -394,16 +442,18 @@ class CommsSection(_Checked):
     """Address the DISH binds to."""
     port: int = _f(5600, lo=1, hi=65535)
     """UDP port the DISH binds to."""
-    auth: str = _f("hmac", choices=("hmac", "ed25519"))
+    auth: str = _f("hmac", choices=("hmac", "ed25519", "pairwise"))
     """Key policy (docs/wire-format.md, "Authentication"): ``hmac``, one secret key shared by
     the fleet (any holder can sign as any robot); ``ed25519``, one key pair per robot (a robot
-    can sign only as itself). Every robot of a fleet uses the same policy."""
+    can sign only as itself); ``pairwise``, the same key pairs agreeing an HMAC key per pair of
+    robots (a robot can send only as itself, at an HMAC's cost). Every robot of a fleet uses the
+    same policy."""
     key_file: str = _f("")
     """Secret key file (mode 0600, owned by the daemon's user); relative to the config. ``hmac``:
-    the fleet key (``dran-edge fleet-key new``); ``ed25519``: this robot's secret key
-    (``dran-edge fleet-key pair``)."""
+    the fleet key (``dran-edge fleet-key new``); ``ed25519`` and ``pairwise``: this robot's
+    secret key (``dran-edge fleet-key pair``)."""
     public_keys_file: str = _f("")
-    """With ``auth: ed25519``: the fleet's public keys (``dran-edge fleet-key export``), the same
+    """With ``auth: ed25519`` or ``pairwise``: the fleet's public keys (``dran-edge fleet-key export``), the same
     file on every robot; relative to the config. Needed unless every neighbour lists its
     ``public_keys``."""
     datagram_max_bytes: int = _f(1200, lo=256, hi=4096)
@@ -565,6 +615,13 @@ def _convert(value: Any, tp: Any, key: str, lines: dict[str, int]) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise _err(f"{key}: expected a number, got {_describe(value)}", key, lines)
         return float(value)
+    if isinstance(tp, type) and issubclass(tp, StrChoice):
+        if not isinstance(value, str):
+            raise _err(f"{key}: expected a string, got {_describe(value)}", key, lines)
+        try:
+            return tp.parse(value, key)
+        except ValueError as exc:
+            raise _err(str(exc), key, lines) from None
     if tp is str:
         if not isinstance(value, str):
             raise _err(f"{key}: expected a string, got {_describe(value)}", key, lines)
@@ -795,4 +852,6 @@ def config_to_dict(cfg: Any) -> Any:
         return out
     if isinstance(cfg, tuple):
         return [config_to_dict(v) for v in cfg]
+    if isinstance(cfg, StrChoice):
+        return cfg.value  # plain YAML
     return cfg

@@ -37,6 +37,30 @@ def small_sim_run(tmp_path_factory):
     return run, report
 
 
+def flip_one_bit(rng, datagram: bytes) -> bytes:
+    """``datagram`` with one random bit after the magic and version flipped (forgery tests)."""
+    mutated = bytearray(datagram)
+    pos = int(rng.integers(4, len(mutated)))
+    mutated[pos] ^= 1 << int(rng.integers(0, 8))
+    return bytes(mutated)
+
+
+def assert_forgeries_rejected(verifier, forgeries, n: int) -> dict:
+    """Check ``n`` (kind, datagram) forgeries: none accepted, at least 95 % for their trailer
+    (``bad_tag``; only a flipped header bit may fail earlier, e.g. as another fleet or a stale
+    epoch). Returns the count per reject reason."""
+    from dran_edge.comms.auth import Reject
+
+    reasons: dict = {}
+    for i, (kind, data) in enumerate(forgeries):
+        msg, reason = verifier.check(data)
+        assert msg is None, f"forgery {i} (kind {kind}) was accepted"
+        reasons[reason] = reasons.get(reason, 0) + 1
+    assert sum(reasons.values()) == n
+    assert reasons[Reject.BAD_TAG] >= 0.95 * n, reasons
+    return reasons
+
+
 def mutate_datagram(data, datagram: bytes) -> bytes:
     """A hypothesis-drawn corruption of ``datagram``: one bit flipped, cut short, or bytes
     inserted (the forgery tests of the HMAC and the Ed25519 trailers)."""

@@ -90,15 +90,16 @@ def test_every_schema_error_is_reported_with_its_line(tmp_path, capsys):
 
 
 @needs_ed25519
-def test_ed25519_keys_are_checked(tmp_path, capsys):
+@pytest.mark.parametrize("auth", ["ed25519", "pairwise"])
+def test_robot_keys_are_checked(tmp_path, capsys, auth):
     keys.write_robot_key(tmp_path / "dingo1.key", 1)
     keys.write_robot_key(tmp_path / "dingo2.key", 2)
     keys.write_robot_key(tmp_path / "other.key", 1)
     pub = {r: (keys.load_public_key_file(tmp_path / f"dingo{r}.key.pub")[1],) for r in (1, 2)}
     keys.write_fleet_public_keys(tmp_path / "fleet.pub", "dingo6", pub)
-    ed = {"auth": "ed25519", "key_file": "dingo1.key", "public_keys_file": "fleet.pub"}
+    ed = {"auth": auth, "key_file": "dingo1.key", "public_keys_file": "fleet.pub"}
     rc, out, errors = _check(_config(tmp_path, comms=ed, camera={"source": "none"}), capsys)
-    assert rc == 0 and "ed25519 key" in out, errors
+    assert rc == 0 and f"{auth} key" in out, errors
     # a fleet HMAC key where a robot key is expected, and robot 2 missing from the keys
     keys.write_fleet_key(tmp_path / "fleet.key")
     keys.write_fleet_public_keys(tmp_path / "partial.pub", "dingo6", {1: pub[1]})
@@ -122,9 +123,9 @@ def _fleet(tmp_path, n=4, auth="hmac", edit=None):
     if auth == "hmac" and not (d / "fleet.key").exists():
         keys.write_fleet_key(d / "fleet.key")
     for i in range(1, n + 1):
-        if auth == "ed25519" and not (d / f"r{i}.key").exists():
+        if auth != "hmac" and not (d / f"r{i}.key").exists():
             keys.write_robot_key(d / f"r{i}.key", i)
-    if auth == "ed25519":
+    if auth != "hmac":
         table = {i: (keys.load_public_key_file(d / f"r{i}.key.pub")[1],) for i in range(1, n + 1)}
         keys.write_fleet_public_keys(d / "fleet.pub", "ring", table)
     for i in range(1, n + 1):
@@ -134,14 +135,15 @@ def _fleet(tmp_path, n=4, auth="hmac", edit=None):
                               for j in nb],
                "comms": {"transport": "udp", "auth": auth,
                          "key_file": "fleet.key" if auth == "hmac" else f"r{i}.key",
-                         **({"public_keys_file": "fleet.pub"} if auth == "ed25519" else {})}}
+                         **({"public_keys_file": "fleet.pub"} if auth != "hmac" else {})}}
         if edit is not None:
             edit(i, cfg)
         (d / f"r{i}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     return check_fleet(d)
 
 
-@pytest.mark.parametrize("auth", ["hmac", pytest.param("ed25519", marks=needs_ed25519)])
+@pytest.mark.parametrize("auth", ["hmac", pytest.param("ed25519", marks=needs_ed25519),
+                                  pytest.param("pairwise", marks=needs_ed25519)])
 def test_check_fleet_consistent_ring_is_ok(tmp_path, auth):
     rep = _fleet(tmp_path, auth=auth)
     assert rep.errors == [] and len(rep.robots) == 4

@@ -156,11 +156,16 @@ def test_unit_files_verify_and_keep_the_camera_reachable(tmp_path, name, instanc
     assert res.returncode == 0, res.stdout + res.stderr
 
 
-@pytest.mark.parametrize("policy", ["hmac", pytest.param("ed25519", marks=pytest.mark.skipif(
-    importlib.util.find_spec("cryptography") is None, reason="no 'cryptography' (.[comms])"))])
+_NEEDS_CRYPTOGRAPHY = pytest.mark.skipif(importlib.util.find_spec("cryptography") is None,
+                                         reason="no 'cryptography' (.[comms])")
+
+
+@pytest.mark.parametrize("policy", ["hmac", pytest.param("ed25519", marks=_NEEDS_CRYPTOGRAPHY),
+                                    pytest.param("pairwise", marks=_NEEDS_CRYPTOGRAPHY)])
 def test_two_daemons_exchange_over_loopback_udp(tmp_path, policy):
     """Two robot processes, RADIO/DISH on 127.0.0.1, authenticated with a fleet key or with
-    per-robot key pairs and the fleet's public-key file (made by the fleet-key command)."""
+    per-robot key pairs and the fleet's public-key file (made by the fleet-key command), used
+    to sign (ed25519) or to agree a pair key (pairwise)."""
     from dran_edge.cli.app import main
     from dran_edge.comms.auth import write_fleet_key
     from dran_edge.comms.ingest import encode_event

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -69,10 +70,10 @@ from dran_edge.events import (
     Output,
     Tick,
 )
+from dran_edge.solver.damping import AGENT_DAMPING, DampingState, damped_step
 from dran_edge.solver.factors import Cauchy
 from dran_edge.solver.graph import PoseGraph
 from dran_edge.solver.lm import (
-    LinearSolveError,
     StructurePlan,
     evaluate_cost,
     linearize,
@@ -84,9 +85,6 @@ from dran_edge.messages import NeighbourMessage, ObjectEntry, SeparatorEntry
 __all__ = ["Agent", "LocalProblem"]  # LocalProblem lives in dran_edge.dran.problem
 
 log = logging.getLogger(__name__)
-
-_MAX_TRIALS = 6
-_MU_MIN = 1e-12
 
 
 def _log_rate(h: np.ndarray) -> float:
@@ -342,33 +340,32 @@ class Agent:
         cost = self._cost_at_start = lin.cost
         if self.mu is None:
             diag = np.concatenate([lin.A.diagonal(), np.diag(lin.B)])
-            # relative to the median curvature: a stiff gauge prior must not inflate μ
-            self.mu = max(c.mu_init * float(np.median(diag)) if diag.size else 1.0, _MU_MIN)
+            self.mu = replace(AGENT_DAMPING, mu_init=c.mu_init).initial_mu(diag)
         g = np.concatenate([lin.g_x, lin.g_y])
         self.last_decrement = math.inf
-        for _ in range(_MAX_TRIALS):
-            try:
-                u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, self.mu, s.factorize)
-            except LinearSolveError:
-                self.counters["linear_fail"] += 1
-                self.mu *= 4.0
-                continue
+
+        def solve_model(mu: float) -> tuple[np.ndarray, np.ndarray]:
+            u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, s.factorize)
             if not math.isfinite(self.last_decrement):
                 # local Newton decrement ½ gᵀ M⁻¹ g of this round's first solvable model
                 self.last_decrement = max(-0.5 * float(g @ np.concatenate([u, v])), 0.0)
+            return u, v
+
+        def evaluate(u: np.ndarray, v: np.ndarray) -> tuple[float, np.ndarray]:
             new = retract(plan, poses, c.gamma * u, c.alpha * v)
-            new_cost = evaluate_cost(graph, new)
-            if math.isfinite(new_cost) and new_cost <= cost:
-                step = np.concatenate([u, v])
-                pred = 0.5 * float(self.mu * step @ step - g @ step)  # model decrease (M ξ = −g)
-                rho = (cost - new_cost) / pred if pred > 0 else 0.0
-                self.mu = max(self.mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), _MU_MIN)
-                self.counters["accepted"] += 1
-                self.last_decrease = cost - new_cost
-                self.last_cost = new_cost
-                self._store(plan, new)
-                return float(np.linalg.norm(c.gamma * u)), float(np.linalg.norm(c.alpha * v))
-            self.mu *= 4.0
+            return evaluate_cost(graph, new), new
+
+        out = damped_step(AGENT_DAMPING, DampingState(self.mu), solve_model, evaluate, cost, g)
+        self.mu = out.state.mu
+        if out.solve_failures:
+            self.counters["linear_fail"] += out.solve_failures
+        if out.accepted:
+            assert out.u is not None and out.v is not None and out.candidate is not None
+            self.counters["accepted"] += 1
+            self.last_decrease = cost - out.cost
+            self.last_cost = out.cost
+            self._store(plan, out.candidate)
+            return float(np.linalg.norm(c.gamma * out.u)), float(np.linalg.norm(c.alpha * out.v))
         self.last_decrease = math.inf  # no step taken: not evidence of convergence
         self.counters["rejected"] += 1
         self.last_cost = cost

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dran_edge import geometry as geo
+from dran_edge.config import Residual
 from dran_edge.solver.factors import Kernel, chordal_jacobians, chordal_residual, geodesic_jacobians
 
 
@@ -53,16 +54,16 @@ def metropolis_hastings_matrix(adjacency: np.ndarray) -> np.ndarray:
 
 def phi(y_i: np.ndarray, y_j: np.ndarray, kind: str = "geodesic") -> np.ndarray:
     """φ(y_i, y_j) batched: geodesic ``Log(y_i⁻¹ y_j)`` or chordal ``y_i − y_j`` (eq. 2)."""
-    if kind == "geodesic":
+    if kind == Residual.GEODESIC:
         return geo.log(geo.inverse(y_i) @ y_j)
-    if kind == "chordal":
+    if kind == Residual.CHORDAL:
         return chordal_residual(y_i, y_j, np.broadcast_to(np.eye(y_i.shape[-1]), y_i.shape))
     raise ValueError(f"phi kind must be 'geodesic' or 'chordal', got {kind!r}")
 
 
 def phi_dim(kind: str, dim: int) -> int:
     """Entries of φ: geodesic 6/3, chordal 12/6 for SE(3)/SE(2)."""
-    return (6 if dim == 3 else 3) if kind == "geodesic" else dim * dim + dim
+    return (6 if dim == 3 else 3) if kind == Residual.GEODESIC else dim * dim + dim
 
 
 def dual_update(lam: np.ndarray, phi_ij: np.ndarray, w: np.ndarray, beta: float, eta: float
@@ -102,9 +103,9 @@ class ConsensusFactors:
     def _phi_and_jac(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         y_i, y_j = poses[self.variables[:, 0]], poses[self.variables[:, 1]]
         eye = np.broadcast_to(np.eye(y_i.shape[-1]), y_i.shape)
-        if self.kind == "geodesic":
+        if self.kind == Residual.GEODESIC:
             r, J_i, _ = geodesic_jacobians(y_i, y_j, eye)
-        elif self.kind == "chordal":
+        elif self.kind == Residual.CHORDAL:
             r, J_i, _ = chordal_jacobians(y_i, y_j, eye)
         else:
             raise ValueError(f"phi kind must be 'geodesic' or 'chordal', got {self.kind!r}")

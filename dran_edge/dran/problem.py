@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from dran_edge.config import Residual
 from dran_edge.dran.partition import Partition
 from dran_edge.solver.factors import BetweenFactors, Factor, Kernel, PriorFactors, isotropic_whitening
 
@@ -101,7 +102,7 @@ class LocalProblem:
 
     @classmethod
     def empty(cls, dim: int, residual: str) -> LocalProblem:
-        D, r = dim + 1, (6 if dim == 3 else 3) if residual == "geodesic" else dim * dim + dim
+        D, r = dim + 1, (6 if dim == 3 else 3) if residual == Residual.GEODESIC else dim * dim + dim
         z = np.zeros(0, np.int64)
         T, W = np.zeros((0, D, D)), np.zeros((0, r))
         return cls(dim, residual, z, z, T, np.zeros((0, 2), np.int64), T, W, np.zeros(0, bool),

@@ -102,7 +102,9 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
                     prev = last_sent.setdefault((r, q), np.full_like(D, np.nan))
                     changed = ~(np.max(np.abs(D - prev), axis=1) <= params.send_tol)
                     prev[changed] = D[changed]
-                    T = geo.retract(poses[vs[changed]], D[changed]) if changed.any() else []
+                    T: np.ndarray | list[np.ndarray] = (
+                        geo.retract(poses[vs[changed]], D[changed]) if changed.any() else []
+                    )
                     entries = [InitEntry(InitStage.TRANSLATION, r, int(v), T[k])
                                for k, v in enumerate(vs[changed].tolist())]
                     if entries:

@@ -235,15 +235,16 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop:
     that cannot fire far from F*, docs/notes/stopping-rule.md; replaces the stop only)."""
     import dataclasses
 
-    from dran_edge.config import AgentConfig
+    from dran_edge.config import AgentConfig, Residual, RobustKernel
 
     if stop not in ("steps", "tail"):
         raise ValueError(f"stop must be 'steps' or 'tail', got {stop!r}")
+    res, kernel = Residual.parse(residual, "residual"), RobustKernel.NONE
     if plain:
-        cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none")
+        cfg = AgentConfig(dim=dim, residual=res, robust_kernel=kernel)
         kw = {"schedule": "parallel", "delta_every": 0}
     else:
-        cfg = AgentConfig(dim=dim, residual=residual, robust_kernel="none",
+        cfg = AgentConfig(dim=dim, residual=res, robust_kernel=kernel,
                           sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
         kw = {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
     if stop == "tail":

@@ -39,7 +39,7 @@ from dran_edge import geometry as geo
 from dran_edge.evaluation import metrics
 from dran_edge.dran.agent import Agent
 from dran_edge.dran.problem import LocalProblem
-from dran_edge.config import AgentConfig
+from dran_edge.config import AgentConfig, RobustKernel
 from dran_edge.errors import InputError
 from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
 from dran_edge.solver.graph import PoseGraph, kinds_array
@@ -234,7 +234,8 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     overrides the min views. The fleet stops on the "tail" rule (docs/notes/stopping-rule.md):
     the paper's ε_u/ε_v test let a run stop at K_max 27 % above F*."""
     return AgentConfig(stop_rule="tail",
-                       robust_kernel="cauchy" if robust else "none", robust_threshold=0.05,
+                       robust_kernel=RobustKernel.CAUCHY if robust else RobustKernel.NONE,
+                       robust_threshold=0.05,
                        object_robust_threshold=1.0, conflict_reach_m=0.0 if robust else 16.0,
                        object_min_views=min_views if min_views is not None else 2 if robust else 1)
 

@@ -86,7 +86,7 @@ def pose_vector(pose: Any) -> tuple[float, ...]:
     """
     p, q = pose.position, pose.orientation
     v = (float(p.x), float(p.y), float(p.z), float(q.x), float(q.y), float(q.z), float(q.w))
-    if not all(math.isfinite(x) for x in v):
+    if not all(map(math.isfinite, v)):
         raise MessageError("non_finite", "pose with NaN or inf")
     n = math.sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5] + v[6] * v[6])
     if abs(n - 1.0) > 1e-3:
@@ -140,9 +140,9 @@ def odometry_record(msg: Any, offset_ns: int = 0, stamp: int | None = None) -> I
     s = _check_stamp((stamp_ns(msg.header) if stamp is None else stamp) + offset_ns, "odometry")
     v = pose_vector(_pose_of(msg))
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(36)
-    if not np.any(cov):
+    if not cov.any():
         cov = None
-    elif not np.all(np.isfinite(cov)):
+    elif not np.isfinite(cov).all():
         raise MessageError("non_finite", "odometry covariance with NaN or inf")
     try:
         data = ingest.pack_odometry(s, v[:3], v[3:], cov)

@@ -107,7 +107,7 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return se3_inverse(T) if _is_se3_matrix(T) else se2_inverse(T)
 
 
-def compose(A, B):
+def compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     _is_se3_matrix(A)
     return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
 
@@ -116,15 +116,15 @@ def between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return inverse(A) @ np.asarray(B, dtype=np.float64)
 
 
-def adjoint(T):
+def adjoint(T: np.ndarray) -> np.ndarray:
     return se3_adjoint(T) if _is_se3_matrix(T) else se2_adjoint(T)
 
 
-def right_jacobian(xi):
+def right_jacobian(xi: np.ndarray) -> np.ndarray:
     return se3_right_jacobian(xi) if _is_se3_tangent(xi) else se2_right_jacobian(xi)
 
 
-def right_jacobian_inv(xi):
+def right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
     return se3_right_jacobian_inv(xi) if _is_se3_tangent(xi) else se2_right_jacobian_inv(xi)
 
 
@@ -132,12 +132,12 @@ def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     return np.asarray(T, dtype=np.float64) @ exp(xi)
 
 
-def geodesic_distance(A, B):
+def geodesic_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """‖Log(A⁻¹ B)‖ over the whole tangent."""
     return np.linalg.norm(log(between(A, B)), axis=-1)
 
 
-def chordal_distance(A, B):
+def chordal_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """‖A − B‖_F over the upper d × (d+1) block."""
     A = np.asarray(A, dtype=np.float64)
     d = A.shape[-1] - 1

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dran_edge import geometry as geo
-from dran_edge.config import AgentConfig, NoiseModel
+from dran_edge.config import AgentConfig, NoiseModel, Residual
 from dran_edge.events import Keyframe, LoopClosure, ObservationBatch, OdometrySample, VioReset
 from dran_edge.solver.factors import (
     BetweenFactors,
@@ -945,12 +945,12 @@ def _arrays(items: list) -> dict:
 def _whitening(S: np.ndarray, residual: str) -> np.ndarray:
     """Whitening of covariances Σ (m, 6, 6) for the given residual."""
     if len(S) == 0:
-        return np.zeros((0, 6, 6)) if residual == "geodesic" else np.zeros((0, 12))
-    if residual == "geodesic":
+        return np.zeros((0, 6, 6)) if residual == Residual.GEODESIC else np.zeros((0, 12))
+    if residual == Residual.GEODESIC:
         return whitening_from_information(np.linalg.inv(S))
     # chordal: isotropic precisions from the mean variances (eq. 2 chordal form)
     tau = 3.0 / np.trace(S[:, :3, :3], axis1=1, axis2=2)
     kappa = 0.5 * 3.0 / np.trace(S[:, 3:, 3:], axis1=1, axis2=2)
     from dran_edge.solver.factors import isotropic_whitening
 
-    return isotropic_whitening(kappa, tau, "chordal", 3)
+    return isotropic_whitening(kappa, tau, Residual.CHORDAL, 3)

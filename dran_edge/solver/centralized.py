@@ -17,6 +17,7 @@ from dran_edge import geometry as geo
 from dran_edge.solver.chordal import chordal_initialization
 from dran_edge.errors import InputError
 from dran_edge.solver.graph import PoseGraph, kinds_array
+from dran_edge.solver.choices import Hessian
 from dran_edge.solver.lm import LMParams, LMResult, solve
 from dran_edge.solver.objective import (
     WEIGHTS,
@@ -34,7 +35,7 @@ INITS = ("chordal", "file", "odometry")
 
 def gauge_fixed(g: G2oGraph) -> np.ndarray:
     """(n,) bool: the FIX vertices, or the first vertex when the file fixes none."""
-    fixed = g.fixed.copy()
+    fixed: np.ndarray = g.fixed.copy()
     if not fixed.any():
         fixed[0] = True
     return fixed
@@ -51,7 +52,7 @@ def odometry_initialization(g: G2oGraph, anchor: int, T_anchor: np.ndarray) -> n
     # Prefer consecutive-id edges (odometry) by giving the tree search only those first.
     consecutive = np.abs(g.vertex_ids[j] - g.vertex_ids[i]) == 1
     order_edges = np.concatenate([np.flatnonzero(consecutive), np.flatnonzero(~consecutive)])
-    T = np.broadcast_to(np.eye(g.dim + 1), (n, g.dim + 1, g.dim + 1)).copy()
+    T: np.ndarray = np.broadcast_to(np.eye(g.dim + 1), (n, g.dim + 1, g.dim + 1)).copy()
     done = np.zeros(n, dtype=bool)
     T[anchor], done[anchor] = T_anchor, True
     for subset in (order_edges[: int(consecutive.sum())], order_edges):
@@ -93,7 +94,8 @@ def initial_poses(g: G2oGraph, init: str) -> np.ndarray:
                 f"--init file needs a VERTEX line for every vertex; {missing.size} have none "
                 f"(e.g. id {int(missing[0])}); use --init chordal or odometry"
             )
-        return g.poses.copy()
+        poses: np.ndarray = g.poses.copy()
+        return poses
     if init == "odometry":
         T = odometry_initialization(g, anchor, T_anchor)
     elif init == "chordal":
@@ -147,7 +149,7 @@ def solve_g2o(
     """Initialise and optimise ``g``; objectives in the SE-Sync convention (see objective.py).
     ``params`` default: exact Hessian (Newton on the chordal cost), cost_tol 1e-8."""
     if params is None:
-        params = LMParams(hessian="exact", cost_tol=1e-8)
+        params = LMParams(hessian=Hessian.EXACT, cost_tol=1e-8)
     kappa, tau = sesync_weights(g.dim, g.information)
 
     def F(T: np.ndarray) -> float:

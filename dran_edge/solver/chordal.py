@@ -28,7 +28,8 @@ def _solve_spd(L: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
         diag_pivot_thresh=0.0,
         options={"SymmetricMode": True},
     )
-    return lu.solve(rhs)
+    x: np.ndarray = lu.solve(rhs)
+    return x
 
 
 def _check_connected(n: int, edges: np.ndarray) -> None:

@@ -28,11 +28,13 @@ paper eq. 6) are added from outside by implementing it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from dran_edge import geometry as geo
+from dran_edge.config import Residual, RobustKernel
 
 # ----------------------------------------------------------------------------- kernels
 
@@ -79,11 +81,11 @@ Kernel = Huber | Cauchy
 
 def make_kernel(name: str, width: float) -> Kernel | None:
     """The kernel a config names ('none', 'huber', 'cauchy'), of width ``width``."""
-    if name == "none":
+    if name == RobustKernel.NONE:
         return None
-    if name == "huber":
+    if name == RobustKernel.HUBER:
         return Huber(width)
-    if name == "cauchy":
+    if name == RobustKernel.CAUCHY:
         return Cauchy(width)
     raise ValueError(f"unknown robust kernel {name!r} (none, huber or cauchy)")
 
@@ -102,12 +104,12 @@ class Factor(Protocol):
 
     @property
     def variables(self) -> np.ndarray:
-        """(m, k) int variable indices of the k ends of each factor."""
+        """(m, k) int graph indices of each factor's variables."""
         ...
 
     @property
     def kernel(self) -> Kernel | None:
-        """The robust kernel, or None for least squares."""
+        """The robust kernel on the squared whitened norms, None for least squares."""
         ...
 
     def linearize(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,8 +205,9 @@ def _tangent_generators(d: int) -> np.ndarray:
 def _sym_generator_products(d: int) -> np.ndarray:
     """½(E_a E_b + E_b E_a): the second derivative ∂²Exp(ξ)/∂ξ_a∂ξ_b at ξ = 0."""
     E = _tangent_generators(d)
-    P = np.einsum("aij,bjk->abik", E, E)
-    return 0.5 * (P + np.swapaxes(P, 0, 1))
+    P: np.ndarray = np.einsum("aij,bjk->abik", E, E)
+    sym: np.ndarray = 0.5 * (P + np.swapaxes(P, 0, 1))
+    return sym
 
 
 def chordal_second_order(
@@ -230,17 +233,19 @@ def chordal_second_order(
     return np.einsum("...ij,abij->...ab", Mp, G2), np.einsum("...ij,abij->...ab", Mq, G2)
 
 
-_RESIDUALS = {
-    "geodesic": (geodesic_residual, geodesic_jacobians),
-    "chordal": (chordal_residual, chordal_jacobians),
+_RESIDUALS: dict[
+    str, tuple[Callable[..., np.ndarray], Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]]
+] = {
+    Residual.GEODESIC: (geodesic_residual, geodesic_jacobians),
+    Residual.CHORDAL: (chordal_residual, chordal_jacobians),
 }
 
 
 def residual_dim(residual: str, dim: int) -> int:
     """Length of one residual: geodesic 6/3, chordal 12/6 for SE(3)/SE(2)."""
-    if residual == "geodesic":
+    if residual == Residual.GEODESIC:
         return 6 if dim == 3 else 3
-    if residual == "chordal":
+    if residual == Residual.CHORDAL:
         return dim * dim + dim
     raise ValueError(f"residual must be 'geodesic' or 'chordal', got {residual!r}")
 
@@ -252,7 +257,8 @@ def whitening_from_information(information: np.ndarray) -> np.ndarray:
     """W with WᵀW = Ω for each ``(..., r, r)`` information (symmetric eigen-square-root, robust to
     near-singular Ω, where a Cholesky factor may fail)."""
     lam, V = np.linalg.eigh(np.asarray(information, dtype=np.float64))
-    return np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(V, -1, -2)
+    W: np.ndarray = np.sqrt(np.maximum(lam, 0.0))[..., :, None] * np.swapaxes(V, -1, -2)
+    return W
 
 
 def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: int) -> np.ndarray:
@@ -264,12 +270,12 @@ def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: 
     kappa = np.asarray(kappa, dtype=np.float64)
     tau = np.asarray(tau, dtype=np.float64)
     nrot = 3 if dim == 3 else 1
-    if residual == "chordal":
+    if residual == Residual.CHORDAL:
         parts = [
             np.repeat(np.sqrt(kappa)[:, None], dim * dim, 1),
             np.repeat(np.sqrt(tau)[:, None], dim, 1),
         ]
-    elif residual == "geodesic":
+    elif residual == Residual.GEODESIC:
         parts = [
             np.repeat(np.sqrt(tau)[:, None], dim, 1),
             np.repeat(np.sqrt(2 * kappa)[:, None], nrot, 1),
@@ -281,11 +287,14 @@ def isotropic_whitening(kappa: np.ndarray, tau: np.ndarray, residual: str, dim: 
 
 def _whiten(W: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Apply a diagonal ``(m, r)`` or full ``(m, r, r)`` whitening to ``(m, r)`` or ``(m, r, c)``."""
+    out: np.ndarray
     if W.ndim == 2:
-        return W * x if x.ndim == 2 else W[:, :, None] * x
-    if x.ndim == 2:
-        return np.einsum("mij,mj->mi", W, x)
-    return W @ x
+        out = W * x if x.ndim == 2 else W[:, :, None] * x
+    elif x.ndim == 2:
+        out = np.einsum("mij,mj->mi", W, x)
+    else:
+        out = W @ x
+    return out
 
 
 # ----------------------------------------------------------------------------- factor blocks
@@ -305,7 +314,7 @@ class BetweenFactors:
     """(m, D, D) ``T̃_p_q``."""
     whitening: np.ndarray
     """(m, r) diagonal or (m, r, r) full W with WᵀW = Ω in the residual's coordinates."""
-    residual: str = "geodesic"
+    residual: str = Residual.GEODESIC
     """'geodesic' or 'chordal' (paper eq. 2)."""
     kernel: Kernel | None = None
     label: str = "between"
@@ -326,7 +335,7 @@ class BetweenFactors:
     def second_order(self, poses: np.ndarray) -> np.ndarray | None:
         """(m, 2·dof, 2·dof) Hessian terms Gauss–Newton drops (chordal residual only, where
         they are cheap and matter: its residuals stay large at the optimum), else None."""
-        if self.residual != "chordal":
+        if self.residual != Residual.CHORDAL:
             return None
         p, q = self.variables[:, 0], self.variables[:, 1]
         T_p, T_q = poses[p], poses[q]
@@ -354,7 +363,7 @@ class PriorFactors:
     measurements: np.ndarray
     """(m, D, D) the prior pose T̄."""
     whitening: np.ndarray
-    residual: str = "geodesic"
+    residual: str = Residual.GEODESIC
     kernel: Kernel | None = None
     label: str = "prior"
 
@@ -374,7 +383,7 @@ class PriorFactors:
 
     def second_order(self, poses: np.ndarray) -> np.ndarray | None:
         """(m, dof, dof) Hessian terms Gauss–Newton drops (chordal residual only), else None."""
-        if self.residual != "chordal":
+        if self.residual != Residual.CHORDAL:
             return None
         T_q = poses[self.variables[:, 0]]
         I = self._identity()

@@ -19,16 +19,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from dran_edge.config import Residual
 from dran_edge.solver.factors import BetweenFactors, isotropic_whitening, whitening_from_information
 
 WEIGHTS = ("sesync", "information")
-RESIDUALS = ("chordal", "geodesic")
+RESIDUALS = (Residual.CHORDAL, Residual.GEODESIC)
 
 
 def _trace_inverse(blocks: np.ndarray) -> np.ndarray:
     """tr(Ω⁻¹) of each (m, k, k) block; +inf for a singular block (no finite inverse)."""
     try:
-        return np.trace(np.linalg.inv(blocks), axis1=1, axis2=2)
+        trace: np.ndarray = np.trace(np.linalg.inv(blocks), axis1=1, axis2=2)
+        return trace
     except np.linalg.LinAlgError:  # one singular block fails the batch: edge by edge
         out = np.empty(blocks.shape[0])
         for k, block in enumerate(blocks):
@@ -126,12 +128,12 @@ def edge_factors(
     residual's 12 (or 6) entries have no natural image of a 6×6 (or 3×3) information matrix.
     """
     if residual not in RESIDUALS:
-        raise ValueError(f"residual must be one of {RESIDUALS}, got {residual!r}")
+        raise ValueError(f"residual must be one of {', '.join(RESIDUALS)}, got {residual!r}")
     if weights == "sesync":
         kappa, tau = sesync_weights(dim, information)
         W = isotropic_whitening(kappa, tau, residual, dim)
     elif weights == "information":
-        if residual != "geodesic":
+        if residual != Residual.GEODESIC:
             raise ValueError(
                 "weights 'information' needs the geodesic residual; the chordal residual is "
                 "weighted isotropically (use weights 'sesync')"

@@ -63,20 +63,24 @@ def _tril_flat(m: int) -> np.ndarray:
     """C-order flat positions of the lower triangle (i ≥ j, diagonal included, row by row) of
     an m×m matrix."""
     i, j = np.tril_indices(m)
-    return i * m + j
+    flat: np.ndarray = i * m + j
+    return flat
 
 
-def _front_pos(r: np.ndarray, c: np.ndarray, k, f) -> np.ndarray:
+def _front_pos(
+    r: np.ndarray, c: np.ndarray, k: int | np.ndarray, f: int | np.ndarray
+) -> np.ndarray:
     """Flat position of entry (r, c), r ≥ c, of an f×f front with k pivot columns, stored as
     three C-order segments ``[F11 (k×k) | F21 (m×k) | F22 (m×m)]`` (m = f − k). Each segment
     read as a column-major array is the transpose of its block, whose upper triangle (lower
     triangle of the block) LAPACK/BLAS factorise and update in place, without copies."""
     m = f - k
-    return np.where(
+    pos: np.ndarray = np.where(
         r < k,
         r * k + c,
         np.where(c < k, k * k + (r - k) * k + c, k * k + m * k + (r - k) * m + (c - k)),
     )
+    return pos
 
 
 def _update_positions(loc: np.ndarray, k: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -89,7 +93,8 @@ def _update_positions(loc: np.ndarray, k: np.ndarray, f: np.ndarray) -> np.ndarr
         (loc < k)[:, None, :], (loc * k)[:, :, None], (loc * (f - k) + (k * k - k))[:, :, None]
     )
     full += loc[:, None, :]
-    return full.reshape(n, m * m)[:, _tril_flat(m)]
+    out: np.ndarray = full.reshape(n, m * m)[:, _tril_flat(m)]
+    return out
 
 
 def _block_order(nb: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -147,7 +152,9 @@ class _Supernode:
     """Flat positions of the pivot block's diagonal in the front (for the shift μ)."""
 
 
-def _symbolic(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
+def _symbolic(
+    nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r"""Symbolic Cholesky of the block graph eliminated in ``order`` (Davis, ch. 4):
     struct[k] = adj_below(k) ∪ ⋃_{children c} struct[c] \ {k}, parent[k] = min struct[k].
     Returns (rows below the diagonal of each column, ascending and concatenated; column
@@ -180,7 +187,9 @@ def _symbolic(nb: int, rows: np.ndarray, cols: np.ndarray, order: np.ndarray):
     return flat, ptr, parent
 
 
-def _block_pattern(indptr: np.ndarray, indices: np.ndarray, nb: int, block: int):
+def _block_pattern(
+    indptr: np.ndarray, indices: np.ndarray, nb: int, block: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The block pattern, from one representative (top-left) entry per stored block: the entries
     of each block column's first scalar column whose row starts a block. Returns (their positions
     in A's CSC data, block row, block column)."""
@@ -270,9 +279,9 @@ class _Fronts:
 
     bounds: np.ndarray
     owner: np.ndarray
-    rows_b: list
+    rows_b: list[np.ndarray]
     parent: np.ndarray
-    children: list
+    children: list[list[int]]
     sizes: np.ndarray
     ncols: np.ndarray
     is_leaf: np.ndarray
@@ -302,7 +311,17 @@ def _fronts(bounds: np.ndarray, s_rows: np.ndarray, s_ptr: np.ndarray, nb: int,
     )
 
 
-def _assembly(fr: _Fronts, indptr, indices, rep_pos, brow, bcol, pos, nb: int, block: int):
+def _assembly(
+    fr: _Fronts,
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    rep_pos: np.ndarray,
+    brow: np.ndarray,
+    bcol: np.ndarray,
+    pos: np.ndarray,
+    nb: int,
+    block: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where each stored entry of A goes: the front of the supernode owning its column, when its
     row is at or below that supernode's first column (the rest is the transpose). Returns
     (source positions in A's data, flat destinations in the fronts, per-supernode pointers)."""
@@ -331,7 +350,9 @@ def _assembly(fr: _Fronts, indptr, indices, rep_pos, brow, bcol, pos, nb: int, b
     return src.ravel(), a_dst, sn_ptr
 
 
-def _parent_positions(fr: _Fronts, nb: int, block: int):
+def _parent_positions(
+    fr: _Fronts, nb: int, block: int
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Where each supernode's rows sit in its parent's front: (scalar rows per supernode, the
     parent-front positions of each update matrix's lower triangle), vectorised over the
     supernodes with the same number of rows."""
@@ -362,7 +383,7 @@ def _parent_positions(fr: _Fronts, nb: int, block: int):
     return rows_split, rel_of
 
 
-def _leaf_groups(supernodes: list, children: list) -> list:
+def _leaf_groups(supernodes: list[_Supernode], children: list[list[int]]) -> list[_LeafGroup]:
     """Leaves (most supernodes of a pose graph: single poses of odometry chains) depend on
     nothing; those of one shape are factorised together as a batch, one numpy call each."""
     shapes: dict[tuple[int, int], list[int]] = {}
@@ -453,8 +474,8 @@ class SymbolicCholesky:
         """Factorise the matrix with the analysed pattern and values ``data`` (CSC order), plus
         ``shift`` on the diagonal. Raises NotPositiveDefinite."""
         data = np.asarray(data, dtype=np.float64)
-        pending: list[list] = [[] for _ in self._supernodes]
-        leaf_factors = []
+        pending: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in self._supernodes]
+        leaf_factors: list[tuple[np.ndarray, np.ndarray | None]] = []
         for grp in self._leaf_groups:
             k, m = grp.k, grp.m
             f = k + m
@@ -467,14 +488,15 @@ class SymbolicCholesky:
                 L11 = np.linalg.cholesky(F[:, :k, :k])
             except np.linalg.LinAlgError:
                 raise NotPositiveDefinite(f"a pivot block of {N} leaf supernodes") from None
-            L21T = np.linalg.solve(L11, np.swapaxes(F[:, k:, :k], 1, 2)) if m else None
+            L21T: np.ndarray | None = None
             if m:
+                L21T = np.linalg.solve(L11, np.swapaxes(F[:, k:, :k], 1, 2))
                 U = (F[:, k:, k:] - np.swapaxes(L21T, 1, 2) @ L21T).reshape(N, m * m)
                 U = U[:, _tril_flat(m)]
                 for i, p in enumerate(grp.parents):
                     pending[p].append((grp.rels[i], U[i]))
             leaf_factors.append((L11, L21T))
-        factors = []
+        factors: list[tuple[np.ndarray, np.ndarray]] = []
         for s in self._internal:
             sn = self._supernodes[s]
             k = sn.c1 - sn.c0
@@ -525,14 +547,19 @@ class _LeafGroup:
     dst: np.ndarray
     """Flat positions in the stacked (N, f, f) fronts."""
     diag: np.ndarray
-    parents: list
-    rels: list
+    parents: list[int]
+    rels: list[np.ndarray]
 
 
 class NumericCholesky:
     """L Lᵀ = P (A + μI) Pᵀ; :meth:`solve` handles (n,) or (n, r) right-hand sides."""
 
-    def __init__(self, symbolic: SymbolicCholesky, leaf_factors: list, factors: list):
+    def __init__(
+        self,
+        symbolic: SymbolicCholesky,
+        leaf_factors: list[tuple[np.ndarray, np.ndarray | None]],
+        factors: list[tuple[np.ndarray, np.ndarray]],
+    ):
         self._sym = symbolic
         self._leaf_factors = leaf_factors
         self._factors = factors
@@ -553,6 +580,7 @@ class NumericCholesky:
             ys = np.linalg.solve(L11, y[grp.cols])
             y[grp.cols] = ys
             if grp.m:
+                assert L21T is not None
                 upd = (np.swapaxes(L21T, 1, 2) @ ys).reshape(-1, r)
                 np.subtract.at(y, grp.rows.ravel(), upd)
         for sn, (R, X) in zip(sns, self._factors):  # R = L11ᵀ, X = L21ᵀ
@@ -576,6 +604,7 @@ class NumericCholesky:
         for grp, (L11, L21T) in zip(sym._leaf_groups, self._leaf_factors):
             xs = y[grp.cols]
             if grp.m:
+                assert L21T is not None
                 xs = xs - L21T @ y[grp.rows]
             y[grp.cols] = np.linalg.solve(np.swapaxes(L11, 1, 2), xs)
         out = np.empty_like(y)

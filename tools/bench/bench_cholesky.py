@@ -14,7 +14,7 @@ the relative residual ‖(A+μI)x − b‖∞/‖b‖∞ checks both.
 ``git show REV:dran_edge/solver/sparse_cholesky.py > /tmp/base.py``) adds an A/B table on the SE(3)
 graphs: analysis, factorisation and solve of both versions on the same matrix, and whole LM solves
 (lm.solve with linear_solver='cholesky': chordal residual with the exact Hessian to 1e-8 as the
-CLI, and geodesic Gauss–Newton to 1e-5) with each version swapped into dran_edge.solver.lm, interleaved,
+CLI, and geodesic Gauss–Newton to 1e-5) with each version swapped into dran_edge.solver.schur, interleaved,
 best of --repeat. These times are CPU seconds of this process (time.process_time), which a
 shared, oversubscribed machine disturbs far less than wall time; F of both results is compared.
 """
@@ -34,9 +34,9 @@ import scipy.sparse as sp
 
 import dran_edge.solver.sparse_cholesky as ours
 from dran_edge.formats.g2o import read_g2o
-from dran_edge.solver import lm
+from dran_edge.solver import lm, schur
 from dran_edge.solver.centralized import initial_poses, pose_graph
-from dran_edge.solver.lm import LMParams, _factorize, build_plan, linearize
+from dran_edge.solver.lm import LMParams, build_plan, linearize, superlu_factorize
 from dran_edge.solver.objective import sesync_objective, sesync_weights
 from dran_edge.solver.sparse_cholesky import SymbolicCholesky
 
@@ -61,7 +61,7 @@ def _one(name: str, path: Path, repeat: int) -> str:
     mu = 1e-6 * float(A.diagonal().max())
     A_mu = sp.csc_matrix(A + mu * sp.identity(plan.n_u, format="csc"))
     b = np.random.default_rng(0).normal(size=plan.n_u)
-    t_lu, lu = _best(lambda: _factorize(A_mu), repeat)
+    t_lu, lu = _best(lambda: superlu_factorize(A_mu), repeat)
     t_lus, x1 = _best(lambda: lu.solve(b), repeat)
     t_an, sym = _best(
         lambda: SymbolicCholesky(plan.A_indptr, plan.A_indices, plan.n_u, plan.dof),
@@ -117,11 +117,11 @@ def _ab(name: str, path: Path, base, repeat: int) -> list[str]:
     kappa, tau = sesync_weights(g.dim, g.information)
     runs = {}
     cases = (("chordal", 1e-8, "exact"), ("geodesic", 1e-5, "gauss_newton"))
-    saved = lm.SymbolicCholesky, lm.NotPositiveDefinite
+    saved = schur.SymbolicCholesky, schur.NotPositiveDefinite
     try:
         for _ in range(repeat):
             for label, mod in (("base", base), ("ours", ours)):
-                lm.SymbolicCholesky, lm.NotPositiveDefinite = (
+                schur.SymbolicCholesky, schur.NotPositiveDefinite = (
                     mod.SymbolicCholesky,
                     mod.NotPositiveDefinite,
                 )
@@ -135,7 +135,7 @@ def _ab(name: str, path: Path, base, repeat: int) -> list[str]:
                     prev = runs.get((label, residual), (float("inf"), F))
                     runs[(label, residual)] = (min(prev[0], dt), F)
     finally:
-        lm.SymbolicCholesky, lm.NotPositiveDefinite = saved
+        schur.SymbolicCholesky, schur.NotPositiveDefinite = saved
     out = []
     (ba, bc, bs, _, bn), (oa, oc, os_, _, on) = row["base"], row["ours"]
     out.append(

@@ -8,6 +8,7 @@ import json
 import os
 
 from dran_edge.cli.progress import ProgressBar, note
+from dran_edge.config import Residual
 
 # One BLAS thread: the local steps are small dense products, and OpenBLAS's thread pool on a
 # busy 2-core machine made them ~75x slower (measured, docs/notes/benchmarks-history.md).
@@ -54,7 +55,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                         "remaining decrease is below 1e-3 of its cost and its neighbours agree, "
                         "docs/notes/stopping-rule.md) or steps (the paper's step-norm test with "
                         "the relative-decrease stop: what tools/bench/bench_table1.py runs)")
-    g.add_argument("--residual", choices=("chordal", "geodesic"), default="chordal",
+    g.add_argument("--residual", choices=sorted(m.value for m in Residual), default="chordal",
                    help="residual of the local problems (chordal optimises the reported F exactly)")
     g.add_argument("--no-reference", action="store_true",
                    help="skip the centralized solve (F*): F/F* is then reported as n/a "

@@ -23,7 +23,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         prog=prog,
         description="Load FILE as 'dran-edge run' does: the file itself (strict: unknown keys, "
                     "types, ranges) and what it names: the key file and its mode, the fleet's "
-                    "public keys (comms.auth ed25519), the camera calibration, the tag map, a "
+                    "public keys (comms.auth ed25519 or pairwise), the camera calibration, the tag map, a "
                     "recording, a writable state directory. Prints every problem (file, line, "
                     "key path, reason) and exits 2, or a one-line summary and exits 0. The "
                     "camera and the radio are not opened.",
@@ -64,7 +64,7 @@ def _comms_errors(cfg) -> list[DranError]:
                      - set(public))
     if missing:
         errors.append(ConfigError(
-            f"comms.auth ed25519: no public key for robot(s) {missing} (add them to "
+            f"comms.auth {cfg.comms.auth}: no public key for robot(s) {missing} (add them to "
             "comms.public_keys_file, or neighbours[].public_keys)", path=where))
     if secret is not None:
         own = public.get(cfg.robot.id)

@@ -28,7 +28,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
                     "and addresses; every neighbour entry names a robot of DIR with its name, "
                     "its address matching that robot's port, and the neighbour lists it back; "
                     "one key policy (comms.auth); with hmac the same fleet key where the key "
-                    "files are readable; with ed25519 each robot's public key (from its key "
+                    "files are readable; with ed25519 or pairwise each robot's public key (from its key "
                     "file's .pub) in every neighbour's keys. Also the same agent.dim and "
                     "comms.period_s. Prints every problem and exits 2, or a summary and 0.",
     )

@@ -1,8 +1,9 @@
 """``dran-edge fleet-key``: create and check the keys that authenticate neighbour datagrams.
 
-Two key policies (``comms.auth``; docs/wire-format.md, "Authentication"): ``hmac`` (one fleet
-key: ``new``, ``check``) and ``ed25519`` (one key pair per robot: ``pair`` on each robot,
-``export`` the public halves into the fleet's public-key file, ``check``).
+Key policies (``comms.auth``; docs/wire-format.md, "Authentication"): ``hmac`` (one fleet
+key: ``new``, ``check``) and ``ed25519`` / ``pairwise`` (one key pair per robot, the same files
+for both: ``pair`` on each robot, ``export`` the public halves into the fleet's public-key file,
+``check``).
 """
 
 from __future__ import annotations
@@ -19,11 +20,12 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         prog=prog,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description=(
-            "Keys for the two key policies of comms.auth (docs/wire-format.md).\n\n"
+            "Keys for the key policies of comms.auth (docs/wire-format.md).\n\n"
             "hmac (one secret per fleet; any robot holding it can sign as any other):\n"
             "  new PATH           write a random 32-byte fleet key (mode 0600); copy it to every\n"
             "                     robot (keep the mode)\n\n"
-            "ed25519 (one key pair per robot; a robot can sign only as itself):\n"
+            "ed25519 and pairwise (one key pair per robot; a robot can send only as itself;\n"
+            "pairwise agrees an HMAC key per pair of robots from the same key pairs):\n"
             "  pair PATH --robot-id N\n"
             "                     write robot N's secret key to PATH (mode 0600; it never leaves\n"
             "                     the robot) and its public key to PATH.pub\n"

@@ -7,6 +7,9 @@ import json
 import os
 import time
 
+from dran_edge.config import Residual
+from dran_edge.solver.choices import Hessian, LinearSolver
+
 HELP = "optimise a g2o pose graph (centralised Schur-LM)"
 
 
@@ -35,7 +38,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--residual",
-        choices=("chordal", "geodesic"),
+        choices=sorted(m.value for m in Residual),
         default="chordal",
         help="edge residual (paper eq. 2); chordal with sesync weights minimises "
         "F exactly (default)",
@@ -63,14 +66,14 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--hessian",
-        choices=("exact", "gauss_newton"),
+        choices=sorted(m.value for m in Hessian),
         default="exact",
         help="LM model: exact (adds the chordal residual's second-order terms, "
         "Gauss-Newton where that is indefinite; default) or gauss_newton (J'J)",
     )
     parser.add_argument(
         "--linear-solver",
-        choices=("auto", "cholesky", "superlu"),
+        choices=sorted(m.value for m in LinearSolver),
         default="auto",
         help="sparse factorisation of the damped normal equations: supernodal "
         "cholesky, superlu, or auto (cholesky for large 3D graphs; default)",
