@@ -358,16 +358,16 @@ class Agent:
         out = damped_step(AGENT_DAMPING, DampingState(self.mu), solve_model, evaluate, cost, g)
         self.mu = out.state.mu
         if out.solve_failures:
-            self.counters["linear_fail"] += out.solve_failures
+            self.counters.linear_fail += out.solve_failures
         if out.accepted:
             assert out.u is not None and out.v is not None and out.candidate is not None
-            self.counters["accepted"] += 1
+            self.counters.accepted += 1
             self.last_decrease = cost - out.cost
             self.last_cost = out.cost
             self._store(plan, out.candidate)
             return float(np.linalg.norm(c.gamma * out.u)), float(np.linalg.norm(c.alpha * out.v))
         self.last_decrease = math.inf  # no step taken: not evidence of convergence
-        self.counters["rejected"] += 1
+        self.counters.rejected += 1
         self.last_cost = cost
         return 0.0, 0.0
 

@@ -61,14 +61,3 @@ class AgentCounters:
         for f in dataclasses.fields(self):
             if f.name in data:
                 setattr(self, f.name, int(data[f.name]))
-
-    # Item access by field name, for code written against the former ``dict`` of counters
-    # (``counters["accepted"] += 1`` in Agent._local_step); new code uses the attributes.
-    def __getitem__(self, name: str) -> int:
-        value: int = getattr(self, name)
-        return value
-
-    def __setitem__(self, name: str, value: int) -> None:
-        if name not in self.__dataclass_fields__:
-            raise KeyError(name)
-        setattr(self, name, value)

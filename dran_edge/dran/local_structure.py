@@ -14,7 +14,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from dran_edge.config import AgentConfig
 from dran_edge.dran.association import BoolArray, NeighbourCopy, PairKey
@@ -22,7 +21,8 @@ from dran_edge.dran.consensus import ConsensusFactors, phi_dim
 from dran_edge.dran.problem import LocalProblem
 from dran_edge.solver.factors import Cauchy, make_kernel
 from dran_edge.solver.graph import PoseGraph, kinds_array
-from dran_edge.solver.lm import StructurePlan, build_plan, cholesky_factorizer
+from dran_edge.solver.plan import StructurePlan, build_plan
+from dran_edge.solver.schur import Factorize, cholesky_factorizer
 
 AnchorKey = tuple[int, int]
 """(owner robot, keyframe id) of a neighbour's separator held as an anchor."""
@@ -44,7 +44,7 @@ class LocalStructure:
     anchor_keys: tuple[AnchorKey, ...]
     pair_keys: tuple[PairKey, ...]  # (neighbour, object id) for each consensus factor
     #: supernodal Cholesky of A + μI, analysed once for this structure
-    factorize: Callable[[sp.csc_matrix, float], object] | None
+    factorize: Factorize | None
 
     @property
     def object_slot(self) -> dict[int, int]:
