@@ -28,7 +28,7 @@ import numpy as np
 class InitStage(enum.IntEnum):
     ROTATION = 1
     TRANSLATION = 2
-    #: Warm-start frames (``dist_init.LinearStage.frame_update``): a robot's whole-segment
+    #: Warm-start frames (``linear_stage.LinearStage.frame_update``): a robot's whole-segment
     #: transform instead of its separators. ROTATION_FRAME: the d x d matrix G (X_v = X̂_v G);
     #: TRANSLATION_FRAME: a pose with identity rotation whose translation is the offset s
     #: (X_v = X̂_v + s). ``keyframe_id`` is 0.

@@ -6,10 +6,10 @@ import itertools
 import numpy as np
 import pytest
 
-from dran_edge.dran.agent import Agent
 from dran_edge.config import AgentConfig
+from dran_edge.dran.agent import Agent
+from dran_edge.dran.association import Provenance
 from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
-from dran_edge.solver.lm import evaluate_cost
 from dran_edge.messages import NeighbourMessage, ObjectEntry
 from dran_edge.experiments.objects import SimParams, make_scenario
 
@@ -27,17 +27,12 @@ def _agent(sc, r=0, neighbours=(1,)):
     return Agent(cfg, sc.problems[r], weights={q: 0.5 for q in neighbours})
 
 
-def _local_cost(agent):
-    s = agent._structure_for()
-    return evaluate_cost(s.graph, agent._poses(s))
-
-
 def test_local_cost_decreases_with_the_descent_step(scenario):
     a = _agent(scenario, neighbours=())
-    costs = [_local_cost(a)]
+    costs = [a.local_cost()]
     for k in range(4):
         a.handle(Tick(k))
-        costs.append(_local_cost(a))
+        costs.append(a.local_cost())
     assert costs[1] < costs[0]
     assert all(c1 <= c0 for c0, c1 in itertools.pairwise(costs))
 
@@ -57,8 +52,8 @@ def test_missing_duplicate_and_reordered_messages_are_tolerated(scenario):
     a.handle(_obj_msg(1, 5, oid, T_new))
     a.handle(_obj_msg(1, 5, oid, T_new))  # duplicate
     a.handle(_obj_msg(1, 3, oid, T_old))  # older, arrives late
-    assert np.allclose(a.nbr_obj[(1, oid)][0], T_new)
-    assert a.counters["stale_dropped"] == 1
+    assert np.allclose(a.objects.neighbour_copies[(1, oid)].T_world_object, T_new)
+    assert a.counters.stale_dropped == 1
     outs = a.handle(Tick(2))
     est = next(o for o in outs if isinstance(o, EstimateUpdate))
     assert np.all(np.isfinite(est.T_world_body)) and est.consensus_error > 0
@@ -71,7 +66,7 @@ def test_unknown_object_is_adopted_and_relayed_with_a_hop_count(scenario):
     T = np.eye(4)
     a.handle(_obj_msg(1, 1, 999, T))
     outs = a.handle(Tick(1))
-    assert 999 in a.y and a.hops[999] == 1
+    assert 999 in a.y and a.objects.provenance[999].hop == 1
     sent = [e for o in outs if isinstance(o, Outgoing) for e in o.message.objects if e.object_id == 999]
     assert sent and sent[0].hop_count == 1
 
@@ -118,17 +113,17 @@ def test_observation_contradicted_by_more_evidence_is_dropped(scenario):
     a.handle(_obj_msg(1, 1, oid, far, support=n_own))
     a.handle(_obj_msg(2, 1, oid, far, support=n_own))
     a.handle(Tick(1))
-    assert a.counters["obs_rejected"] == n_own > 0
-    assert not a.obs_ok[own].any()
+    assert a.counters.obs_rejected == n_own > 0
+    assert not a.objects.obs_ok[own].any()
     assert np.allclose(a.y[oid][:3, 3], far[:3, 3])  # restarted from the stronger hypothesis
-    assert (a.hops[oid], a.origin[oid], a.support[oid]) == (1, 1, n_own)  # now a relay
+    assert a.objects.provenance[oid] == Provenance(hop=1, origin=1, support=n_own)  # a relay
     # Once the copy is near that centre it is left to consensus: restarting it every round (as
     # before) kept pushing copies about and made the estimate slide (docs/dran.md).
     moved = a.y[oid].copy()
     moved[:3, 3] += 0.5 * a.config.association_gate_m / np.sqrt(3.0)
     a.y[oid] = moved.copy()
-    a._check_associations()
-    assert not a.obs_ok[own].any()
+    a.objects.check(a.x)
+    assert not a.objects.obs_ok[own].any()
     assert np.array_equal(a.y[oid], moved)
     b = _agent(scenario, neighbours=(1, 2))
     near = b.y[oid].copy()
@@ -136,7 +131,7 @@ def test_observation_contradicted_by_more_evidence_is_dropped(scenario):
     b.handle(_obj_msg(1, 1, oid, near, support=100))
     b.handle(_obj_msg(2, 1, oid, near, support=100))
     b.handle(Tick(1))
-    assert b.counters["obs_rejected"] == 0
+    assert b.counters.obs_rejected == 0
 
 
 @pytest.mark.parametrize("case", ["weaker", "one origin relayed twice", "own echo"])
@@ -152,8 +147,8 @@ def test_observations_survive_weaker_relayed_or_echoed_disagreement(scenario, ca
     a.handle(_obj_msg(1, 1, oid, far, **kw[0]))
     a.handle(_obj_msg(2, 1, oid, far, **kw[1]))
     a.handle(Tick(1))
-    assert a.counters["obs_rejected"] == 0 and a.obs_ok[own].all()
-    assert (a.hops[oid], a.origin[oid]) == (0, 0)
+    assert a.counters.obs_rejected == 0 and a.objects.obs_ok[own].all()
+    assert a.objects.provenance[oid] == Provenance(0, 0, n_own)
     assert np.linalg.norm(a.y[oid][:3, 3] - far[:3, 3]) > 10.0
 
 
@@ -173,15 +168,15 @@ def test_a_relay_whose_source_drops_its_evidence_becomes_a_bare_estimate(scenari
     T[:3, 3] = (3.0, 4.0, 1.0)
     a.handle(_obj_msg(1, 1, oid, T, support=3))
     out = a.handle(Tick(1))
-    assert (a.hops[oid], a.origin[oid], a.support[oid]) == (1, 1, 3)
+    assert a.objects.provenance[oid] == Provenance(hop=1, origin=1, support=3)
     assert [e.support for e in _sent_objects(out, oid)] == [3, 3]
     a.handle(_obj_msg(1, 2, oid, T, support=0))  # robot 1 no longer uses its views of it
     out = a.handle(Tick(2))
-    assert a.support[oid] == 0
+    assert a.objects.provenance[oid].support == 0
     assert [e.support for e in _sent_objects(out, oid)] == [0, 0]
     b = _agent(scenario, neighbours=(1,))
     b.handle(_obj_msg(1, 1, oid, T, origin=7, hop=1, support=0))
-    assert oid not in b._votes()
+    assert oid not in b.objects.votes()
 
 
 def test_colour_schedule_steps_only_on_the_robots_turn(scenario):
@@ -193,7 +188,7 @@ def test_colour_schedule_steps_only_on_the_robots_turn(scenario):
     assert isinstance(outs[-1], EstimateUpdate) and np.array_equal(agent.x, x0)
     outs = agent.handle(Tick(1_000_000_000))  # round 2: its turn
     assert any(isinstance(o, Outgoing) for o in outs) and not np.array_equal(agent.x, x0)
-    assert agent.counters["idle_rounds"] == 1 and agent.counters["accepted"] == 1
+    assert agent.counters.idle_rounds == 1 and agent.counters.accepted == 1
     with pytest.raises(Exception, match="colour"):
         dataclasses.replace(cfg, colour=2)
 
@@ -205,9 +200,9 @@ def test_over_relaxation_never_raises_the_local_cost(scenario):
     agent = Agent(cfg, scenario.problems[0], weights={1: 0.5})
     before = []
     for k in range(1, 8):
-        before.append(_local_cost(agent))
+        before.append(agent.local_cost())
         agent.handle(Tick(k * 500_000_000))
-        assert _local_cost(agent) <= before[-1] * (1 + 1e-12)
+        assert agent.local_cost() <= before[-1] * (1 + 1e-12)
     plain = Agent(dataclasses.replace(cfg, sor_omega=1.0), scenario.problems[0], weights={1: 0.5})
     plain.handle(Tick(1))
     plain.handle(Tick(2))
@@ -226,16 +221,16 @@ def test_lone_wrong_tag_id_waits_for_a_neighbour_to_corroborate_it(scenario):
     prob = dataclasses.replace(p, obs_object=obs_object)
     cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
     a = Agent(cfg, prob, weights={1: 0.5})
-    assert a.obs_pending[k] and not a.obs_ok[k] and new_id not in a.y
-    assert a.counters["obs_pending"] >= 1
+    assert a.objects.obs_pending[k] and not a.objects.obs_ok[k] and new_id not in a.y
+    assert a.counters.obs_pending >= 1
     a.handle(Tick(1))
-    assert not a.obs_ok[k] and new_id not in a.y
+    assert not a.objects.obs_ok[k] and new_id not in a.y
     T_pred = a.x[p.obs_own[k]] @ p.obs_T[k]
     a.handle(_obj_msg(1, 1, new_id, T_pred))  # a neighbour's copy where this one predicts it
     a.handle(Tick(2))
-    assert a.obs_ok[k] and new_id in a.y and a.counters["obs_corroborated"] == 1
+    assert a.objects.obs_ok[k] and new_id in a.y and a.counters.obs_corroborated == 1
     plain = Agent(dataclasses.replace(cfg, object_min_views=1), prob, weights={1: 0.5})
-    assert plain.obs_ok[k] and new_id in plain.y  # the default keeps it
+    assert plain.objects.obs_ok[k] and new_id in plain.y  # the default keeps it
 
 
 def test_a_lone_view_waits_only_where_another_object_was_seen(scenario):
@@ -259,13 +254,13 @@ def test_a_lone_view_waits_only_where_another_object_was_seen(scenario):
     pos = (a.x[prob.obs_own] @ prob.obs_T)[:, :3, 3]
     others = np.linalg.norm(pos[:alone] - pos[alone], axis=1)
     assert others.min() > 2 * cfg.object_exclusion_m  # nothing else was seen near it
-    assert a.obs_pending[twin] and not a.obs_ok[twin] and twin_id not in a.y
-    assert a.obs_ok[alone] and not a.obs_pending[alone] and alone_id in a.y
-    assert a.counters["obs_exclusion_clear"] == 1
+    assert a.objects.obs_pending[twin] and not a.objects.obs_ok[twin] and twin_id not in a.y
+    assert a.objects.obs_ok[alone] and not a.objects.obs_pending[alone] and alone_id in a.y
+    assert a.counters.obs_exclusion_clear == 1
     a.handle(Tick(1))
-    assert a.obs_ok[alone] and not a.obs_ok[twin]
+    assert a.objects.obs_ok[alone] and not a.objects.obs_ok[twin]
     off = Agent(dataclasses.replace(cfg, object_exclusion_m=0.0), prob, weights={1: 0.5})
-    assert off.obs_pending[[twin, alone]].all() and not off.obs_ok[[twin, alone]].any()
+    assert off.objects.obs_pending[[twin, alone]].all() and not off.objects.obs_ok[[twin, alone]].any()
 
 
 def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
@@ -293,18 +288,18 @@ def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
     misread = np.arange(p.obs_object.size, p.obs_object.size + 2)
     pos = (a.x[a.problem.obs_own] @ a.problem.obs_T)[:, :3, 3]
     assert np.linalg.norm(pos[misread[0]] - pos[misread[1]]) <= cfg.object_gate_m  # not lone
-    assert a.obs_pending[misread].all() and not a.obs_ok[misread].any() and new_id not in a.y
-    assert a.counters["obs_shadowed"] == 2
-    assert a.obs_ok[views].all() and o in a.y
+    assert a.objects.obs_pending[misread].all() and not a.objects.obs_ok[misread].any() and new_id not in a.y
+    assert a.counters.obs_shadowed == 2
+    assert a.objects.obs_ok[views].all() and o in a.y
     a.handle(Tick(1))
-    assert not a.obs_ok[misread].any()
+    assert not a.objects.obs_ok[misread].any()
     # the same two misreads without the exclusion: used at once, a phantom copy
     off = Agent(dataclasses.replace(cfg, object_exclusion_m=0.0), with_copies(twice), weights={1: 0.5})
-    assert off.obs_ok[misread].all() and new_id in off.y
+    assert off.objects.obs_ok[misread].all() and new_id in off.y
     # every view read twice: a tie, both labels wait
     both = Agent(cfg, with_copies(views), weights={1: 0.5})
     copies = np.arange(p.obs_object.size, p.obs_object.size + views.size)
-    assert both.obs_pending[views].all() and both.obs_pending[copies].all()
+    assert both.objects.obs_pending[views].all() and both.objects.obs_pending[copies].all()
     assert o not in both.y and new_id not in both.y
 
 
@@ -327,7 +322,7 @@ def test_a_held_back_view_past_the_gate_is_corroborated_by_the_ratio_test(scenar
 
     def run(config, b_at):
         a = Agent(config, prob, weights={1: 0.5})
-        assert a.obs_pending[[va, vb]].all() and not a.obs_ok[[va, vb]].any()
+        assert a.objects.obs_pending[[va, vb]].all() and not a.objects.obs_ok[[va, vb]].any()
         T_pred = a.x[0] @ T_far
         T_a = T_pred.copy()
         T_a[0, 3] += 3.0  # the neighbour's copy of a_id: past the 2 m gate, inside the 8 m one
@@ -341,11 +336,11 @@ def test_a_held_back_view_past_the_gate_is_corroborated_by_the_ratio_test(scenar
         return a
 
     a = run(cfg, b_at=-30.0)  # b_id's copy is where b_id really is, 30 m away
-    assert a.obs_ok[va] and not a.obs_ok[vb] and a.counters["obs_corroborated"] == 1
+    assert a.objects.obs_ok[va] and not a.objects.obs_ok[vb] and a.counters.obs_corroborated == 1
     rival = run(cfg, b_at=-4.0)  # a copy of b_id as near as 4 m: a_id's 3 m is not 2x nearer
-    assert not rival.obs_ok[[va, vb]].any()
+    assert not rival.objects.obs_ok[[va, vb]].any()
     off = run(dataclasses.replace(cfg, corroboration_ratio=0.0), b_at=-30.0)
-    assert not off.obs_ok[[va, vb]].any() and off.counters["obs_corroborated"] == 0
+    assert not off.objects.obs_ok[[va, vb]].any() and off.counters.obs_corroborated == 0
 
 
 def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
@@ -363,21 +358,21 @@ def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
     T_pred = a.x[p.obs_own[k]] @ p.obs_T[k]
     a.handle(_obj_msg(1, 1, new_id, T_pred, origin=7, hop=1, support=4))
     a.handle(Tick(2))
-    assert a.obs_ok[k] and (a.origin[new_id], a.hops[new_id]) == (0, 0)
+    assert a.objects.obs_ok[k] and a.objects.provenance[new_id] == Provenance(0, 0, 1)
     for rnd in range(3, 7):  # robot 1 now relays our copy (hop 0 beats robot 7's hop 1)
         a.handle(_obj_msg(1, rnd, new_id, a.y[new_id], origin=0, hop=1, support=1))
         a.handle(Tick(rnd))
-        assert new_id not in a._votes() and a.obs_ok[k], rnd
+        assert new_id not in a.objects.votes() and a.objects.obs_ok[k], rnd
     far = T_pred.copy()
     far[0, 3] += 20.0  # two other robots, with many views each, place object 1000 20 m away
     a.handle(_obj_msg(1, 7, new_id, far, origin=5, support=9))
     a.handle(_obj_msg(2, 7, new_id, far, origin=6, support=9))
     a.handle(Tick(7))
-    assert not a.obs_ok[k] and a.counters["obs_rejected"] == 1
+    assert not a.objects.obs_ok[k] and a.counters.obs_rejected == 1
     a.handle(_obj_msg(1, 8, new_id, far, origin=0, hop=1, support=1))  # the far votes go away
     a.handle(_obj_msg(2, 8, new_id, far, origin=0, hop=1, support=1))
     a.handle(Tick(8))
-    assert not a.obs_ok[k]  # rejected once: pending again, not back by the latch
+    assert not a.objects.obs_ok[k]  # rejected once: pending again, not back by the latch
 
 
 def _pull(scenario, config, offset_m, origin=None):
@@ -398,9 +393,9 @@ def test_consensus_kernel_acts_only_on_conflicting_copies(scenario):
     robust = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0)
     reach = robust.conflict_reach_m  # 16 m: two copies each within the 8 m gate of the object
     drift, a, oid = _pull(scenario, robust, 0.6 * reach)
-    assert not a._conflicts(((1, oid),)).any() and a.counters["consensus_conflicts"] == 0
+    assert not a.objects.conflicts(((1, oid),)).any() and a.counters.consensus_conflicts == 0
     conflict, b, _ = _pull(scenario, robust, 1.25 * reach)
-    assert b._conflicts(((1, oid),)).all() and b.counters["consensus_conflicts"] == 1
+    assert b.objects.conflicts(((1, oid),)).all() and b.counters.consensus_conflicts == 1
     # least squares pulls harder the farther the copy; the kernel cuts a conflicting copy's pull
     plain = dataclasses.replace(robust, robust_kernel="none")
     drift_ls, _, _ = _pull(scenario, plain, 0.6 * reach)
@@ -409,20 +404,27 @@ def test_consensus_kernel_acts_only_on_conflicting_copies(scenario):
     assert 0 < conflict < 0.2 * conflict_ls and conflict < drift
     # our own copy echoed back by a neighbour is never a conflict, however far it has drifted
     _, c, _ = _pull(scenario, robust, 1.25 * reach, origin=0)
-    assert not c._conflicts(((1, oid),)).any()
+    assert not c.objects.conflicts(((1, oid),)).any()
 
 
 def test_a_copy_past_the_relay_limit_still_updates_neighbours_that_hold_it(scenario):
     """A copy sent to a neighbour keeps being updated there when it becomes a relay at the hop
     limit; before, the neighbour kept the last value and provenance for good (a phantom)."""
-    a = _agent(scenario)
-    oid = min(a.y)
-    assert _sent_objects(a.handle(Tick(1)), oid)  # our own copy (hop 0) goes to neighbour 1
-    a.hops[oid] = a.config.relay_max_hops  # now a relay at the limit (what _round would derive)
-    a.y[oid] = a.y[oid].copy()
-    a.y[oid][0, 3] += 1.0
-    again = _sent_objects(a._outputs(0, a._structure_for(), 0.0), oid)
-    assert again and again[0].hop_count == a.config.relay_max_hops
-    b = _agent(scenario)  # never sent to neighbour 1: a copy at the limit is not offered
-    b.hops[oid] = b.config.relay_max_hops
-    assert not _sent_objects(b._outputs(0, b._structure_for(), 0.0), oid)
+
+    def relay_at_the_limit(send_first: bool):
+        a, oid, own, far = _object_seen_here_and_20_m_away(scenario)
+        limit = a.config.relay_max_hops
+        if send_first:  # our own copy (hop 0) goes to both neighbours
+            assert len(_sent_objects(a.handle(Tick(1)), oid)) == 2
+        # both neighbours relay robot 5's copy, with more evidence than ours, 20 m away: our
+        # views are rejected and our copy becomes a relay of it, at the hop limit
+        for j in (1, 2):
+            a.handle(_obj_msg(j, 1, oid, far, origin=5, hop=limit - 1, support=int(own.sum()) + 1))
+        out = a.handle(Tick(2))
+        assert a.objects.provenance[oid].hop == limit and not a.objects.obs_ok[own].any()
+        return _sent_objects(out, oid), limit
+
+    again, limit = relay_at_the_limit(send_first=True)
+    assert len(again) == 2 and all(e.hop_count == limit and e.origin_robot == 5 for e in again)
+    never, _ = relay_at_the_limit(send_first=False)  # never sent: a copy at the limit is not offered
+    assert not never

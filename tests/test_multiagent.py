@@ -49,7 +49,7 @@ def test_relay_reaches_a_robot_two_hops_away():
     fleet.step()
     fleet.step()
     assert only0 <= set(agents[2].y)
-    assert all(agents[2].hops[o] == 2 for o in only0)
+    assert all(agents[2].objects.provenance[o].hop == 2 for o in only0)
 
 
 def test_same_seed_same_result_and_loss_is_tolerated(toy):
@@ -117,23 +117,24 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
 
     sc, wrong, agents = _misread_toy(object_exclusion_m=0.0)
     phantom = agents[0].y[7][:3, 3].copy()
-    assert agents[0].obs_ok[wrong].all()  # the two wrong views start in use
+    assert agents[0].objects.obs_ok[wrong].all()  # the two wrong views start in use
     fleet = Fleet(agents, Bus(range(3), graph=[(0, 1), (1, 2)]))
     conflict = False  # robot 1 holds both hypotheses, > 10 m apart, at some round
     for _ in range(30):
         fleet.step()
-        heard = agents[1].nbr_obj
+        heard = agents[1].objects.neighbour_copies
         if (0, 7) in heard and (2, 7) in heard:
-            conflict |= bool(np.linalg.norm(heard[0, 7][0][:3, 3] - heard[2, 7][0][:3, 3]) > 10.0)
+            conflict |= bool(np.linalg.norm(heard[0, 7].T_world_object[:3, 3] - heard[2, 7].T_world_object[:3, 3]) > 10.0)
     assert conflict
-    assert not agents[0].obs_ok[wrong].any()
-    assert agents[2].obs_ok[sc.problems[2].obs_object == 7].all()
+    assert not agents[0].objects.obs_ok[wrong].any()
+    assert agents[2].objects.obs_ok[sc.problems[2].obs_object == 7].all()
     true_copy = agents[2].y[7][:3, 3]
     assert np.linalg.norm(true_copy - sc.gt_objects[7][:3, 3]) < 2.0
     for a in agents:
         assert np.linalg.norm(a.y[7][:3, 3] - true_copy) < 2.0
         assert np.linalg.norm(a.y[7][:3, 3] - phantom) > 10.0
-    assert (agents[0].hops[7], agents[0].origin[7]) == (2, 2)
+    pv = agents[0].objects.provenance[7]
+    assert (pv.hop, pv.origin) == (2, 2)
 
 
 def _misread_toy(**config):
@@ -166,15 +167,16 @@ def test_a_repeated_misread_sharing_its_place_with_the_seen_object_never_starts_
     phantom drags every copy of object 7 ~8 m, docs/dran.md)."""
     sc, wrong, agents = _misread_toy(conflict_reach_m=0.0)
     a0 = agents[0]
-    assert a0.counters["obs_shadowed"] == 2 and 7 not in a0.y
+    assert a0.counters.obs_shadowed == 2 and 7 not in a0.y
     six = np.flatnonzero(sc.problems[0].obs_object == 6)[2:]
-    assert a0.obs_ok[six].all()  # the seen object's remaining views are used
+    assert a0.objects.obs_ok[six].all()  # the seen object's remaining views are used
     fleet = Fleet(agents, Bus(range(3), graph=[(0, 1), (1, 2)]))
     for _ in range(30):
         fleet.step()
-        assert not a0.obs_ok[wrong].any()
-        assert all(a.origin.get(7, 2) == 2 for a in agents)  # robot 2's copy, or none yet
-    assert sum(a.counters["consensus_conflicts"] for a in agents) == 0
+        assert not a0.objects.obs_ok[wrong].any()
+        # robot 2's copy, or none yet
+        assert all(a.objects.provenance_of(7).origin == 2 for a in agents if 7 in a.y)
+    assert sum(a.counters.consensus_conflicts for a in agents) == 0
     true_copy = agents[2].y[7][:3, 3]
     assert np.linalg.norm(true_copy - sc.gt_objects[7][:3, 3]) < 2.0
     for a in agents:
@@ -192,15 +194,15 @@ def test_a_copy_far_from_the_votes_centre_does_not_drag_the_relays():
     def worst_offset(**config):
         sc, wrong, agents = _misread_toy(object_exclusion_m=0.0, conflict_reach_m=0.0, **config)
         assert np.linalg.norm(agents[0].y[7][:3, 3] - sc.gt_objects[7][:3, 3]) > 16.0
-        assert agents[0].obs_ok[wrong].all()  # the two misreads start in use
+        assert agents[0].objects.obs_ok[wrong].all()  # the two misreads start in use
         fleet = Fleet(agents, Bus(range(3), graph=[(0, 1), (1, 2)]))
         worst = 0.0
         for _ in range(40):
             fleet.step()
             truth = sc.gt_objects[7][:3, 3]
             worst = max(worst, max(np.linalg.norm(a.y[7][:3, 3] - truth) for a in agents if 7 in a.y
-                                   and a.origin.get(7) != 0))
-        conflicts = sum(a.counters["consensus_conflicts"] for a in agents)
+                                   and a.objects.provenance[7].origin != 0))
+        conflicts = sum(a.counters.consensus_conflicts for a in agents)
         return worst, conflicts, agents, wrong
 
     worst_ls, conflicts_ls, _, _ = worst_offset(centre_reach_m=0.0)
@@ -208,7 +210,7 @@ def test_a_copy_far_from_the_votes_centre_does_not_drag_the_relays():
     assert conflicts_ls == 0 and conflicts_gate > 0
     assert worst_ls > 5.0  # least squares: a relay of robot 2's copy dragged > 5 m off
     assert worst_gate < 2.0
-    assert not agents[0].obs_ok[wrong].any()
+    assert not agents[0].objects.obs_ok[wrong].any()
 
 
 def test_outlier_runs_are_scored_against_the_outlier_free_centralized_solution():

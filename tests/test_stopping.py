@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from dran_edge import geometry as geo
-from dran_edge.dran.agent import Agent, LocalProblem
+from dran_edge.dran.agent import Agent
+from dran_edge.dran.problem import LocalProblem
 from dran_edge.config import AgentConfig
 from dran_edge.events import NeighbourData, Outgoing, Tick
 from dran_edge.sim.graphgen import synthetic_graph

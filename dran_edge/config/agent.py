@@ -175,7 +175,7 @@ class AgentConfig(_Checked):
     centre_reach_m: float = _f(16.0, lo=0.0)
     """With a robust kernel and association_gate_m > 0: a neighbour's copy farther than this
     from the association check's centre for its object (the copy the votes side with,
-    ``Agent._check_associations``) is in conflict whatever its origin, and its consensus term
+    ``ObjectAssociation.check``) is in conflict whatever its origin, and its consensus term
     gets the Cauchy kernel. A copy built from a lone wrong view in the first rounds is dropped
     by the check within a round or two, but least squares has by then averaged it into the
     relays around it, which carry the right origin and vouch for the dragged value. 16 m, like
@@ -186,7 +186,7 @@ class AgentConfig(_Checked):
     conflict_reach_m: float = _f(16.0, lo=0.0)
     """With a robust kernel: a neighbour's copy from another observing robot that lies farther
     than this from ours stands for another hypothesis (a wrong id), and its consensus term gets
-    the Cauchy kernel (``Agent._conflicts``); closer copies pull as least squares. Two copies
+    the Cauchy kernel (``ObjectAssociation.conflicts``); closer copies pull as least squares. Two copies
     each within association_gate_m (8 m) of the object are at most twice that apart. The first
     rounds' drift can exceed it (drifted copies up to 21.5 m apart on simulation seeds 0 and
     5), and a wider reach lets nearer wrong hypotheses pull (docs/dran.md, robustness). 0: off

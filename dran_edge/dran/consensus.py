@@ -69,13 +69,15 @@ def phi_dim(kind: str, dim: int) -> int:
 def dual_update(lam: np.ndarray, phi_ij: np.ndarray, w: np.ndarray, beta: float, eta: float
                 ) -> np.ndarray:
     """Eq. 5b: ``λ_ij + η β w_ij φ(y_i, y_j)`` for (m, r) duals, (m, r) φ and (m,) weights."""
-    return lam + eta * beta * np.asarray(w)[:, None] * phi_ij
+    lam_new: np.ndarray = lam + eta * beta * np.asarray(w)[:, None] * phi_ij
+    return lam_new
 
 
 def consensus_error(y_i: np.ndarray, y_j: np.ndarray) -> np.ndarray:
     """(m,) squared geodesic distances ``‖Log(y_i⁻¹ y_j)‖²`` (the ε_φ test, Sec. 4.2.3)."""
     r = geo.log(geo.inverse(y_i) @ y_j)
-    return np.sum(r * r, axis=-1)
+    phi2: np.ndarray = np.sum(r * r, axis=-1)
+    return phi2
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,7 +114,8 @@ class ConsensusFactors:
     def residuals(self, poses: np.ndarray) -> np.ndarray:
         y_i, y_j = poses[self.variables[:, 0]], poses[self.variables[:, 1]]
         s = np.sqrt(self.beta)
-        return s * (self.w[:, None] * phi(y_i, y_j, self.kind) + self.lam / self.beta)
+        res: np.ndarray = s * (self.w[:, None] * phi(y_i, y_j, self.kind) + self.lam / self.beta)
+        return res
 
     def linearize(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, J_i = self._phi_and_jac(poses)
@@ -124,4 +127,5 @@ class ConsensusFactors:
     def gradient(self, poses: np.ndarray) -> np.ndarray:
         """(m, dof) gradient of the term on y_i (the consensus part of eq. 12): ``Jᵀ r``."""
         r, J = self.linearize(poses)
-        return np.einsum("mrd,mr->md", J[:, 0], r)
+        grad: np.ndarray = np.einsum("mrd,mr->md", J[:, 0], r)
+        return grad

@@ -45,7 +45,7 @@ class RobotPart:
     """(a_r,) int64 other robots' vertex positions touched by this robot's inter-robot edges."""
     neighbours: tuple[int, ...]
     """Robots sharing at least one inter-robot edge with this one, ascending."""
-    separators_for: dict
+    separators_for: dict[int, np.ndarray]
     """neighbour id -> (s,) int64 own separator positions that neighbour needs."""
 
 

@@ -45,6 +45,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dran_edge.messages import InitEntry, InitStage
+from dran_edge.dran.linear_stage import block_rows
 from dran_edge.dran.partition import Partition
 
 
@@ -178,9 +179,9 @@ def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
     return sum(v.size for p in partition.parts for v in p.separators_for.values()) * b * ncol
 
 
-def expand(positions: np.ndarray, b: int) -> np.ndarray:
-    """Scalar rows of the blocks at ``positions`` (block size b)."""
-    return (positions[:, None] * b + np.arange(b)[None]).ravel()
+# The rows of the b-row blocks of vertices ``positions`` in a stacked X (one definition, the
+# linear stages'): ``expand(positions, b)``.
+expand = block_rows
 
 
 @dataclass
@@ -242,7 +243,7 @@ def condense(part, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int
 
 def _stage_share(part, n: int, b: int, edges, M, c, w) -> tuple[sp.csr_matrix, np.ndarray]:
     """Robot's share of a linear init stage: its edges, inter-robot ones at half weight."""
-    from dran_edge.dran.dist_init import normal_equations
+    from dran_edge.dran.linear_stage import normal_equations
 
     eidx = np.concatenate([part.intra_edges, part.inter_edges])
     scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])

@@ -28,7 +28,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dran_edge import geometry as geo
-from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
+from dran_edge.dran.dist_init import distributed_chordal_init
+from dran_edge.dran.linear_stage import greedy_colouring
 from dran_edge.messages import InitEntry, InitStage
 
 

@@ -173,10 +173,10 @@ class Fleet:
         for i, agent in enumerate(self.agents):
             for msg in inbox[i]:
                 agent.handle(NeighbourData(stamp, msg))
-            idle = agent.counters.get("idle_rounds", 0)
+            idle = agent.counters.idle_rounds
             t0 = time.perf_counter()
             outs = agent.handle(Tick(stamp))
-            if agent.counters.get("idle_rounds", 0) == idle:  # not an idle turn of a schedule
+            if agent.counters.idle_rounds == idle:  # not an idle turn of a schedule
                 self.step_ms.append(1e3 * (time.perf_counter() - t0))
             for o in outs:
                 if isinstance(o, Outgoing):
@@ -299,7 +299,7 @@ def _table1_agents(g: G2oGraph, part: Partition, init_poses: np.ndarray,
     separators (the distributed init's last exchange left every robot with them)."""
     import dataclasses
 
-    from dran_edge.dran.agent import LocalProblem
+    from dran_edge.dran.problem import LocalProblem
 
     agents = []
     for r in range(len(part.parts)):
@@ -339,7 +339,8 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     and ``poses_refined``, where DRAN starts. A refinement that stopped on its relative-decrease
     test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
     (``stopped_by`` "refine")."""
-    from dran_edge.dran.dist_init import distributed_chordal_init, greedy_colouring
+    from dran_edge.dran.dist_init import distributed_chordal_init
+    from dran_edge.dran.linear_stage import greedy_colouring
     from dran_edge.solver.objective import sesync_objective, sesync_weights
     from dran_edge.dran.partition import partition_contiguous
 

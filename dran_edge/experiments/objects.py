@@ -38,7 +38,8 @@ import numpy as np
 
 from dran_edge import geometry as geo
 from dran_edge.evaluation import metrics
-from dran_edge.dran.agent import Agent, LocalProblem
+from dran_edge.dran.agent import Agent
+from dran_edge.dran.problem import LocalProblem
 from dran_edge.config import AgentConfig, RobustKernel
 from dran_edge.errors import InputError
 from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
@@ -349,5 +350,5 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
                 "ATE_star": ref.ate_star, "history": history,
                 "local_step_ms_median": float(np.median(fleet.step_ms)),
                 "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,
-                "consensus_conflicts": sum(a.counters["consensus_conflicts"] for a in agents)})
+                "consensus_conflicts": sum(a.counters.consensus_conflicts for a in agents)})
     return out

@@ -66,14 +66,15 @@ def _timed(phase: str, fn):
 
 def _instrument() -> None:
     from dran_edge.dran import agent
+    from dran_edge.dran.association import ObjectAssociation
     from dran_edge.robot import core as online_agent
 
     for name in ("linearize", "schur_step"):
         setattr(agent, name, _timed("local_step", getattr(agent, name)))
     for name in ("retract", "evaluate_cost"):
         setattr(agent, name, _timed("acceptance", getattr(agent, name)))
-    for name in ("_adopt_unknown_objects", "_check_associations", "_update_provenance"):
-        setattr(agent.Agent, name, _timed("association", getattr(agent.Agent, name)))
+    for name in ("adopt_unknown", "check", "update_provenance"):
+        setattr(ObjectAssociation, name, _timed("association", getattr(ObjectAssociation, name)))
     online_agent.RobotCore._rebuild = _timed("rebuild", online_agent.RobotCore._rebuild)
 
 

@@ -92,7 +92,8 @@ def agent_round_ms(seed: int, rounds: int) -> tuple[float, float]:
     copies from 2 neighbours arrive as ``NeighbourData``; one ``Tick`` = one DRAN round (dual
     update, the local step with its acceptance test, outputs). Returns (median ms, p90 ms)."""
     from dran_edge.config import AgentConfig
-    from dran_edge.dran.agent import Agent, LocalProblem
+    from dran_edge.dran.agent import Agent
+    from dran_edge.dran.problem import LocalProblem
     from dran_edge.events import NeighbourData, Tick
     from dran_edge.messages import NeighbourMessage, ObjectEntry
 
