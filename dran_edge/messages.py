@@ -116,8 +116,8 @@ class NeighbourMessage:
     @property
     def dim(self) -> int | None:
         """2 or 3 from the first pose carried, None for an empty message."""
-        for group in (self.separators, self.objects):
-            if group:
-                pose = group[0].T_world_body if group is self.separators else group[0].T_world_object
-                return pose.shape[-1] - 1
+        if self.separators:
+            return int(self.separators[0].T_world_body.shape[-1]) - 1
+        if self.objects:
+            return int(self.objects[0].T_world_object.shape[-1]) - 1
         return None
