@@ -232,13 +232,14 @@ def _lossy(links: BusParams | None) -> bool:
         links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values()))
 
 
-def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> dict:
-    """``run_g2o_dran``'s refinement (``exact_gn.refine`` over the fleet's bus): {} when
-    ``params`` is None, else the ``refine_*`` numbers and ``poses_refined``."""
+def refine_over_fleet(fleet: Fleet, mode: str, run, lossy: bool) -> dict:
+    """An exact refinement over the fleet's bus: ``run(exchange) -> exact_gn.RefineResult``
+    with ``exchange`` a ``dist_init.Exchange`` of one bus round per call (not over lossy
+    links, which the tree protocol cannot take). Returns ``poses_refined`` and the
+    ``refine_*`` numbers, rounds and datagram bytes counted on the bus (``refine_curve``:
+    (rounds, bytes since the start, F as the root summed it) at every accepted point)."""
     from dran_edge.dran import exact_gn
 
-    if params is None:
-        return {}
     r0, b0 = fleet.round, fleet.traffic.bytes_total
     sent = [b0]  # bytes after each exchange
 
@@ -247,18 +248,31 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> di
         sent.append(fleet.traffic.bytes_total)
         return incoming
 
-    if lossy:
-        res = exact_gn.RefineResult(poses.copy(), False, reason="lossy links")
-    else:
-        res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
-                              poses, exchange, params)
-    return {"poses_refined": res.poses, "refine_mode": params.mode, "refine_used": res.used,
+    res = exact_gn.RefineResult(np.zeros(0), False, reason="lossy links") if lossy else \
+        run(exchange)
+    return {"poses_refined": res.poses if res.poses.size else None, "refine_mode": mode,
+            "refine_used": res.used,
             "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
             "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
             "refine_trials": res.trials, "refine_F_history": res.F_history,
             "refine_converged": res.converged,
             "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
             "refine_step_over_round_floats": res.ratio_floats}
+
+
+def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> dict:
+    """``run_g2o_dran``'s refinement (``exact_gn.refine`` over the fleet's bus): {} when
+    ``params`` is None, else the ``refine_*`` numbers and ``poses_refined``."""
+    from dran_edge.dran import exact_gn
+
+    if params is None:
+        return {}
+    out = refine_over_fleet(fleet, params.mode, lambda exchange: exact_gn.refine(
+        g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, poses, exchange,
+        params), lossy)
+    if out["poses_refined"] is None:
+        out["poses_refined"] = poses.copy()
+    return out
 
 
 def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop: str = "steps"):
