@@ -37,7 +37,7 @@ composes them for an init stage, ``dran_edge.dran.exact_gn`` for Gauss–Newton 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,7 +83,8 @@ def _bfs(adj: list, root: int) -> np.ndarray:
     return depth
 
 
-def robot_tree(partition: Partition, adjacency: list | None = None) -> RobotTree:
+def robot_tree(partition: Partition, adjacency: Sequence[Iterable[int]] | None = None
+               ) -> RobotTree:
     """BFS tree rooted at a centre of the robot graph (least eccentricity; among those the
     robot with the most boundary vertices, whose condensed system then does not travel;
     then the lowest id). ``adjacency`` (per robot its neighbours): the links to use instead of

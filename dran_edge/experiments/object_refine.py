@@ -22,6 +22,7 @@ robust kernel is not split by halving a factor's weight, so runs with kernels (`
 from __future__ import annotations
 
 import dataclasses
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,6 +30,7 @@ import scipy.sparse as sp
 from dran_edge.dran import exact_gn
 from dran_edge.dran.partition import Partition, RobotPart, partition_edges
 from dran_edge.dran.substructure import robot_tree
+from dran_edge.solver.factors import BetweenFactors, PriorFactors
 from dran_edge.solver.graph import PoseGraph
 from dran_edge.solver.linearize import block_normal_equations
 
@@ -76,7 +78,7 @@ def object_graph(graph: PoseGraph, off: np.ndarray) -> ObjectGraph:
                             if np.asarray(b.variables).shape[1] == 2])
     partition = partition_edges(edges, owner)
     per_robot: list[list] = [[] for _ in partition.parts]
-    for block in graph.factors:
+    for block in cast(tuple[BetweenFactors | PriorFactors, ...], graph.factors):
         var = compact[np.asarray(block.variables)]
         own = owner[var]
         for r in range(partition.num_robots):
@@ -90,7 +92,8 @@ def object_graph(graph: PoseGraph, off: np.ndarray) -> ObjectGraph:
     return ObjectGraph(vertices, partition, tuple(tuple(b) for b in per_robot))
 
 
-def refine_objects(graph: PoseGraph, off: np.ndarray, poses: np.ndarray, adjacency: list,
+def refine_objects(graph: PoseGraph, off: np.ndarray, poses: np.ndarray,
+                   adjacency: list[list[int]],
                    exchange, params: exact_gn.RefineParams,
                    wire_dtype: type | None = np.float32) -> exact_gn.RefineResult:
     """``exact_gn.refine_shares`` on the scenario's centralized graph from ``poses`` (N, 4, 4)
