@@ -223,11 +223,12 @@ def default_init_params(links: BusParams | None = None, partitions=()):
     datagrams (that protocol needs every message; the block iterations tolerate losses)."""
     from dran_edge.dran.dist_init import InitParams
 
-    lossy = bool(partitions) or _lossy(links)
+    lossy = bool(partitions) or lossy_links(links)
     return InitParams(gauss_seidel=True, direct="never" if lossy else "auto")
 
 
-def _lossy(links: BusParams | None) -> bool:
+def lossy_links(links: BusParams | None) -> bool:
+    """Whether ``links`` lose datagrams (the tree protocols need every message)."""
     return links is not None and (
         links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values()))
 
@@ -347,7 +348,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init.poses)
     start, refined = init.poses, _refine(g, part, init.poses, kappa, tau, fleet, refine,
-                                         lossy=bool(partitions) or _lossy(links))
+                                         lossy=bool(partitions) or lossy_links(links))
     if refined:
         start = refined["poses_refined"]
         refined["objective_refined"] = F(start)

@@ -244,14 +244,14 @@ def _refine(sc: Scenario, graph: PoseGraph, init: np.ndarray, off: np.ndarray, f
     """``run_objects``' refinement over the fleet's bus ({} when ``params`` is None); the
     curve's and history's F are the root's 2 Σ f_r (halved by the caller)."""
     from dran_edge.experiments import object_refine
-    from dran_edge.experiments.fleet import _lossy, refine_over_fleet
+    from dran_edge.experiments.fleet import lossy_links, refine_over_fleet
 
     if params is None:
         return {}
     adjacency = [fleet.bus.neighbours(r) for r in fleet.ids]
     kernels = any(b.kernel is not None for b in graph.factors) or sc.params.outlier_ratio > 0
     out = refine_over_fleet(fleet, params.mode, lambda exchange: object_refine.refine_objects(
-        graph, off, init, adjacency, exchange, params), lossy=_lossy(links) or kernels)
+        graph, off, init, adjacency, exchange, params), lossy=lossy_links(links) or kernels)
     if kernels:
         out["refine_reason"] = "robust kernels or outliers: least squares only"
     return out
