@@ -121,6 +121,18 @@ def step_ratio(partition: Partition, dim: int, gauge: int = 0,
         substructure.iteration_floats(partition, b, 1), 1)
 
 
+def scatter_blocks(H_blocks: np.ndarray, g_blocks: np.ndarray, variables: np.ndarray, n: int,
+                   b: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Per-factor normal-equation blocks ((m, k·b, k·b), (m, k·b), factor ``variables`` (m, k))
+    summed into the n·b square H and the gradient g."""
+    m, k = variables.shape
+    idx = substructure.expand(variables.reshape(-1), b).reshape(m, k * b)
+    rows = np.repeat(idx, k * b, axis=1).ravel()
+    cols = np.tile(idx, (1, k * b)).ravel()
+    H = sp.csr_matrix((H_blocks.ravel(), (rows, cols)), shape=(n * b, n * b))
+    return H, np.bincount(idx.ravel(), weights=g_blocks.ravel(), minlength=n * b)
+
+
 def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np.ndarray,
           W: np.ndarray, poses: np.ndarray, exact: bool = False
           ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
@@ -133,17 +145,19 @@ def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np
     block = BetweenFactors(edges[eidx], measurements[eidx], W[eidx] * np.sqrt(scale)[:, None],
                            residual="chordal")
     Hb, gb, cost = block_normal_equations(cast(Factor, block), poses)
-    idx = substructure.expand(edges[eidx].reshape(-1), b).reshape(len(eidx), 2 * b)
-    rows = np.repeat(idx, 2 * b, axis=1).ravel()
-    cols = np.tile(idx, (1, 2 * b)).ravel()
-    H = sp.csr_matrix((Hb.ravel(), (rows, cols)), shape=(n * b, n * b))
-    g = np.bincount(idx.ravel(), weights=gb.ravel(), minlength=n * b)
+    H, g = scatter_blocks(Hb, gb, edges[eidx], n, b)
     D = H.diagonal()
     if exact:
         H2 = block.second_order(poses)
         assert H2 is not None  # the chordal residual has them
-        H = H + sp.csr_matrix((H2.ravel(), (rows, cols)), shape=(n * b, n * b))
+        H = H + scatter_blocks(H2, np.zeros(gb.shape), edges[eidx], n, b)[0]
     return H, g, cost, D
+
+
+#: ``share_of(part, poses, exact) -> (H⁽ʳ⁾, g⁽ʳ⁾, f_r, damping diagonal)``: a robot's share of
+#: the Gauss–Newton system (``share`` for the chordal pose graph), own vertices and anchors only.
+ShareFn = Callable[[RobotPart, np.ndarray, bool], tuple[sp.csr_matrix, np.ndarray, float,
+                                                        np.ndarray]]
 
 
 def _split(x: float) -> list[float]:
@@ -222,24 +236,40 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
            tau: np.ndarray, partition: Partition, poses: np.ndarray, exchange: Exchange,
            params: RefineParams = RefineParams(), gauge: int = 0,
            wire_dtype: type | None = np.float32) -> RefineResult:
-    """Refine ``poses`` (every robot starts from them) by exact distributed LM steps (module
-    docstring); every value crosses ``exchange`` (``dist_init.Exchange``). ``wire_dtype``: the
-    value type the exchange delivers (the codec's float32), applied to the root's own copy of
-    the steps and μ so that every copy of a vertex moves alike; None for a float64 in-memory
-    exchange (``dist_init.direct_exchange``, tests). A loop over
-    gather → decide → scatter → retract, one pass per iteration, hence its length."""
+    """Refine ``poses`` (every robot starts from them) by exact distributed LM steps on the
+    chordal pose graph (module docstring); every value crosses ``exchange``
+    (``dist_init.Exchange``). ``wire_dtype``: the value type the exchange delivers (the
+    codec's float32), applied to the root's own copy of the steps and μ so that every copy of
+    a vertex moves alike; None for a float64 in-memory exchange (``dist_init.direct_exchange``,
+    tests)."""
+    W = isotropic_whitening(kappa, tau, "chordal", dim)
+
+    def share_of(part: RobotPart, T: np.ndarray, exact: bool
+                 ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
+        return share(part, n, dim, edges, measurements, W, T, exact)
+
+    return refine_shares(dim, n, partition, share_of, poses, exchange, params, gauge, wire_dtype)
+
+
+def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, poses: np.ndarray,
+                  exchange: Exchange, params: RefineParams = RefineParams(), gauge: int = 0,
+                  wire_dtype: type | None = np.float32,
+                  tree: substructure.RobotTree | None = None) -> RefineResult:
+    """``refine`` for any objective whose robot shares ``share_of`` gives (``ShareFn``; F in
+    the results is 2 Σ f_r), over ``tree`` (default: the BFS tree of the partition's robot
+    graph); ``gauge`` < 0: no gauge vertex (priors fix it). A loop over gather → decide →
+    scatter → retract, one pass per iteration, hence its length."""
     if params.mode not in ("auto", "always", "never"):
         raise ValueError(f"RefineParams.mode must be auto, always or never, got {params.mode!r}")
     poses = np.asarray(poses, np.float64)
     if params.mode == "never" or partition.num_robots < 2:
         return RefineResult(poses.copy(), False, reason="off")
-    tree = substructure.robot_tree(partition)
+    tree = tree or substructure.robot_tree(partition)
     ratio = step_ratio(partition, dim, gauge, tree)
     if params.mode == "auto" and ratio > params.step_budget:
         return RefineResult(poses.copy(), False, reason=f"a step costs {ratio:.0f} rounds",
                             ratio_floats=ratio)
     b, d = geo.dof(dim), dim
-    W = isotropic_whitening(kappa, tau, "chordal", dim)
     mu0 = params.mu_init if wire_dtype is None else float(wire_dtype(params.mu_init))
     root = LMRule(params, wire_dtype)
     robots = [_Robot(poses.copy(), poses.copy(), mu0, exact=root.exact) for _ in partition.parts]
@@ -249,7 +279,7 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
     while True:
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
-            H, g, cost, D = share(part, n, dim, edges, measurements, W, rob.T, rob.exact)
+            H, g, cost, D = share_of(part, rob.T, rob.exact)
             loc = substructure.condense(part, partition, H + rob.mu * sp.diags(D),
                                         -g[:, None], b, gauge, np.zeros((b, 1)))
             locs.append(loc)

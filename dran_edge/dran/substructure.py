@@ -37,7 +37,7 @@ composes them for an init stage, ``dran_edge.dran.exact_gn`` for Gauss–Newton 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,12 +84,18 @@ def _bfs(adj: list, root: int) -> np.ndarray:
     return depth
 
 
-def robot_tree(partition: Partition) -> RobotTree:
+def robot_tree(partition: Partition, adjacency: Sequence[Iterable[int]] | None = None
+               ) -> RobotTree:
     """BFS tree rooted at a centre of the robot graph (least eccentricity; among those the
     robot with the most boundary vertices, whose condensed system then does not travel;
-    then the lowest id)."""
+    then the lowest id). ``adjacency`` (per robot its neighbours): the links to use instead of
+    the partition's (robots sharing an edge), e.g. a communication graph; the protocol needs
+    only a spanning tree, since every condensed system is forwarded to the root and every
+    boundary value comes down from it (a factor between two robots that are no neighbours
+    travels over the tree's path, counted on the links it crosses)."""
     R = partition.num_robots
-    adj = [sorted(p.neighbours) for p in partition.parts]
+    adj = [sorted(p.neighbours) for p in partition.parts] if adjacency is None else \
+        [sorted(int(q) for q in a) for a in adjacency]
     ecc = np.array([int(_bfs(adj, r).max()) for r in range(R)])
     size = np.array([np.union1d(p.separators, p.anchors).size for p in partition.parts])
     root = int(np.lexsort((np.arange(R), -size, ecc))[0])

@@ -230,13 +230,42 @@ def default_init_params(links: BusParams | None = None, partitions=()):
     datagrams (that protocol needs every message; the block iterations tolerate losses)."""
     from dran_edge.dran.dist_init import InitParams
 
-    lossy = bool(partitions) or _lossy(links)
+    lossy = bool(partitions) or lossy_links(links)
     return InitParams(gauss_seidel=True, direct="never" if lossy else "auto")
 
 
-def _lossy(links: BusParams | None) -> bool:
+def lossy_links(links: BusParams | None) -> bool:
+    """Whether ``links`` lose datagrams (the tree protocols need every message)."""
     return links is not None and (
         links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values()))
+
+
+def refine_over_fleet(fleet: Fleet, mode: str, run, lossy: bool) -> dict:
+    """An exact refinement over the fleet's bus: ``run(exchange) -> exact_gn.RefineResult``
+    with ``exchange`` a ``dist_init.Exchange`` of one bus round per call (not over lossy
+    links, which the tree protocol cannot take). Returns ``poses_refined`` and the
+    ``refine_*`` numbers, rounds and datagram bytes counted on the bus (``refine_curve``:
+    (rounds, bytes since the start, F as the root summed it) at every accepted point)."""
+    from dran_edge.dran import exact_gn
+
+    r0, b0 = fleet.round, fleet.traffic.bytes_total
+    sent = [b0]  # bytes after each exchange
+
+    def exchange(stage, iteration: int, outgoing: dict) -> dict:
+        incoming = fleet.init_exchange(stage, iteration, outgoing)
+        sent.append(fleet.traffic.bytes_total)
+        return incoming
+
+    res = exact_gn.RefineResult(np.zeros(0), False, reason="lossy links") if lossy else \
+        run(exchange)
+    return {"poses_refined": res.poses if res.poses.size else None, "refine_mode": mode,
+            "refine_used": res.used,
+            "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
+            "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
+            "refine_trials": res.trials, "refine_F_history": res.F_history,
+            "refine_converged": res.converged,
+            "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
+            "refine_step_over_round_floats": res.ratio_floats}
 
 
 def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> dict:
@@ -246,26 +275,12 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> di
 
     if params is None:
         return {}
-    r0, b0 = fleet.round, fleet.traffic.bytes_total
-    sent = [b0]  # bytes after each exchange
-
-    def exchange(stage, iteration: int, outgoing: dict) -> dict:
-        incoming = fleet.init_exchange(stage, iteration, outgoing)
-        sent.append(fleet.traffic.bytes_total)
-        return incoming
-
-    if lossy:
-        res = exact_gn.RefineResult(poses.copy(), False, reason="lossy links")
-    else:
-        res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
-                              poses, exchange, params)
-    return {"poses_refined": res.poses, "refine_mode": params.mode, "refine_used": res.used,
-            "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
-            "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
-            "refine_trials": res.trials, "refine_F_history": res.F_history,
-            "refine_converged": res.converged,
-            "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
-            "refine_step_over_round_floats": res.ratio_floats}
+    out = refine_over_fleet(fleet, params.mode, lambda exchange: exact_gn.refine(
+        g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, poses, exchange,
+        params), lossy)
+    if out["poses_refined"] is None:
+        out["poses_refined"] = poses.copy()
+    return out
 
 
 def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop: str = "steps"):
@@ -362,7 +377,7 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init_poses)
     start, refined = init_poses, _refine(g, part, init_poses, kappa, tau, fleet, refine,
-                                         lossy=bool(partitions) or _lossy(links))
+                                         lossy=bool(partitions) or lossy_links(links))
     if refined:
         start = refined["poses_refined"]
         refined["objective_refined"] = F(start)

@@ -251,6 +251,8 @@ class _Reference:
 
     graph: PoseGraph
     init: np.ndarray
+    off: np.ndarray
+    """Robot r's poses are ``init[off[r]:off[r + 1]]``."""
     n_x: int
     """Number of robot poses (the rest of ``init`` are objects)."""
     gt_x: np.ndarray
@@ -278,7 +280,7 @@ def _reference(sc: Scenario, config: AgentConfig) -> _Reference:
     ref = solve(graph, init, LMParams(max_iterations=100))
     gt_x = np.concatenate(sc.gt_robots)
     n_x = int(off[-1])
-    return _Reference(graph, init, n_x, gt_x, evaluate_cost(graph, init), ref.cost,
+    return _Reference(graph, init, off, n_x, gt_x, evaluate_cost(graph, init), ref.cost,
                       metrics.ate_log_rmse(init[:n_x], gt_x),
                       metrics.ate_log_rmse(ref.poses[:n_x], gt_x))
 
@@ -308,9 +310,27 @@ def _snapshot(sc: Scenario, ref: _Reference, agents: list[Agent], fleet: Fleet
             "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
 
 
+def _refine(sc: Scenario, graph: PoseGraph, init: np.ndarray, off: np.ndarray, fleet, params,
+            links) -> dict:
+    """``run_objects``' refinement over the fleet's bus ({} when ``params`` is None); the
+    curve's and history's F are the root's 2 Σ f_r (halved by the caller)."""
+    from dran_edge.experiments import object_refine
+    from dran_edge.experiments.fleet import lossy_links, refine_over_fleet
+
+    if params is None:
+        return {}
+    adjacency = [fleet.bus.neighbours(r) for r in fleet.ids]
+    kernels = any(b.kernel is not None for b in graph.factors) or sc.params.outlier_ratio > 0
+    out = refine_over_fleet(fleet, params.mode, lambda exchange: object_refine.refine_objects(
+        graph, off, init, adjacency, exchange, params), lossy=lossy_links(links) or kernels)
+    if kernels:
+        out["refine_reason"] = "robust kernels or outliers: least squares only"
+    return out
+
+
 def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
                 max_rounds: int = 200, seed: int = 0, history_every: int = 0,
-                progress=None) -> dict:
+                progress=None, refine=None, stop: bool = True) -> dict:
     """DRAN on the scenario over the in-process bus, with the paper's metrics.
 
     ``comm_graph``: the communication graph as ``comms.bus.Bus`` takes it (undirected robot
@@ -319,7 +339,15 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     ``links.seed``. ``history_every`` > 0: the metrics every that many rounds in ``history``;
     ``progress(round)``, if given, is called after every round (for progress output).
     SR_cost and SR_ATE are against the centralized LM; for a scenario with outliers, the LM of
-    the same scenario without them (F, F_init and F* on that outlier-free graph)."""
+    the same scenario without them (F, F_init and F* on that outlier-free graph).
+
+    ``refine`` (an ``exact_gn.RefineParams``): before the first round, exact distributed LM
+    steps on the centralized objective over the same bus (``experiments.object_refine``;
+    least squares and lossless links only, else not run, ``refine_reason`` says why); the
+    agents start from the refined trajectories and object copies. A refinement that stopped
+    on its relative-decrease test ends the run there when ``stop`` (``stopped_by``
+    "refine"). ``round`` and ``bytes`` count the refinement's exchanges too; ``rounds`` the
+    DRAN rounds only."""
     from dran_edge.comms.bus import Bus, BusParams
     from dran_edge.experiments.fleet import Fleet, neighbour_weights, stop_rounds_for
 
@@ -327,13 +355,23 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     bus = Bus(range(len(sc.problems)), graph=comm_graph,
               params=dataclasses.replace(links or BusParams(), seed=seed))
     W = neighbour_weights(bus)
+    fleet = Fleet([], bus)
+    refined = _refine(sc, ref.graph, ref.init, ref.off, fleet, refine, links)
+    start = ref.init if refined.get("poses_refined") is None else refined.pop("poses_refined")
+    off, n_x = ref.off, ref.n_x
     agents = []
     K = stop_rounds_for(bus, config)
     for r, p in enumerate(sc.problems):
         cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3,
                                   stop_rounds=K)
-        agents.append(Agent(cfg, p, weights=W[r]))
-    fleet = Fleet(agents, bus)
+        if refine is not None:
+            p = dataclasses.replace(p, x0=start[off[r]:off[r + 1]].copy())
+        agent = Agent(cfg, p, weights=W[r])
+        if refine is not None:  # every copy of an observed object at the refined value
+            for oid in agent.y:
+                agent.y[oid] = start[n_x + oid].copy()
+        agents.append(agent)
+    fleet.agents, fleet.estimates = agents, [None] * len(agents)
     history = []
 
     def cb(k, _fleet):
@@ -342,13 +380,20 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
         if progress is not None:
             progress("rounds", k, max_rounds)
 
-    rounds = fleet.run(max_rounds, callback=cb)
+    if stop and refined.get("refine_converged"):  # the root's global test already held
+        rounds, reasons = 0, ["refine"]
+    else:
+        rounds = fleet.run(max_rounds, callback=cb)
+        reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
     out = _snapshot(sc, ref, agents, fleet)
-    reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
+    if refined:
+        refined["refine_curve"] = [(k, b, F / 2) for k, b, F in refined["refine_curve"]]
+        refined["refine_F_history"] = [F / 2 for F in refined["refine_F_history"]]
+    out.update(refined)
     out.update({"rounds": rounds, "stopped_by": "+".join(reasons) if rounds < max_rounds else None,
                 "F_init": ref.F_init, "F_star": ref.F_star, "ATE_init": ref.ate0,
                 "ATE_star": ref.ate_star, "history": history,
-                "local_step_ms_median": float(np.median(fleet.step_ms)),
+                "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
                 "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,
                 "consensus_conflicts": sum(a.counters.consensus_conflicts for a in agents)})
     return out

@@ -125,6 +125,7 @@ def _add_objects_parser(sub: Any) -> None:
     o.add_argument("--objects", type=int, default=60, help="objects (default 60, as the paper)")
     o.add_argument("--seed", type=int, default=0,
                    help="scenario seed; the communication graph uses seed + 1 (default 0)")
+    _add_refine_options(o)
     o.add_argument("--json", action="store_true", help="print one JSON object per run")
     o.add_argument("--plot", metavar="DIR", help="write a PNG per sweep into DIR")
 
@@ -290,11 +291,14 @@ def run_objects_cmd(args) -> int:
 
             out = run_objects(sc, cfg, graph, BusParams(loss_probability=args.loss),
                               max_rounds=args.rounds, seed=args.seed,
-                              history_every=args.history_every, progress=progress)
+                              history_every=args.history_every, progress=progress,
+                              refine=_refine_params(args))
             row = {"rho": rho, "noise": noise, "loss": args.loss, "outliers": args.outliers,
                    "outlier_ids": args.outlier_ids if args.outliers > 0 else None,
                    "robust": robust, "min_views": cfg.object_min_views,
                    "beta": cfg.beta, "eta": cfg.eta}
+            if args.refine != "off":
+                row["refine"] = args.refine
             row.update({k: v for k, v in out.items() if k != "history" or args.history_every})
             rows.append(row)
             if args.json:
@@ -307,6 +311,9 @@ def run_objects_cmd(args) -> int:
                       f"ATE/ATE*={row['ATE_over_ATEstar']:.3f} CE={row['CE']:.3g} "
                       f"Bias={row['Bias']:.3g} ATE={row['ATE']:.4f} ATE*={row['ATE_star']:.4f} "
                       f"bytes={row['bytes']} rounds={row['rounds']}{stop}"
+                      + (f" refine: {row['refine_reason']}, {row['refine_steps']} steps, "
+                         f"{row['refine_rounds']} rounds, {row['refine_bytes']} bytes"
+                         if args.refine != "off" else "")
                       + (f" consensus_conflicts={row['consensus_conflicts']}" if robust else ""),
                       flush=True)
                 for h in row.get("history", ()):
