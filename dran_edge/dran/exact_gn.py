@@ -332,7 +332,7 @@ def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, pos
             H, g = shares[r]
             rob.pred = float(-g @ delta - 0.5 * delta @ (H @ delta))
             moved = np.concatenate([loc.I, loc.B])
-            rob.T[moved] = geo.retract(rob.T_acc[moved],  # type: ignore[no-untyped-call]
+            rob.T[moved] = geo.retract(rob.T_acc[moved],
                                        delta.reshape(n, b)[moved])
         if stop:
             res.reason, res.converged = reason, reason.startswith("relative decrease")

@@ -39,6 +39,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -56,7 +57,7 @@ class RobotTree:
     root: int
     parent: np.ndarray
     depth: np.ndarray
-    children: tuple
+    children: tuple[tuple[int, ...], ...]
 
     @property
     def height(self) -> int:
@@ -71,7 +72,7 @@ class RobotTree:
         return out
 
 
-def _bfs(adj: list, root: int) -> np.ndarray:
+def _bfs(adj: list[Any], root: int) -> np.ndarray:
     depth = np.full(len(adj), -1)
     depth[root] = 0
     queue = deque([root])
@@ -110,10 +111,11 @@ def robot_tree(partition: Partition, adjacency: Sequence[Iterable[int]] | None =
     return RobotTree(root, parent, depth, children)
 
 
-def boundary(part, gauge: int) -> np.ndarray:
+def boundary(part: Any, gauge: int) -> np.ndarray:
     """Robot's boundary vertices B_r: its separators and anchors, without the gauge."""
-    B = np.union1d(part.separators, part.anchors)
-    return B[B != gauge]
+    B: np.ndarray = np.union1d(part.separators, part.anchors)
+    out: np.ndarray = B[B != gauge]
+    return out
 
 
 @dataclass(frozen=True)
@@ -123,10 +125,10 @@ class _Structure:
     B: np.ndarray  # boundary vertex positions (sorted)
     I: np.ndarray  # interior vertex positions (sorted)
     pairs: np.ndarray  # (p, 2) boundary-local (i ≤ j) pairs joined by an edge, and (i, i)
-    comps: tuple  # per connected piece C of the interior: (C local rows into I, N(C) into B)
+    comps: tuple[tuple[np.ndarray, np.ndarray], ...]  # per connected piece C of the interior: (C local rows into I, N(C) into B)
 
 
-def _structure(part, partition: Partition, gauge: int) -> _Structure:
+def _structure(part: Any, partition: Partition, gauge: int) -> _Structure:
     """S_r = Q_BB − Σ_C Q_BC Q_CC⁻¹ Q_CB: Q_BB has a block per boundary edge and the diagonal;
     each connected piece C of the interior fills a dense block on its boundary neighbours N(C)
     and nothing else (the pieces are independent), so only those blocks travel."""
@@ -195,11 +197,11 @@ class Condensed:
     """One robot's share of a block-sparse SPD system condensed onto its boundary."""
 
     st: _Structure
-    lu: object
+    lu: Any  # scipy SuperLU of the interior block, None without an interior
     Q_IB: sp.csr_matrix
     rhs_I: np.ndarray
     Q_BB: np.ndarray  # (p, b, b) blocks at st.pairs
-    pieces: list  # per interior piece: dense −Q_NC Q_CC⁻¹ Q_CN on N(C)
+    pieces: list[np.ndarray]  # per interior piece: dense −Q_NC Q_CC⁻¹ Q_CN on N(C)
     g: np.ndarray
 
     @property
@@ -217,10 +219,13 @@ class Condensed:
 
     def back_substitute(self, X_B: np.ndarray) -> np.ndarray:
         """Interior values ``X_I = (Q⁽ʳ⁾_II)⁻¹ (rhs_I − Q_IB X_B)`` for boundary values X_B."""
-        return self.lu.solve(self.rhs_I - self.Q_IB @ X_B) if self.I.size else self.rhs_I
+        if not self.I.size:
+            return self.rhs_I
+        X_I: np.ndarray = self.lu.solve(self.rhs_I - self.Q_IB @ X_B)
+        return X_I
 
 
-def condense(part, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int, gauge: int,
+def condense(part: Any, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int, gauge: int,
              X_gauge: np.ndarray) -> Condensed:
     """Robot's share ``Q⁽ʳ⁾ X = rhs⁽ʳ⁾`` (n·b square, its own and anchor vertices only; block
     size b) condensed onto its boundary, the gauge vertex held at ``X_gauge``. The interior
@@ -247,7 +252,8 @@ def condense(part, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int
     return Condensed(st, lu, Q_IB, rhs[ri], Q_BB, pieces, g)
 
 
-def _stage_share(part, n: int, b: int, edges, M, c, w) -> tuple[sp.csr_matrix, np.ndarray]:
+def _stage_share(part: Any, n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.ndarray,
+                 w: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
     """Robot's share of a linear init stage: its edges, inter-robot ones at half weight."""
     from dran_edge.dran.linear_stage import normal_equations
 
@@ -257,7 +263,7 @@ def _stage_share(part, n: int, b: int, edges, M, c, w) -> tuple[sp.csr_matrix, n
     return Q.tocsr(), Bv
 
 
-def pack(loc: Condensed, b: int, scalars=()) -> np.ndarray:
+def pack(loc: Condensed, b: int, scalars: Any = ()) -> np.ndarray:
     """The condensed system as one float vector (docs/wire-format.md, SCHUR stages), followed
     by ``scalars`` (values that travel with it, e.g. the robot's cost share)."""
     st = loc.st
@@ -271,12 +277,13 @@ def pack(loc: Condensed, b: int, scalars=()) -> np.ndarray:
     return np.concatenate([np.asarray(x, float) for x in out])
 
 
-def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0):
+def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0
+            ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
     """(B ids, g, pieces, scalars): the condensed system as (boundary-local indices, dense
     block) terms, and the ``nscalars`` values after it."""
     pos = 0
 
-    def take(k):
+    def take(k: int) -> np.ndarray:
         nonlocal pos
         pos += k
         if pos > flat.size:
@@ -286,7 +293,7 @@ def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0):
     nb = int(round(take(1)[0]))
     B = np.rint(take(nb)).astype(np.int64)
     g = take(nb * b * ncol).reshape(nb * b, ncol)
-    pieces = []
+    pieces: list[tuple[np.ndarray, np.ndarray]] = []
     for _ in range(int(round(take(1)[0]))):
         i, j = np.rint(take(2)).astype(np.int64)
         blk = take(b * b).reshape(b, b)
@@ -319,14 +326,14 @@ def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
     return list(pad.reshape(-1, d, d))
 
 
-def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange, kind: InitStage,
-           rounds: int) -> tuple[dict, int]:
+def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange: Any, kind: InitStage,
+           rounds: int) -> tuple[dict[int, np.ndarray], int]:
     """Step 1 (module docstring): every robot's packed vector travels up the tree as ``kind``
     chunks (d × d); returns the root's ``{origin robot: packed vector}`` and the rounds count."""
     R = len(packed)
     bundles = [{r: packed[r]} for r in range(R)]
     for level in range(tree.height, 0, -1):
-        outgoing: dict[int, list] = {}
+        outgoing: dict[int, list[Any]] = {}
         for r in np.flatnonzero(tree.depth == level):
             entries = [InitEntry(kind, int(o), k, ch)
                        for o, flat in sorted(bundles[r].items())
@@ -335,7 +342,7 @@ def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange, kind: In
         incoming = exchange(kind, rounds, outgoing)
         rounds += 1
         for q, entries in incoming.items():
-            parts: dict[int, dict] = {}
+            parts: dict[int, dict[int, Any]] = {}
             for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
                 if InitStage(e.stage) == kind:
                     parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
@@ -353,8 +360,8 @@ def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange, kind: In
     return bundles[tree.root], rounds
 
 
-def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
-                    ) -> tuple[dict, np.ndarray, bool]:
+def solve_interface(bundle: dict[int, np.ndarray], b: int, ncol: int, nscalars: int = 0
+                    ) -> tuple[dict[int, np.ndarray], np.ndarray, bool]:
     """Step 2: the root assembles ``Σ S_r``, ``Σ g_r`` from the gathered vectors and solves;
     returns ``{boundary vertex: (b, ncol) value}``, the (R, nscalars) scalars by robot and
     whether ``Σ S_r`` is positive definite (its LU pivots, no pivoting, all positive)."""
@@ -370,7 +377,8 @@ def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
             rows.append(np.repeat(idx, idx.size))
             cols.append(np.tile(idx, idx.size))
             vals.append(P.ravel())
-    X_B, pd = np.zeros_like(g_glob), True
+    X_B: np.ndarray = np.zeros_like(g_glob)
+    pd = True
     if Bglob.size:
         S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                shape=(Bglob.size * b,) * 2)
@@ -382,20 +390,22 @@ def solve_interface(bundle: dict, b: int, ncol: int, nscalars: int = 0
     return {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}, scalars, pd
 
 
-def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict, exchange,
-            kind: InitStage, to_entry: Callable, from_entry: Callable, rounds: int,
-            extra: list | None = None) -> tuple[list[dict], list[list], int]:
+def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict[int, np.ndarray],
+            exchange: Any, kind: InitStage, to_entry: Callable[..., InitEntry],
+            from_entry: Callable[[InitEntry], np.ndarray], rounds: int,
+            extra: list[Any] | None = None
+            ) -> tuple[list[dict[int, np.ndarray]], list[list[Any]], int]:
     """Step 3: each link carries the boundary values its subtree needs as ``kind`` entries
     (``to_entry(v, X_v)`` / ``from_entry(entry)``), plus the root's ``extra`` entries (which
     every robot receives). Returns per robot ``{vertex: value}`` and its extra entries."""
     R = len(boundaries)
-    known: list[dict] = [dict() for _ in range(R)]
+    known: list[dict[int, np.ndarray]] = [dict() for _ in range(R)]
     known[tree.root] = dict(root_values)
-    others: list[dict] = [dict() for _ in range(R)]  # keyed: a duplicated datagram repeats
+    others: list[dict[Any, Any]] = [dict() for _ in range(R)]  # keyed: a duplicated datagram repeats
     others[tree.root] = {(int(e.stage), int(e.owner_robot), int(e.keyframe_id)): e
                          for e in extra or []}
     for level in range(1, tree.height + 1):
-        outgoing: dict[int, list] = {}
+        outgoing: dict[int, list[Any]] = {}
         for c in np.flatnonzero(tree.depth == level):
             p = int(tree.parent[c])
             need = np.unique(np.concatenate([boundaries[q] for q in tree.subtree(int(c))]))
@@ -417,7 +427,7 @@ def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict, ex
     return known, [list(o.values()) for o in others], rounds
 
 
-def boundary_values(loc: Condensed, known: dict, ncol: int) -> np.ndarray:
+def boundary_values(loc: Condensed, known: dict[int, np.ndarray], ncol: int) -> np.ndarray:
     """The (|B|·b, ncol) stacked values of the robot's boundary from ``known``."""
     return np.concatenate([known[int(v)] for v in loc.B.tolist()]) if loc.B.size else \
         np.zeros((0, ncol))
@@ -425,8 +435,9 @@ def boundary_values(loc: Condensed, known: dict, ncol: int) -> np.ndarray:
 
 def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray,
                  M: np.ndarray, c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
-                 X_gauge: np.ndarray, exchange, schur_kind: InitStage, value_kind: InitStage,
-                 to_entry: Callable, from_entry: Callable, X0: np.ndarray,
+                 X_gauge: np.ndarray, exchange: Any, schur_kind: InitStage,
+                 value_kind: InitStage, to_entry: Callable[..., InitEntry],
+                 from_entry: Callable[[InitEntry], np.ndarray], X0: np.ndarray,
                  tree: RobotTree | None = None) -> tuple[list[np.ndarray], int]:
     """Solve the stage exactly (module docstring). Returns each robot's view ((n·b, ncol):
     its own vertices and anchors solved, the rest ``X0``) and the rounds used. ``to_entry(v,
