@@ -18,7 +18,7 @@ EXTRAS ?= perception,comms,systemd,eval,viz,test
 DRIVERS ?= realsense
 DEMO_DIR ?= demo-run
 
-.PHONY: help setup test lint test-all demo bench bundle clean
+.PHONY: help setup test lint types test-all demo bench bundle clean
 
 help:
 	@echo "make demo      simulate a 6-robot mission, replay it through the robot code, score it"
@@ -40,12 +40,18 @@ $(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/de
 	$(PY) tools/install_drivers.py '-e .' $(DRIVERS)
 	touch $@
 
-test: setup lint
+test: setup lint types
 	$(PY) -m pytest -q -m "not slow and not hardware"
 
-# pyflakes-level checks (pyproject [tool.ruff.lint]); the layer contracts are tests/test_layering.py
+# ruff (pyproject [tool.ruff]): pyflakes-level checks and the formatting; the layer contracts
+# are tests/test_layering.py (part of the test run)
 lint: setup
 	$(VENV)/bin/ruff check dran_edge comms perception tests tools
+	$(VENV)/bin/ruff format --check dran_edge comms perception tests tools
+
+# mypy (pyproject [tool.mypy]): the package at mypy's default level, solver/ and dran/ strict
+types: setup
+	$(PY) -m mypy
 
 test-all: setup
 	$(PY) -m pytest -q -m "not hardware"

@@ -132,7 +132,9 @@ class Ed25519Signer:
 
     def __init__(self, secret: bytes):
         if len(secret) != ED25519_KEY_BYTES:
-            raise ConfigError(f"expected a {ED25519_KEY_BYTES}-byte Ed25519 secret, got {len(secret)}")
+            raise ConfigError(
+                f"expected a {ED25519_KEY_BYTES}-byte Ed25519 secret, got {len(secret)}"
+            )
         self._private = _ed25519().Ed25519PrivateKey.from_private_bytes(bytes(secret))
 
     def sign(self, datagram: bytes) -> bytes:
@@ -161,8 +163,9 @@ class PairwiseSigner:
         return bytes(body) + self.keys.tag_for(receiver, body)
 
 
-def make_signer(credentials: bytes | RobotIdentity | PairwiseKeys
-                ) -> Signer | Ed25519Signer | PairwiseSigner:
+def make_signer(
+    credentials: bytes | RobotIdentity | PairwiseKeys,
+) -> Signer | Ed25519Signer | PairwiseSigner:
     """The signer of a fleet HMAC key (bytes), a robot's identity (ed25519) or its pair keys."""
     if isinstance(credentials, PairwiseKeys):
         return PairwiseSigner(credentials)
@@ -237,8 +240,9 @@ class Verifier:
     keys, or this robot's ``PairwiseKeys`` (pairwise policy). Under ed25519 and pairwise every
     robot the policy accepts must have a public key."""
 
-    def __init__(self, credentials: bytes | RobotIdentity | Mapping | PairwiseKeys,
-                 policy: AuthPolicy):
+    def __init__(
+        self, credentials: bytes | RobotIdentity | Mapping | PairwiseKeys, policy: AuthPolicy
+    ):
         self.policy = policy
         self._key: bytes | None = None
         self._public: dict[int, tuple] = {}
@@ -255,8 +259,9 @@ class Verifier:
                 )
             self._pairs = credentials
         elif isinstance(credentials, (RobotIdentity, Mapping)):
-            keys = (credentials.public_keys if isinstance(credentials, RobotIdentity)
-                    else credentials)
+            keys = (
+                credentials.public_keys if isinstance(credentials, RobotIdentity) else credentials
+            )
             missing = sorted((policy.neighbours | policy.relay_from) - set(keys))
             if missing:
                 raise ConfigError(
@@ -267,8 +272,10 @@ class Verifier:
 
             self._invalid_signature = InvalidSignature
             Public = _ed25519().Ed25519PublicKey
-            self._public = {int(r): tuple(Public.from_public_bytes(bytes(k)) for k in ks)
-                            for r, ks in keys.items()}
+            self._public = {
+                int(r): tuple(Public.from_public_bytes(bytes(k)) for k in ks)
+                for r, ks in keys.items()
+            }
         else:
             Signer(credentials)  # validates the length
             self._key = bytes(credentials)
@@ -287,8 +294,9 @@ class Verifier:
         """True under the pairwise policy."""
         return self._pairs is not None
 
-    def check(self, datagram: bytes, delta_for=None
-              ) -> tuple[NeighbourMessage | None, Reject | None]:
+    def check(
+        self, datagram: bytes, delta_for=None
+    ) -> tuple[NeighbourMessage | None, Reject | None]:
         """(message, None) if accepted, else (None, reason). Never raises.
 
         ``delta_for(header)``, if given, returns the receiving side of the delta state for that
@@ -304,8 +312,9 @@ class Verifier:
     def _authentic(self, datagram: bytes, sender: int) -> bool:
         if self._pairs is not None:
             view = memoryview(datagram)
-            self._pair_index = self._pairs.verify(sender, view[:-TAG_BYTES],
-                                                  bytes(view[-TAG_BYTES:]))
+            self._pair_index = self._pairs.verify(
+                sender, view[:-TAG_BYTES], bytes(view[-TAG_BYTES:])
+            )
             return self._pair_index is not None
         if self._key is not None:
             tag = bytes(datagram[-TAG_BYTES:])
@@ -320,8 +329,9 @@ class Verifier:
                 pass
         return False
 
-    def _check(self, datagram: bytes, delta_for=None
-               ) -> tuple[NeighbourMessage | None, Reject | None]:
+    def _check(
+        self, datagram: bytes, delta_for=None
+    ) -> tuple[NeighbourMessage | None, Reject | None]:
         self.last_claimed_sender = None
         try:
             h = decode_header(datagram)

@@ -119,8 +119,9 @@ class DeltaDecoder:
     """Delta entries dropped because the base they name is not the one held (a lost or
     reordered datagram); the sender's next absolute value repairs the key."""
 
-    def absolute(self, key: tuple, value: np.ndarray, round_: int, stamp_ns: int | None = None
-                 ) -> None:
+    def absolute(
+        self, key: tuple, value: np.ndarray, round_: int, stamp_ns: int | None = None
+    ) -> None:
         prev = self.held.get(key)
         if prev is None or round_ >= prev[1]:
             self.held[key] = (value, round_)
@@ -130,8 +131,9 @@ class DeltaDecoder:
     def stamp(self, key: tuple) -> int:
         return self.stamps.get(key, 0)
 
-    def resolve(self, key: tuple, kind: str, base_round: int, e: int, q: np.ndarray,
-                round_: int) -> np.ndarray | None:
+    def resolve(
+        self, key: tuple, kind: str, base_round: int, e: int, q: np.ndarray, round_: int
+    ) -> np.ndarray | None:
         prev = self.held.get(key)
         if prev is None or prev[1] != base_round:
             self.unresolved += 1

@@ -40,8 +40,10 @@ def read_rules(path: Path) -> dict[int, float]:
 def write_rules(path: Path, drop_to: dict[int, float]) -> None:
     """Atomically replace the drop file (the daemon never sees a half-written one)."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps({"drop_to": {str(k): float(v) for k, v in drop_to.items()
-                                           if v > 0}}), encoding="utf-8")
+    tmp.write_text(
+        json.dumps({"drop_to": {str(k): float(v) for k, v in drop_to.items() if v > 0}}),
+        encoding="utf-8",
+    )
     os.replace(tmp, path)
 
 

@@ -93,8 +93,12 @@ RESET_UNKNOWN = 0
 RESET_FEATURE_TRACKER_RESTART = 1
 RESET_BRIDGE_START = 2
 RESET_ESTIMATOR_FAILURE = 3
-RESET_REASONS = {0: "unknown", 1: "feature_tracker_restart", 2: "bridge_start",
-                 3: "estimator_failure"}
+RESET_REASONS = {
+    0: "unknown",
+    1: "feature_tracker_restart",
+    2: "bridge_start",
+    3: "estimator_failure",
+}
 
 
 class IngestDecodeError(DecodeError):
@@ -142,20 +146,29 @@ def pack_odometry(stamp_ns: int, xyz, quat_xyzw, covariance=None) -> bytes:
     payload = _POSE.pack(int(stamp_ns), *_floats(xyz, 3, "xyz"), *_floats(quat_xyzw, 4, "quat"))
     if covariance is None:
         return _frame(KIND_ODOMETRY, payload)
-    return _frame(KIND_ODOMETRY, payload + _COV.pack(*_floats(covariance, 36, "covariance")),
-                  FLAG_COVARIANCE)
+    return _frame(
+        KIND_ODOMETRY, payload + _COV.pack(*_floats(covariance, 36, "covariance")), FLAG_COVARIANCE
+    )
 
 
 def pack_keyframe(stamp_ns: int, xyz, quat_xyzw) -> bytes:
-    return _frame(KIND_KEYFRAME,
-                  _POSE.pack(int(stamp_ns), *_floats(xyz, 3, "xyz"),
-                             *_floats(quat_xyzw, 4, "quat")))
+    return _frame(
+        KIND_KEYFRAME,
+        _POSE.pack(int(stamp_ns), *_floats(xyz, 3, "xyz"), *_floats(quat_xyzw, 4, "quat")),
+    )
 
 
 def pack_loop(stamp_old_ns: int, stamp_cur_ns: int, xyz, quat_xyzw, inliers: int) -> bytes:
-    return _frame(KIND_LOOP, _LOOP.pack(int(stamp_old_ns), int(stamp_cur_ns),
-                                        *_floats(xyz, 3, "xyz"), *_floats(quat_xyzw, 4, "quat"),
-                                        int(inliers)))
+    return _frame(
+        KIND_LOOP,
+        _LOOP.pack(
+            int(stamp_old_ns),
+            int(stamp_cur_ns),
+            *_floats(xyz, 3, "xyz"),
+            *_floats(quat_xyzw, 4, "quat"),
+            int(inliers),
+        ),
+    )
 
 
 def pack_reset(stamp_ns: int, reason_code: int, reason: str = "") -> bytes:
@@ -182,8 +195,9 @@ def encode_event(event) -> bytes:
     if isinstance(event, Keyframe):
         return pack_keyframe(event.stamp_ns, *_pose_parts(event.T_odom_body))
     if isinstance(event, LoopClosure):
-        return pack_loop(event.stamp_old_ns, event.stamp_cur_ns, *_pose_parts(event.T_old_cur),
-                         event.inliers)
+        return pack_loop(
+            event.stamp_old_ns, event.stamp_cur_ns, *_pose_parts(event.T_old_cur), event.inliers
+        )
     if isinstance(event, VioReset):
         code = {v: k for k, v in RESET_REASONS.items()}.get(event.reason, RESET_UNKNOWN)
         return pack_reset(event.stamp_ns, code, "" if code else event.reason)
@@ -196,8 +210,9 @@ def encode_event(event) -> bytes:
         parts = [_OBS_HEAD.pack(int(event.stamp_ns), len(obs))]
         for o in obs:
             xyz, q = _pose_parts(o.T_body_object)
-            parts.append(_OBS.pack(int(o.object_id), *xyz, *q,
-                                   *_floats(o.covariance, 36, "covariance")))
+            parts.append(
+                _OBS.pack(int(o.object_id), *xyz, *q, *_floats(o.covariance, 36, "covariance"))
+            )
         return _frame(KIND_OBSERVATIONS, b"".join(parts))
     raise TypeError(f"not an ingest event: {type(event).__name__}")
 
@@ -217,8 +232,9 @@ def _pose(xyz: tuple, quat: tuple, what: str) -> np.ndarray:
         raise IngestDecodeError("out_of_range", f"{what}: expected |xyz| <= 1e6 m, got {a[:3]}")
     norm = float(np.linalg.norm(a[3:]))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
-        raise IngestDecodeError("bad_quaternion",
-                                f"{what}: expected a unit quaternion, got norm {norm:.6g}")
+        raise IngestDecodeError(
+            "bad_quaternion", f"{what}: expected a unit quaternion, got norm {norm:.6g}"
+        )
     return geo.se3_from_xyz_quat_xyzw(a)
 
 
@@ -228,15 +244,17 @@ def _covariance(values: tuple, what: str) -> np.ndarray:
         raise IngestDecodeError("non_finite", f"{what}: expected a finite covariance")
     scale = max(1.0, float(np.max(np.abs(C))))
     if np.max(np.abs(C - C.T)) > 1e-9 * scale or np.any(np.diag(C) < 0):
-        raise IngestDecodeError("bad_covariance",
-                                f"{what}: expected a symmetric covariance with diagonal >= 0")
+        raise IngestDecodeError(
+            "bad_covariance", f"{what}: expected a symmetric covariance with diagonal >= 0"
+        )
     return C
 
 
 def _exact(payload: bytes, size: int, kind: int) -> None:
     if len(payload) != size:
-        raise IngestDecodeError("bad_size", f"{KIND_NAMES[kind]}: expected {size} payload bytes, "
-                                f"got {len(payload)}")
+        raise IngestDecodeError(
+            "bad_size", f"{KIND_NAMES[kind]}: expected {size} payload bytes, got {len(payload)}"
+        )
 
 
 def decode_payload(kind: int, flags: int, payload: bytes):
@@ -264,11 +282,14 @@ def decode_payload(kind: int, flags: int, payload: bytes):
         return LoopClosure(old, cur, _pose(v[2:5], v[5:9], "loop"), int(v[9]))
     if kind == KIND_RESET:
         if not _RESET.size <= len(payload) <= _RESET.size + MAX_RESET_TEXT:
-            raise IngestDecodeError("bad_size", f"reset: expected {_RESET.size}.."
-                                    f"{_RESET.size + MAX_RESET_TEXT} bytes, got {len(payload)}")
+            raise IngestDecodeError(
+                "bad_size",
+                f"reset: expected {_RESET.size}.."
+                f"{_RESET.size + MAX_RESET_TEXT} bytes, got {len(payload)}",
+            )
         stamp, code = _RESET.unpack_from(payload)
         try:
-            text = payload[_RESET.size:].decode("utf-8")
+            text = payload[_RESET.size :].decode("utf-8")
         except UnicodeDecodeError:
             raise IngestDecodeError("bad_text", "reset: reason is not UTF-8") from None
         reason = RESET_REASONS.get(code, f"code_{code}") if code or not text else text
@@ -283,16 +304,22 @@ def decode_payload(kind: int, flags: int, payload: bytes):
             raise IngestDecodeError("bad_size", f"observations: got {len(payload)} bytes")
         stamp, count = _OBS_HEAD.unpack_from(payload)
         if count > MAX_OBSERVATIONS:
-            raise IngestDecodeError("bad_count", f"observations: expected <= {MAX_OBSERVATIONS}, "
-                                    f"got {count}")
+            raise IngestDecodeError(
+                "bad_count", f"observations: expected <= {MAX_OBSERVATIONS}, got {count}"
+            )
         _exact(payload, _OBS_HEAD.size + count * _OBS.size, kind)
         stamp = _stamp(stamp, "observations")
         obs = []
         for i in range(count):
             v = _OBS.unpack_from(payload, _OBS_HEAD.size + i * _OBS.size)
-            obs.append(ObjectObservation(stamp, int(v[0]),
-                                         _pose(v[1:4], v[4:8], f"observation {i}"),
-                                         _covariance(v[8:44], f"observation {i}")))
+            obs.append(
+                ObjectObservation(
+                    stamp,
+                    int(v[0]),
+                    _pose(v[1:4], v[4:8], f"observation {i}"),
+                    _covariance(v[8:44], f"observation {i}"),
+                )
+            )
         return ObservationBatch(stamp, tuple(obs))
     raise IngestDecodeError("unknown_kind", f"expected a kind in 1..6, got {kind}")
 
@@ -305,8 +332,9 @@ def decode_record(data: bytes):
     if magic != MAGIC:
         raise IngestDecodeError("bad_magic", f"expected {MAGIC!r}, got {magic!r}")
     if len(data) != HEADER_SIZE + length:
-        raise IngestDecodeError("bad_size", f"header says {length} payload bytes, "
-                                f"got {len(data) - HEADER_SIZE}")
+        raise IngestDecodeError(
+            "bad_size", f"header says {length} payload bytes, got {len(data) - HEADER_SIZE}"
+        )
     payload = bytes(data[HEADER_SIZE:])
     if zlib.crc32(payload) != crc:
         raise IngestDecodeError("bad_crc", "payload checksum mismatch")
@@ -337,7 +365,7 @@ class StreamDecoder:
         buf = self._buf
         pos = 0
         while pos < len(buf):
-            head = bytes(buf[pos:pos + 4])
+            head = bytes(buf[pos : pos + 4])
             if head != MAGIC[: len(head)]:
                 out.append(IngestDecodeError("bad_magic", "bytes between records that are not one"))
                 pos = _next_candidate(buf, pos + 1)
@@ -353,7 +381,7 @@ class StreamDecoder:
             end = pos + HEADER_SIZE + length
             if end > len(buf):
                 break
-            payload = bytes(buf[pos + HEADER_SIZE:end])
+            payload = bytes(buf[pos + HEADER_SIZE : end])
             if zlib.crc32(payload) != crc:
                 out.append(IngestDecodeError("bad_crc", "payload checksum mismatch"))
                 pos = _next_candidate(buf, pos + 1)  # the length may be what is corrupt
@@ -362,8 +390,9 @@ class StreamDecoder:
             pos = end
             try:
                 if version != VERSION:
-                    raise IngestDecodeError("bad_version",
-                                            f"expected version {VERSION}, got {version}")
+                    raise IngestDecodeError(
+                        "bad_version", f"expected version {VERSION}, got {version}"
+                    )
                 out.append(Record(kind, decode_payload(kind, flags, payload), raw))
             except IngestDecodeError as exc:
                 out.append(exc)
@@ -378,7 +407,7 @@ def _next_candidate(buf: bytearray, start: int) -> int:
     if i >= 0:
         return i
     for k in (3, 2, 1):
-        if len(buf) - k >= start and buf[len(buf) - k:] == MAGIC[:k]:
+        if len(buf) - k >= start and buf[len(buf) - k :] == MAGIC[:k]:
             return len(buf) - k
     return len(buf)
 
@@ -389,12 +418,16 @@ def _length_problem(kind: int, length: int) -> str:
     limit = MAX_PAYLOAD.get(kind, max(MAX_PAYLOAD.values()))
     if length > limit:
         return f"{name}: declared {length} payload bytes, at most {limit} allowed"
-    fixed = {KIND_ODOMETRY: (_POSE.size, _POSE.size + _COV.size), KIND_KEYFRAME: (_POSE.size,),
-             KIND_LOOP: (_LOOP.size,)}.get(kind)
+    fixed = {
+        KIND_ODOMETRY: (_POSE.size, _POSE.size + _COV.size),
+        KIND_KEYFRAME: (_POSE.size,),
+        KIND_LOOP: (_LOOP.size,),
+    }.get(kind)
     if fixed is not None and length not in fixed:
         return f"{name}: declared {length} payload bytes, expected one of {fixed}"
-    if kind == KIND_OBSERVATIONS and (length < _OBS_HEAD.size
-                                      or (length - _OBS_HEAD.size) % _OBS.size):
+    if kind == KIND_OBSERVATIONS and (
+        length < _OBS_HEAD.size or (length - _OBS_HEAD.size) % _OBS.size
+    ):
         return f"{name}: declared {length} payload bytes, not 12 + n x {_OBS.size}"
     if kind == KIND_RESET and length < _RESET.size:
         return f"{name}: declared {length} payload bytes, expected >= {_RESET.size}"
@@ -406,5 +439,6 @@ def iter_records(data: bytes) -> Iterator:
     dec = StreamDecoder()
     yield from dec.feed(data)
     if dec.pending_bytes:
-        yield IngestDecodeError("truncated", f"{dec.pending_bytes} bytes of an incomplete record "
-                                "at the end")
+        yield IngestDecodeError(
+            "truncated", f"{dec.pending_bytes} bytes of an incomplete record at the end"
+        )

@@ -43,8 +43,7 @@ def _read_secret_file(path: str, what: str) -> list[str]:
     mode = stat.S_IMODE(st.st_mode)
     if mode & 0o077:
         raise ConfigError(
-            f"{what} has mode {mode:04o}; expected no group/other access "
-            f"(run: chmod 600 {path})",
+            f"{what} has mode {mode:04o}; expected no group/other access (run: chmod 600 {path})",
             path=path,
         )
     try:
@@ -247,11 +246,15 @@ def load_fleet_public_keys(path: str | os.PathLike) -> tuple[str, dict[int, tupl
     return str(doc.get("fleet", "")), keys
 
 
-def write_fleet_public_keys(path: str | os.PathLike, fleet: str,
-                            keys: Mapping[int, tuple[bytes, ...]]) -> None:
+def write_fleet_public_keys(
+    path: str | os.PathLike, fleet: str, keys: Mapping[int, tuple[bytes, ...]]
+) -> None:
     """Write the fleet public-key file read by ``load_fleet_public_keys`` (overwrites: no secret)."""
-    lines = ["# dran-edge fleet public keys (Ed25519): the same file on every robot",
-             f"fleet: {fleet}", "public_keys:"]
+    lines = [
+        "# dran-edge fleet public keys (Ed25519): the same file on every robot",
+        f"fleet: {fleet}",
+        "public_keys:",
+    ]
     for rid in sorted(keys):
         hexes = [k.hex() for k in keys[rid]]
         lines.append(f"  {rid}: " + (hexes[0] if len(hexes) == 1 else "[" + ", ".join(hexes) + "]"))
@@ -298,8 +301,9 @@ def credentials_from_config(cfg) -> bytes | RobotIdentity:
     other policy, or a neighbour without a public key."""
     key_path = cfg.resolve(cfg.comms.key_file)
     if key_path is None:
-        raise ConfigError("comms.key_file: not set, but comms.transport is 'udp'",
-                          path=cfg.source_path or None)
+        raise ConfigError(
+            "comms.key_file: not set, but comms.transport is 'udp'", path=cfg.source_path or None
+        )
     if cfg.comms.auth == "hmac":
         return load_fleet_key(key_path)
     secret = load_robot_key(key_path)

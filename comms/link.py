@@ -53,8 +53,11 @@ class NeighbourLink:
         self.policy = policy
         self.boot_epoch = int(boot_epoch)
         self.max_datagram_bytes = int(max_datagram_bytes)
-        credentials = (pairwise_keys(key, policy.self_id, policy.fleet_id)
-                       if isinstance(key, PairwiseIdentity) else key)
+        credentials = (
+            pairwise_keys(key, policy.self_id, policy.fleet_id)
+            if isinstance(key, PairwiseIdentity)
+            else key
+        )
         self._signer = make_signer(credentials)
         self.verifier = Verifier(credentials, policy)
         self._next_sequence = int(first_sequence)

@@ -156,13 +156,26 @@ def run_loopback_fleet(spec: FleetSpec, *, timeout_s: float = 60.0) -> dict[int,
         try:
             for i in spec.robot_ids:
                 out = os.path.join(tmp, f"robot{i}.json")
-                cmd = [sys.executable, "-m", "dran_edge.comms.loopback", "--robot", str(i),
-                       "--out", out]
+                cmd = [
+                    sys.executable,
+                    "-m",
+                    "dran_edge.comms.loopback",
+                    "--robot",
+                    str(i),
+                    "--out",
+                    out,
+                ]
                 # stderr to a file, not a pipe: a chatty node must never block on a full pipe.
                 err_path = os.path.join(tmp, f"robot{i}.err")
                 with open(err_path, "w", encoding="utf-8") as err_file:
-                    p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         stderr=err_file, text=True, bufsize=1)
+                    p = subprocess.Popen(
+                        cmd,
+                        stdin=subprocess.PIPE,
+                        stdout=subprocess.PIPE,
+                        stderr=err_file,
+                        text=True,
+                        bufsize=1,
+                    )
                 procs[i] = (p, out, err_path)
                 p.stdin.write(spec.to_json() + "\n")
             ask = _Steward(procs, timeout_s)
@@ -170,8 +183,10 @@ def run_loopback_fleet(spec: FleetSpec, *, timeout_s: float = 60.0) -> dict[int,
             # sent[j][i]: datagrams robot j has sent to robot i so far
             sent = {j: {} for j in spec.robot_ids}
             for k in range(spec.rounds):
-                ask.all(lambda i: f"poll {k} {sum(sent[j].get(i, 0) for j in spec.robot_ids)}",
-                        f"polled {k}")
+                ask.all(
+                    lambda i: f"poll {k} {sum(sent[j].get(i, 0) for j in spec.robot_ids)}",
+                    f"polled {k}",
+                )
                 for j, reply in ask.all(f"step {k}", f"sent {k}").items():
                     sent[j] = {int(q): n for q, n in json.loads(reply).items()}
             ask.all("end", "done")
@@ -220,7 +235,7 @@ class _Steward:
                 self._fail(i, f"exited before answering {answer!r}")
             if not line.startswith(answer):
                 self._fail(i, f"expected {answer!r}, got {line.strip()[:200]!r}")
-            replies[i] = line[len(answer):].strip()
+            replies[i] = line[len(answer) :].strip()
         return replies
 
     def _fail(self, robot: int, what: str):
@@ -230,8 +245,10 @@ class _Steward:
         p.wait()
         with open(err_path, encoding="utf-8", errors="replace") as f:
             err = f.read().strip()[-2000:]
-        raise DranError(f"loopback fleet failed: robot {robot}: {what} (exit {p.returncode})"
-                        + (f": {err}" if err else ""))
+        raise DranError(
+            f"loopback fleet failed: robot {robot}: {what} (exit {p.returncode})"
+            + (f": {err}" if err else "")
+        )
 
 
 def _node_main(robot: int, out: str) -> int:
@@ -275,8 +292,9 @@ def _node_main(robot: int, out: str) -> int:
                 for msg, to in node.step(k, _sorted(received)):
                     link.send_message(msg, to)
                 received = []
-                counts = {str(q): radio.counters.peers[q].datagrams_sent
-                          for q in spec.neighbours(robot)}
+                counts = {
+                    str(q): radio.counters.peers[q].datagrams_sent for q in spec.neighbours(robot)
+                }
                 print(f"sent {k} {json.dumps(counts)}", file=proto)
             elif cmd == "end":
                 break

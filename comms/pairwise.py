@@ -92,8 +92,13 @@ def _hkdf_sha256(ikm: bytes, info: bytes, length: int = 32) -> bytes:
 
 
 def _info(fleet_id: int, sender: int, receiver: int, a_sender: bytes, a_receiver: bytes) -> bytes:
-    return (fleet_id.to_bytes(2, "big") + sender.to_bytes(2, "big") + receiver.to_bytes(2, "big")
-            + a_sender + a_receiver)
+    return (
+        fleet_id.to_bytes(2, "big")
+        + sender.to_bytes(2, "big")
+        + receiver.to_bytes(2, "big")
+        + a_sender
+        + a_receiver
+    )
 
 
 class PairwiseIdentity(RobotIdentity):
@@ -124,15 +129,25 @@ class PairwiseKeys:
             for a_other in publics:
                 try:
                     shared = private.exchange(
-                        x25519.X25519PublicKey.from_public_bytes(montgomery_u(bytes(a_other))))
+                        x25519.X25519PublicKey.from_public_bytes(montgomery_u(bytes(a_other)))
+                    )
                 except ValueError as exc:  # a low-order point: the shared secret would be zero
                     raise ConfigError(
                         f"public key {bytes(a_other).hex()} of robot {robot} cannot be used for "
-                        f"a pair key ({exc})") from None
-                send.append(_hkdf_sha256(shared, _info(self.fleet_id, self.self_id, robot,
-                                                       own_public, bytes(a_other))))
-                recv.append(_hkdf_sha256(shared, _info(self.fleet_id, robot, self.self_id,
-                                                       bytes(a_other), own_public)))
+                        f"a pair key ({exc})"
+                    ) from None
+                send.append(
+                    _hkdf_sha256(
+                        shared,
+                        _info(self.fleet_id, self.self_id, robot, own_public, bytes(a_other)),
+                    )
+                )
+                recv.append(
+                    _hkdf_sha256(
+                        shared,
+                        _info(self.fleet_id, robot, self.self_id, bytes(a_other), own_public),
+                    )
+                )
             self._send[robot], self._recv[robot] = tuple(send), tuple(recv)
             self._choice[robot] = len(send) - 1
 
@@ -158,8 +173,9 @@ class PairwiseKeys:
             self._choice[sender] = index
 
 
-def pairwise_keys(credentials: RobotIdentity | Mapping, self_id: int,
-                  fleet_id: int) -> PairwiseKeys:
+def pairwise_keys(
+    credentials: RobotIdentity | Mapping, self_id: int, fleet_id: int
+) -> PairwiseKeys:
     """``PairwiseKeys`` of a ``PairwiseIdentity`` (the link's policy gives ids)."""
     if not isinstance(credentials, RobotIdentity):
         raise TypeError("pairwise keys need the robot's own secret (a PairwiseIdentity)")

@@ -33,8 +33,9 @@ from dran_edge.errors import DecodeError
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage, ObjectEntry, SeparatorEntry
 
 
-def _read_base_round(data: bytes, pos: int, end: int, h: Header,
-                     is_delta: bool) -> tuple[int | None, int]:
+def _read_base_round(
+    data: bytes, pos: int, end: int, h: Header, is_delta: bool
+) -> tuple[int | None, int]:
     """A delta entry's ``back`` varint as the round of its base; (base round, new pos).
     An absolute entry has none: (None, pos)."""
     if not is_delta:
@@ -135,8 +136,20 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
             f"value block is {end - pos} bytes, counts "
             f"{h.n_separators}/{h.n_objects}/{h.n_init} need {sep_obj_bytes + init_bytes}"
         )
-    return _Ids(sep_ids, obj_ids, init_ids, sep_id_end, obj_id_end, pos, init_bytes, sep_bytes,
-                obj_bytes, tuple(sep_base), tuple(obj_base), tuple(init_base))
+    return _Ids(
+        sep_ids,
+        obj_ids,
+        init_ids,
+        sep_id_end,
+        obj_id_end,
+        pos,
+        init_bytes,
+        sep_bytes,
+        obj_bytes,
+        tuple(sep_base),
+        tuple(obj_base),
+        tuple(init_base),
+    )
 
 
 def _kind_split(h: Header, ids: _Ids) -> dict[str, int]:
@@ -212,8 +225,9 @@ class _ValueReader:
             return self.delta_value(key, kind, base, n)
         if rotation:
             nb = _rotation_value_bytes(dim)
-            v = np.frombuffer(self.data, dtype="<f4", count=dim * dim,
-                              offset=self.pos).astype(np.float64)
+            v = np.frombuffer(self.data, dtype="<f4", count=dim * dim, offset=self.pos).astype(
+                np.float64
+            )
             if not np.all(np.isfinite(v)):
                 raise DecodeError("init rotation value is NaN or inf")
             v = v.reshape(dim, dim)
@@ -243,28 +257,33 @@ def decode_datagram(data: bytes, delta: dl.DeltaDecoder | None = None) -> Neighb
     for k, base in enumerate(ids.sep_base if h.delta else ()):
         if base is not None and sep_T[k] is not None:  # a delta entry's stamp: its key's
             ids.sep[k] = (*ids.sep[k][:2], delta.stamp(sep_keys[k]))
-    obj_T = reader.poses([("o", oid) for oid, *_ in ids.obj], ids.obj_base,
-                         [None] * len(ids.obj))
+    obj_T = reader.poses([("o", oid) for oid, *_ in ids.obj], ids.obj_base, [None] * len(ids.obj))
     bases = ids.init_base if h.delta else (None,) * len(ids.init)
-    init_values = [reader.init_value(stage, owner, kf, base)
-                   for (stage, owner, kf), base in zip(ids.init, bases)]
+    init_values = [
+        reader.init_value(stage, owner, kf, base)
+        for (stage, owner, kf), base in zip(ids.init, bases)
+    ]
     return _message(h, ids, sep_T, obj_T, init_values, len(data), reader.unresolved)
 
 
-def _message(h: Header, ids: _Ids, sep_T: list, obj_T: list, init_values: list,
-             n_bytes: int, unresolved: int) -> NeighbourMessage:
+def _message(
+    h: Header, ids: _Ids, sep_T: list, obj_T: list, init_values: list, n_bytes: int, unresolved: int
+) -> NeighbourMessage:
     """The decoded entries (those with a value) as a ``NeighbourMessage``."""
     separators = tuple(
         SeparatorEntry(owner, kf, stamp, sep_T[i])
-        for i, (owner, kf, stamp) in enumerate(ids.sep) if sep_T[i] is not None
+        for i, (owner, kf, stamp) in enumerate(ids.sep)
+        if sep_T[i] is not None
     )
     objects = tuple(
         ObjectEntry(oid, obj_T[i], origin, hops, support)
-        for i, (oid, origin, hops, support) in enumerate(ids.obj) if obj_T[i] is not None
+        for i, (oid, origin, hops, support) in enumerate(ids.obj)
+        if obj_T[i] is not None
     )
     init = tuple(
         InitEntry(stage, owner, kf, init_values[i])
-        for i, (stage, owner, kf) in enumerate(ids.init) if init_values[i] is not None
+        for i, (stage, owner, kf) in enumerate(ids.init)
+        if init_values[i] is not None
     )
     by_kind = _kind_split(h, ids)
     return NeighbourMessage(
@@ -278,8 +297,12 @@ def _message(h: Header, ids: _Ids, sep_T: list, obj_T: list, init_values: list,
         boot_epoch=h.boot_epoch,
         sequence=h.sequence,
         done_count=h.done_count,
-        extra={"datagram_bytes": n_bytes, "bytes_by_kind": by_kind, "dim": h.dim,
-               "delta_unresolved": unresolved},
+        extra={
+            "datagram_bytes": n_bytes,
+            "bytes_by_kind": by_kind,
+            "dim": h.dim,
+            "delta_unresolved": unresolved,
+        },
     )
 
 

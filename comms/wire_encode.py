@@ -51,7 +51,9 @@ from dran_edge.messages import InitStage, NeighbourMessage, ObjectEntry
 def _support(e: ObjectEntry) -> int:
     support = int(e.support)
     if not 0 <= support <= _U16_MAX:
-        raise EncodeError(f"object {e.object_id}: support must be in [0, {_U16_MAX}], got {support}")
+        raise EncodeError(
+            f"object {e.object_id}: support must be in [0, {_U16_MAX}], got {support}"
+        )
     return support
 
 
@@ -111,16 +113,23 @@ class _EntryRecords:
             raise EncodeError(f"separator stamp_ns must be >= 0, got {e.stamp_ns}")
         self.kinds.append(KIND_SEPARATOR)
         if self.delta is None:
-            self.ids.append(_varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
-                            + _varint(_zigzag(int(e.stamp_ns) - self.stamp)))
+            self.ids.append(
+                _varint(int(e.owner_robot))
+                + _varint(int(e.keyframe_id))
+                + _varint(_zigzag(int(e.stamp_ns) - self.stamp))
+            )
             return
         key = ("s", int(e.owner_robot), int(e.keyframe_id))
-        d = self.as_delta(key, dl.POSE, np.asarray(e.T_world_body, np.float64),
-                          lambda: self.decoded[k])
+        d = self.as_delta(
+            key, dl.POSE, np.asarray(e.T_world_body, np.float64), lambda: self.decoded[k]
+        )
         kf = _varint(int(e.keyframe_id))
         if d is None:
-            self.ids.append(_varint(int(e.owner_robot) << 1) + kf
-                            + _varint(_zigzag(int(e.stamp_ns) - self.stamp)))
+            self.ids.append(
+                _varint(int(e.owner_robot) << 1)
+                + kf
+                + _varint(_zigzag(int(e.stamp_ns) - self.stamp))
+            )
         else:
             self.ids.append(_varint((int(e.owner_robot) << 1) | 1) + kf + _varint(d[0]))
             self.values[k] = d[1]
@@ -128,18 +137,27 @@ class _EntryRecords:
     def object(self, k: int, e: ObjectEntry) -> None:
         self.kinds.append(KIND_OBJECT)
         if self.delta is None:
-            self.ids.append(_varint(int(e.object_id)) + _varint(int(e.origin_robot))
-                            + _varint(int(e.hop_count)) + _varint(_support(e)))
+            self.ids.append(
+                _varint(int(e.object_id))
+                + _varint(int(e.origin_robot))
+                + _varint(int(e.hop_count))
+                + _varint(_support(e))
+            )
             return
-        d = self.as_delta(("o", int(e.object_id)), dl.POSE,
-                          np.asarray(e.T_world_object, np.float64), lambda: self.decoded[k])
+        d = self.as_delta(
+            ("o", int(e.object_id)),
+            dl.POSE,
+            np.asarray(e.T_world_object, np.float64),
+            lambda: self.decoded[k],
+        )
         oid = _varint(int(e.object_id))
         hops_support = _varint(int(e.hop_count)) + _varint(_support(e))
         if d is None:
             self.ids.append(oid + _varint(int(e.origin_robot) << 1) + hops_support)
         else:
-            self.ids.append(oid + _varint((int(e.origin_robot) << 1) | 1) + hops_support
-                            + _varint(d[0]))
+            self.ids.append(
+                oid + _varint((int(e.origin_robot) << 1) | 1) + hops_support + _varint(d[0])
+            )
             self.values[k] = d[1]
 
     def init(self, e) -> None:
@@ -161,9 +179,16 @@ class _EntryRecords:
         d = None
         if self.delta is not None and stage.delta_allowed:
             key = ("i", int(stage), int(e.owner_robot), int(e.keyframe_id))
-            d = self.as_delta(key, dl.LINEAR if rotation else dl.POSE, v, lambda: (
-                np.frombuffer(value, "<f4").astype(np.float64).reshape(dim, dim)
-                if rotation else _decode_poses(value, dim)[0]))
+            d = self.as_delta(
+                key,
+                dl.LINEAR if rotation else dl.POSE,
+                v,
+                lambda: (
+                    np.frombuffer(value, "<f4").astype(np.float64).reshape(dim, dim)
+                    if rotation
+                    else _decode_poses(value, dim)[0]
+                ),
+            )
         if d is None:
             self.ids.append(bytes([int(stage)]) + who)
             self.values.append(value)
@@ -199,8 +224,9 @@ def _message_dim(message: NeighbourMessage) -> int:
     return dim
 
 
-def _check_header_fields(message: NeighbourMessage, fleet_id: int, boot_epoch: int,
-                         max_datagram_bytes: int) -> None:
+def _check_header_fields(
+    message: NeighbourMessage, fleet_id: int, boot_epoch: int, max_datagram_bytes: int
+) -> None:
     if not MIN_DATAGRAM_BYTES <= max_datagram_bytes <= HARD_CAP_BYTES:
         raise EncodeError(
             f"max_datagram_bytes must be in [{MIN_DATAGRAM_BYTES}, "
@@ -219,8 +245,9 @@ def _check_header_fields(message: NeighbourMessage, fleet_id: int, boot_epoch: i
         )
 
 
-def _groups(kinds: list[str], ids: list[bytes], values: list[bytes],
-            budget: int) -> list[tuple[int, int]]:
+def _groups(
+    kinds: list[str], ids: list[bytes], values: list[bytes], budget: int
+) -> list[tuple[int, int]]:
     """Entry ranges [a, b) filling datagrams greedily, each within ``budget`` bytes."""
     n = len(kinds)
     groups: list[tuple[int, int]] = []
@@ -337,8 +364,12 @@ def encoded_size(
 ) -> ByteCount:
     """Datagrams and bytes ``message`` takes (sequence/epoch values do not change the size)."""
     grams = encode_datagrams(
-        message, fleet_id=0, boot_epoch=0, first_sequence=0,
-        max_datagram_bytes=max_datagram_bytes, signed=signed,
+        message,
+        fleet_id=0,
+        boot_epoch=0,
+        first_sequence=0,
+        max_datagram_bytes=max_datagram_bytes,
+        signed=signed,
     )
     return ByteCount(
         len(grams), sum(len(g.data) for g in grams), sum_kinds(g.bytes_by_kind for g in grams)

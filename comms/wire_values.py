@@ -198,4 +198,3 @@ def _decode_poses(buf: bytes, dim: int) -> np.ndarray:
     if rec.shape[0] == 0:
         return np.zeros((0, dim + 1, dim + 1))
     return _decode_poses3(rec) if dim == 3 else _decode_poses2(rec)
-

@@ -6,10 +6,18 @@ calls it. Linux only (reads /proc/self/maps); elsewhere a no-op.
 
 from __future__ import annotations
 
-_BLAS_SET = ("openblas_set_num_threads", "openblas_set_num_threads64_",
-             "scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads")
-_BLAS_GET = ("openblas_get_num_threads", "openblas_get_num_threads64_",
-             "scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads")
+_BLAS_SET = (
+    "openblas_set_num_threads",
+    "openblas_set_num_threads64_",
+    "scipy_openblas_set_num_threads64_",
+    "scipy_openblas_set_num_threads",
+)
+_BLAS_GET = (
+    "openblas_get_num_threads",
+    "openblas_get_num_threads64_",
+    "scipy_openblas_get_num_threads64_",
+    "scipy_openblas_get_num_threads",
+)
 
 
 def set_blas_threads(n: int | None) -> dict[str, int]:
@@ -26,8 +34,9 @@ def set_blas_threads(n: int | None) -> dict[str, int]:
     previous: dict[str, int] = {}
     try:
         with open("/proc/self/maps", encoding="utf-8") as f:
-            paths = sorted({line.split()[-1] for line in f
-                            if "openblas" in line.lower() and ".so" in line})
+            paths = sorted(
+                {line.split()[-1] for line in f if "openblas" in line.lower() and ".so" in line}
+            )
     except OSError:
         return previous
     for path in paths:

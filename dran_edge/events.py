@@ -84,9 +84,7 @@ class Tick:
     stamp_ns: int
 
 
-Event = (
-    OdometrySample | Keyframe | LoopClosure | VioReset | ObservationBatch | NeighbourData | Tick
-)
+Event = OdometrySample | Keyframe | LoopClosure | VioReset | ObservationBatch | NeighbourData | Tick
 
 
 # --------------------------------------------------------------------------- outputs

@@ -51,15 +51,22 @@ class InitStage(enum.IntEnum):
     @property
     def matrix_valued(self) -> bool:
         """True when the value is a d x d matrix (else a pose)."""
-        return self in (InitStage.ROTATION, InitStage.ROTATION_FRAME, InitStage.ROTATION_SCHUR,
-                        InitStage.TRANSLATION_SCHUR) or not self.delta_allowed
+        return (
+            self
+            in (
+                InitStage.ROTATION,
+                InitStage.ROTATION_FRAME,
+                InitStage.ROTATION_SCHUR,
+                InitStage.TRANSLATION_SCHUR,
+            )
+            or not self.delta_allowed
+        )
 
     @property
     def delta_allowed(self) -> bool:
         """False for the refinement stages: their values always travel absolute (float32),
         never as quantised deltas (a condensed system needs every digit float32 keeps)."""
-        return self not in (InitStage.REFINE_SCHUR, InitStage.REFINE_STEP,
-                            InitStage.REFINE_CONTROL)
+        return self not in (InitStage.REFINE_SCHUR, InitStage.REFINE_STEP, InitStage.REFINE_CONTROL)
 
 
 @dataclass(frozen=True, eq=False)

@@ -43,8 +43,9 @@ def _load_yaml(path: Path) -> Any:
         for key_node, value_node in node.value:
             key = loader.construct_object(key_node, deep=True)
             if key in out:
-                raise ConfigError(f"duplicate key {key!r}", path=str(path),
-                                  line=key_node.start_mark.line + 1)
+                raise ConfigError(
+                    f"duplicate key {key!r}", path=str(path), line=key_node.start_mark.line + 1
+                )
             out[key] = loader.construct_object(value_node, deep=True)
             out.lines[key] = key_node.start_mark.line + 1
         return out
@@ -58,8 +59,11 @@ def _load_yaml(path: Path) -> Any:
         return yaml.load(text, Loader=Loader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        raise ConfigError(f"not valid YAML: {getattr(exc, 'problem', exc)}", path=str(path),
-                          line=mark.line + 1 if mark else None) from exc
+        raise ConfigError(
+            f"not valid YAML: {getattr(exc, 'problem', exc)}",
+            path=str(path),
+            line=mark.line + 1 if mark else None,
+        ) from exc
 
 
 class _Reader:
@@ -68,8 +72,11 @@ class _Reader:
     def __init__(self, path: Path, node: Any, where: str = "", line: int | None = None):
         self.path, self.where = path, where
         if not isinstance(node, dict):
-            raise ConfigError(f"{where or 'top level'}: expected a mapping, got "
-                              f"{type(node).__name__}", path=str(path), line=line)
+            raise ConfigError(
+                f"{where or 'top level'}: expected a mapping, got {type(node).__name__}",
+                path=str(path),
+                line=line,
+            )
         self.node = node
         self.line = getattr(node, "line", line)
 
@@ -81,8 +88,10 @@ class _Reader:
     def check_keys(self, required: set[str], optional: set[str] = frozenset()) -> None:
         unknown = set(self.node) - required - set(optional)
         if unknown:
-            raise self.fail(sorted(map(str, unknown))[0],
-                            f"unknown key; expected one of {sorted(required | set(optional))}")
+            raise self.fail(
+                sorted(map(str, unknown))[0],
+                f"unknown key; expected one of {sorted(required | set(optional))}",
+            )
         missing = required - set(self.node)
         if missing:
             raise self.fail(None, f"missing key(s) {sorted(missing)}")
@@ -111,16 +120,20 @@ class _Reader:
 
     def vector(self, key: str, n: int) -> np.ndarray:
         v = self.node.get(key)
-        if (not isinstance(v, list) or len(v) != n
-                or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
-                or not np.all(np.isfinite(v))):
+        if (
+            not isinstance(v, list)
+            or len(v) != n
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
+            or not np.all(np.isfinite(v))
+        ):
             raise self.fail(key, f"expected a list of {n} finite numbers, got {v!r}")
         return np.asarray(v, dtype=np.float64)
 
     def child(self, key: str) -> _Reader:
         line = self.node.lines.get(key) if hasattr(self.node, "lines") else None
-        return _Reader(self.path, self.node.get(key), f"{self.where}.{key}" if self.where else key,
-                       line)
+        return _Reader(
+            self.path, self.node.get(key), f"{self.where}.{key}" if self.where else key, line
+        )
 
     def pose(self, key: str) -> np.ndarray:
         """``{xyz: [x, y, z], quat_xyzw: [qx, qy, qz, qw]}`` -> 4x4 (quaternion must be unit)."""
@@ -128,8 +141,9 @@ class _Reader:
         r.check_keys({"xyz", "quat_xyzw"})
         xyz, q = r.vector("xyz", 3), r.vector("quat_xyzw", 4)
         if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise r.fail("quat_xyzw",
-                         f"expected a unit quaternion, got norm {np.linalg.norm(q):.6f}")
+            raise r.fail(
+                "quat_xyzw", f"expected a unit quaternion, got norm {np.linalg.norm(q):.6f}"
+            )
         return geo.se3_from_xyz_quat_xyzw(np.concatenate([xyz, q / np.linalg.norm(q)]))
 
 
@@ -151,11 +165,17 @@ class TagMap:
         # precomputed for the per-frame path: T_tag_object and Adj(T_object_tag)
         object.__setattr__(self, "T_tag_object", geo.se3_inverse(self.T_object_tag))
         object.__setattr__(self, "adjoint_object_tag", geo.se3_adjoint(self.T_object_tag))
-        half = self.size_m[:, None, None] / 2 * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0],
-                                                    [-1.0, -1.0]])[None]  # detector corner order
-        object.__setattr__(self, "corners_object",
-                           np.einsum("kij,knj->kni", self.T_object_tag[:, :3, :2], half)
-                           + self.T_object_tag[:, None, :3, 3])
+        half = (
+            self.size_m[:, None, None]
+            / 2
+            * np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0]])[None]
+        )  # detector corner order
+        object.__setattr__(
+            self,
+            "corners_object",
+            np.einsum("kij,knj->kni", self.T_object_tag[:, :3, :2], half)
+            + self.T_object_tag[:, None, :3, 3],
+        )
 
     @property
     def index(self) -> dict:
@@ -201,8 +221,14 @@ def load_tag_map(path: str | Path) -> TagMap:
             object_ids.append(oid)
             sizes.append(tag.number("size_m", 0.005, 2.0))
             poses.append(tag.pose("T_object_tag"))
-    return TagMap(family, np.asarray(tag_ids, np.int64), np.asarray(object_ids, np.int64),
-                  np.stack(poses), np.asarray(sizes), names)
+    return TagMap(
+        family,
+        np.asarray(tag_ids, np.int64),
+        np.asarray(object_ids, np.int64),
+        np.stack(poses),
+        np.asarray(sizes),
+        names,
+    )
 
 
 # --------------------------------------------------------------------------- cameras
@@ -227,8 +253,10 @@ def load_camera(path: str | Path) -> CameraCalib:
     """Load ``cameras/<robot>.yaml`` (docs/calibration.md)."""
     path = Path(path)
     top = _Reader(path, _load_yaml(path))
-    top.check_keys({"format", "robot", "width", "height", "intrinsics", "T_body_camera"},
-                   {"distortion", "depth_unit_m", "model"})
+    top.check_keys(
+        {"format", "robot", "width", "height", "intrinsics", "T_body_camera"},
+        {"distortion", "depth_unit_m", "model"},
+    )
     if top.node["format"] != CAMERA_FORMAT:
         raise top.fail("format", f"expected {CAMERA_FORMAT!r}, got {top.node['format']!r}")
     width, height = top.integer("width", 16, 10000), top.integer("height", 16, 10000)
@@ -264,10 +292,13 @@ def load_calibration(calib_dir: str | Path, robot: str) -> Calibration:
     camera_path = calib_dir / "cameras" / f"{robot}.yaml"
     if not camera_path.exists():
         known = sorted(p.stem for p in (calib_dir / "cameras").glob("*.yaml"))
-        raise ConfigError(f"no camera file for robot {robot!r}; found {known}",
-                          path=str(camera_path))
+        raise ConfigError(
+            f"no camera file for robot {robot!r}; found {known}", path=str(camera_path)
+        )
     camera = load_camera(camera_path)
     if camera.robot != robot:
-        raise ConfigError(f"robot: expected {robot!r} (the file name), got {camera.robot!r}",
-                          path=str(camera_path))
+        raise ConfigError(
+            f"robot: expected {robot!r} (the file name), got {camera.robot!r}",
+            path=str(camera_path),
+        )
     return Calibration(camera=camera, tags=load_tag_map(calib_dir / "tags.yaml"))

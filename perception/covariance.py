@@ -49,8 +49,9 @@ def linearise(K: np.ndarray, T: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, 
     xy = p[..., :2] * inv_z  # normalised coordinates (..., N, 2)
     f = K[[0, 1], [0, 1]]
     # a_i = (f_i / z) (R_i - xy_i R_2): translation rows, (..., N, 2, 3)
-    a = (R[..., None, :2, :] - xy[..., :, None] * R[..., None, 2:3, :]) * (f[:, None]
-                                                                             * inv_z[..., None])
+    a = (R[..., None, :2, :] - xy[..., :, None] * R[..., None, 2:3, :]) * (
+        f[:, None] * inv_z[..., None]
+    )
     J = np.empty(a.shape[:-1] + (6,))
     J[..., :3] = a
     Pb = P[..., None, :]

@@ -55,25 +55,34 @@ class Frame:
 
     def __post_init__(self) -> None:
         c = self.colour
-        if not (isinstance(c, np.ndarray) and c.dtype == np.uint8 and c.ndim == 3
-                and c.shape[2] == 3):
-            raise InputError(f"frame colour: expected uint8 (H, W, 3), got "
-                             f"{getattr(c, 'dtype', type(c))} {getattr(c, 'shape', '')}")
+        if not (
+            isinstance(c, np.ndarray) and c.dtype == np.uint8 and c.ndim == 3 and c.shape[2] == 3
+        ):
+            raise InputError(
+                f"frame colour: expected uint8 (H, W, 3), got "
+                f"{getattr(c, 'dtype', type(c))} {getattr(c, 'shape', '')}"
+            )
         d = self.depth
-        if d is not None and not (isinstance(d, np.ndarray) and d.dtype == np.uint16
-                                  and d.shape == c.shape[:2]):
-            raise InputError(f"frame depth: expected uint16 {c.shape[:2]}, got "
-                             f"{getattr(d, 'dtype', type(d))} {getattr(d, 'shape', '')}")
+        if d is not None and not (
+            isinstance(d, np.ndarray) and d.dtype == np.uint16 and d.shape == c.shape[:2]
+        ):
+            raise InputError(
+                f"frame depth: expected uint16 {c.shape[:2]}, got "
+                f"{getattr(d, 'dtype', type(d))} {getattr(d, 'shape', '')}"
+            )
 
 
-def frame_to_bytes(frame: Frame, colour_codec: str = "png", depth_codec: str = "png",
-                   jpeg_quality: int = 95) -> bytes:
+def frame_to_bytes(
+    frame: Frame, colour_codec: str = "png", depth_codec: str = "png", jpeg_quality: int = 95
+) -> bytes:
     """Encode a frame (layout in the module docstring)."""
     import cv2
 
     if colour_codec not in COLOUR_CODECS or depth_codec not in DEPTH_CODECS:
-        raise InputError(f"frame codecs: expected colour in {list(COLOUR_CODECS)} and depth in "
-                         f"{list(DEPTH_CODECS)}, got {colour_codec!r}, {depth_codec!r}")
+        raise InputError(
+            f"frame codecs: expected colour in {list(COLOUR_CODECS)} and depth in "
+            f"{list(DEPTH_CODECS)}, got {colour_codec!r}, {depth_codec!r}"
+        )
     h, w = frame.colour.shape[:2]
     cam = frame.camera_id.encode()
     if len(cam) > MAX_CAMERA_ID_BYTES:
@@ -96,9 +105,19 @@ def frame_to_bytes(frame: Frame, colour_codec: str = "png", depth_codec: str = "
             if not ok:
                 raise InputError("frame depth: OpenCV could not encode PNG")
             depth = buf.tobytes()
-    header = FRAME_HEADER.pack(MAGIC, VERSION, 1 if frame.depth is not None else 0,
-                               COLOUR_CODECS[colour_codec], DEPTH_CODECS[depth_codec],
-                               int(frame.stamp_ns), w, h, len(colour), len(depth), len(cam))
+    header = FRAME_HEADER.pack(
+        MAGIC,
+        VERSION,
+        1 if frame.depth is not None else 0,
+        COLOUR_CODECS[colour_codec],
+        DEPTH_CODECS[depth_codec],
+        int(frame.stamp_ns),
+        w,
+        h,
+        len(colour),
+        len(depth),
+        len(cam),
+    )
     return b"".join((header, cam, colour, depth))
 
 
@@ -109,8 +128,9 @@ def frame_from_bytes(data: bytes) -> Frame:
     data = bytes(data)
     if len(data) < FRAME_HEADER.size:
         raise DecodeError(f"frame: expected >= {FRAME_HEADER.size} header bytes, got {len(data)}")
-    (magic, version, flags, ccodec, dcodec, stamp_ns, w, h, clen, dlen,
-     idlen) = FRAME_HEADER.unpack_from(data)
+    (magic, version, flags, ccodec, dcodec, stamp_ns, w, h, clen, dlen, idlen) = (
+        FRAME_HEADER.unpack_from(data)
+    )
     if magic != MAGIC:
         raise DecodeError(f"frame: expected magic {MAGIC!r}, got {magic!r}")
     if version != VERSION:

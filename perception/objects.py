@@ -60,8 +60,9 @@ def fuse_objects(
     mp = map_pos.tolist()
     use_l = [i for i, ok in enumerate(tag_poses.accepted.tolist()) if ok and mp[i] >= 0]
     if not use_l:
-        return ObjectPoses(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)),
-                           np.zeros(0, np.int64))
+        return ObjectPoses(
+            np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)), np.zeros(0, np.int64)
+        )
     pos_l = [mp[i] for i in use_l]
     groups: dict[int, list[int]] = {}
     for k, o in enumerate(object_id_of_pos[pos_l].tolist()):

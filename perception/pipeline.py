@@ -63,16 +63,26 @@ class ObservationPipeline:
         self.calib = calib
         self.params = params or PipelineParams()
         if calib.tags.family != self.params.detector.family:
-            log.warning("tag map family %s differs from detector family %s",
-                        calib.tags.family, self.params.detector.family)
+            log.warning(
+                "tag map family %s differs from detector family %s",
+                calib.tags.family,
+                self.params.detector.family,
+            )
         self.detector = TagDetector(self.params.detector)
         cam = calib.camera
         self._undistort = bool(np.any(cam.distortion != 0))
         depth_mm_per_unit = cam.depth_unit_m / 1e-3
         self._depth_scale = None if abs(depth_mm_per_unit - 1.0) < 1e-12 else depth_mm_per_unit
-        log.info("perception for %s: %dx%d, K=%s, tags=%d, objects=%d, params=%s", cam.robot,
-                 cam.width, cam.height, cam.K.tolist(), calib.tags.tag_id.size,
-                 len(calib.tags.object_names), self.params)
+        log.info(
+            "perception for %s: %dx%d, K=%s, tags=%d, objects=%d, params=%s",
+            cam.robot,
+            cam.width,
+            cam.height,
+            cam.K.tolist(),
+            calib.tags.tag_id.size,
+            len(calib.tags.object_names),
+            self.params,
+        )
 
     def process(self, frame: Frame) -> ObservationBatch:
         """The observation batch of one frame (see the module docstring)."""
@@ -84,8 +94,10 @@ class ObservationPipeline:
         if (w, h) != (cam.width, cam.height):
             from dran_edge.errors import InputError
 
-            raise InputError(f"frame {frame.stamp_ns}: expected {cam.width}x{cam.height} "
-                             f"(calibration of {cam.robot}), got {w}x{h}")
+            raise InputError(
+                f"frame {frame.stamp_ns}: expected {cam.width}x{cam.height} "
+                f"(calibration of {cam.robot}), got {w}x{h}"
+            )
         det = self.detector.detect(to_gray(frame.colour))
         corners = det.corners
         if self._undistort and len(det):
@@ -102,15 +114,29 @@ class ObservationPipeline:
         if depth is not None and self._depth_scale is not None:
             depth = np.clip(depth * self._depth_scale, 0, 65535).astype(np.uint16)
         tp = estimate_tag_poses(det, cam.K, size, (w, h), depth, p.tag_pose)
-        objs = fuse_objects(cam.K, cam.T_body_camera, corners, tp, map_pos, tags.object_id,
-                            tags.T_tag_object, tags.adjoint_object_tag, tags.corners_object,
-                            p.tag_pose.max_reproj_px, p.fuse_iterations,
-                            p.tag_pose.inflate_by_residual)
+        objs = fuse_objects(
+            cam.K,
+            cam.T_body_camera,
+            corners,
+            tp,
+            map_pos,
+            tags.object_id,
+            tags.T_tag_object,
+            tags.adjoint_object_tag,
+            tags.corners_object,
+            p.tag_pose.max_reproj_px,
+            p.fuse_iterations,
+            p.tag_pose.inflate_by_residual,
+        )
         batch = ObservationBatch(
             stamp_ns=int(frame.stamp_ns),
             observations=tuple(
-                ObjectObservation(int(frame.stamp_ns), int(objs.object_id[i]),
-                                  objs.T_body_object[i], objs.covariance[i])
+                ObjectObservation(
+                    int(frame.stamp_ns),
+                    int(objs.object_id[i]),
+                    objs.T_body_object[i],
+                    objs.covariance[i],
+                )
                 for i in range(objs.object_id.size)
             ),
         )
@@ -133,13 +159,17 @@ def _camera_file(cfg) -> Path:
 
     base = cfg.resolve(cfg.camera.calib_dir)
     if base is None:
-        raise ConfigError("camera.calib_dir: expected the robot's camera file or its directory, "
-                          "got nothing", path=cfg.source_path or None)
+        raise ConfigError(
+            "camera.calib_dir: expected the robot's camera file or its directory, got nothing",
+            path=cfg.source_path or None,
+        )
     for candidate in (base, Path(str(base) + ".yaml"), base / f"{cfg.robot.name}.yaml"):
         if candidate.is_file():
             return candidate
-    raise ConfigError(f"camera.calib_dir: no camera file at {base}, {base}.yaml or "
-                      f"{base}/{cfg.robot.name}.yaml", path=cfg.source_path or None)
+    raise ConfigError(
+        f"camera.calib_dir: no camera file at {base}, {base}.yaml or {base}/{cfg.robot.name}.yaml",
+        path=cfg.source_path or None,
+    )
 
 
 def calibration_from_config(cfg) -> Calibration:
@@ -154,9 +184,11 @@ def calibration_from_config(cfg) -> Calibration:
     camera_path = _camera_file(cfg)
     camera = load_camera(camera_path)
     if (camera.width, camera.height) != (cfg.camera.width, cfg.camera.height):
-        raise ConfigError(f"camera.width/height: {cfg.camera.width}x{cfg.camera.height}, but "
-                          f"{camera_path} is calibrated for {camera.width}x{camera.height}",
-                          path=cfg.source_path or None)
+        raise ConfigError(
+            f"camera.width/height: {cfg.camera.width}x{cfg.camera.height}, but "
+            f"{camera_path} is calibrated for {camera.width}x{camera.height}",
+            path=cfg.source_path or None,
+        )
     tags_path = cfg.resolve(cfg.camera.tags_file) or camera_path.parent.parent / "tags.yaml"
     return Calibration(camera=camera, tags=load_tag_map(tags_path))
 
@@ -197,8 +229,9 @@ def make_observation_source(cfg, frames=None, params: PipelineParams | None = No
 
         return produce_forwarded
     if cam.source == "realsense":
-        source = sources.RealSenseSource(serial=cam.serial or None, width=cam.width,
-                                         height=cam.height, fps=cam.fps)
+        source = sources.RealSenseSource(
+            serial=cam.serial or None, width=cam.width, height=cam.height, fps=cam.fps
+        )
     elif cam.source == "oak":
         source = sources.DepthAISource(fps=cam.fps)
     elif cam.source == "recorded":

@@ -12,8 +12,13 @@ from dran_edge.config import load_config
 from dran_edge.events import ObservationBatch
 
 
-def perceive_frames(config_path: str | Path, calib_dir: str | Path, name: str,
-                    lo_ns: int = 0, hi_ns: int = 2**63 - 1) -> tuple[list[ObservationBatch], int]:
+def perceive_frames(
+    config_path: str | Path,
+    calib_dir: str | Path,
+    name: str,
+    lo_ns: int = 0,
+    hi_ns: int = 2**63 - 1,
+) -> tuple[list[ObservationBatch], int]:
     """One robot's recorded frames with stamps in [lo_ns, hi_ns) through the perception
     pipeline -> (the observation batches that hold observations, frames read). Encoded as
     ingest records, these are what the daemon journals."""

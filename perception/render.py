@@ -125,16 +125,26 @@ class TagRenderer:
                 for _ in range(60):
                     x, y = rng.integers(0, [width, height])
                     dx, dy = rng.integers(8, [160, 120])
-                    cv2.rectangle(bg, (int(x), int(y)), (int(x + dx), int(y + dy)),
-                                  float(rng.uniform(30, 230)), -1 if rng.random() < 0.7 else 2)
+                    cv2.rectangle(
+                        bg,
+                        (int(x), int(y)),
+                        (int(x + dx), int(y + dy)),
+                        float(rng.uniform(30, 230)),
+                        -1 if rng.random() < 0.7 else 2,
+                    )
                 fine = rng.normal(0, 12, size=(height // 4 + 1, width // 4 + 1))
                 bg += cv2.resize(fine, (width, height), interpolation=cv2.INTER_LINEAR)
             for _ in range(30 if clutter else 12):
                 p0 = rng.integers(0, [width, height])
                 p1 = p0 + rng.integers(-200, 200, size=2)
                 level = float(rng.uniform(60, 200))
-                cv2.line(bg, tuple(int(v) for v in p0), tuple(int(v) for v in p1), level,
-                         int(rng.integers(1, 4)) if clutter else 3)
+                cv2.line(
+                    bg,
+                    tuple(int(v) for v in p0),
+                    tuple(int(v) for v in p1),
+                    level,
+                    int(rng.integers(1, 4)) if clutter else 3,
+                )
             bg = np.clip(bg, 0, 255).astype(np.uint8)
             self._backgrounds[key] = bg
         return bg
@@ -182,8 +192,9 @@ class TagRenderer:
         depth_mm = np.full((height, width), depth.background_depth_mm, np.uint16)
         order = np.argsort(-poses[:, 2, 3])  # far to near
         for k in order:
-            self._draw_tag(gray, depth_mm, K, poses[k], ids[k], float(sizes[k]), float(occ[k]),
-                           rng, depth)
+            self._draw_tag(
+                gray, depth_mm, K, poses[k], ids[k], float(sizes[k]), float(occ[k]), rng, depth
+            )
         img = gray.astype(np.float32) if (lighting or noise_sigma > 0) else gray
         if lighting is not None:
             img = self._apply_lighting(img, lighting)
@@ -220,8 +231,12 @@ class TagRenderer:
         q = self.quiet_zone_modules
         half_face = size_m / 2 * (8 + 2 * q) / 8
         face_tag = np.array(
-            [[-half_face, -half_face], [half_face, -half_face], [half_face, half_face],
-             [-half_face, half_face]]
+            [
+                [-half_face, -half_face],
+                [half_face, -half_face],
+                [half_face, half_face],
+                [-half_face, half_face],
+            ]
         )
         R, t = T[:3, :3], T[:3, 3]
         face_cam = face_tag @ R[:, :2].T + t
@@ -243,22 +258,31 @@ class TagRenderer:
         # texture (u, v) with pixel centres at integers -> tag (x, y): u grows along -x, v along -y
         scale = 2 * half_face / n_tex
         A_tag_tex = np.array(
-            [[-scale, 0.0, half_face - 0.5 * scale],
-             [0.0, -scale, half_face - 0.5 * scale],
-             [0.0, 0.0, 1.0]]
+            [
+                [-scale, 0.0, half_face - 0.5 * scale],
+                [0.0, -scale, half_face - 0.5 * scale],
+                [0.0, 0.0, 1.0],
+            ]
         )
         H_img_tag = K @ np.column_stack([R[:, 0], R[:, 1], t])
         shift = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]])
         H = shift @ H_img_tag @ A_tag_tex
         roi = gray[y0:y1, x0:x1]
-        cv2.warpPerspective(tex, H, (x1 - x0, y1 - y0), dst=roi, flags=cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_TRANSPARENT)
+        cv2.warpPerspective(
+            tex,
+            H,
+            (x1 - x0, y1 - y0),
+            dst=roi,
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_TRANSPARENT,
+        )
         if occlusion > 0:
             self._occlude(gray, K, R, t, half_face, size_m, occlusion, rng)
         # plane depth over the face: n . X = d in camera coordinates, X = z * K^-1 [u, v, 1]
         mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        cv2.fillConvexPoly(mask, np.round((uv - [x0, y0]) * 16).astype(np.int32), 1,
-                           lineType=cv2.LINE_8, shift=4)
+        cv2.fillConvexPoly(
+            mask, np.round((uv - [x0, y0]) * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4
+        )
         vv, uu = np.nonzero(mask)
         if vv.size == 0:
             return
@@ -280,10 +304,18 @@ class TagRenderer:
         lo = -half_face
         band = {
             0: [[lo, lo], [half_face, lo], [half_face, -s + depth_into], [lo, -s + depth_into]],
-            1: [[s - depth_into, lo], [half_face, lo], [half_face, half_face],
-                [s - depth_into, half_face]],
-            2: [[lo, s - depth_into], [half_face, s - depth_into], [half_face, half_face],
-                [lo, half_face]],
+            1: [
+                [s - depth_into, lo],
+                [half_face, lo],
+                [half_face, half_face],
+                [s - depth_into, half_face],
+            ],
+            2: [
+                [lo, s - depth_into],
+                [half_face, s - depth_into],
+                [half_face, half_face],
+                [lo, half_face],
+            ],
             3: [[lo, lo], [-s + depth_into, lo], [-s + depth_into, half_face], [lo, half_face]],
         }[side]
         cam = np.asarray(band) @ R[:, :2].T + t
@@ -293,8 +325,9 @@ class TagRenderer:
         cv2.fillConvexPoly(gray, np.round(uv * 16).astype(np.int32), level, cv2.LINE_AA, 4)
 
 
-def write_realsense_recording(path, frames, K: np.ndarray, fps: int = 30,
-                              depth_unit_m: float = 0.001) -> int:
+def write_realsense_recording(
+    path, frames, K: np.ndarray, fps: int = 30, depth_unit_m: float = 0.001
+) -> int:
     """Write frames (``frame.Frame``) as a RealSense recording through pyrealsense2 itself.
 
     A ``software_device`` with a colour sensor (bgr8) and a depth sensor (z16, already aligned:

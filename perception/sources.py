@@ -69,8 +69,9 @@ class ImageFilesSource(FrameSource):
         if path.is_dir():
             self.paths = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             if not self.paths:
-                raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder",
-                                 path=str(path))
+                raise InputError(
+                    f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder", path=str(path)
+                )
         elif path.is_file():
             self.paths = [path]
         else:
@@ -99,21 +100,31 @@ class RecordedFramesSource(FrameSource):
             reader = csv.reader(f)
             header = next(reader, None)
             if header != FRAMES_CSV_HEADER:
-                raise InputError(f"expected header {','.join(FRAMES_CSV_HEADER)}, got {header}",
-                                 path=str(self.csv_path), line=1)
+                raise InputError(
+                    f"expected header {','.join(FRAMES_CSV_HEADER)}, got {header}",
+                    path=str(self.csv_path),
+                    line=1,
+                )
             last = None
             for line_no, row in enumerate(reader, start=2):
                 if len(row) != 4:
-                    raise InputError(f"expected 4 fields, got {len(row)}",
-                                     path=str(self.csv_path), line=line_no)
+                    raise InputError(
+                        f"expected 4 fields, got {len(row)}", path=str(self.csv_path), line=line_no
+                    )
                 try:
                     stamp = int(row[0])
                 except ValueError:
-                    raise InputError(f"stamp_ns: expected an integer, got {row[0]!r}",
-                                     path=str(self.csv_path), line=line_no) from None
+                    raise InputError(
+                        f"stamp_ns: expected an integer, got {row[0]!r}",
+                        path=str(self.csv_path),
+                        line=line_no,
+                    ) from None
                 if last is not None and stamp <= last:
-                    raise InputError(f"stamp_ns must increase: {stamp} after {last}",
-                                     path=str(self.csv_path), line=line_no)
+                    raise InputError(
+                        f"stamp_ns must increase: {stamp} after {last}",
+                        path=str(self.csv_path),
+                        line=line_no,
+                    )
                 last = stamp
                 rows.append((stamp, row[1], row[2], row[3], line_no))
         return rows
@@ -127,9 +138,11 @@ class RecordedFramesSource(FrameSource):
             if depth:
                 dep = cv2.imread(str(self.folder / depth), cv2.IMREAD_UNCHANGED)
                 if dep is None or dep.dtype != np.uint16 or dep.shape != img.shape[:2]:
-                    raise InputError(f"depth {depth!r}: expected a 16-bit PNG of "
-                                     f"{img.shape[1]}x{img.shape[0]}",
-                                     path=str(self.csv_path), line=line_no)
+                    raise InputError(
+                        f"depth {depth!r}: expected a 16-bit PNG of {img.shape[1]}x{img.shape[0]}",
+                        path=str(self.csv_path),
+                        line=line_no,
+                    )
             yield Frame(stamp, img, dep, cam)
 
 
@@ -235,9 +248,17 @@ class RealSenseSource(_RealSensePipelineSource):
     RealSense endpoint: when realsense-ros owns the camera use ``ForwardedFramesSource``.
     """
 
-    def __init__(self, serial: str | None = None, width: int = 640, height: int = 480,
-                 fps: int = 30, depth: bool = True, timeout_ms: int = 2000,
-                 reconnect_s: float = 1.0, max_reconnects: int | None = None) -> None:
+    def __init__(
+        self,
+        serial: str | None = None,
+        width: int = 640,
+        height: int = 480,
+        fps: int = 30,
+        depth: bool = True,
+        timeout_ms: int = 2000,
+        reconnect_s: float = 1.0,
+        max_reconnects: int | None = None,
+    ) -> None:
         self.rs = _import_rs()
         self.serial, self.width, self.height, self.fps = serial, width, height, fps
         self.depth, self.timeout_ms = depth, timeout_ms
@@ -261,10 +282,19 @@ class RealSenseSource(_RealSensePipelineSource):
                 sensor.set_option(rs.option.global_time_enabled, 1)
         self.camera_id = device.get_info(rs.camera_info.serial_number)
         self._pipe = pipe
-        log.info("RealSense %s streaming %dx%d@%d (depth %s)", self.camera_id, self.width,
-                 self.height, self.fps, self.depth)
-        return _RealSensePairer(rs.align(rs.stream.color) if self.depth else None,
-                                self.camera_id, tolerance_ms=500.0 / self.fps)
+        log.info(
+            "RealSense %s streaming %dx%d@%d (depth %s)",
+            self.camera_id,
+            self.width,
+            self.height,
+            self.fps,
+            self.depth,
+        )
+        return _RealSensePairer(
+            rs.align(rs.stream.color) if self.depth else None,
+            self.camera_id,
+            tolerance_ms=500.0 / self.fps,
+        )
 
     def __iter__(self) -> Iterator[Frame]:
         pairer = None
@@ -280,10 +310,10 @@ class RealSenseSource(_RealSensePipelineSource):
                 pairer = None
                 self.reconnects += 1
                 if self.max_reconnects is not None and self.reconnects > self.max_reconnects:
-                    raise DependencyError(f"RealSense: gave up after {self.max_reconnects} "
-                                          f"reconnects ({exc})") from exc
+                    raise DependencyError(
+                        f"RealSense: gave up after {self.max_reconnects} reconnects ({exc})"
+                    ) from exc
                 time.sleep(self.reconnect_s)
-
 
 
 class RealSenseRecordingSource(_RealSensePipelineSource):
@@ -314,16 +344,20 @@ class RealSenseRecordingSource(_RealSensePipelineSource):
             resolved.get_device().as_playback().set_real_time(False)
             profile = pipe.start(cfg)
         except RuntimeError as exc:
-            raise InputError(f"pyrealsense2 cannot play this recording: {exc}",
-                             path=str(self.path)) from exc
+            raise InputError(
+                f"pyrealsense2 cannot play this recording: {exc}", path=str(self.path)
+            ) from exc
         self._pipe = pipe
         if profile.get_device().as_playback().is_real_time():
             self.close()
-            raise RuntimeError("pyrealsense2 started a different playback device than it resolved;"
-                               " frames could be dropped")
+            raise RuntimeError(
+                "pyrealsense2 started a different playback device than it resolved;"
+                " frames could be dropped"
+            )
         has_depth = any(s.stream_type() == rs.stream.depth for s in profile.get_streams())
-        pairer = _RealSensePairer(rs.align(rs.stream.color) if (self.align and has_depth) else None,
-                                  self.path.name)
+        pairer = _RealSensePairer(
+            rs.align(rs.stream.color) if (self.align and has_depth) else None, self.path.name
+        )
         try:
             while True:
                 ok, frames = pipe.try_wait_for_frames(self.timeout_ms)
@@ -333,7 +367,6 @@ class RealSenseRecordingSource(_RealSensePipelineSource):
             yield from pairer.flush()
         finally:
             self.close()
-
 
 
 # --------------------------------------------------------------------------- OAK
@@ -348,13 +381,15 @@ class DepthAISource(FrameSource):
     development machine (``oak`` extra), so this follows the depthai 2.x documentation only.
     """
 
-    def __init__(self, isp_scale: tuple[int, int] = (1, 3), fps: int = 30,
-                 depth: bool = True) -> None:
+    def __init__(
+        self, isp_scale: tuple[int, int] = (1, 3), fps: int = 30, depth: bool = True
+    ) -> None:
         try:
             import depthai as dai
         except ImportError as exc:
-            raise DependencyError(f"depthai is needed for OAK cameras ({exc}); pip install "
-                                  "'dran-edge[oak]'") from exc
+            raise DependencyError(
+                f"depthai is needed for OAK cameras ({exc}); pip install 'dran-edge[oak]'"
+            ) from exc
         self.dai = dai
         self.isp_scale, self.fps, self.depth = isp_scale, fps, depth
         self._device = None

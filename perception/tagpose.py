@@ -106,8 +106,14 @@ class TagPoseParams:
     hundredths of a pixel of the least-squares pose for four points; see the tests)."""
 
     def __post_init__(self) -> None:
-        for name in ("min_edge_px", "max_range_m", "max_reproj_px", "corner_sigma_px",
-                     "ambiguity_ratio", "depth_max_residual_m"):
+        for name in (
+            "min_edge_px",
+            "max_range_m",
+            "max_reproj_px",
+            "corner_sigma_px",
+            "ambiguity_ratio",
+            "depth_max_residual_m",
+        ):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"tag pose {name}: expected > 0, got {getattr(self, name)!r}")
         if self.max_hamming not in (0, 1, 2):
@@ -140,8 +146,9 @@ class TagPoses:
 
 def corner_sigma(p: TagPoseParams, min_edge_px: np.ndarray) -> np.ndarray:
     """Corner noise per tag: ``corner_sigma_px * sqrt(ref_edge / shortest edge)`` (pixels)."""
-    return p.corner_sigma_px * np.sqrt(p.corner_sigma_ref_edge_px
-                                       / np.maximum(np.asarray(min_edge_px, dtype=float), 1.0))
+    return p.corner_sigma_px * np.sqrt(
+        p.corner_sigma_ref_edge_px / np.maximum(np.asarray(min_edge_px, dtype=float), 1.0)
+    )
 
 
 def tag_object_points(size_m: np.ndarray) -> np.ndarray:
@@ -168,18 +175,18 @@ def _depth_residual(T: np.ndarray, size_m: np.ndarray, K: np.ndarray, depth_mm: 
     return np.where(count > 0, 0.5 * (lo + hi), np.inf), count
 
 
-def _screen(corners: list, hamming: list, margin: list, size: list, w: int, h: int,
-            p: TagPoseParams) -> tuple[list[str], list[float]]:
+def _screen(
+    corners: list, hamming: list, margin: list, size: list, w: int, h: int, p: TagPoseParams
+) -> tuple[list[str], list[float]]:
     """Rejection before any pose maths, per tag in plain Python (a frame has a few tags; this
     is several times cheaper than a dozen numpy calls on 4x2 arrays)."""
     out, edges = [], []
     lo_x = lo_y = p.border_px - 0.5
     hi_x, hi_y = w - 1 - lo_x, h - 1 - lo_y
-    min_edge_sq = p.min_edge_px ** 2
+    min_edge_sq = p.min_edge_px**2
     for c, ham, dm, s in zip(corners, hamming, margin, size):
-        edge_sq = min((c[k][0] - c[k - 1][0]) ** 2 + (c[k][1] - c[k - 1][1]) ** 2
-                      for k in range(4))
-        edges.append(edge_sq ** 0.5)
+        edge_sq = min((c[k][0] - c[k - 1][0]) ** 2 + (c[k][1] - c[k - 1][1]) ** 2 for k in range(4))
+        edges.append(edge_sq**0.5)
         if not s == s:  # NaN size: not in the tag map
             out.append(REJECT_UNKNOWN)
         elif ham > p.max_hamming:
@@ -215,19 +222,44 @@ def estimate_tag_poses(
     sigma = np.full(n, np.nan)
     method = [""] * n
     if n == 0:
-        return TagPoses(T_both[:, 0], cov, T_both[:, 1], rms_both[:, 0], rms_both[:, 1],
-                        np.array([], dtype=object), np.array([], dtype=object), np.zeros(0, bool),
-                        sigma, np.zeros(0))
+        return TagPoses(
+            T_both[:, 0],
+            cov,
+            T_both[:, 1],
+            rms_both[:, 0],
+            rms_both[:, 1],
+            np.array([], dtype=object),
+            np.array([], dtype=object),
+            np.zeros(0, bool),
+            sigma,
+            np.zeros(0),
+        )
     uv = det.corners + CORNER_TO_OPENCV_PX
-    reject, edges = _screen(uv.tolist(), det.hamming.tolist(), det.decision_margin.tolist(),
-                            size.tolist(), image_size[0], image_size[1], p)
+    reject, edges = _screen(
+        uv.tolist(),
+        det.hamming.tolist(),
+        det.decision_margin.tolist(),
+        size.tolist(),
+        image_size[0],
+        image_size[1],
+        p,
+    )
     idx = [i for i, r in enumerate(reject) if r == OK]
     m = len(idx)
 
     def result() -> TagPoses:
-        return TagPoses(T_both[:, 0], cov, T_both[:, 1], rms_both[:, 0], rms_both[:, 1],
-                        np.array(reject, dtype=object), np.array(method, dtype=object),
-                        np.array([r == OK for r in reject]), sigma, np.asarray(edges))
+        return TagPoses(
+            T_both[:, 0],
+            cov,
+            T_both[:, 1],
+            rms_both[:, 0],
+            rms_both[:, 1],
+            np.array(reject, dtype=object),
+            np.array(method, dtype=object),
+            np.array([r == OK for r in reject]),
+            sigma,
+            np.asarray(edges),
+        )
 
     if m == 0:
         return result()
@@ -254,7 +286,7 @@ def estimate_tag_poses(
     cov_m = pose_covariance(JtJ, sigma_m)
     if p.inflate_by_residual:
         # 4 corners: sum r^2 = 4 rms^2 over 8 - 6 = 2 degrees of freedom
-        birge = np.maximum(1.0, 2.0 * rms2[:, 0] ** 2 / sigma_m ** 2)
+        birge = np.maximum(1.0, 2.0 * rms2[:, 0] ** 2 / sigma_m**2)
         cov_m *= birge[:, None, None]
     _merge_or_reject_ambiguous(Tb, T2[:, 1], cov_m, p, ambiguous, reject_m)
     _check_range_and_reprojection(Tb, rms2[:, 0], p, reject_m)
@@ -279,8 +311,9 @@ def _ippe_solutions(K: np.ndarray, uv: np.ndarray, size: np.ndarray):
     T2[..., 3, 3] = 1.0
     rms2 = np.empty((m, 2))
     for row in range(m):
-        k_sol, rvecs, tvecs, e = cv2.solvePnPGeneric(UNIT_CORNERS * (size[row] / 2), uv[row], K,
-                                                     None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        k_sol, rvecs, tvecs, e = cv2.solvePnPGeneric(
+            UNIT_CORNERS * (size[row] / 2), uv[row], K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
         order = (0, 0) if k_sol < 2 else ((0, 1) if e[0, 0] <= e[1, 0] else (1, 0))
         for k, j in enumerate(order):
             T2[row, k, :3, :3] = cv2.Rodrigues(rvecs[j])[0]
@@ -289,8 +322,9 @@ def _ippe_solutions(K: np.ndarray, uv: np.ndarray, size: np.ndarray):
     return T2, rms2
 
 
-def _decide_by_depth(T2, rms2, size, K, depth_mm, p: TagPoseParams, ambiguous: list,
-                     method_m: list, reject_m: list) -> None:
+def _decide_by_depth(
+    T2, rms2, size, K, depth_mm, p: TagPoseParams, ambiguous: list, method_m: list, reject_m: list
+) -> None:
     """Depth is consulted only for ambiguous tags (the others are decided by reprojection); it
     decides only when its preference exceeds its own noise: the median of n samples of
     |N(0, s)| has a spread of about 1.25 s / sqrt(n). Swaps ``T2``/``rms2`` rows in place."""
@@ -316,8 +350,9 @@ def _decide_by_depth(T2, rms2, size, K, depth_mm, p: TagPoseParams, ambiguous: l
         rms2[flip] = rms2[flip][:, ::-1]
 
 
-def _merge_or_reject_ambiguous(Tb, T_alt, cov_m, p: TagPoseParams, ambiguous: list,
-                               reject_m: list) -> None:
+def _merge_or_reject_ambiguous(
+    Tb, T_alt, cov_m, p: TagPoseParams, ambiguous: list, reject_m: list
+) -> None:
     """An ambiguous tag whose two solutions are close keeps the best with their difference
     added to its covariance; one whose solutions are far apart is rejected."""
     if not any(ambiguous):
@@ -333,7 +368,7 @@ def _merge_or_reject_ambiguous(Tb, T_alt, cov_m, p: TagPoseParams, ambiguous: li
 
 
 def _check_range_and_reprojection(Tb, rms, p: TagPoseParams, reject_m: list) -> None:
-    max_range_sq = p.max_range_m ** 2
+    max_range_sq = p.max_range_m**2
     rb = rms.tolist()
     for row, (x, y, z_) in enumerate(Tb[:, :3, 3].tolist()):
         if reject_m[row] == OK:

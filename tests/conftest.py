@@ -17,8 +17,9 @@ import pytest  # noqa: E402
 
 #: The small simulated mission the bag and trajectory-format tests share (3 robots, 16 s,
 #: rendered frames at 1 Hz, so the replay runs the AprilTag pipeline).
-SMALL_SIM = dict(robots=3, objects=3, duration_s=16.0, seed=5, arena_m=5.0, frame_rate_hz=1.0,
-                 mocap_rate_hz=10.0)
+SMALL_SIM = dict(
+    robots=3, objects=3, duration_s=16.0, seed=5, arena_m=5.0, frame_rate_hz=1.0, mocap_rate_hz=10.0
+)
 SMALL_REPLAY = dict(workers=1, settle_rounds=5)
 
 

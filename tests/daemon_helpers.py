@@ -35,8 +35,12 @@ def write_config(tmp: Path, **overrides) -> Path:
         "comms": {"transport": "none", "period_s": 0.2},
         "ingest": {"enabled": True, "socket_path": str(tmp / "run" / "ingest.sock")},
         "camera": {"source": "none"},
-        "daemon": {"state_dir": str(tmp / "state"), "runtime_dir": str(tmp / "run"),
-                   "checkpoint_period_s": 30.0, "status_period_s": 0.5},
+        "daemon": {
+            "state_dir": str(tmp / "state"),
+            "runtime_dir": str(tmp / "run"),
+            "checkpoint_period_s": 30.0,
+            "status_period_s": 0.5,
+        },
         "agent": {"graph": {"max_nodes": 120, "max_edges": 480}},
     }
     for section, values in overrides.items():
@@ -76,13 +80,27 @@ class NotifyListener:
 
 
 def start_daemon(config: Path, env_extra: dict, cwd: Path | None = None) -> subprocess.Popen:
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "STATE_DIRECTORY",
-                        "RUNTIME_DIRECTORY", "INVOCATION_ID", "JOURNAL_STREAM")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k
+        not in (
+            "NOTIFY_SOCKET",
+            "WATCHDOG_USEC",
+            "WATCHDOG_PID",
+            "STATE_DIRECTORY",
+            "RUNTIME_DIRECTORY",
+            "INVOCATION_ID",
+            "JOURNAL_STREAM",
+        )
+    }
     env.update(env_extra)
     return subprocess.Popen(
         [sys.executable, "-m", "dran_edge.cli.app", "-v", "run", "--config", str(config)],
-        env=env, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        env=env,
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
     )
 
 
@@ -91,8 +109,10 @@ def wait_status(path: Path, predicate, timeout_s: float = 60.0, proc=None) -> di
     last = None
     while time.monotonic() < end:
         if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"daemon exited early ({proc.returncode}):\n"
-                                 + proc.stdout.read().decode(errors="replace"))
+            raise AssertionError(
+                f"daemon exited early ({proc.returncode}):\n"
+                + proc.stdout.read().decode(errors="replace")
+            )
         try:
             last = query_status(path)
             if predicate(last):

@@ -60,8 +60,12 @@ def observations(data: bytes) -> dict[tuple[int, int], np.ndarray]:
     from dran_edge.replay.robots import decode_ingest
 
     events, _ = decode_ingest(data, "observations")
-    return {(o.stamp_ns, o.object_id): o.T_body_object for ev in events
-            if isinstance(ev, ObservationBatch) for o in ev.observations}
+    return {
+        (o.stamp_ns, o.object_id): o.T_body_object
+        for ev in events
+        if isinstance(ev, ObservationBatch)
+        for o in ev.observations
+    }
 
 
 def compare(recorded: dict, here: dict) -> dict:
@@ -74,10 +78,15 @@ def compare(recorded: dict, here: dict) -> dict:
         d = np.linalg.inv(recorded[k]) @ here[k]
         dt.append(float(np.linalg.norm(d[:3, 3])))
         dr.append(float(np.degrees(np.linalg.norm(geo.so3_log(d[:3, :3])))))
-    return {"recorded": len(recorded), "here": len(here), "matched": len(common),
-            "only_recorded": len(set(recorded) - set(here)),
-            "only_here": len(set(here) - set(recorded)),
-            "max_translation_m": max(dt), "max_rotation_deg": max(dr)}
+    return {
+        "recorded": len(recorded),
+        "here": len(here),
+        "matched": len(common),
+        "only_recorded": len(set(recorded) - set(here)),
+        "only_here": len(set(here) - set(recorded)),
+        "max_translation_m": max(dt),
+        "max_rotation_deg": max(dr),
+    }
 
 
 def redetect(run: Path, name: str) -> dict:

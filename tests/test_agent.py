@@ -18,8 +18,9 @@ CFG = AgentConfig(robust_kernel="none")
 
 @pytest.fixture(scope="module")
 def scenario():
-    return make_scenario(SimParams(num_robots=2, num_objects=6, box_m=(12.0, 12.0, 3.0),
-                                   goals_per_robot=2, seed=3))
+    return make_scenario(
+        SimParams(num_robots=2, num_objects=6, box_m=(12.0, 12.0, 3.0), goals_per_robot=2, seed=3)
+    )
 
 
 def _agent(sc, r=0, neighbours=(1,)):
@@ -67,7 +68,9 @@ def test_unknown_object_is_adopted_and_relayed_with_a_hop_count(scenario):
     a.handle(_obj_msg(1, 1, 999, T))
     outs = a.handle(Tick(1))
     assert 999 in a.y and a.objects.provenance[999].hop == 1
-    sent = [e for o in outs if isinstance(o, Outgoing) for e in o.message.objects if e.object_id == 999]
+    sent = [
+        e for o in outs if isinstance(o, Outgoing) for e in o.message.objects if e.object_id == 999
+    ]
     assert sent and sent[0].hop_count == 1
 
 
@@ -141,9 +144,11 @@ def test_observations_survive_weaker_relayed_or_echoed_disagreement(scenario, ca
     copy echoed back by its neighbours is no vote at all."""
     a, oid, own, far = _object_seen_here_and_20_m_away(scenario)
     n_own = int(own.sum())
-    kw = {"weaker": [dict(support=1), dict(support=1)],
-          "one origin relayed twice": [dict(origin=5, hop=1, support=n_own - 1)] * 2,
-          "own echo": [dict(origin=0, hop=1, support=100)] * 2}[case]
+    kw = {
+        "weaker": [dict(support=1), dict(support=1)],
+        "one origin relayed twice": [dict(origin=5, hop=1, support=n_own - 1)] * 2,
+        "own echo": [dict(origin=0, hop=1, support=100)] * 2,
+    }[case]
     a.handle(_obj_msg(1, 1, oid, far, **kw[0]))
     a.handle(_obj_msg(2, 1, oid, far, **kw[1]))
     a.handle(Tick(1))
@@ -153,8 +158,13 @@ def test_observations_survive_weaker_relayed_or_echoed_disagreement(scenario, ca
 
 
 def _sent_objects(outputs, oid):
-    return [e for o in outputs if isinstance(o, Outgoing) for e in o.message.objects
-            if e.object_id == oid]
+    return [
+        e
+        for o in outputs
+        if isinstance(o, Outgoing)
+        for e in o.message.objects
+        if e.object_id == oid
+    ]
 
 
 def test_a_relay_whose_source_drops_its_evidence_becomes_a_bare_estimate(scenario):
@@ -244,10 +254,12 @@ def test_a_lone_view_waits_only_where_another_object_was_seen(scenario):
     T_alone = p.obs_T[k].copy()
     T_alone[:3, 3] += (0.0, 0.0, 2.5)  # 2.5 m off the seen object, along the camera's z
     prob = dataclasses.replace(
-        p, obs_own=np.concatenate([p.obs_own, [p.obs_own[k]] * 2]),
+        p,
+        obs_own=np.concatenate([p.obs_own, [p.obs_own[k]] * 2]),
         obs_object=np.concatenate([p.obs_object, [twin_id, alone_id]]),
         obs_T=np.concatenate([p.obs_T, [p.obs_T[k], T_alone]]),
-        obs_W=np.concatenate([p.obs_W, p.obs_W[[k, k]]]))
+        obs_W=np.concatenate([p.obs_W, p.obs_W[[k, k]]]),
+    )
     twin, alone = p.obs_object.size, p.obs_object.size + 1
     cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
     a = Agent(cfg, prob, weights={1: 0.5})
@@ -260,7 +272,9 @@ def test_a_lone_view_waits_only_where_another_object_was_seen(scenario):
     a.handle(Tick(1))
     assert a.objects.obs_ok[alone] and not a.objects.obs_ok[twin]
     off = Agent(dataclasses.replace(cfg, object_exclusion_m=0.0), prob, weights={1: 0.5})
-    assert off.objects.obs_pending[[twin, alone]].all() and not off.objects.obs_ok[[twin, alone]].any()
+    assert (
+        off.objects.obs_pending[[twin, alone]].all() and not off.objects.obs_ok[[twin, alone]].any()
+    )
 
 
 def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
@@ -278,9 +292,12 @@ def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
 
     def with_copies(k: np.ndarray):
         return dataclasses.replace(
-            p, obs_own=np.concatenate([p.obs_own, p.obs_own[k]]),
+            p,
+            obs_own=np.concatenate([p.obs_own, p.obs_own[k]]),
             obs_object=np.concatenate([p.obs_object, np.full(k.size, new_id)]),
-            obs_T=np.concatenate([p.obs_T, p.obs_T[k]]), obs_W=np.concatenate([p.obs_W, p.obs_W[k]]))
+            obs_T=np.concatenate([p.obs_T, p.obs_T[k]]),
+            obs_W=np.concatenate([p.obs_W, p.obs_W[k]]),
+        )
 
     cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
     twice = views[:2]  # consecutive keyframes, a few metres' travel apart at most
@@ -288,13 +305,19 @@ def test_a_view_waits_where_an_object_with_as_many_views_was_seen(scenario):
     misread = np.arange(p.obs_object.size, p.obs_object.size + 2)
     pos = (a.x[a.problem.obs_own] @ a.problem.obs_T)[:, :3, 3]
     assert np.linalg.norm(pos[misread[0]] - pos[misread[1]]) <= cfg.object_gate_m  # not lone
-    assert a.objects.obs_pending[misread].all() and not a.objects.obs_ok[misread].any() and new_id not in a.y
+    assert (
+        a.objects.obs_pending[misread].all()
+        and not a.objects.obs_ok[misread].any()
+        and new_id not in a.y
+    )
     assert a.counters.obs_shadowed == 2
     assert a.objects.obs_ok[views].all() and o in a.y
     a.handle(Tick(1))
     assert not a.objects.obs_ok[misread].any()
     # the same two misreads without the exclusion: used at once, a phantom copy
-    off = Agent(dataclasses.replace(cfg, object_exclusion_m=0.0), with_copies(twice), weights={1: 0.5})
+    off = Agent(
+        dataclasses.replace(cfg, object_exclusion_m=0.0), with_copies(twice), weights={1: 0.5}
+    )
     assert off.objects.obs_ok[misread].all() and new_id in off.y
     # every view read twice: a tie, both labels wait
     both = Agent(cfg, with_copies(views), weights={1: 0.5})
@@ -313,10 +336,12 @@ def test_a_held_back_view_past_the_gate_is_corroborated_by_the_ratio_test(scenar
     T_far[2, 3] = 30.0  # 30 m along the camera axis: outside the 12 m box, near no object
     a_id, b_id = 1000, 1001  # one place, two labels: a relabelled twin, both lone
     prob = dataclasses.replace(
-        p, obs_own=np.concatenate([p.obs_own, [0, 0]]),
+        p,
+        obs_own=np.concatenate([p.obs_own, [0, 0]]),
         obs_object=np.concatenate([p.obs_object, [a_id, b_id]]),
         obs_T=np.concatenate([p.obs_T, [T_far, T_far]]),
-        obs_W=np.concatenate([p.obs_W, p.obs_W[[0, 0]]]))
+        obs_W=np.concatenate([p.obs_W, p.obs_W[[0, 0]]]),
+    )
     va, vb = p.obs_object.size, p.obs_object.size + 1
     cfg = dataclasses.replace(CFG, robot_id=0, neighbours=(1,), object_min_views=2)
 
@@ -378,8 +403,11 @@ def test_a_corroborated_lone_view_stays_in_use_until_rejected(scenario):
 def _pull(scenario, config, offset_m, origin=None):
     """How far one round moves robot 0's copy of an object it observes towards a neighbour's copy
     ``offset_m`` away (along x), sent by robot 1 on behalf of ``origin`` (default: itself)."""
-    a = Agent(dataclasses.replace(config, robot_id=0, neighbours=(1,)), scenario.problems[0],
-              weights={1: 0.5})
+    a = Agent(
+        dataclasses.replace(config, robot_id=0, neighbours=(1,)),
+        scenario.problems[0],
+        weights={1: 0.5},
+    )
     oid = min(a.y)
     before = a.y[oid][:3, 3].copy()
     other = a.y[oid].copy()
@@ -426,5 +454,7 @@ def test_a_copy_past_the_relay_limit_still_updates_neighbours_that_hold_it(scena
 
     again, limit = relay_at_the_limit(send_first=True)
     assert len(again) == 2 and all(e.hop_count == limit and e.origin_robot == 5 for e in again)
-    never, _ = relay_at_the_limit(send_first=False)  # never sent: a copy at the limit is not offered
+    never, _ = relay_at_the_limit(
+        send_first=False
+    )  # never sent: a copy at the limit is not offered
     assert not never

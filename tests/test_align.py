@@ -93,9 +93,11 @@ def test_paper_alignment_uses_only_the_initial_frame():
     T_est[150:, :3, 3] += 0.3  # a later drift must not change the alignment
     a = align.fit_alignment("paper", T_est, T_ref)
     np.testing.assert_allclose(a.apply(T_est)[:150], T_ref[:150], atol=1e-9)
-    np.testing.assert_allclose(a.apply(T_est)[150:, :3, 3] - T_ref[150:, :3, 3],
-                               np.broadcast_to(T_world_odom[:3, :3] @ np.full(3, 0.3), (150, 3)),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        a.apply(T_est)[150:, :3, 3] - T_ref[150:, :3, 3],
+        np.broadcast_to(T_world_odom[:3, :3] @ np.full(3, 0.3), (150, 3)),
+        atol=1e-9,
+    )
 
 
 def test_interpolation_is_exact_for_constant_velocity_and_skips_gaps():
@@ -110,8 +112,9 @@ def test_interpolation_is_exact_for_constant_velocity_and_skips_gaps():
     np.testing.assert_array_equal(ok, [True, True, False, True])
     Rq = Rotation.from_rotvec(np.outer(q, w)).as_matrix()
     np.testing.assert_allclose(Tq[ok][:, :3, :3], Rq[ok], atol=1e-12)
-    np.testing.assert_allclose(Tq[ok][:, :3, 3], (np.outer(q, [0.3, -0.1, 0.05]) + [1, 2, 3])[ok],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        Tq[ok][:, :3, 3], (np.outer(q, [0.3, -0.1, 0.05]) + [1, 2, 3])[ok], atol=1e-12
+    )
 
 
 def test_associate_errors_for_non_overlapping_times():
@@ -149,8 +152,15 @@ def test_time_offset_recovered_on_a_shifted_fixture():
     assert res.offset_s == pytest.approx(-offset_true, abs=0.005)
     assert res.correlation > 0.95
     # Within a bound around a given guess it finds the same.
-    res2 = align.estimate_time_offset(stamps, T_est, t_mocap, T_mocap, valid_ref=valid,
-                                      initial_offset_s=-offset_true + 0.5, max_offset_s=1.0)
+    res2 = align.estimate_time_offset(
+        stamps,
+        T_est,
+        t_mocap,
+        T_mocap,
+        valid_ref=valid,
+        initial_offset_s=-offset_true + 0.5,
+        max_offset_s=1.0,
+    )
     assert res2.offset_s == pytest.approx(-offset_true, abs=0.005)
 
 
@@ -198,8 +208,12 @@ def test_tum_errors_name_the_line(tmp_path, line, msg):
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(4, 60),
-       scale=st.floats(0.2, 5.0), kind=st.sampled_from(["se3", "sim3"]))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(4, 60),
+    scale=st.floats(0.2, 5.0),
+    kind=st.sampled_from(["se3", "sim3"]),
+)
 def test_umeyama_property(seed, n, scale, kind):
     rng = np.random.default_rng(seed)
     p_ref = rng.normal(0, 2, (n, 3))
@@ -238,7 +252,8 @@ def test_association_matches_each_estimate_with_the_reference_at_its_instant(see
         return _pose(Rotation.from_rotvec(np.outer(tt, w)).as_matrix(), np.outer(tt, v))
 
     t_est = np.sort(rng.uniform(t_ref[0], t_ref[-1], 50)) - offset
-    a = align.associate(t_est, truth(t_est + offset), t_ref, truth(t_ref), time_offset_s=offset,
-                        max_gap_s=10.0)
+    a = align.associate(
+        t_est, truth(t_est + offset), t_ref, truth(t_ref), time_offset_s=offset, max_gap_s=10.0
+    )
     assert a.matched_poses == 50
     np.testing.assert_allclose(a.T_ref, a.T_est, atol=1e-8)

@@ -29,16 +29,26 @@ def _problem(rng, positions, views, n_poses=10, noise_m=0.02):
     """Robot ME's problem: ``n_poses`` random poses within 6 m of the origin and one observation
     (T_body_object, ``noise_m`` of translation noise) per (pose, object id) in ``views``, of an
     object at ``positions[object id]``."""
-    x = np.stack([_T(rng.uniform(-6, 6, 3), Rotation.random(random_state=rng).as_matrix())
-                  for _ in range(n_poses)])
+    x = np.stack(
+        [
+            _T(rng.uniform(-6, 6, 3), Rotation.random(random_state=rng).as_matrix())
+            for _ in range(n_poses)
+        ]
+    )
     own = np.array([p for p, _ in views], np.int64)
     obj = np.array([o for _, o in views], np.int64)
     T_wo = np.stack([_T(positions[o] + rng.normal(0, noise_m, 3)) for o in obj])
     obs_T = np.linalg.inv(x[own]) @ T_wo
     return dataclasses.replace(
-        LocalProblem.empty(3, "geodesic"), pose_ids=np.arange(n_poses), x0=x,
-        pose_stamps_ns=np.arange(n_poses), obs_own=own, obs_object=obj, obs_T=obs_T,
-        obs_W=np.ones((len(views), 6)))
+        LocalProblem.empty(3, "geodesic"),
+        pose_ids=np.arange(n_poses),
+        x0=x,
+        pose_stamps_ns=np.arange(n_poses),
+        obs_own=own,
+        obs_object=obj,
+        obs_T=obs_T,
+        obs_W=np.ones((len(views), 6)),
+    )
 
 
 def _association(problem, **config):

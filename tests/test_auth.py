@@ -95,7 +95,10 @@ def test_accepts_valid_and_relay_allowed():
         (_datagram(key=OTHER_KEY), Reject.BAD_TAG),
         (_datagram()[:-16] + bytes(16), Reject.BAD_TAG),
         (b"\x00" * 50, Reject.MALFORMED),
-        (_datagram()[:2] + bytes([codec.SCHEMA_VERSION - 1]) + _datagram()[3:], Reject.WRONG_VERSION),
+        (
+            _datagram()[:2] + bytes([codec.SCHEMA_VERSION - 1]) + _datagram()[3:],
+            Reject.WRONG_VERSION,
+        ),
         (b"", Reject.MALFORMED),
     ],
 )

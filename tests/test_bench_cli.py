@@ -7,12 +7,34 @@ import pytest
 from dran_edge.cli.app import main
 
 
-@pytest.mark.parametrize("flags, robust, min_views, beta, eta", [
-    ([], False, 1, 1.0, 0.1), (["--robust"], True, 2, 1.0, 0.1),
-    (["--outliers", "0.2"], True, 2, 1.0, 0.1), (["--beta", "0.1", "--eta", "0.3"], False, 1, 0.1, 0.3)])
-def test_bench_objects_reports_the_settings_it_ran_with(capsys, flags, robust, min_views, beta, eta):
-    rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
-               "--rounds", "3", "--json", *flags])
+@pytest.mark.parametrize(
+    "flags, robust, min_views, beta, eta",
+    [
+        ([], False, 1, 1.0, 0.1),
+        (["--robust"], True, 2, 1.0, 0.1),
+        (["--outliers", "0.2"], True, 2, 1.0, 0.1),
+        (["--beta", "0.1", "--eta", "0.3"], False, 1, 0.1, 0.3),
+    ],
+)
+def test_bench_objects_reports_the_settings_it_ran_with(
+    capsys, flags, robust, min_views, beta, eta
+):
+    rc = main(
+        [
+            "bench",
+            "objects",
+            "--rho",
+            "1.0",
+            "--robots",
+            "3",
+            "--objects",
+            "4",
+            "--rounds",
+            "3",
+            "--json",
+            *flags,
+        ]
+    )
     assert rc == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.strip()]
     assert len(rows) == 1
@@ -23,8 +45,23 @@ def test_bench_objects_reports_the_settings_it_ran_with(capsys, flags, robust, m
 
 
 def test_bench_objects_history_has_one_row_per_n_rounds(capsys):
-    rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
-               "--rounds", "4", "--history-every", "2", "--json"])
+    rc = main(
+        [
+            "bench",
+            "objects",
+            "--rho",
+            "1.0",
+            "--robots",
+            "3",
+            "--objects",
+            "4",
+            "--rounds",
+            "4",
+            "--history-every",
+            "2",
+            "--json",
+        ]
+    )
     assert rc == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     assert row["rounds"] == 4  # this toy does not meet the stopping rule in 4 rounds
@@ -44,8 +81,23 @@ def test_bench_objects_rejects_a_non_positive_penalty_or_dual_step(capsys, flag)
 
 
 def test_bench_objects_reports_the_ratios_to_the_centralized_solution(capsys):
-    rc = main(["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4",
-               "--rounds", "3", "--history-every", "3", "--json"])
+    rc = main(
+        [
+            "bench",
+            "objects",
+            "--rho",
+            "1.0",
+            "--robots",
+            "3",
+            "--objects",
+            "4",
+            "--rounds",
+            "3",
+            "--history-every",
+            "3",
+            "--json",
+        ]
+    )
     assert rc == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     assert row["F_over_Fstar"] == pytest.approx(row["F"] / row["F_star"])
@@ -65,7 +117,9 @@ def test_bench_g2o_reports_f_over_fstar_or_says_na(capsys, tmp_path):
     rep = json.loads(capsys.readouterr().out)
     assert rep["F_over_Fstar"] == pytest.approx(rep["objective_final"] / rep["F_star"])
     assert rep["F_over_Fstar"] >= 1 - 1e-9 and rep["stopped_by"] is None
-    assert main(["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5",
-                 "--no-reference"]) == 0
+    assert (
+        main(["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--no-reference"])
+        == 0
+    )
     out = capsys.readouterr().out
     assert "F_over_Fstar: n/a" in out

@@ -224,8 +224,11 @@ def test_bench_robot_budget(runs):
 
 def test_bench_solve_policy(runs):
     out = run_quick(runs, "test_bench_solve_policy")
-    rows = [line for line in out.splitlines() if line.startswith("| ") and "/" in line
-            and not line.startswith("| graph")]
+    rows = [
+        line
+        for line in out.splitlines()
+        if line.startswith("| ") and "/" in line and not line.startswith("| graph")
+    ]
     assert rows, out
     assert "time after/before" in out
 
@@ -241,8 +244,11 @@ def test_bench_bags(runs):
 def test_bench_generalisation(runs):
     out = run_quick(runs, "test_bench_generalisation")
     assert "worst case per family" in out
-    assert [line.split("|")[1].strip() for line in out.splitlines()
-            if line.startswith("| ") and not line.startswith("| family")]
+    assert [
+        line.split("|")[1].strip()
+        for line in out.splitlines()
+        if line.startswith("| ") and not line.startswith("| family")
+    ]
 
 
 @pytest.mark.slow

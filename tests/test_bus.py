@@ -238,9 +238,15 @@ def test_links_with_delta_entries_rebuild_values_and_survive_replays_and_restart
     bus = Bus(ids, graph=[(0, 1)])
 
     def link(i, epoch=1, delta=5):
-        return NeighbourLink(bus.endpoint(i), key=bytes(32), boot_epoch=epoch, delta_every=delta,
-                             policy=AuthPolicy(fleet_id=3, self_id=i, fleet_robots=frozenset(ids),
-                                               neighbours=frozenset({1 - i})))
+        return NeighbourLink(
+            bus.endpoint(i),
+            key=bytes(32),
+            boot_epoch=epoch,
+            delta_every=delta,
+            policy=AuthPolicy(
+                fleet_id=3, self_id=i, fleet_robots=frozenset(ids), neighbours=frozenset({1 - i})
+            ),
+        )
 
     a, b = link(0), link(1)
     rng = np.random.default_rng(1)

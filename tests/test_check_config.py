@@ -18,8 +18,9 @@ try:
     HAVE_ED25519 = True
 except ImportError:
     HAVE_ED25519 = False
-needs_ed25519 = pytest.mark.skipif(not HAVE_ED25519,
-                                   reason="no 'cryptography' (pip install .[comms])")
+needs_ed25519 = pytest.mark.skipif(
+    not HAVE_ED25519, reason="no 'cryptography' (pip install .[comms])"
+)
 
 
 def _config(tmp_path, name="robot.yaml", **sections):
@@ -27,8 +28,11 @@ def _config(tmp_path, name="robot.yaml", **sections):
         "robot": {"id": 1, "name": "dingo1", "fleet": "dingo6"},
         "neighbours": [{"id": 2, "name": "dingo2", "address": "10.42.0.12:5600"}],
         "comms": {"transport": "udp", "key_file": "fleet.key"},
-        "camera": {"source": "realsense", "calib_dir": str(REPO / "calib" / "cameras"),
-                   "tags_file": str(REPO / "calib" / "tags.yaml")},
+        "camera": {
+            "source": "realsense",
+            "calib_dir": str(REPO / "calib" / "cameras"),
+            "tags_file": str(REPO / "calib" / "tags.yaml"),
+        },
         "daemon": {"state_dir": str(tmp_path / "state")},
     }
     for k, v in sections.items():
@@ -72,12 +76,17 @@ def test_every_schema_error_is_reported_with_its_line(tmp_path, capsys):
         "comms: {port: 99999, periodx: 3}\n"
         "agent:\n"
         "  beta: fast\n"
-        "  graph: {max_nodes: 400, max_edges: 50}\n")
+        "  graph: {max_nodes: 400, max_edges: 50}\n"
+    )
     rc, _, errors = _check(path, capsys)
     assert rc == 2
-    want = [("bad.yaml:3:", "neighbours[0].address: required"),
-            ("bad.yaml:4:", "comms.port"), ("bad.yaml:4:", "comms.periodx: unknown key"),
-            ("bad.yaml:6:", "agent.beta"), ("bad.yaml:7:", "agent.graph.max_edges")]
+    want = [
+        ("bad.yaml:3:", "neighbours[0].address: required"),
+        ("bad.yaml:4:", "comms.port"),
+        ("bad.yaml:4:", "comms.periodx: unknown key"),
+        ("bad.yaml:6:", "agent.beta"),
+        ("bad.yaml:7:", "agent.graph.max_edges"),
+    ]
     assert len(errors) == len(want), errors
     for line, (where, what) in zip(errors, want):
         assert where in line and what in line, (line, where, what)
@@ -103,14 +112,20 @@ def test_robot_keys_are_checked(tmp_path, capsys, auth):
     # a fleet HMAC key where a robot key is expected, and robot 2 missing from the keys
     keys.write_fleet_key(tmp_path / "fleet.key")
     keys.write_fleet_public_keys(tmp_path / "partial.pub", "dingo6", {1: pub[1]})
-    rc, _, errors = _check(_config(tmp_path, comms={**ed, "key_file": "fleet.key",
-                                                    "public_keys_file": "partial.pub"},
-                                   camera={"source": "none"}), capsys)
+    rc, _, errors = _check(
+        _config(
+            tmp_path,
+            comms={**ed, "key_file": "fleet.key", "public_keys_file": "partial.pub"},
+            camera={"source": "none"},
+        ),
+        capsys,
+    )
     assert rc == 2 and len(errors) == 2, errors
     assert "comms.auth: hmac" in errors[0] and "robot(s) [2]" in errors[1]
     # another robot's secret: its public key is not this robot's
-    rc, _, errors = _check(_config(tmp_path, comms={**ed, "key_file": "other.key"},
-                                   camera={"source": "none"}), capsys)
+    rc, _, errors = _check(
+        _config(tmp_path, comms={**ed, "key_file": "other.key"}, camera={"source": "none"}), capsys
+    )
     assert rc == 2 and "not robot 1's" in errors[0]
 
 
@@ -130,20 +145,30 @@ def _fleet(tmp_path, n=4, auth="hmac", edit=None):
         keys.write_fleet_public_keys(d / "fleet.pub", "ring", table)
     for i in range(1, n + 1):
         nb = [(i % n) + 1, ((i - 2) % n) + 1]
-        cfg = {"robot": {"id": i, "name": f"r{i}", "fleet": "ring"},
-               "neighbours": [{"id": j, "name": f"r{j}", "address": f"10.0.0.{j}:5600"}
-                              for j in nb],
-               "comms": {"transport": "udp", "auth": auth,
-                         "key_file": "fleet.key" if auth == "hmac" else f"r{i}.key",
-                         **({"public_keys_file": "fleet.pub"} if auth != "hmac" else {})}}
+        cfg = {
+            "robot": {"id": i, "name": f"r{i}", "fleet": "ring"},
+            "neighbours": [{"id": j, "name": f"r{j}", "address": f"10.0.0.{j}:5600"} for j in nb],
+            "comms": {
+                "transport": "udp",
+                "auth": auth,
+                "key_file": "fleet.key" if auth == "hmac" else f"r{i}.key",
+                **({"public_keys_file": "fleet.pub"} if auth != "hmac" else {}),
+            },
+        }
         if edit is not None:
             edit(i, cfg)
         (d / f"r{i}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     return check_fleet(d)
 
 
-@pytest.mark.parametrize("auth", ["hmac", pytest.param("ed25519", marks=needs_ed25519),
-                                  pytest.param("pairwise", marks=needs_ed25519)])
+@pytest.mark.parametrize(
+    "auth",
+    [
+        "hmac",
+        pytest.param("ed25519", marks=needs_ed25519),
+        pytest.param("pairwise", marks=needs_ed25519),
+    ],
+)
 def test_check_fleet_consistent_ring_is_ok(tmp_path, auth):
     rep = _fleet(tmp_path, auth=auth)
     assert rep.errors == [] and len(rep.robots) == 4
@@ -158,6 +183,7 @@ def test_check_fleet_finds_every_inconsistency(tmp_path):
             cfg["neighbours"][0]["address"] = "10.0.0.9:5600"  # r3 at another address
         if i == 4:
             cfg["robot"]["id"] = 2  # duplicate id (and r4 vanishes)
+
     rep = _fleet(tmp_path, edit=edit)
     text = "\n".join(map(str, rep.errors))
     assert "disagree on the fleet name" in text
@@ -172,6 +198,7 @@ def test_check_fleet_keys(tmp_path, capsys):
     def mixed(i, cfg):
         if i == 2:
             cfg["comms"]["auth"] = "ed25519"
+
     rep = _fleet(tmp_path, edit=mixed)
     assert any("different key policies" in str(e) for e in rep.errors)
     # ed25519: robot 3's key pair replaced but the fleet's public keys not exported again

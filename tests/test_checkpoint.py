@@ -21,7 +21,11 @@ def sample_state(seed: int = 0) -> dict:
         "graph": {"poses": rng.normal(size=(5, 4, 4)), "ids": np.arange(5, dtype=np.int64)},
         "duals": {(1, 7): rng.normal(size=6), (2, 3): rng.normal(size=6)},
         "y": {3: np.eye(4), 9: np.eye(4) * 2},
-        "seq": 42, "epoch": 3, "name": "dingo1", "nan": float("nan"), "none": None,
+        "seq": 42,
+        "epoch": 3,
+        "name": "dingo1",
+        "nan": float("nan"),
+        "none": None,
         "list": [1, 2.5, "x", np.float64(3.0)],
     }
 
@@ -92,8 +96,7 @@ while True:
 
 @pytest.mark.parametrize("delay_s", [0.3, 0.7, 1.1])
 def test_kill_9_during_saves_leaves_a_loadable_checkpoint(tmp_path, delay_s):
-    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)],
-                            stdout=subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)], stdout=subprocess.PIPE)
     assert proc.stdout.readline().strip() == b"go"
     deadline = time.monotonic() + 30
     while not (tmp_path / "checkpoint.npz").exists() and time.monotonic() < deadline:

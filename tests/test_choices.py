@@ -43,8 +43,11 @@ def test_lm_params_choices():
     assert params.linear_solver is LinearSolver.AUTO
     assert params.newton_damping is NewtonDamping.SHARED
     assert LMParams().linear_solver is LinearSolver.SUPERLU
-    with pytest.raises(ValueError, match=r"linear_solver: expected one of 'superlu', 'cholesky', "
-                                         r"'auto', got 'lu'"):
+    with pytest.raises(
+        ValueError,
+        match=r"linear_solver: expected one of 'superlu', 'cholesky', "
+        r"'auto', got 'lu'",
+    ):
         LMParams(linear_solver="lu")
     with pytest.raises(ValueError, match="hessian: .*'newton'"):
         LMParams(hessian="newton")

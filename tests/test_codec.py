@@ -212,8 +212,9 @@ u64 = st.integers(0, 2**63)
     round_=u64,
     stamp=st.integers(0, 2**62),
     seps=st.lists(st.tuples(u64, u64, st.integers(0, 2**62), pose3), max_size=40),
-    objs=st.lists(st.tuples(u64, u64, st.integers(0, 300), pose3, st.integers(0, 0xFFFF)),
-                  max_size=40),
+    objs=st.lists(
+        st.tuples(u64, u64, st.integers(0, 300), pose3, st.integers(0, 0xFFFF)), max_size=40
+    ),
 )
 def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, objs):
     msg = NeighbourMessage(
@@ -235,7 +236,8 @@ def test_round_trip_property(sender, fleet, epoch, seq, round_, stamp, seps, obj
         )
     assert [(e.owner_robot, e.keyframe_id, e.stamp_ns) for e in got_s] == [s[:3] for s in seps]
     assert [(e.object_id, e.origin_robot, e.hop_count, e.support) for e in got_o] == [
-        (*o[:3], o[4]) for o in objs]
+        (*o[:3], o[4]) for o in objs
+    ]
     for (_, _, _, T), e in zip(seps, got_s, strict=True):
         assert (
             np.abs(e.T_world_body[:3, 3] - T[:3, 3]).max()
@@ -270,7 +272,9 @@ def test_malformed_is_decode_error(mutate, match):
 
 def _header_with_counts(n_sep, n_obj, n_init, body=b"", dim3=True):
     # magic, version, flags; fleet 1, sender 2, epoch 3, sequence 4, round 0, stamp 0, counts
-    fixed = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1 if dim3 else 0) + bytes([1, 2, 3, 4, 0, 0])
+    fixed = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1 if dim3 else 0) + bytes(
+        [1, 2, 3, 4, 0, 0]
+    )
     return fixed + bytes([n_sep, n_obj, n_init]) + body + bytes(codec.TAG_BYTES)
 
 
@@ -345,8 +349,9 @@ def test_encode_rejects_bad_input():
     with pytest.raises(codec.EncodeError):
         codec.encode_message(neg, fleet_id=1, boot_epoch=0, first_sequence=0)
     for support in (-1, 0x10000):
-        bad = NeighbourMessage(sender_id=1, round=0, stamp_ns=0,
-                               objects=(ObjectEntry(1, np.eye(4), 1, 0, support),))
+        bad = NeighbourMessage(
+            sender_id=1, round=0, stamp_ns=0, objects=(ObjectEntry(1, np.eye(4), 1, 0, support),)
+        )
         with pytest.raises(codec.EncodeError, match="support"):
             codec.encode_message(bad, fleet_id=1, boot_epoch=0, first_sequence=0)
 
@@ -397,33 +402,44 @@ def test_header_ids_out_of_range(field):
     """fleet/sender are u16 and boot epoch/sequence u32 even though they travel as varints."""
     values = [1, 2, 3, 4]
     values[field] = (1 << 16) if field < 2 else (1 << 32)
-    head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(codec._varint(v) for v in values)
+    head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(
+        codec._varint(v) for v in values
+    )
     data = head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES)
     with pytest.raises(DecodeError, match="exceeds"):
         codec.decode_header(data)
     values[field] -= 1
-    head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(codec._varint(v) for v in values)
+    head = struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 1) + b"".join(
+        codec._varint(v) for v in values
+    )
     assert codec.decode_header(head + bytes([0, 0, 0, 0, 0]) + bytes(codec.TAG_BYTES))
 
 
 def test_done_count_rides_in_the_header_and_only_with_its_flag():
     plain = _one(GOLDEN_MESSAGE)
-    msg = NeighbourMessage(**{**{f: getattr(GOLDEN_MESSAGE, f) for f in
-                                 ("sender_id", "round", "stamp_ns", "separators", "objects",
-                                  "init")}, "done_count": 7})
+    msg = NeighbourMessage(
+        **{
+            **{
+                f: getattr(GOLDEN_MESSAGE, f)
+                for f in ("sender_id", "round", "stamp_ns", "separators", "objects", "init")
+            },
+            "done_count": 7,
+        }
+    )
     data = _one(msg)
     assert len(data) == len(plain) + 1 and data[3] == plain[3] | 0x08
     back = codec.decode_datagram(data)
     assert back.done_count == 7 and len(back.separators) == 1 and len(back.objects) == 1
     assert codec.decode_datagram(plain).done_count is None
-    beat = codec.decode_datagram(_one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0,
-                                                       done_count=0)))
+    beat = codec.decode_datagram(
+        _one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0, done_count=0))
+    )
     assert beat.done_count == 0 and not beat.separators
     with pytest.raises(codec.EncodeError, match="done_count"):
         _one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0, done_count=256))
     # a counter above 255 on the wire is malformed
     bad = bytearray(_one(NeighbourMessage(sender_id=1, round=3, stamp_ns=0, done_count=255)))
     i = bad.index(bytes([0xFF, 0x01]))
-    bad[i:i + 2] = bytes([0x80, 0x02])
+    bad[i : i + 2] = bytes([0x80, 0x02])
     with pytest.raises(DecodeError, match="done count"):
         codec.decode_datagram(bytes(bad))

@@ -158,8 +158,9 @@ def test_relative_paths_resolve_against_the_file(tmp_path):
     assert cfg.resolve("") is None
 
 
-@pytest.mark.parametrize("path", sorted((REPO / "calib" / "fleet").glob("*.yaml")),
-                         ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "path", sorted((REPO / "calib" / "fleet").glob("*.yaml")), ids=lambda p: p.name
+)
 def test_shipped_fleet_configs_load(path):
     cfg = load_config(path)
     assert cfg.agent.robot_id == cfg.robot.id
@@ -185,8 +186,18 @@ def test_every_config_key_is_documented():
     from dran_edge import config as C
 
     text = (REPO / "docs" / "config.md").read_text()
-    for cls in (C.RobotSection, C.Neighbour, C.CommsSection, C.IngestSection, C.CameraSection,
-                C.DaemonSection, C.AgentConfig, C.OdometryNoise, C.NoiseModel, C.GraphBounds):
+    for cls in (
+        C.RobotSection,
+        C.Neighbour,
+        C.CommsSection,
+        C.IngestSection,
+        C.CameraSection,
+        C.DaemonSection,
+        C.AgentConfig,
+        C.OdometryNoise,
+        C.NoiseModel,
+        C.GraphBounds,
+    ):
         for f in dc.fields(cls):
             if f.name != "source_path":
                 assert f"| `{f.name}` |" in text, f"{cls.__name__}.{f.name} not in docs/config.md"

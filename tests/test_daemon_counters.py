@@ -29,5 +29,12 @@ def test_ingest_counters_serialise_under_the_status_keys():
     c = IngestCounters()
     c.records += 4
     c.rejected += 1
-    assert c.as_dict() == {"bytes": 0, "records": 4, "frames": 0, "rejected": 1,
-                           "clients_accepted": 0, "clients_refused": 0, "handler_errors": 0}
+    assert c.as_dict() == {
+        "bytes": 0,
+        "records": 4,
+        "frames": 0,
+        "rejected": 1,
+        "clients_accepted": 0,
+        "clients_refused": 0,
+        "handler_errors": 0,
+    }

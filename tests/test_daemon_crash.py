@@ -61,8 +61,11 @@ def test_kill_9_mid_mission_loses_nothing_accepted(tmp_path):
     proc = start_daemon(cfg_path, {})
     first_epoch = wait_status(status, lambda s: s["state"] == "running", proc=proc)["boot_epoch"]
     send(run / "ingest.sock", records[:quarter])
-    wait_status(status, lambda s: s["counters"].get("checkpoints", 0) >= 2
-                and s["journal"]["pending"] == 0, proc=proc)
+    wait_status(
+        status,
+        lambda s: s["counters"].get("checkpoints", 0) >= 2 and s["journal"]["pending"] == 0,
+        proc=proc,
+    )
     send(run / "ingest.sock", records[quarter:half])
     st = wait_status(status, lambda s: s["ingest"]["records"] == half, proc=proc)
     proc.send_signal(signal.SIGKILL)
@@ -77,11 +80,18 @@ def test_kill_9_mid_mission_loses_nothing_accepted(tmp_path):
     assert st["boot_epoch"] > first_epoch
     assert st["counters"].get("recovered_records", 0) >= half - applied_at_kill
     send(run / "ingest.sock", records[half:])
-    st = wait_status(status, lambda s: s["ingest"]["records"] == len(records) - half
-                     and s["journal"]["pending"] == 0, proc=proc)
+    st = wait_status(
+        status,
+        lambda s: s["ingest"]["records"] == len(records) - half and s["journal"]["pending"] == 0,
+        proc=proc,
+    )
     ticks0 = st["rounds"]["ticks"]
-    wait_status(status, lambda s: s["rounds"]["ticks"] >= ticks0 + ROUNDS_AFTER_DATA,
-                timeout_s=120, proc=proc)
+    wait_status(
+        status,
+        lambda s: s["rounds"]["ticks"] >= ticks0 + ROUNDS_AFTER_DATA,
+        timeout_s=120,
+        proc=proc,
+    )
     rc, out = stop(proc)
     assert rc == 0, out
 
@@ -106,8 +116,11 @@ def test_restart_after_clean_stop_resumes_without_replaying(tmp_path):
     proc = start_daemon(cfg_path, {})
     wait_status(status, lambda s: s["state"] == "running", proc=proc)
     send(tmp_path / "run" / "ingest.sock", records)
-    wait_status(status, lambda s: s["ingest"]["records"] == len(records)
-                and s["journal"]["pending"] == 0, proc=proc)
+    wait_status(
+        status,
+        lambda s: s["ingest"]["records"] == len(records) and s["journal"]["pending"] == 0,
+        proc=proc,
+    )
     rc, out = stop(proc)
     assert rc == 0, out
     before = CheckpointStore(tmp_path / "state").load()

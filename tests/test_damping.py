@@ -69,17 +69,22 @@ def test_gain_ratio_sets_the_decrease_factor():
     u, v = lm_model(mu)
     xi = np.concatenate([u, v])
     predicted = 0.5 * float(mu * xi @ xi - G @ xi)
-    out = damped_step(LM_DAMPING, DampingState(mu), lm_model, constant_cost(C0 - 0.5 * predicted),
-                      C0, G)
+    out = damped_step(
+        LM_DAMPING, DampingState(mu), lm_model, constant_cost(C0 - 0.5 * predicted), C0, G
+    )
     assert out.accepted and out.rho == pytest.approx(0.5)
     assert out.state.mu == pytest.approx(mu)
 
 
-@pytest.mark.parametrize("policy, accepted", [(LM_DAMPING, False), (AGENT_DAMPING, True)],
-                         ids=["lm-strict", "agent-non-strict"])
+@pytest.mark.parametrize(
+    "policy, accepted",
+    [(LM_DAMPING, False), (AGENT_DAMPING, True)],
+    ids=["lm-strict", "agent-non-strict"],
+)
 def test_acceptance_boundary_equal_cost(policy, accepted):
-    out = damped_step(replace(policy, max_trials=1), DampingState(1.0), lm_model,
-                      constant_cost(C0), C0, G)
+    out = damped_step(
+        replace(policy, max_trials=1), DampingState(1.0), lm_model, constant_cost(C0), C0, G
+    )
     assert out.accepted is accepted
     if accepted:
         assert out.rho == 0.0  # no actual decrease
@@ -90,8 +95,14 @@ def test_acceptance_boundary_equal_cost(policy, accepted):
 
 def test_acceptance_needs_a_finite_cost():
     for policy in POLICIES:
-        out = damped_step(replace(policy, max_trials=2), DampingState(1.0), lm_model,
-                          constant_cost(math.nan), C0, G)
+        out = damped_step(
+            replace(policy, max_trials=2),
+            DampingState(1.0),
+            lm_model,
+            constant_cost(math.nan),
+            C0,
+            G,
+        )
         assert not out.accepted and out.trials == 2
 
 
@@ -100,13 +111,13 @@ def test_trial_cap_reached_grows_mu_per_policy():
     worse = constant_cost(C0 + 1.0)
     agent = damped_step(AGENT_DAMPING, DampingState(mu), lm_model, worse, C0, G)
     assert not agent.accepted and agent.trials == AGENT_DAMPING.max_trials
-    assert agent.state.mu == pytest.approx(mu * AGENT_DAMPING.growth ** AGENT_DAMPING.max_trials)
+    assert agent.state.mu == pytest.approx(mu * AGENT_DAMPING.growth**AGENT_DAMPING.max_trials)
     assert agent.predicted > 0.0  # the last solved trial's prediction, kept for the caller
     lm = damped_step(LM_DAMPING, DampingState(mu), lm_model, worse, C0, G, max_trials=5)
     assert not lm.accepted and lm.trials == 5
     # Nielsen: μ ← μν, ν ← 2ν from ν = 2: factors 2, 4, 8, 16, 32
     assert lm.state.mu == pytest.approx(mu * 2.0 ** (1 + 2 + 3 + 4 + 5))
-    assert lm.state.nu == 2.0 ** 6
+    assert lm.state.nu == 2.0**6
 
 
 def test_overshooting_step_is_rejected_until_mu_is_large_enough():
@@ -146,8 +157,9 @@ def test_unfactorisable_trials_raise_mu_or_not_by_policy():
     out = damped_step(AGENT_DAMPING, DampingState(0.1), fails_below_one, evaluate_quadratic, C0, G)
     assert out.accepted and out.solve_failures == 2 and out.trials == 3  # 0.1, 0.4, 1.6
     assert out.mu == pytest.approx(1.6)
-    newton = damped_step(LM_NEWTON_DAMPING, DampingState(0.1, 4.0), fails_below_one,
-                         evaluate_quadratic, C0, G)
+    newton = damped_step(
+        LM_NEWTON_DAMPING, DampingState(0.1, 4.0), fails_below_one, evaluate_quadratic, C0, G
+    )
     assert not newton.accepted and newton.trials == 1 and newton.solved == 0
     assert newton.state == DampingState(0.1, 4.0)  # μ_N kept: the model is not convex here
     assert newton.predicted == math.inf
@@ -174,11 +186,15 @@ def test_initial_mu_rules():
 def test_policy_defaults_are_the_callers_defaults():
     params = LMParams()
     assert (params.mu_init, params.mu_min, params.max_trials) == (
-        LM_DAMPING.mu_init, LM_DAMPING.mu_min, LM_DAMPING.max_trials)
+        LM_DAMPING.mu_init,
+        LM_DAMPING.mu_min,
+        LM_DAMPING.max_trials,
+    )
     assert AgentConfig().mu_init == AGENT_DAMPING.mu_init
 
 
 def test_no_trials():
-    out = damped_step(LM_DAMPING, DampingState(1.0), lm_model, evaluate_quadratic, C0, G,
-                      max_trials=0)
+    out = damped_step(
+        LM_DAMPING, DampingState(1.0), lm_model, evaluate_quadratic, C0, G, max_trials=0
+    )
     assert not out.accepted and out.trials == 0 and out.state == DampingState(1.0)

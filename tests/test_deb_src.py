@@ -6,8 +6,9 @@ import importlib.util
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("deb_src_entries",
-                                              ROOT / "tools" / "deb_src_entries.py")
+spec = importlib.util.spec_from_file_location(
+    "deb_src_entries", ROOT / "tools" / "deb_src_entries.py"
+)
 dse = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(dse)
 
@@ -29,14 +30,17 @@ def _etc(tmp_path: Path) -> Path:
     (etc / "sources.list").write_text(
         "deb http://ports.ubuntu.com/ubuntu-ports jammy main universe  # archive\n"
         "deb http://mirrors.example.cn/ubuntu-ports jammy main universe\n"
-        "# deb http://ports.ubuntu.com/ubuntu-ports jammy-backports main\n")
+        "# deb http://ports.ubuntu.com/ubuntu-ports jammy-backports main\n"
+    )
     (etc / "sources.list.d" / "ros-latest.list").write_text(
         "deb [signed-by=/usr/share/keyrings/ros.gpg] "
-        "http://packages.ros.org/ros/ubuntu jammy main\n")
+        "http://packages.ros.org/ros/ubuntu jammy main\n"
+    )
     (etc / "sources.list.d" / "debian.sources").write_text(
         "Types: deb\nURIs: http://deb.debian.org/debian\nSuites: bookworm bookworm-updates\n"
         "Components: main\nSigned-By: /usr/share/keyrings/debian-archive-keyring.gpg\n\n"
-        "Types: deb\nURIs: https://packages.ros.org/ros2/ubuntu\nSuites: jammy\nComponents: main\n")
+        "Types: deb\nURIs: https://packages.ros.org/ros2/ubuntu\nSuites: jammy\nComponents: main\n"
+    )
     return etc
 
 

@@ -32,8 +32,9 @@ def _walk(rounds, seed=0, step=1e-2):
 
 
 def _encode(msg, enc):
-    return codec.encode_datagrams(msg, fleet_id=1, boot_epoch=1, first_sequence=msg.round,
-                                  delta=enc)
+    return codec.encode_datagrams(
+        msg, fleet_id=1, boot_epoch=1, first_sequence=msg.round, delta=enc
+    )
 
 
 def test_deltas_rebuild_the_values_within_the_quantisation_bound_in_under_half_the_bytes():
@@ -52,8 +53,11 @@ def test_deltas_rebuild_the_values_within_the_quantisation_bound_in_under_half_t
         assert np.abs(got_R - R).max() < 5e-4
         assert np.allclose(geo.so3_project(got_T[:, :3, :3]), got_T[:, :3, :3], atol=1e-9)
         sizes.append(len(grams[0].data))
-    plain = len(codec.encode_datagrams(_message(1, T, R), fleet_id=1, boot_epoch=1,
-                                       first_sequence=1)[0].data)
+    plain = len(
+        codec.encode_datagrams(_message(1, T, R), fleet_id=1, boot_epoch=1, first_sequence=1)[
+            0
+        ].data
+    )
     assert sizes[0] == pytest.approx(plain, abs=N)  # first round: absolute values
     assert max(sizes[1:]) < 0.45 * plain  # header and tag included
 
@@ -89,8 +93,12 @@ def test_delta_entries_without_link_state_are_left_out_and_counted():
 
 def _delta_gram(owner=2, back=1, exponent=-8, q=(1, 2, 3, -4, 5, -6), rnd=7):
     """A hand-built one-separator delta datagram (layout of docs/wire-format.md)."""
-    head = (struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 0x01 | 0x02)
-            + bytes([1, 2, 1, 9, rnd]) + bytes([0x80, 0x01]) + bytes([1, 0, 0]))
+    head = (
+        struct.pack("<2sBB", b"DR", codec.SCHEMA_VERSION, 0x01 | 0x02)
+        + bytes([1, 2, 1, 9, rnd])
+        + bytes([0x80, 0x01])
+        + bytes([1, 0, 0])
+    )
     ids = bytes([(owner << 1) | 1, 40, back])
     value = struct.pack("<b", exponent) + struct.pack("<6b", *q)
     return head + ids + value + bytes(codec.TAG_BYTES)
@@ -107,12 +115,15 @@ def test_hand_built_delta_datagram_decodes_against_the_held_base():
     assert np.allclose(e.T_world_body, base @ geo.se3_exp(xi), atol=1e-15)
 
 
-@pytest.mark.parametrize("kw, why", [
-    ({"exponent": 1}, "exponent"),
-    ({"q": (1, 2, 3, -128, 5, -6)}, "-128"),
-    ({"back": 0}, "delta base"),
-    ({"back": 8}, "delta base"),
-])
+@pytest.mark.parametrize(
+    "kw, why",
+    [
+        ({"exponent": 1}, "exponent"),
+        ({"q": (1, 2, 3, -128, 5, -6)}, "-128"),
+        ({"back": 0}, "delta base"),
+        ({"back": 8}, "delta base"),
+    ],
+)
 def test_malformed_delta_fields_are_decode_errors(kw, why):
     dec = dl.DeltaDecoder()
     dec.absolute(("s", 2, 40), np.eye(4), 6, stamp_ns=0)
@@ -128,8 +139,9 @@ def test_truncated_delta_datagrams_are_decode_errors():
             codec.decode_datagram(body[:-cut] + bytes(codec.TAG_BYTES), dl.DeltaDecoder())
 
 
-@pytest.mark.parametrize("stage", [InitStage.REFINE_SCHUR, InitStage.REFINE_STEP,
-                                   InitStage.REFINE_CONTROL])
+@pytest.mark.parametrize(
+    "stage", [InitStage.REFINE_SCHUR, InitStage.REFINE_STEP, InitStage.REFINE_CONTROL]
+)
 def test_refinement_values_always_travel_absolute_in_float32(stage):
     """A condensed system needs every digit float32 keeps: no quantised deltas, even for a
     key whose value barely moved (a ROTATION entry in its place goes as a delta)."""
@@ -140,8 +152,14 @@ def test_refinement_values_always_travel_absolute_in_float32(stage):
     for kind in (stage, InitStage.ROTATION):
         for rnd in (1, 2):
             V = V + 1e-3 * rnd
-            msg = NeighbourMessage(2, rnd, rnd * 500_000_000, (), (),
-                                   tuple(InitEntry(kind, 2, 40 + i, V[i]) for i in range(N)))
+            msg = NeighbourMessage(
+                2,
+                rnd,
+                rnd * 500_000_000,
+                (),
+                (),
+                tuple(InitEntry(kind, 2, 40 + i, V[i]) for i in range(N)),
+            )
             grams = _encode(msg, enc)
             got = np.stack([e.value for e in codec.decode_datagram(grams[0].data, dec).init])
             sizes[kind, rnd] = len(grams[0].data)

@@ -202,7 +202,9 @@ def _hostile(rng: random.Random, target: DishTarget, valid_pool: list[bytes]) ->
     if k == 5:  # framed garbage body
         return target.frame(rng.randbytes(rng.randrange(0, 1500)))
     if k == 6:  # framed, valid header magic, random rest
-        return target.frame(b"DR" + bytes([codec.SCHEMA_VERSION]) + rng.randbytes(rng.randrange(0, 600)))
+        return target.frame(
+            b"DR" + bytes([codec.SCHEMA_VERSION]) + rng.randbytes(rng.randrange(0, 600))
+        )
     if k == 7:  # a valid datagram mutated (bit flips, cut, extended)
         d = bytearray(rng.choice(valid_pool))
         for _ in range(rng.randrange(1, 4)):

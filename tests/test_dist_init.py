@@ -41,9 +41,17 @@ def lawnmower(rows=4, cols=15, seed=0) -> G2oGraph:
     Z = geo.se2_inverse(T[e[:, 0]]) @ T[e[:, 1]]
     Z = Z @ geo.se2_exp(rng.normal(0, [0.05, 0.05, 0.02], (len(e), 3)))
     info = np.broadcast_to(np.diag([400.0, 400.0, 2500.0]), (len(e), 3, 3)).copy()
-    return G2oGraph(dim=2, vertex_ids=np.arange(n), poses=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(),
-                    has_pose=np.zeros(n, bool), edges=e, measurements=Z, information=info,
-                    fixed=np.zeros(n, bool), edge_lines=np.arange(len(e)))
+    return G2oGraph(
+        dim=2,
+        vertex_ids=np.arange(n),
+        poses=np.broadcast_to(np.eye(3), (n, 3, 3)).copy(),
+        has_pose=np.zeros(n, bool),
+        edges=e,
+        measurements=Z,
+        information=info,
+        fixed=np.zeros(n, bool),
+        edge_lines=np.arange(len(e)),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -60,8 +68,17 @@ def test_one_robot_equals_the_centralized_chordal_init(graph):
     g = graph
     k, t = sesync_weights(g.dim, g.information)
     part = partition_contiguous(g.edges, g.num_vertices, 1)
-    res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                   direct_exchange, InitParams(max_iterations=3))
+    res = distributed_chordal_init(
+        2,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        k,
+        t,
+        part,
+        direct_exchange,
+        InitParams(max_iterations=3),
+    )
     ref = chordal_initialization(g.num_vertices, g.edges, g.measurements, k, t, 0)
     assert np.allclose(res.poses, ref, atol=1e-9)
 
@@ -70,8 +87,17 @@ def test_three_robots_come_close_to_the_centralized_chordal_init(graph):
     g = graph
     k, t = sesync_weights(g.dim, g.information)
     part = partition_contiguous(g.edges, g.num_vertices, 3)
-    res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                   direct_exchange, InitParams(gauss_seidel=True))
+    res = distributed_chordal_init(
+        2,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        k,
+        t,
+        part,
+        direct_exchange,
+        InitParams(gauss_seidel=True),
+    )
     ref = chordal_initialization(g.num_vertices, g.edges, g.measurements, k, t, 0)
     identity = np.broadcast_to(np.eye(3), ref.shape)
     assert _F(g, res.poses) < 1.05 * _F(g, ref)
@@ -106,8 +132,9 @@ def test_five_robots_on_a_generated_garage_land_on_the_centralized_chordal_init(
     ref = chordal_initialization(g.num_vertices, g.edges, g.measurements, k, t, 0)
 
     def run(params):
-        res = distributed_chordal_init(3, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                       direct_exchange, params)
+        res = distributed_chordal_init(
+            3, g.num_vertices, g.edges, g.measurements, k, t, part, direct_exchange, params
+        )
         assert res.rotation_iterations <= 50 and res.translation_iterations <= 50
         dt = np.linalg.norm(res.poses[:, :3, 3] - ref[:, :3, 3], axis=1).max()
         dR = np.linalg.norm(res.poses[:, :3, :3] - ref[:, :3, :3], axis=(1, 2)).max()
@@ -116,8 +143,16 @@ def test_five_robots_on_a_generated_garage_land_on_the_centralized_chordal_init(
     res, dt, dR = run(InitParams(gauss_seidel=True, direct="never"))
     assert dt < 0.02 and dR < 0.01
     assert _F(g, res.poses) < 1.001 * _F(g, ref)
-    _, dt_plain, _ = run(InitParams(gauss_seidel=True, sor=1.0, translation_sor=1.0,
-                                    rotation_tol=1e-2, translation_tol=1e-2, direct="never"))
+    _, dt_plain, _ = run(
+        InitParams(
+            gauss_seidel=True,
+            sor=1.0,
+            translation_sor=1.0,
+            rotation_tol=1e-2,
+            translation_tol=1e-2,
+            direct="never",
+        )
+    )
     assert dt < 0.2 * dt_plain  # the over-relaxation and the tolerances are what closes the gap
     # the default solves this small split exactly by substructuring instead
     _, dt_auto, dR_auto = run(InitParams(gauss_seidel=True))
@@ -219,13 +254,31 @@ def test_three_robot_chain_init_equals_the_centralized_chordal_solution(dim, spl
         calls.append(stage)
         return direct_exchange(stage, it, outgoing)
 
-    res = distributed_chordal_init(dim, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                   exchange, InitParams(gauss_seidel=True, direct="always"))
+    res = distributed_chordal_init(
+        dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        k,
+        t,
+        part,
+        exchange,
+        InitParams(gauss_seidel=True, direct="always"),
+    )
     assert np.abs(res.poses - ref).max() < 1e-6
     assert len(calls) == res.rotation_iterations + res.translation_iterations <= 8
     # the block iterations alone stay far from it on the same chain
-    gs = distributed_chordal_init(dim, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                  direct_exchange, InitParams(gauss_seidel=True, direct="never"))
+    gs = distributed_chordal_init(
+        dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        k,
+        t,
+        part,
+        direct_exchange,
+        InitParams(gauss_seidel=True, direct="never"),
+    )
     assert np.abs(gs.poses - ref).max() > 1e3 * np.abs(res.poses - ref).max()
 
 
@@ -242,10 +295,20 @@ def test_substructured_init_over_the_wire_lands_on_the_chordal_objective():
     ref = _F(g, chordal_initialization(g.num_vertices, g.edges, g.measurements, k, t, 0))
     runs = []
     for _ in range(2):
-        fleet = Fleet([], Bus(range(5), graph=part.neighbour_pairs()),
-                      delta_every=TABLE1_DELTA_EVERY)
-        res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                       fleet.init_exchange, InitParams(gauss_seidel=True))
+        fleet = Fleet(
+            [], Bus(range(5), graph=part.neighbour_pairs()), delta_every=TABLE1_DELTA_EVERY
+        )
+        res = distributed_chordal_init(
+            2,
+            g.num_vertices,
+            g.edges,
+            g.measurements,
+            k,
+            t,
+            part,
+            fleet.init_exchange,
+            InitParams(gauss_seidel=True),
+        )
         runs.append((res.poses, fleet.traffic.bytes_total, fleet.round))
         assert [h[1] for h in res.history] == ["direct", "direct"]
     assert abs(_F(g, runs[0][0]) / ref - 1) < 1e-4
@@ -265,15 +328,23 @@ def test_auto_picks_the_direct_solve_only_within_its_byte_budget():
     g = gg.graph_from_trajectory(T, gg.loop_pairs(T, 0.01, 4, 300, 4), 0.05, 0.01, 4)
     part = partition_contiguous(g.edges, g.num_vertices, 5)
     tree = substructure.robot_tree(part)
-    ratio = (substructure.direct_floats(part, 2, 2, 0, tree)
-             / substructure.iteration_floats(part, 2, 2))
+    ratio = substructure.direct_floats(part, 2, 2, 0, tree) / substructure.iteration_floats(
+        part, 2, 2
+    )
     assert 1.0 < ratio < InitParams().direct_budget
     k, t = sesync_weights(2, g.information)
     kinds = {}
     for budget in (1.0, 100.0):
-        res = distributed_chordal_init(2, g.num_vertices, g.edges, g.measurements, k, t, part,
-                                       direct_exchange, InitParams(gauss_seidel=True,
-                                                                   max_iterations=3,
-                                                                   direct_budget=budget))
+        res = distributed_chordal_init(
+            2,
+            g.num_vertices,
+            g.edges,
+            g.measurements,
+            k,
+            t,
+            part,
+            direct_exchange,
+            InitParams(gauss_seidel=True, max_iterations=3, direct_budget=budget),
+        )
         kinds[budget] = [h[1] for h in res.history if h[0] == "ROTATION"]
     assert kinds[100.0] == ["direct"] and "direct" not in kinds[1.0]

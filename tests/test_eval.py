@@ -39,19 +39,22 @@ def _noisy(rng, T, sigma_p, sigma_r):
     return _pose(T[:, :3, :3] @ dR, T[:, :3, 3] + rng.normal(0, sigma_p, (len(T), 3)))
 
 
-T_BODY_MARKER = _pose(Rotation.from_euler("x", 90, degrees=True).as_matrix(),
-                      np.array([0.05, 0.0, 0.3]))
-OBJECTS = {0: _pose(np.eye(3), np.array([1.0, 0.5, 0.2])),
-           3: _pose(Rotation.from_euler("z", 40, degrees=True).as_matrix(),
-                    np.array([-1.0, 1.0, 0.2]))}
+T_BODY_MARKER = _pose(
+    Rotation.from_euler("x", 90, degrees=True).as_matrix(), np.array([0.05, 0.0, 0.3])
+)
+OBJECTS = {
+    0: _pose(np.eye(3), np.array([1.0, 0.5, 0.2])),
+    3: _pose(Rotation.from_euler("z", 40, degrees=True).as_matrix(), np.array([-1.0, 1.0, 0.2])),
+}
 
 
 def make_run(root: Path, *, with_start_ns=True, rounds_text=None, robot2_body="dingo2") -> dict:
     """A 2-robot run with mocap, final/initial/centralized trajectories, objects and rounds."""
     rng = np.random.default_rng(11)
     root.mkdir(parents=True, exist_ok=True)
-    mocap_line = "mocap: {file: mocap.csv" + (f", start_ns: {MOCAP_START_NS}}}"
-                                              if with_start_ns else "}")
+    mocap_line = "mocap: {file: mocap.csv" + (
+        f", start_ns: {MOCAP_START_NS}}}" if with_start_ns else "}"
+    )
     q = [float(v) for v in Rotation.from_matrix(T_BODY_MARKER[:3, :3]).as_quat()]
     xyz = [float(v) for v in T_BODY_MARKER[:3, 3]]
     tbm = f"{{xyz: {xyz}, quat_xyzw: {q}}}"
@@ -63,7 +66,8 @@ def make_run(root: Path, *, with_start_ns=True, rounds_text=None, robot2_body="d
         f"  - {{id: 2, name: dingo2, mocap_body: {robot2_body}, T_body_marker: {tbm}}}\n"
         "objects:\n  - {id: 0, name: box0, mocap_body: box0}\n"
         "  - {id: 3, name: box3, mocap_body: box3}\n"
-        "comm_graph: [[1, 2]]\n" + mocap_line + "\n")
+        "comm_graph: [[1, 2]]\n" + mocap_line + "\n"
+    )
     # Mocap: 120 Hz from Motive time 0, covering the mission.
     t_m = np.arange(0, DURATION_S + 4.0, 1 / 120)
     t_mission = t_m - 2.5
@@ -73,7 +77,9 @@ def make_run(root: Path, *, with_start_ns=True, rounds_text=None, robot2_body="d
     bodies["dingo1"][1200:1230] = np.nan  # a 0.25 s occlusion
     for oid, T in OBJECTS.items():
         bodies[f"box{oid}"] = np.broadcast_to(T, (len(t_m), 4, 4)).copy()
-    motive_write.write_motive_csv(root / "mocap.csv", motive_write.make_take(t_m, bodies, take_name="t"))
+    motive_write.write_motive_csv(
+        root / "mocap.csv", motive_write.make_take(t_m, bodies, take_name="t")
+    )
     truth = {}
     out = root / "out"
     for k, name in ((0, "dingo1"), (1, "dingo2")):
@@ -97,13 +103,28 @@ def make_run(root: Path, *, with_start_ns=True, rounds_text=None, robot2_body="d
             qo = Rotation.from_matrix(T[:3, :3]).as_quat()
             lines.append(",".join([str(oid)] + [repr(float(v)) for v in (*p, *qo)]))
         (out / name / "objects.csv").write_text("\n".join(lines) + "\n")
-    (out / "rounds.csv").write_text(rounds_text or (
-        "round,stamp_ns,bytes_total,cost,consensus_error\n"
-        + "\n".join(f"{r},{START_NS + r * 500_000_000},{1200 * (r + 1)},{10.0 / (r + 1)},"
-                    f"{0.5 ** r}" for r in range(20)) + "\n"))
-    (out / "report.json").write_text(json.dumps({"bytes_total": 24000, "rounds": 20,
-                                                 "cost_init": 10.0, "cost_final": 0.5,
-                                                 "cost_centralized": 0.4}))
+    (out / "rounds.csv").write_text(
+        rounds_text
+        or (
+            "round,stamp_ns,bytes_total,cost,consensus_error\n"
+            + "\n".join(
+                f"{r},{START_NS + r * 500_000_000},{1200 * (r + 1)},{10.0 / (r + 1)},{0.5**r}"
+                for r in range(20)
+            )
+            + "\n"
+        )
+    )
+    (out / "report.json").write_text(
+        json.dumps(
+            {
+                "bytes_total": 24000,
+                "rounds": 20,
+                "cost_init": 10.0,
+                "cost_final": 0.5,
+                "cost_centralized": 0.4,
+            }
+        )
+    )
     return truth
 
 
@@ -133,11 +154,16 @@ def test_eval_run_with_paper_alignment(tmp_path):
         # The initial estimate starts exactly at the truth, so the paper's anchor is the identity
         # and the ATE is the noise we put in, computed here by hand.
         assert e["final"]["ate_trans_rmse_m"] == pytest.approx(
-            _ate_by_hand(tmp_path / "run", name, "{name}/trajectory.tum", truth), abs=2e-5)
+            _ate_by_hand(tmp_path / "run", name, "{name}/trajectory.tum", truth), abs=2e-5
+        )
         assert e["init"]["ate_trans_rmse_m"] == pytest.approx(
-            _ate_by_hand(tmp_path / "run", name, "{name}/trajectory_init.tum", truth), abs=2e-5)
-        want_sr = 100 * (e["init"]["ate_log_rmse"] - e["final"]["ate_log_rmse"]) / (
-            e["init"]["ate_log_rmse"] - e["centralized"]["ate_log_rmse"])
+            _ate_by_hand(tmp_path / "run", name, "{name}/trajectory_init.tum", truth), abs=2e-5
+        )
+        want_sr = (
+            100
+            * (e["init"]["ate_log_rmse"] - e["final"]["ate_log_rmse"])
+            / (e["init"]["ate_log_rmse"] - e["centralized"]["ate_log_rmse"])
+        )
         assert e["sr_ate_pct"] == pytest.approx(want_sr)
         assert 0 < e["sr_ate_pct"] < 100
         assert e["final"]["matched_poses"] == 400 - (3 if name == "dingo1" else 0)
@@ -159,8 +185,9 @@ def test_eval_run_with_paper_alignment(tmp_path):
 
 def test_eval_run_estimates_the_clock_offset(tmp_path):
     make_run(tmp_path / "run", with_start_ns=False)
-    report = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(align="se3",
-                                                                          plots=False)).report
+    report = evaluate.evaluate_run(
+        tmp_path / "run", evaluate.EvalOptions(align="se3", plots=False)
+    ).report
     assert report["time"]["source"] == "estimated"
     assert report["time"]["time_offset_s"] == pytest.approx(-MOCAP_START_NS * 1e-9, abs=0.01)
     a = report["robots"]["dingo1"]["final"]["alignment"]
@@ -171,8 +198,13 @@ def test_eval_run_estimates_the_clock_offset(tmp_path):
 def test_eval_run_tolerates_missing_optional_files(tmp_path):
     make_run(tmp_path / "run")
     out = tmp_path / "run" / "out"
-    for p in [out / "rounds.csv", out / "report.json", out / "dingo1" / "objects.csv",
-              out / "dingo2" / "objects.csv", out / "dingo1" / "trajectory_init.tum"]:
+    for p in [
+        out / "rounds.csv",
+        out / "report.json",
+        out / "dingo1" / "objects.csv",
+        out / "dingo2" / "objects.csv",
+        out / "dingo1" / "trajectory_init.tum",
+    ]:
         p.unlink()
     for p in (out / "centralized").rglob("*.tum"):
         p.unlink()
@@ -186,8 +218,11 @@ def test_eval_run_tolerates_missing_optional_files(tmp_path):
 
 def test_eval_run_errors(tmp_path):
     make_run(tmp_path / "a", robot2_body="dingo9")
-    with pytest.raises(InputError, match=r"robot dingo2: mocap_body 'dingo9' is not a rigid body"
-                                         r".*box0, box3, dingo1, dingo2"):
+    with pytest.raises(
+        InputError,
+        match=r"robot dingo2: mocap_body 'dingo9' is not a rigid body"
+        r".*box0, box3, dingo1, dingo2",
+    ):
         evaluate.evaluate_run(tmp_path / "a", evaluate.EvalOptions(plots=False))
     bad_rounds = "round,stamp_ns,cost\n0,1,2.0\n1,2,x\n"
     make_run(tmp_path / "b", rounds_text=bad_rounds)
@@ -200,8 +235,9 @@ def test_eval_run_errors(tmp_path):
         evaluate.evaluate_run(tmp_path / "c", evaluate.EvalOptions(plots=False))
     make_run(tmp_path / "d")
     with pytest.raises(InputError, match="time ranges do not overlap"):
-        evaluate.evaluate_run(tmp_path / "d", evaluate.EvalOptions(plots=False,
-                                                                   time_offset_s=1000.0))
+        evaluate.evaluate_run(
+            tmp_path / "d", evaluate.EvalOptions(plots=False, time_offset_s=1000.0)
+        )
 
 
 def test_cli_eval_run_and_traj(tmp_path, capsys):
@@ -212,8 +248,20 @@ def test_cli_eval_run_and_traj(tmp_path, capsys):
     assert (tmp_path / "run" / "eval" / "report.json").exists()
     est = tmp_path / "run" / "out" / "dingo1" / "trajectory.tum"
     mocap = tmp_path / "run" / "mocap.csv"
-    rc = cli.main(["eval", "traj", str(est), "--mocap", str(mocap), "--body", "dingo1",
-                   "--time-offset", str(-MOCAP_START_NS * 1e-9), "--json"])
+    rc = cli.main(
+        [
+            "eval",
+            "traj",
+            str(est),
+            "--mocap",
+            str(mocap),
+            "--body",
+            "dingo1",
+            "--time-offset",
+            str(-MOCAP_START_NS * 1e-9),
+            "--json",
+        ]
+    )
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     for key in ("ate_rmse_m", "ate_max_m", "matched_poses", "time_offset_s"):
@@ -224,13 +272,30 @@ def test_cli_eval_run_and_traj(tmp_path, capsys):
     # With the pivot offset and the known clock, no alignment is needed and the ATE is the
     # noise put into the estimate, computed by hand.
     q = Rotation.from_matrix(T_BODY_MARKER[:3, :3]).as_quat()
-    rc = cli.main(["eval", "traj", str(est), "--mocap", str(mocap), "--body", "dingo1",
-                   "--time-offset", str(-MOCAP_START_NS * 1e-9), "--align", "none", "--json",
-                   "--T-body-marker", *map(str, T_BODY_MARKER[:3, 3]), *map(str, q)])
+    rc = cli.main(
+        [
+            "eval",
+            "traj",
+            str(est),
+            "--mocap",
+            str(mocap),
+            "--body",
+            "dingo1",
+            "--time-offset",
+            str(-MOCAP_START_NS * 1e-9),
+            "--align",
+            "none",
+            "--json",
+            "--T-body-marker",
+            *map(str, T_BODY_MARKER[:3, 3]),
+            *map(str, q),
+        ]
+    )
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert res["ate_rmse_m"] == pytest.approx(
-        _ate_by_hand(tmp_path / "run", "dingo1", "{name}/trajectory.tum", truth), abs=2e-5)
+        _ate_by_hand(tmp_path / "run", "dingo1", "{name}/trajectory.tum", truth), abs=2e-5
+    )
     rc = cli.main(["eval", "traj", str(est), "--mocap", str(mocap), "--body", "nobody"])
     assert rc == 2
     assert "no rigid body named 'nobody'" in capsys.readouterr().err
@@ -265,14 +330,21 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
         (_, g1), (_, g2) = truth["dingo1"], truth["dingo2"]
         edges.append((5, 45))
         meas.append(np.linalg.inv(g1[50]) @ g2[50])
-    g = G2oGraph(dim=3, vertex_ids=np.array(vids), poses=np.stack(poses),
-                 has_pose=np.ones(len(vids), bool), edges=np.array(edges),
-                 measurements=np.stack(meas), information=np.tile(100 * np.eye(6),
-                                                                  (len(edges), 1, 1)),
-                 fixed=np.array(fixed), edge_lines=np.zeros(len(edges), np.int64))
+    g = G2oGraph(
+        dim=3,
+        vertex_ids=np.array(vids),
+        poses=np.stack(poses),
+        has_pose=np.ones(len(vids), bool),
+        edges=np.array(edges),
+        measurements=np.stack(meas),
+        information=np.tile(100 * np.eye(6), (len(edges), 1, 1)),
+        fixed=np.array(fixed),
+        edge_lines=np.zeros(len(edges), np.int64),
+    )
     write_g2o(out / "merged.g2o", g)
-    (out / "merged_vertices.csv").write_text("vertex_id,kind,name,stamp_ns\n" + "\n".join(rows)
-                                            + "\n")
+    (out / "merged_vertices.csv").write_text(
+        "vertex_id,kind,name,stamp_ns\n" + "\n".join(rows) + "\n"
+    )
     (out / "report.json").unlink()
     r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False)).report
     for name in ("dingo1", "dingo2"):
@@ -283,8 +355,12 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
     c = r["cost"]
     assert c["F_star"] < c["F_k"] and c["F_star"] < 1e-6  # consistent odometry: F* = 0
     # The vertex values are the exported trajectory except each robot's first (the truth).
-    first_diff = [np.linalg.norm(tum.read_tum(out / n / "trajectory.tum")[1][0, :3, 3]
-                                 - truth[n][1][0, :3, 3]) for n in ("dingo1", "dingo2")]
+    first_diff = [
+        np.linalg.norm(
+            tum.read_tum(out / n / "trajectory.tum")[1][0, :3, 3] - truth[n][1][0, :3, 3]
+        )
+        for n in ("dingo1", "dingo2")
+    ]
     assert c["merged_vs_trajectory_max_m"] == pytest.approx(max(first_diff), abs=1e-9)
     if not connected:
         assert "F_chordal" not in c
@@ -302,23 +378,29 @@ def test_eval_run_solves_merged_g2o_for_the_centralized_solution(tmp_path, conne
     F_init = sesync_objective(np.stack(P0), g.edges, g.measurements, kappa, tau)
     assert c["F_init"] == pytest.approx(F_init, rel=1e-9)
     assert c["F_init"] > c["F_star"]
-    assert c["sr_cost_pct"] == pytest.approx(100 * (c["F_init"] - c["F_k"]) / (c["F_init"]
-                                                                               - c["F_star"]))
+    assert c["sr_cost_pct"] == pytest.approx(
+        100 * (c["F_init"] - c["F_k"]) / (c["F_init"] - c["F_star"])
+    )
     assert r["summary"]["sr_ate_pct"] == pytest.approx(r["overall"]["sr_ate_pct"])
 
 
 def test_eval_run_error_when_no_robot_matches_a_body(tmp_path):
     make_run(tmp_path / "run")
     m = tmp_path / "run" / "mission.yaml"
-    m.write_text(m.read_text().replace("mocap_body: dingo1, ", "").replace(
-        "mocap_body: dingo2, ", ""))
+    m.write_text(
+        m.read_text().replace("mocap_body: dingo1, ", "").replace("mocap_body: dingo2, ", "")
+    )
     other = tmp_path / "other.csv"
     t = np.arange(0, 50, 1 / 30)
     motive_write.write_motive_csv(other, motive_write.make_take(t, {"robotA": _track(t, 0)}))
-    with pytest.raises(InputError, match=r"no robot of mission.yaml matches a rigid body .*"
-                                         r"robots: dingo1, dingo2; bodies: robotA"):
-        evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False,
-                                                                     mocap_path=str(other)))
+    with pytest.raises(
+        InputError,
+        match=r"no robot of mission.yaml matches a rigid body .*"
+        r"robots: dingo1, dingo2; bodies: robotA",
+    ):
+        evaluate.evaluate_run(
+            tmp_path / "run", evaluate.EvalOptions(plots=False, mocap_path=str(other))
+        )
     # With the run's own mocap the robots match by name, without mocap_body.
     r = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False)).report
     assert set(r["robots"]) == {"dingo1", "dingo2"}

@@ -29,10 +29,14 @@ def _central_step(g, poses, mu, exact=False):
     return out
 
 
-@pytest.mark.parametrize("case,hessian", [
-    (Case("car2d", 240, 1, robots=3), "gauss_newton"),
-    (Case("car3d", 200, 2, robots=3, split="interleaved"), "gauss_newton"),
-    (Case("car3d", 200, 2, robots=3, split="interleaved"), "exact")])
+@pytest.mark.parametrize(
+    "case,hessian",
+    [
+        (Case("car2d", 240, 1, robots=3), "gauss_newton"),
+        (Case("car3d", 200, 2, robots=3, split="interleaved"), "gauss_newton"),
+        (Case("car3d", 200, 2, robots=3, split="interleaved"), "exact"),
+    ],
+)
 def test_condensed_step_equals_the_centralized_step(case, hessian):
     g, _ = make_graph(case)
     part = make_partition(case, g)
@@ -40,10 +44,26 @@ def test_condensed_step_equals_the_centralized_step(case, hessian):
     kappa, tau = sesync_weights(g.dim, g.information)
     T0 = initial_poses(g, "chordal" if hessian == "exact" else "odometry")
     mu = 1e-3
-    res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, T0,
-                          direct_exchange, exact_gn.RefineParams(
-                              mode="always", max_steps=1, mu_init=mu, rel_tol=0.0,
-                              hessian=hessian, newton_switch=np.inf), wire_dtype=None)
+    res = exact_gn.refine(
+        g.dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        kappa,
+        tau,
+        part,
+        T0,
+        direct_exchange,
+        exact_gn.RefineParams(
+            mode="always",
+            max_steps=1,
+            mu_init=mu,
+            rel_tol=0.0,
+            hessian=hessian,
+            newton_switch=np.inf,
+        ),
+        wire_dtype=None,
+    )
     assert res.used and res.steps == 1 and res.rounds > 0 and res.indefinite == 0
     T1 = _central_step(g, T0, mu, exact=hessian == "exact")
     np.testing.assert_allclose(res.poses, T1, atol=1e-9)
@@ -70,10 +90,19 @@ def test_refinement_never_raises_the_cost_from_a_bad_start():
     rng = np.random.default_rng(0)
     T0 = initial_poses(g, "odometry")
     T0[1:] = geo.retract(T0[1:], rng.normal(0, 2.0, (g.num_vertices - 1, 3)))
-    res = exact_gn.refine(g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, T0,
-                          direct_exchange, exact_gn.RefineParams(mode="always", max_steps=12,
-                                                                 mu_init=1e-6, rel_tol=0.0),
-                          wire_dtype=None)
+    res = exact_gn.refine(
+        g.dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        kappa,
+        tau,
+        part,
+        T0,
+        direct_exchange,
+        exact_gn.RefineParams(mode="always", max_steps=12, mu_init=1e-6, rel_tol=0.0),
+        wire_dtype=None,
+    )
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     assert res.trials > res.steps  # some trial raised F and was rejected
     assert np.all(np.diff(res.F_history) < 0)
@@ -89,8 +118,9 @@ def test_run_g2o_dran_refines_over_the_bus_and_counts_its_rounds_and_bytes():
     part = make_partition(case, g)
     cfg, kw = table1_setup(g.dim)
     off = run_g2o_dran(g, 3, cfg, max_rounds=3, partition=part, **kw)
-    on = run_g2o_dran(g, 3, cfg, max_rounds=3, partition=part,
-                      refine=exact_gn.RefineParams(mode="auto"), **kw)
+    on = run_g2o_dran(
+        g, 3, cfg, max_rounds=3, partition=part, refine=exact_gn.RefineParams(mode="auto"), **kw
+    )
     assert not any(k.startswith("refine") for k in off)
     assert on["refine_used"] and on["refine_rounds"] > 0 and on["refine_bytes"] > 0
     assert on["objective_init"] == off["objective_init"]

@@ -18,15 +18,20 @@ KEY = bytes(range(32))
 
 
 def _transport(bus, me, others, heartbeat_s):
-    policy = AuthPolicy(fleet_id=1, self_id=me, fleet_robots=frozenset({1, 2, 3}),
-                        neighbours=frozenset(others))
+    policy = AuthPolicy(
+        fleet_id=1, self_id=me, fleet_robots=frozenset({1, 2, 3}), neighbours=frozenset(others)
+    )
     link = NeighbourLink(bus.endpoint(me), key=KEY, policy=policy, boot_epoch=1)
     return LinkTransport(link, {j: f"r{j}" for j in others}, heartbeat_period_s=heartbeat_s)
 
 
 def _status(t):
-    return {"state": "running", "robot": {"id": 1, "name": "r1", "fleet": "f"},
-            "neighbours": t.stats()["neighbours"], "transport": t.stats()}
+    return {
+        "state": "running",
+        "robot": {"id": 1, "name": "r1", "fleet": "f"},
+        "neighbours": t.stats()["neighbours"],
+        "transport": t.stats(),
+    }
 
 
 def test_never_heard_then_heartbeats():

@@ -130,7 +130,9 @@ def test_right_jacobian_is_its_defining_derivative(dim, sampler, seed):
     np.testing.assert_allclose(g.right_jacobian(xi), num_jr, atol=1e-6)
     num_jri = numeric_jacobian(lambda d: g.log(X @ g.exp(d)), np.zeros_like(xi))
     np.testing.assert_allclose(g.right_jacobian_inv(xi), num_jri, atol=1e-5)
-    np.testing.assert_allclose(g.right_jacobian(xi) @ g.right_jacobian_inv(xi), np.eye(len(xi)), atol=1e-9)
+    np.testing.assert_allclose(
+        g.right_jacobian(xi) @ g.right_jacobian_inv(xi), np.eye(len(xi)), atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
@@ -160,7 +162,9 @@ def test_so3_jacobians_match_definition_and_project():
     P = g.so3_project(M)
     np.testing.assert_allclose(P @ P.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(P) == pytest.approx(1.0)
-    np.testing.assert_allclose(g.so3_project(-np.eye(3)) @ g.so3_project(-np.eye(3)).T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(
+        g.so3_project(-np.eye(3)) @ g.so3_project(-np.eye(3)).T, np.eye(3), atol=1e-12
+    )
     np.testing.assert_allclose(g.vee3(g.hat3(phi)), phi)
 
 
@@ -168,8 +172,12 @@ def test_distances_and_embeddings():
     rng = np.random.default_rng(5)
     xi = tangents(rng, (4,), "uniform", 3)
     A, B = g.exp(xi), g.exp(tangents(rng, (4,), "uniform", 3))
-    np.testing.assert_allclose(g.geodesic_distance(A, A @ g.exp(xi)), np.linalg.norm(xi, axis=-1), atol=1e-9)
-    np.testing.assert_allclose(g.chordal_distance(A, B), np.linalg.norm((A - B)[:, :3, :], axis=(1, 2)))
+    np.testing.assert_allclose(
+        g.geodesic_distance(A, A @ g.exp(xi)), np.linalg.norm(xi, axis=-1), atol=1e-9
+    )
+    np.testing.assert_allclose(
+        g.chordal_distance(A, B), np.linalg.norm((A - B)[:, :3, :], axis=(1, 2))
+    )
     T2 = g.se2_from_xy_theta(np.array([1.0, -2.0, 0.7]))
     T3 = g.se3_from_se2(T2)
     np.testing.assert_allclose(g.se3_log(T3)[[0, 1, 5]], g.se2_log(T2), atol=1e-12)
@@ -184,7 +192,9 @@ def test_tum_rows_and_interpolation():
     s_back, T_back = g.se3_from_tum_rows(rows)
     np.testing.assert_allclose(T_back, T, atol=1e-12)
     np.testing.assert_allclose(s_back, [0.0, 1.0, 3.0])
-    Tq, valid = g.se3_interpolate(stamps_ns, T, np.array([0, 500_000_000, 3_000_000_000, 4_000_000_000]))
+    Tq, valid = g.se3_interpolate(
+        stamps_ns, T, np.array([0, 500_000_000, 3_000_000_000, 4_000_000_000])
+    )
     assert valid.tolist() == [True, True, True, False]
     np.testing.assert_allclose(Tq[0], T[0], atol=1e-12)
     np.testing.assert_allclose(Tq[2], T[2], atol=1e-12)
@@ -241,5 +251,5 @@ def test_se3_transform_points_is_the_homogeneous_product(batch):
     rng = np.random.default_rng(7)
     T = g.se3_exp(tangents(rng, batch, "uniform", 3))
     P = rng.normal(size=batch + (5, 3))
-    want = (T[..., None, :, :] @ np.concatenate([P, np.ones(batch + (5, 1))], -1)[..., None])
+    want = T[..., None, :, :] @ np.concatenate([P, np.ones(batch + (5, 1))], -1)[..., None]
     np.testing.assert_allclose(g.se3_transform_points(T, P), want[..., :3, 0], atol=1e-12)

@@ -32,23 +32,31 @@ PUBLIC = {r: (auth.public_key_of(s),) for r, s in SEEDS.items()}
 
 
 def _policy(self_id, neighbours, window=64):
-    return AuthPolicy(fleet_id=FLEET, self_id=self_id, fleet_robots=frozenset({1, 2, 3}),
-                      neighbours=frozenset(neighbours), replay_window=window)
+    return AuthPolicy(
+        fleet_id=FLEET,
+        self_id=self_id,
+        fleet_robots=frozenset({1, 2, 3}),
+        neighbours=frozenset(neighbours),
+        replay_window=window,
+    )
 
 
 def _message(sender, rng, n_sep=3, n_obj=2):
     T = np.tile(np.eye(4), (n_sep + n_obj, 1, 1))
     T[:, :3, 3] = rng.normal(size=(n_sep + n_obj, 3)) * 10
     return NeighbourMessage(
-        sender_id=sender, round=4, stamp_ns=1_000_000,
+        sender_id=sender,
+        round=4,
+        stamp_ns=1_000_000,
         separators=tuple(SeparatorEntry(sender, k, 1_000_000, T[k]) for k in range(n_sep)),
         objects=tuple(ObjectEntry(i, T[n_sep + i], sender, 0, 1) for i in range(n_obj)),
     )
 
 
 def _signed(msg, seed, seq, epoch=5):
-    (g,) = codec.encode_message(msg, fleet_id=FLEET, boot_epoch=epoch, first_sequence=seq,
-                                signed=True)
+    (g,) = codec.encode_message(
+        msg, fleet_id=FLEET, boot_epoch=epoch, first_sequence=seq, signed=True
+    )
     return Ed25519Signer(seed).sign(g)
 
 
@@ -73,8 +81,10 @@ def test_key_pair_files(tmp_path):
         auth.load_robot_key(fleet)
     keys_file = tmp_path / "fleet.pub"
     auth.write_fleet_public_keys(keys_file, "dingo6", {3: (public,), 1: PUBLIC[1] + PUBLIC[2]})
-    assert auth.load_fleet_public_keys(keys_file) == ("dingo6", {1: PUBLIC[1] + PUBLIC[2],
-                                                                 3: (public,)})
+    assert auth.load_fleet_public_keys(keys_file) == (
+        "dingo6",
+        {1: PUBLIC[1] + PUBLIC[2], 3: (public,)},
+    )
     bad = tmp_path / "bad.pub"
     bad.write_text("fleet: x\npublic_keys: {1: abcd}\n")
     with pytest.raises(ConfigError, match="public_keys.1"):
@@ -91,7 +101,8 @@ def test_signed_datagram_layout_and_acceptance():
     assert data[:3] == plain[:3] and data[4:-64] == plain[4:-16]
     size = codec.encoded_size(msg, signed=True)
     assert size.total_bytes == len(data) and size.bytes_by_kind["header"] == (
-        codec.encoded_size(msg).bytes_by_kind["header"] + 48)
+        codec.encoded_size(msg).bytes_by_kind["header"] + 48
+    )
     v = Verifier(RobotIdentity(SEEDS[2], PUBLIC), _policy(2, {1, 3}))
     got, reason = v.check(data)
     assert reason is None and got.sender_id == 1 and len(got.separators) == 3
@@ -130,9 +141,16 @@ def test_compromised_robot_cannot_forge_another():
     # 32 robot-1 messages encoded once (signature slot empty); each forgery gets a fresh
     # sequence number spliced into the header (fleet, sender and epoch are one byte each here,
     # so the sequence varint starts at byte 7).
-    templates = [codec.encode_message(_message(1, rng, n_sep=k % 4), fleet_id=FLEET,
-                                      boot_epoch=5, first_sequence=0, signed=True)[0]
-                 for k in range(32)]
+    templates = [
+        codec.encode_message(
+            _message(1, rng, n_sep=k % 4),
+            fleet_id=FLEET,
+            boot_epoch=5,
+            first_sequence=0,
+            signed=True,
+        )[0]
+        for k in range(32)
+    ]
 
     def unsigned(seq):
         t = templates[seq % len(templates)]
@@ -178,8 +196,20 @@ def test_fleet_key_pair_export_check_commands(tmp_path, capsys):
     assert main(["fleet-key", "pair", str(tmp_path / "new" / "r1.key"), "--robot-id", "1"]) == 0
     new1 = auth.load_public_key_file(tmp_path / "new" / "r1.key.pub")[1]
     out = tmp_path / "fleet.pub"
-    assert main(["fleet-key", "export", str(out), "--fleet", "f", str(tmp_path),
-                 str(tmp_path / "new" / "r1.key.pub")]) == 0
+    assert (
+        main(
+            [
+                "fleet-key",
+                "export",
+                str(out),
+                "--fleet",
+                "f",
+                str(tmp_path),
+                str(tmp_path / "new" / "r1.key.pub"),
+            ]
+        )
+        == 0
+    )
     assert auth.load_fleet_public_keys(out) == ("f", {1: (pubs[0], new1), 2: (pubs[1],)})
     capsys.readouterr()
     assert main(["fleet-key", "check", str(tmp_path / "r2.key")]) == 0
@@ -206,13 +236,17 @@ def test_rfc8032_vector_and_signed_golden_bytes():
     64-byte signature."""
     seed = bytes.fromhex("9d61b19deffd5a60ba844af492ec2cc44449c5697b326919703bac031cae7f60")
     assert auth.public_key_of(seed).hex() == (
-        "d75a980182b10ab7d54bfed3c964073a0ee172f3daa62325af021a68f707511a")
+        "d75a980182b10ab7d54bfed3c964073a0ee172f3daa62325af021a68f707511a"
+    )
     assert Ed25519Signer(seed).sign(bytes(64)).hex() == (
         "e5564300c360ac729086e2cc806e828a84877f1eb8e5d974d873e06522490155"
-        "5fb8821590a33bacc61e39701cf9b46bd25bf5f0595bbe24655141438e7a100b")
-    (g,) = codec.encode_message(NeighbourMessage(1, 3, 1000), fleet_id=7, boot_epoch=5,
-                                first_sequence=2, signed=True)
+        "5fb8821590a33bacc61e39701cf9b46bd25bf5f0595bbe24655141438e7a100b"
+    )
+    (g,) = codec.encode_message(
+        NeighbourMessage(1, 3, 1000), fleet_id=7, boot_epoch=5, first_sequence=2, signed=True
+    )
     assert Ed25519Signer(bytes([1]) * 32).sign(g).hex() == (
         "445202050701050203e807000000"
         "c9826bf6b3a2bcf91b1d1f70c526b529f008b37923d7b73cbd6c5e3779801d2b"
-        "2f36386c566d0f4d6d3e15e94f764e9def316f8c9228419bbb95c48243bf3b03")
+        "2f36386c566d0f4d6d3e15e94f764e9def316f8c9228419bbb95c48243bf3b03"
+    )

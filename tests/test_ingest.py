@@ -146,10 +146,14 @@ POSE_OK = struct.pack("<q3d4d", 5, 0, 0, 0, 0, 0, 0, 1)
         (reframe(2, struct.pack("<q3d4d", 5, 1e9, 0, 0, 0, 0, 0, 1)), "out_of_range"),
         (reframe(2, POSE_OK[:-1]), "bad_size"),
         (reframe(2, POSE_OK, flags=1), "bad_flags"),
-        (reframe(1, POSE_OK + struct.pack("<36d", *np.triu(np.ones((6, 6))).ravel()), flags=1),
-         "bad_covariance"),
-        (reframe(1, POSE_OK + struct.pack("<36d", *(-np.eye(6)).ravel()), flags=1),
-         "bad_covariance"),
+        (
+            reframe(1, POSE_OK + struct.pack("<36d", *np.triu(np.ones((6, 6))).ravel()), flags=1),
+            "bad_covariance",
+        ),
+        (
+            reframe(1, POSE_OK + struct.pack("<36d", *(-np.eye(6)).ravel()), flags=1),
+            "bad_covariance",
+        ),
         (reframe(3, struct.pack("<qq3d4dI", 7, 7, 0, 0, 0, 0, 0, 0, 1, 30)), "bad_stamp"),
         (reframe(4, struct.pack("<qB", 5, 0) + b"\xff\xfe"), "bad_text"),
         (reframe(6, struct.pack("<qI", 5, 1000)), "bad_count"),
@@ -186,7 +190,7 @@ def test_stream_survives_garbage_and_keeps_good_records():
     dec = I.StreamDecoder()
     out = []
     for i in range(0, len(stream), 97):
-        out += dec.feed(stream[i:i + 97])
+        out += dec.feed(stream[i : i + 97])
     records = [r for r in out if isinstance(r, I.Record)]
     errors = [r for r in out if isinstance(r, I.IngestDecodeError)]
     assert [r.raw for r in records] == good

@@ -14,8 +14,15 @@ def test_missing_driver_wheel_is_a_note_not_a_failure(tmp_path):
     Python version, the architecture and the forwarded-frames alternative; exit status 0."""
     empty = tmp_path / "wheels"
     empty.mkdir()
-    cmd = [sys.executable, str(ROOT / "tools" / "install_drivers.py"), "--pip-arg=--no-index",
-           f"--pip-arg=--find-links={empty}", "dran-edge-not-a-package", "realsense", "oak"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "tools" / "install_drivers.py"),
+        "--pip-arg=--no-index",
+        f"--pip-arg=--find-links={empty}",
+        "dran-edge-not-a-package",
+        "realsense",
+        "oak",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     for module in ("pyrealsense2", "depthai"):

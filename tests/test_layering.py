@@ -50,8 +50,11 @@ BASE_MODULES = {"errors", "config", "events", "messages", "geometry", "blas", "_
 
 def _source_files() -> list[pathlib.Path]:
     return sorted(
-        [*(ROOT / "dran_edge").rglob("*.py"), *(ROOT / "comms").glob("*.py"),
-         *(ROOT / "perception").glob("*.py")]
+        [
+            *(ROOT / "dran_edge").rglob("*.py"),
+            *(ROOT / "comms").glob("*.py"),
+            *(ROOT / "perception").glob("*.py"),
+        ]
     )
 
 
@@ -86,8 +89,13 @@ def _is_type_checking(node: ast.If) -> bool:
 def _imports(path: pathlib.Path) -> list[tuple[int, str]]:
     """(line, dotted module) of every import in the file, TYPE_CHECKING blocks left out."""
     tree = ast.parse(path.read_text(), filename=str(path))
-    skip = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and _is_type_checking(node)
-            for stmt in node.body for n in ast.walk(stmt)}
+    skip = {
+        id(n)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and _is_type_checking(node)
+        for stmt in node.body
+        for n in ast.walk(stmt)
+    }
     found: list[tuple[int, str]] = []
     for node in ast.walk(tree):
         if id(node) in skip:
@@ -97,8 +105,12 @@ def _imports(path: pathlib.Path) -> list[tuple[int, str]]:
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 found.append((node.lineno, "." * node.level + (node.module or "")))
-            elif node.module in ("dran_edge", "dran_edge.comms", "dran_edge.perception",
-                                 *(f"dran_edge.{p}" for p in LAYER_OF)):
+            elif node.module in (
+                "dran_edge",
+                "dran_edge.comms",
+                "dran_edge.perception",
+                *(f"dran_edge.{p}" for p in LAYER_OF),
+            ):
                 # ``from dran_edge import daemon`` imports the module dran_edge.daemon
                 found += [(node.lineno, f"{node.module}.{alias.name}") for alias in node.names]
             else:
@@ -107,7 +119,9 @@ def _imports(path: pathlib.Path) -> list[tuple[int, str]]:
 
 
 def test_every_package_is_in_a_layer_and_installed():
-    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "packages"
+    ]
     for init in sorted((ROOT / "dran_edge").rglob("__init__.py")):
         rel = init.parent.relative_to(ROOT)
         name = ".".join(rel.parts)
@@ -193,7 +207,11 @@ def test_cli_help_is_instant_and_lists_every_command():
     from dran_edge.cli import app as cli
 
     out = subprocess.run(
-        [sys.executable, "-c", "import sys; from dran_edge.cli.app import main; sys.exit(main(['--help']))"],
+        [
+            sys.executable,
+            "-c",
+            "import sys; from dran_edge.cli.app import main; sys.exit(main(['--help']))",
+        ],
         capture_output=True,
         text=True,
         timeout=60,

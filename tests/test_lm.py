@@ -237,9 +237,7 @@ def test_newton_damping_separate_from_gauss_newton_on_noisy_long_graphs(seed):
     graph = pose_graph(g, "chordal", "sesync")
     T0 = initial_poses(g, "chordal")
     runs = {
-        policy: solve(
-            graph, T0, LMParams(hessian="exact", cost_tol=1e-8, newton_damping=policy)
-        )
+        policy: solve(graph, T0, LMParams(hessian="exact", cost_tol=1e-8, newton_damping=policy))
         for policy in ("shared", "separate")
     }
     new, old = runs["separate"], runs["shared"]

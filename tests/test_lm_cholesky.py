@@ -7,7 +7,14 @@ import pytest
 
 from dran_edge.solver.graph import kinds_array
 from dran_edge.sim.graphgen import synthetic_graph
-from dran_edge.solver.lm import LMParams, build_plan, cholesky_factorizer, linearize, schur_step, solve
+from dran_edge.solver.lm import (
+    LMParams,
+    build_plan,
+    cholesky_factorizer,
+    linearize,
+    schur_step,
+    solve,
+)
 from dran_edge.solver.centralized import initial_poses, pose_graph
 from dran_edge.solver.sparse_cholesky import (
     NotPositiveDefinite,

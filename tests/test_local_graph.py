@@ -74,10 +74,17 @@ def test_keyframe_selection_by_distance_angle_time():
     g.handle(Keyframe(t + 10**8, pose(0.5 * b.keyframe_min_distance_m)))  # too close
     assert g.num_nodes == 1
     g.handle(Keyframe(t + 2 * 10**8, pose(1.1 * b.keyframe_min_distance_m)))  # far enough
-    g.handle(Keyframe(t + 3 * 10**8, pose(1.1 * b.keyframe_min_distance_m,
-                                          yaw=1.1 * b.keyframe_min_angle_rad)))  # turned
-    g.handle(Keyframe(t + 3 * 10**8 + int(1.1e9 * b.keyframe_max_interval_s),
-                      pose(1.1 * b.keyframe_min_distance_m, yaw=1.1 * b.keyframe_min_angle_rad)))
+    g.handle(
+        Keyframe(
+            t + 3 * 10**8, pose(1.1 * b.keyframe_min_distance_m, yaw=1.1 * b.keyframe_min_angle_rad)
+        )
+    )  # turned
+    g.handle(
+        Keyframe(
+            t + 3 * 10**8 + int(1.1e9 * b.keyframe_max_interval_s),
+            pose(1.1 * b.keyframe_min_distance_m, yaw=1.1 * b.keyframe_min_angle_rad),
+        )
+    )
     assert g.num_nodes == 4
     assert g.counters["keyframes_skipped"] == 1
     fa = g.factor_arrays()
@@ -110,8 +117,9 @@ def test_no_odometry_edge_across_a_reset():
 
 
 def test_loop_and_observation_measurements_match_truth():
-    m = vio_mission(200, seed=4, drift_t=1e-6, drift_r=1e-7, loop_sigma=(1e-6, 1e-7),
-                    obs_sigma=(1e-6, 1e-7))
+    m = vio_mission(
+        200, seed=4, drift_t=1e-6, drift_r=1e-7, loop_sigma=(1e-6, 1e-7), obs_sigma=(1e-6, 1e-7)
+    )
     g = KeyframeGraph(cfg())
     feed(g, m.events)
     fa = g.factor_arrays()
@@ -133,9 +141,14 @@ def test_observation_before_its_odometry_waits_for_it():
     t = 10**9
     g.handle(OdometrySample(t, pose()))
     g.handle(Keyframe(t, pose()))
-    obs = ObservationBatch(t + 5 * 10**7, (
-        __import__("dran_edge.events", fromlist=["ObjectObservation"]).ObjectObservation(
-            t + 5 * 10**7, 4, pose(2.0), np.eye(6) * 1e-3),))
+    obs = ObservationBatch(
+        t + 5 * 10**7,
+        (
+            __import__("dran_edge.events", fromlist=["ObjectObservation"]).ObjectObservation(
+                t + 5 * 10**7, 4, pose(2.0), np.eye(6) * 1e-3
+            ),
+        ),
+    )
     assert not g.handle(obs)  # odometry has not reached the frame yet
     assert g.handle(OdometrySample(t + 10**8, pose(0.1)))
     assert g.object_ids().tolist() == [4]
@@ -181,7 +194,7 @@ def test_protected_nodes_leave_last():
     feed(g, m.events[: len(m.events) // 3])
     keep = g.node_keys()[:3]
     g.protect(keep)
-    feed(g, m.events[len(m.events) // 3:])
+    feed(g, m.events[len(m.events) // 3 :])
     assert set(keep.tolist()) <= set(g.node_keys().tolist())
 
 
@@ -286,6 +299,7 @@ def test_node_removal_counts_no_information_twice(loops, seed):
     scale = float(np.max(np.abs(exact)))
     gap = np.linalg.eigvalsh(0.5 * ((exact - approx) + (exact - approx).T))
     assert gap.min() >= -1e-9 * scale, gap.min() / scale
+
     # and it keeps most of it: the p–m chain through the removed node survives
     def rel(Hm):  # information on m relative to p (p fixed)
         return Hm[6:12, 6:12]
@@ -313,7 +327,7 @@ def test_blockdiag_bound_makes_dropped_correlations_conservative():
         S = A @ A.T + 0.1 * np.eye(6 * k)
         D = np.zeros_like(S)
         for i in range(k):
-            D[6 * i:6 * i + 6, 6 * i:6 * i + 6] = S[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+            D[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = S[6 * i : 6 * i + 6, 6 * i : 6 * i + 6]
         c = _blockdiag_bound(S)
         assert 1.0 <= c <= k
         assert np.linalg.eigvalsh(c * D - S).min() >= -1e-9 * np.abs(S).max()

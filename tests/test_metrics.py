@@ -59,8 +59,9 @@ def test_ate_log_is_the_paper_formula_with_robot_weights():
 
 def test_success_ratios():
     assert metrics.sr_ate(1.0, 0.55, 0.5) == pytest.approx(90.0)
-    np.testing.assert_allclose(metrics.sr_cost(10.0, np.array([10.0, 6.0, 2.0]), 2.0),
-                               [0.0, 50.0, 100.0])
+    np.testing.assert_allclose(
+        metrics.sr_cost(10.0, np.array([10.0, 6.0, 2.0]), 2.0), [0.0, 50.0, 100.0]
+    )
     assert np.isnan(metrics.sr_ate(1.0, 0.5, 1.0))
 
 
@@ -99,8 +100,9 @@ def test_bias_formula_and_bias_of_mean():
     gt = _random_poses(rng, (3,))
     # Two robots with opposite translation offsets: each copy is 0.1 m off, the mean is exact.
     off = np.array([0.1, 0.0, 0.0])
-    Y = np.stack([_pose(gt[:, :3, :3], gt[:, :3, 3] + off), _pose(gt[:, :3, :3],
-                                                                  gt[:, :3, 3] - off)])
+    Y = np.stack(
+        [_pose(gt[:, :3, :3], gt[:, :3, 3] + off), _pose(gt[:, :3, :3], gt[:, :3, 3] - off)]
+    )
     present = np.ones((2, 3), bool)
     assert metrics.object_bias(Y, present, gt) == pytest.approx(0.1, rel=1e-9)
     _, y_avg = metrics.consistency_error(Y, present)
@@ -145,8 +147,10 @@ def _evo_ape(ref_path, est_path, correct_scale):
     est = copy.deepcopy(est)
     est.align(ref, correct_scale=correct_scale)
     out = {}
-    for rel in (evo_metrics.PoseRelation.translation_part,
-                evo_metrics.PoseRelation.rotation_angle_deg):
+    for rel in (
+        evo_metrics.PoseRelation.translation_part,
+        evo_metrics.PoseRelation.rotation_angle_deg,
+    ):
         ape = evo_metrics.APE(rel)
         ape.process_data((ref, est))
         out[rel.name] = ape.get_all_statistics()

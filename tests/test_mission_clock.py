@@ -48,8 +48,12 @@ def small_run(tmp_path_factory):
     from dran_edge.sim.mission import SimParams, generate_mission
 
     d = tmp_path_factory.mktemp("clock") / "run"
-    write_run(generate_mission(SimParams(robots=2, objects=2, duration_s=6.0, seed=3)), d,
-              frames="none", workers=1)
+    write_run(
+        generate_mission(SimParams(robots=2, objects=2, duration_s=6.0, seed=3)),
+        d,
+        frames="none",
+        workers=1,
+    )
     return d
 
 

@@ -190,15 +190,19 @@ def test_writer_header_rows_as_motive_writes_them(tmp_path):
     p = tmp_path / "gt.csv"
     motive_write.write_motive_csv(p, take)
     lines = p.read_text().splitlines()
-    assert lines[0].startswith("Format Version,1.23,Take Name,run01,Take Notes,,Capture Frame "
-                               "Rate,120.000000,Export Frame Rate,120.000000,Capture Start Time,")
-    assert lines[0].endswith(",Rotation Type,Quaternion,Length Units,Meters,"
-                             "Coordinate Space,Global")
+    assert lines[0].startswith(
+        "Format Version,1.23,Take Name,run01,Take Notes,,Capture Frame "
+        "Rate,120.000000,Export Frame Rate,120.000000,Capture Start Time,"
+    )
+    assert lines[0].endswith(
+        ",Rotation Type,Quaternion,Length Units,Meters,Coordinate Space,Global"
+    )
     assert lines[1] == ""
     assert lines[2] == ",Type" + ",Rigid Body" * 8
     assert lines[3] == ",Name" + ",dingo1" * 8
     assert lines[4] == ",ID" + ",1" * 8
     assert lines[5] == ",," + "Rotation," * 4 + "Position," * 3 + "Mean Marker Error"
     assert lines[6] == "Frame,Time (Seconds),X,Y,Z,W,X,Y,Z,"
-    assert lines[7] == ("0,0.000000,0.000000,0.000000,0.000000,1.000000,1.000000,0.200000,"
-                        "-3.000000,0.000000")
+    assert lines[7] == (
+        "0,0.000000,0.000000,0.000000,0.000000,1.000000,1.000000,0.200000,-3.000000,0.000000"
+    )

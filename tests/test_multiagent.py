@@ -13,8 +13,9 @@ from dran_edge.experiments.fleet import Fleet, neighbour_weights
 from dran_edge.experiments.objects import SimParams, make_scenario, run_objects
 
 CFG = AgentConfig(robust_kernel="none", eps_phi=1e-6)
-SMALL = SimParams(num_robots=3, num_objects=6, box_m=(12.0, 12.0, 3.0), goals_per_robot=2,
-                  step_m=1.5, seed=3)
+SMALL = SimParams(
+    num_robots=3, num_objects=6, box_m=(12.0, 12.0, 3.0), goals_per_robot=2, step_m=1.5, seed=3
+)
 
 
 @pytest.fixture(scope="module")
@@ -32,15 +33,22 @@ def test_three_robot_toy_reaches_consensus_and_the_centralized_answer(toy):
 
 
 def test_relay_reaches_a_robot_two_hops_away():
-    sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
-                                 goals_per_robot=2, seed=3))
+    sc = make_scenario(
+        SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0), goals_per_robot=2, seed=3)
+    )
 
     from dran_edge.dran.agent import Agent
 
     bus = Bus(range(3), graph=[(0, 1), (1, 2)])
     W = neighbour_weights(bus)
-    agents = [Agent(dataclasses.replace(CFG, robot_id=r, neighbours=tuple(sorted(W[r]))),
-                    sc.problems[r], W[r]) for r in range(3)]
+    agents = [
+        Agent(
+            dataclasses.replace(CFG, robot_id=r, neighbours=tuple(sorted(W[r]))),
+            sc.problems[r],
+            W[r],
+        )
+        for r in range(3)
+    ]
     only0 = set(agents[0].y) - set(agents[1].y) - set(agents[2].y)
     assert only0, "scenario must have an object only robot 0 sees"
     fleet = Fleet(agents, bus)
@@ -82,11 +90,20 @@ def test_fleet_traffic_is_the_bus_count_of_every_datagram_byte(toy):
 
     from dran_edge.dran.agent import Agent
 
-    bus = Bus(range(3), graph=[(0, 1), (1, 2), (0, 2)],
-              partitions=[Partition(frozenset({2}), start_round=1, end_round=4)])
+    bus = Bus(
+        range(3),
+        graph=[(0, 1), (1, 2), (0, 2)],
+        partitions=[Partition(frozenset({2}), start_round=1, end_round=4)],
+    )
     W = neighbour_weights(bus)
-    agents = [Agent(dataclasses.replace(CFG, robot_id=r, neighbours=tuple(sorted(W[r]))),
-                    toy.problems[r], W[r]) for r in range(3)]
+    agents = [
+        Agent(
+            dataclasses.replace(CFG, robot_id=r, neighbours=tuple(sorted(W[r]))),
+            toy.problems[r],
+            W[r],
+        )
+        for r in range(3)
+    ]
     fleet = Fleet(agents, bus)
     for _ in range(3):
         fleet.step()
@@ -124,7 +141,12 @@ def test_a_repeated_wrong_tag_id_loses_to_the_better_seen_object_across_a_relay(
         fleet.step()
         heard = agents[1].objects.neighbour_copies
         if (0, 7) in heard and (2, 7) in heard:
-            conflict |= bool(np.linalg.norm(heard[0, 7].T_world_object[:3, 3] - heard[2, 7].T_world_object[:3, 3]) > 10.0)
+            conflict |= bool(
+                np.linalg.norm(
+                    heard[0, 7].T_world_object[:3, 3] - heard[2, 7].T_world_object[:3, 3]
+                )
+                > 10.0
+            )
     assert conflict
     assert not agents[0].objects.obs_ok[wrong].any()
     assert agents[2].objects.obs_ok[sc.problems[2].obs_object == 7].all()
@@ -142,8 +164,9 @@ def _misread_toy(**config):
     keyframes in a row; only robot 2 sees object 7. Returns (scenario, the misread views, agents)."""
     from dran_edge.dran.agent import Agent
 
-    sc = make_scenario(SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0),
-                                 goals_per_robot=2, seed=6))
+    sc = make_scenario(
+        SimParams(num_robots=3, num_objects=8, box_m=(30.0, 30.0, 3.0), goals_per_robot=2, seed=6)
+    )
     p0 = sc.problems[0]
     assert 7 not in p0.obs_object and 7 not in sc.problems[1].obs_object
     wrong = np.flatnonzero(p0.obs_object == 6)[:2]
@@ -153,8 +176,12 @@ def _misread_toy(**config):
     cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_min_views=2, **config)
     bus = Bus(range(3), graph=[(0, 1), (1, 2)])
     W = neighbour_weights(bus)
-    agents = [Agent(dataclasses.replace(cfg, robot_id=r, neighbours=tuple(sorted(W[r]))),
-                    problems[r], W[r]) for r in range(3)]
+    agents = [
+        Agent(
+            dataclasses.replace(cfg, robot_id=r, neighbours=tuple(sorted(W[r]))), problems[r], W[r]
+        )
+        for r in range(3)
+    ]
     return sc, wrong, agents
 
 
@@ -191,6 +218,7 @@ def test_a_copy_far_from_the_votes_centre_does_not_drag_the_relays():
     for the dragged value). With ``centre_reach_m`` (16 m) robot 1's consensus term to the
     copy farther than that from its association check's centre gets the Cauchy kernel, and
     every copy stays near the object (docs/dran.md, robustness)."""
+
     def worst_offset(**config):
         sc, wrong, agents = _misread_toy(object_exclusion_m=0.0, conflict_reach_m=0.0, **config)
         assert np.linalg.norm(agents[0].y[7][:3, 3] - sc.gt_objects[7][:3, 3]) > 16.0
@@ -200,8 +228,14 @@ def test_a_copy_far_from_the_votes_centre_does_not_drag_the_relays():
         for _ in range(40):
             fleet.step()
             truth = sc.gt_objects[7][:3, 3]
-            worst = max(worst, max(np.linalg.norm(a.y[7][:3, 3] - truth) for a in agents if 7 in a.y
-                                   and a.objects.provenance[7].origin != 0))
+            worst = max(
+                worst,
+                max(
+                    np.linalg.norm(a.y[7][:3, 3] - truth)
+                    for a in agents
+                    if 7 in a.y and a.objects.provenance[7].origin != 0
+                ),
+            )
         conflicts = sum(a.counters.consensus_conflicts for a in agents)
         return worst, conflicts, agents, wrong
 
@@ -215,12 +249,17 @@ def test_a_copy_far_from_the_votes_centre_does_not_drag_the_relays():
 
 def test_outlier_runs_are_scored_against_the_outlier_free_centralized_solution():
     params = dataclasses.replace(SMALL, outlier_ratio=0.3)
-    cfg = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0,
-                      object_min_views=2)
+    cfg = AgentConfig(
+        robust_kernel="cauchy",
+        robust_threshold=0.1,
+        object_robust_threshold=1.0,
+        object_min_views=2,
+    )
     edges = [(0, 1), (1, 2)]
     noisy = run_objects(make_scenario(params), cfg, edges, max_rounds=3)
-    clean = run_objects(make_scenario(dataclasses.replace(params, outlier_ratio=0.0)), cfg, edges,
-                        max_rounds=3)
+    clean = run_objects(
+        make_scenario(dataclasses.replace(params, outlier_ratio=0.0)), cfg, edges, max_rounds=3
+    )
     # same reference (the outlier-free graph's F_init, F*, ATE*) for both runs ...
     for key in ("F_init", "F_star", "ATE_init", "ATE_star"):
         assert noisy[key] == clean[key], key

@@ -66,8 +66,9 @@ def test_watchdog_interval_respects_pid():
     other = str(os.getpid() + 1)
     n = Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "3000000", "WATCHDOG_PID": other})
     assert n.watchdog_interval_s is None
-    mine = Notifier({"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "2000000",
-                     "WATCHDOG_PID": str(os.getpid())})
+    mine = Notifier(
+        {"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "2000000", "WATCHDOG_PID": str(os.getpid())}
+    )
     assert mine.watchdog_interval_s == 1.0
     assert Notifier({"WATCHDOG_USEC": "bogus"}).watchdog_interval_s is None
 

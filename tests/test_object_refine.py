@@ -5,8 +5,13 @@ import numpy as np
 from dran_edge.comms.bus import static_graph
 from dran_edge.dran.exact_gn import RefineParams
 from dran_edge.experiments.object_refine import object_graph
-from dran_edge.experiments.objects import (SimParams, bench_config, centralized, make_scenario,
-                                           run_objects)
+from dran_edge.experiments.objects import (
+    SimParams,
+    bench_config,
+    centralized,
+    make_scenario,
+    run_objects,
+)
 
 PATH = [(0, 1), (1, 2), (2, 3)]  # robots 0 and 3 talk only through 1 and 2
 
@@ -23,8 +28,13 @@ def test_objects_couple_robots_that_are_no_neighbours_on_the_path():
 
 def test_refined_run_reaches_the_centralized_optimum_and_counts_its_traffic():
     sc = _scenario()
-    out = run_objects(sc, bench_config(False), static_graph(PATH), max_rounds=20,
-                      refine=RefineParams(mode="always", rel_tol=1e-12, max_steps=50))
+    out = run_objects(
+        sc,
+        bench_config(False),
+        static_graph(PATH),
+        max_rounds=20,
+        refine=RefineParams(mode="always", rel_tol=1e-12, max_steps=50),
+    )
     assert out["refine_used"] and out["refine_converged"]
     assert abs(out["F"] - out["F_star"]) <= 1e-6 * out["F_star"]
     assert out["F_init"] > 10 * out["F_star"]
@@ -38,8 +48,13 @@ def test_refined_run_reaches_the_centralized_optimum_and_counts_its_traffic():
 
 def test_an_unfinished_refinement_hands_over_to_dran():
     sc = _scenario()
-    out = run_objects(sc, bench_config(False), static_graph(PATH), max_rounds=3,
-                      refine=RefineParams(mode="always", max_steps=1))
+    out = run_objects(
+        sc,
+        bench_config(False),
+        static_graph(PATH),
+        max_rounds=3,
+        refine=RefineParams(mode="always", max_steps=1),
+    )
     assert out["refine_used"] and not out["refine_converged"]
     assert out["rounds"] == 3 and out["round"] == out["refine_rounds"] + 3
     assert out["bytes"] > out["refine_bytes"]
@@ -47,7 +62,12 @@ def test_an_unfinished_refinement_hands_over_to_dran():
 
 
 def test_robust_runs_are_not_refined():
-    out = run_objects(_scenario(), bench_config(True), static_graph(PATH), max_rounds=1,
-                      refine=RefineParams(mode="always"))
+    out = run_objects(
+        _scenario(),
+        bench_config(True),
+        static_graph(PATH),
+        max_rounds=1,
+        refine=RefineParams(mode="always"),
+    )
     assert not out["refine_used"] and out["refine_bytes"] == 0
     assert "least squares" in out["refine_reason"]

@@ -33,7 +33,9 @@ def test_outliers_change_only_the_outliers(mode):
             # each extra is a copy of a real detection (same keyframe, same measurement) with
             # another object's id
             for k, o, T in zip(d.obs_own[extra], d.obs_object[extra], d.obs_T[extra]):
-                same = np.flatnonzero((c.obs_own == k) & np.all(np.isclose(c.obs_T, T), axis=(1, 2)))
+                same = np.flatnonzero(
+                    (c.obs_own == k) & np.all(np.isclose(c.obs_T, T), axis=(1, 2))
+                )
                 assert same.size == 1 and c.obs_object[same[0]] != o
         assert np.array_equal(c.obs_T, d.obs_T[:n]) and np.array_equal(c.obs_own, d.obs_own[:n])
         loops += d.between.shape[0] - n_odo

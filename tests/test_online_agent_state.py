@@ -101,7 +101,8 @@ def test_dead_reckoning_stays_bounded_by_the_graph(mission):
     g = core.local_graph
     assert g.counters.get("nodes_added", 0) > g.num_nodes, "the graph should have dropped nodes"
     assert set(core.dead_reckoning) <= set(g.node_keys().tolist()) | set(
-        core._dr_last_of_segment.values())
+        core._dr_last_of_segment.values()
+    )
 
 
 def test_from_state_refuses_another_format(mission):

@@ -42,8 +42,13 @@ PUBLIC = {r: (auth.public_key_of(s),) for r, s in SEEDS.items()}
 
 def _policy(self_id, neighbours=None, window=64):
     neighbours = {1, 2, 3} - {self_id} if neighbours is None else neighbours
-    return AuthPolicy(fleet_id=FLEET, self_id=self_id, fleet_robots=frozenset({1, 2, 3}),
-                      neighbours=frozenset(neighbours), replay_window=window)
+    return AuthPolicy(
+        fleet_id=FLEET,
+        self_id=self_id,
+        fleet_robots=frozenset({1, 2, 3}),
+        neighbours=frozenset(neighbours),
+        replay_window=window,
+    )
 
 
 def _keys(robot, seed=None, public=PUBLIC):
@@ -54,13 +59,17 @@ def _message(sender, rng, n_sep=3):
     T = np.tile(np.eye(4), (n_sep, 1, 1))
     T[:, :3, 3] = rng.normal(size=(n_sep, 3)) * 10
     return NeighbourMessage(
-        sender_id=sender, round=4, stamp_ns=1_000_000,
-        separators=tuple(SeparatorEntry(sender, k, 1_000_000, T[k]) for k in range(n_sep)))
+        sender_id=sender,
+        round=4,
+        stamp_ns=1_000_000,
+        separators=tuple(SeparatorEntry(sender, k, 1_000_000, T[k]) for k in range(n_sep)),
+    )
 
 
 def _unsigned(msg, seq, epoch=5):
-    (g,) = codec.encode_message(msg, fleet_id=FLEET, boot_epoch=epoch, first_sequence=seq,
-                                pairwise=True)
+    (g,) = codec.encode_message(
+        msg, fleet_id=FLEET, boot_epoch=epoch, first_sequence=seq, pairwise=True
+    )
     return g
 
 
@@ -68,8 +77,11 @@ def _raw(public_key) -> bytes:
     return public_key.public_bytes(Encoding.Raw, PublicFormat.Raw)
 
 
-@pytest.mark.parametrize("seed", [bytes([r]) * 32 for r in (1, 2, 77, 255)]
-                         + [hashlib.sha256(b"%d" % k).digest() for k in range(4)])
+@pytest.mark.parametrize(
+    "seed",
+    [bytes([r]) * 32 for r in (1, 2, 77, 255)]
+    + [hashlib.sha256(b"%d" % k).digest() for k in range(4)],
+)
 def test_x25519_half_of_an_ed25519_key_pair(seed):
     """The Montgomery u of the Ed25519 public key is the X25519 public key of the secret's
     scalar (RFC 7748 §4.1 against cryptography's own X25519)."""
@@ -91,10 +103,12 @@ def test_pair_keys_follow_the_documented_derivation():
     HKDF: robot 1's tag for robot 2 is HMAC-SHA256-128 with it; robot 2 verifies it; the
     reverse direction has another key."""
     shared = x25519.X25519PrivateKey.from_private_bytes(x25519_private(SEEDS[1])).exchange(
-        x25519.X25519PublicKey.from_public_bytes(montgomery_u(PUBLIC[2][0])))
+        x25519.X25519PublicKey.from_public_bytes(montgomery_u(PUBLIC[2][0]))
+    )
     info = FLEET.to_bytes(2, "big") + (1).to_bytes(2, "big") + (2).to_bytes(2, "big")
-    k12 = HKDF(hashes.SHA256(), 32, b"dran-edge pairwise v1",
-               info + PUBLIC[1][0] + PUBLIC[2][0]).derive(shared)
+    k12 = HKDF(
+        hashes.SHA256(), 32, b"dran-edge pairwise v1", info + PUBLIC[1][0] + PUBLIC[2][0]
+    ).derive(shared)
     body = b"some datagram body"
     tag = _keys(1).tag_for(2, body)
     assert tag == hmac.digest(k12, body, "sha256")[:16]
@@ -114,8 +128,9 @@ def test_pairwise_datagram_layout_and_acceptance():
     assert reason is None and got.sender_id == 1 and len(got.separators) == 3
     assert v.check(data) == (None, Reject.REPLAYED)
     with pytest.raises(codec.EncodeError, match="not both"):
-        codec.encode_message(msg, fleet_id=FLEET, boot_epoch=5, first_sequence=0,
-                             pairwise=True, signed=True)
+        codec.encode_message(
+            msg, fleet_id=FLEET, boot_epoch=5, first_sequence=0, pairwise=True, signed=True
+        )
 
 
 def test_policies_do_not_mix():
@@ -153,12 +168,21 @@ def test_compromised_robot_cannot_forge_another():
     as_self = _keys(3)
     as_one = PairwiseKeys(PairwiseIdentity(SEEDS[3], PUBLIC), 1, FLEET)
     shared13 = x25519.X25519PrivateKey.from_private_bytes(x25519_private(SEEDS[3])).exchange(
-        x25519.X25519PublicKey.from_public_bytes(montgomery_u(PUBLIC[1][0])))
-    k13 = HKDF(hashes.SHA256(), 32, b"dran-edge pairwise v1",
-               FLEET.to_bytes(2, "big") + (1).to_bytes(2, "big") + (3).to_bytes(2, "big")
-               + PUBLIC[1][0] + PUBLIC[3][0]).derive(shared13)
-    genuine_to_3 = [PairwiseSigner(_keys(1)).sign_for(_unsigned(_message(1, rng), 1 + k), 3)
-                    for k in range(8)]  # robot 1's real datagrams to robot 3, sent on to 2
+        x25519.X25519PublicKey.from_public_bytes(montgomery_u(PUBLIC[1][0]))
+    )
+    k13 = HKDF(
+        hashes.SHA256(),
+        32,
+        b"dran-edge pairwise v1",
+        FLEET.to_bytes(2, "big")
+        + (1).to_bytes(2, "big")
+        + (3).to_bytes(2, "big")
+        + PUBLIC[1][0]
+        + PUBLIC[3][0],
+    ).derive(shared13)
+    genuine_to_3 = [
+        PairwiseSigner(_keys(1)).sign_for(_unsigned(_message(1, rng), 1 + k), 3) for k in range(8)
+    ]  # robot 1's real datagrams to robot 3, sent on to 2
     templates = [_unsigned(_message(1, rng, n_sep=k % 4), 0) for k in range(32)]
 
     def unsigned(seq):  # fresh sequence numbers: only the tag can reject them
@@ -204,7 +228,8 @@ def test_rotation_follows_the_receivers_key():
     assert v2.check(s1.sign_for(_unsigned(_message(1, rng), next(seq)), 2))[1] is None
     revoked = _keys(1, public=PUBLIC)  # robot 2's new key not listed: its datagrams rejected
     got = Verifier(revoked, _policy(1)).check(
-        s2.sign_for(_unsigned(_message(2, rng), next(seq), epoch=6), 1))
+        s2.sign_for(_unsigned(_message(2, rng), next(seq), epoch=6), 1)
+    )
     assert got == (None, Reject.BAD_TAG)
 
 
@@ -218,9 +243,16 @@ def test_links_over_the_bus_with_identities(identity, delta_every):
 
     bus = Bus([1, 2, 3], graph=[(1, 2), (2, 3), (1, 3)])
     rng = np.random.default_rng(4)
-    links = {r: NeighbourLink(bus.endpoint(r), key=identity(SEEDS[r], PUBLIC),
-                              policy=_policy(r), boot_epoch=3, delta_every=delta_every)
-             for r in (1, 2, 3)}
+    links = {
+        r: NeighbourLink(
+            bus.endpoint(r),
+            key=identity(SEEDS[r], PUBLIC),
+            policy=_policy(r),
+            boot_epoch=3,
+            delta_every=delta_every,
+        )
+        for r in (1, 2, 3)
+    }
     for _ in range(3):
         for r, link in links.items():
             sent = link.send_message(_message(r, rng), to=[j for j in links if j != r])
@@ -236,6 +268,7 @@ def test_links_over_the_bus_with_identities(identity, delta_every):
 @given(data=st.data())
 def test_mutated_pairwise_datagrams_never_accepted_never_raise(data):
     genuine = PairwiseSigner(_keys(1)).sign_for(
-        _unsigned(_message(1, np.random.default_rng(5)), 0), 2)
+        _unsigned(_message(1, np.random.default_rng(5)), 0), 2
+    )
     msg, reason = Verifier(_keys(2), _policy(2)).check(mutate_datagram(data, genuine))
     assert msg is None and reason is not None

@@ -37,7 +37,7 @@ def test_jacobian_matches_finite_differences(seed):
     for k in range(6):
         d = np.zeros(6)
         d[k] = eps
-        num = (project(K, geo.se3_retract(Ts, d), P) - project(K, geo.se3_retract(Ts, -d), P))
+        num = project(K, geo.se3_retract(Ts, d), P) - project(K, geo.se3_retract(Ts, -d), P)
         assert np.allclose(J[..., k], num / (2 * eps), atol=1e-5)
 
 

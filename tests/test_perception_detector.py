@@ -61,8 +61,9 @@ def test_close_is_idempotent_and_detect_after_close_fails():
 
 
 def test_detect_prints_nothing(capfd):
-    colour, _ = TagRenderer().render(K, 640, 480, [geo.se3_from_rt(np.eye(3), [0, 0, 1.0])],
-                                     [3], 0.16)
+    colour, _ = TagRenderer().render(
+        K, 640, 480, [geo.se3_from_rt(np.eye(3), [0, 0, 1.0])], [3], 0.16
+    )
     TagDetector().detect(to_gray(colour))
     out, _ = capfd.readouterr()
     assert out == ""
@@ -93,7 +94,8 @@ def test_upright_opencv_marker_is_rz180():
     Rz180 = np.diag([-1.0, -1.0, 1.0])
     colour, _ = renderer.render(K, 640, 480, [geo.se3_from_rt(Rz180, [0, 0, 1.0])], [7], 0.16)
     marker = cv2.aruco.generateImageMarker(
-        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), 7, 8, borderBits=1)
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), 7, 8, borderBits=1
+    )
     # sample the module centres of the rendered black square (8 modules, ~12.3 px each)
     corners = project_corners(geo.se3_from_rt(Rz180, [0, 0, 1.0]), 0.16)
     x0, y0 = corners.min(0)
@@ -107,8 +109,9 @@ def test_upright_opencv_marker_is_rz180():
 
 def test_rendered_depth_is_plane_depth():
     T = geo.se3_from_rt(geo.so3_exp(np.array([0.0, 0.5, 0.0])), [0.1, 0.0, 1.5])
-    _, depth = TagRenderer().render(K, 640, 480, [T], [1], 0.16,
-                                    depth=DepthModel(coeff_per_m=0.0, background_depth_mm=0))
+    _, depth = TagRenderer().render(
+        K, 640, 480, [T], [1], 0.16, depth=DepthModel(coeff_per_m=0.0, background_depth_mm=0)
+    )
     u, v = np.rint(project_corners(T, 0.0)[0]).astype(int)  # the tag centre
     assert depth[v, u] == pytest.approx(1500, abs=2)
     assert depth[0, 0] == 0

@@ -60,8 +60,11 @@ T_body_camera: {xyz: [0, 0, 0], quat_xyzw: [0, 0, 0, 1]}
 
 def test_camera_strict_errors_name_file_line_and_key(tmp_path):
     assert load_camera(write(tmp_path, "ok.yaml", CAMERA)).K[0, 0] == 600
-    with pytest.raises(ConfigError, match=r"bad\.yaml:6: .*intrinsics\.fx.*unknown key|"
-                                          r"bad\.yaml:5: intrinsics\.fz: unknown key"):
+    with pytest.raises(
+        ConfigError,
+        match=r"bad\.yaml:6: .*intrinsics\.fx.*unknown key|"
+        r"bad\.yaml:5: intrinsics\.fz: unknown key",
+    ):
         load_camera(write(tmp_path, "bad.yaml", CAMERA.replace("fx:", "fz:")))
     with pytest.raises(ConfigError, match=r"T_body_camera.quat_xyzw: expected a unit quaternion"):
         load_camera(write(tmp_path, "q.yaml", CAMERA.replace("[0, 0, 0, 1]", "[0, 0, 0, 2]")))
@@ -82,8 +85,11 @@ objects:
     tags:
       - {tag_id: 3, size_m: 0.16, T_object_tag: {xyz: [0, 0, 0], quat_xyzw: [0, 0, 0, 1]}}
 """
-    with pytest.raises(ConfigError, match=r"t\.yaml:9: objects\[1\]\.tags\[0\]\.tag_id: tag 3 "
-                                          r"already used"):
+    with pytest.raises(
+        ConfigError,
+        match=r"t\.yaml:9: objects\[1\]\.tags\[0\]\.tag_id: tag 3 "
+        r"already used",
+    ):
         load_tag_map(write(tmp_path, "t.yaml", text))
 
 
@@ -93,13 +99,15 @@ def calib():
     return load_calibration(CALIB, "dingo2")
 
 
-def view_of_box(calib, box: int, yaw_deg: float, distance_m: float, only_tag: int | None = None,
-                seed: int = 0):
+def view_of_box(
+    calib, box: int, yaw_deg: float, distance_m: float, only_tag: int | None = None, seed: int = 0
+):
     """Render box ``box`` seen at ``yaw_deg`` about its vertical axis; returns frame and truth."""
     cam, tags = calib.camera, calib.tags
     R_level = np.array([[0.0, 1, 0], [0, 0, -1], [-1, 0, 0]]).T  # object z up = camera -y
-    T_co = geo.se3_from_rt(R_level @ geo.so3_exp(np.array([0, 0, np.deg2rad(yaw_deg)])),
-                           [0.05, 0.1, distance_m])
+    T_co = geo.se3_from_rt(
+        R_level @ geo.so3_exp(np.array([0, 0, np.deg2rad(yaw_deg)])), [0.05, 0.1, distance_m]
+    )
     poses, ids = [], []
     for k in np.flatnonzero(tags.object_id == box):
         T_ct = T_co @ tags.T_object_tag[k]
@@ -107,8 +115,16 @@ def view_of_box(calib, box: int, yaw_deg: float, distance_m: float, only_tag: in
         if facing and (only_tag is None or tags.tag_id[k] == only_tag):
             poses.append(T_ct)
             ids.append(int(tags.tag_id[k]))
-    colour, depth = TagRenderer().render(cam.K, cam.width, cam.height, poses, ids, 0.16,
-                                         rng=np.random.default_rng(seed), noise_sigma=2.0)
+    colour, depth = TagRenderer().render(
+        cam.K,
+        cam.width,
+        cam.height,
+        poses,
+        ids,
+        0.16,
+        rng=np.random.default_rng(seed),
+        noise_sigma=2.0,
+    )
     return Frame(123_456_789, colour, depth, "cam"), cam.T_body_camera @ T_co, ids
 
 
@@ -190,11 +206,13 @@ def test_daemon_producer_forwarded_frames(tmp_path, calib):
             return self.items.pop(0) if self.items else None
 
     def record(f, stamp_ns):
-        return SimpleNamespace(kind=5, event=SimpleNamespace(stamp_ns=stamp_ns,
-                                                             payload=frame_to_bytes(f)))
+        return SimpleNamespace(
+            kind=5, event=SimpleNamespace(stamp_ns=stamp_ns, payload=frame_to_bytes(f))
+        )
 
-    produce = make_observation_source(robot_config(tmp_path, "forwarded"),
-                                      Queue([record(empty, 5), record(frame, 777)]))
+    produce = make_observation_source(
+        robot_config(tmp_path, "forwarded"), Queue([record(empty, 5), record(frame, 777)])
+    )
     assert produce() is None  # a frame without tags: nothing to hand over
     batch = produce()
     assert batch.stamp_ns == 777 and [o.object_id for o in batch.observations] == [2]

@@ -57,9 +57,17 @@ def test_frame_bytes_jpeg_and_no_depth():
 def test_frame_header_golden_bytes():
     f = Frame(5, np.zeros((1, 2, 3), np.uint8), np.array([[1, 258]], np.uint16), "c")
     data = frame_to_bytes(f, colour_codec="raw", depth_codec="raw")
-    assert data == (b"DRFR\x01\x01\x00\x00" + (5).to_bytes(8, "little") + b"\x02\x00\x01\x00"
-                    + (6).to_bytes(4, "little") + (4).to_bytes(4, "little") + b"\x01" + b"c"
-                    + bytes(6) + b"\x01\x00\x02\x01")
+    assert data == (
+        b"DRFR\x01\x01\x00\x00"
+        + (5).to_bytes(8, "little")
+        + b"\x02\x00\x01\x00"
+        + (6).to_bytes(4, "little")
+        + (4).to_bytes(4, "little")
+        + b"\x01"
+        + b"c"
+        + bytes(6)
+        + b"\x01\x00\x02\x01"
+    )
     assert FRAME_HEADER.size == 29
 
 
@@ -105,8 +113,11 @@ def test_forwarded_source_drops_bad_records():
     assert [f.stamp_ns for f in src] == [1, 2, 3]
     assert src.dropped == 2
     queue = list(good)
-    assert [f.stamp_ns for f in ForwardedFramesSource(lambda: queue.pop(0) if queue else None)] \
-        == [1, 2, 3]
+    assert [f.stamp_ns for f in ForwardedFramesSource(lambda: queue.pop(0) if queue else None)] == [
+        1,
+        2,
+        3,
+    ]
 
 
 # --------------------------------------------------------------------------- files
@@ -234,8 +245,20 @@ def test_detect_command_json_lines(capsys):
     pytest.importorskip("pupil_apriltags")
     from dran_edge.cli.app import main
 
-    assert main(["detect", str(DATA), "--json", "--intrinsics", "615,615,319.5,239.5",
-                 "--tag-size", "0.16"]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                str(DATA),
+                "--json",
+                "--intrinsics",
+                "615,615,319.5,239.5",
+                "--tag-size",
+                "0.16",
+            ]
+        )
+        == 0
+    )
     out, err = capsys.readouterr()
     recs = [json.loads(line) for line in out.splitlines()]
     expected = json.loads((DATA / "expected.json").read_text())["images"]
@@ -245,8 +268,12 @@ def test_detect_command_json_lines(capsys):
         e = next(t for t in expected[r["camera_id"]] if t["tag_id"] == r["tag_id"])
         assert np.abs(np.asarray(r["corners"]) - e["corners"]).max() < 0.5
         if r["accepted"]:
-            assert np.abs(np.asarray(r["T_camera_tag"])[:3, 3]
-                          - np.asarray(e["T_camera_tag"])[:3, 3]).max() < 0.05
+            assert (
+                np.abs(
+                    np.asarray(r["T_camera_tag"])[:3, 3] - np.asarray(e["T_camera_tag"])[:3, 3]
+                ).max()
+                < 0.05
+            )
     assert '"frames": 4' in err
 
 
@@ -254,8 +281,20 @@ def test_detect_command_with_calib_gives_object_ids(tmp_path, capsys):
     pytest.importorskip("pupil_apriltags")
     from dran_edge.cli.app import main
 
-    assert main(["detect", str(DATA / "three_tags_clutter.png"), "--json", "--calib",
-                 str(ROOT / "calib"), "--robot", "dingo1"]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                str(DATA / "three_tags_clutter.png"),
+                "--json",
+                "--calib",
+                str(ROOT / "calib"),
+                "--robot",
+                "dingo1",
+            ]
+        )
+        == 0
+    )
     recs = [json.loads(line) for line in capsys.readouterr()[0].splitlines()]
     by_tag = {r["tag_id"]: r for r in recs}
     assert by_tag[12]["object_id"] == 3 and by_tag[13]["object_id"] == 3
@@ -264,8 +303,10 @@ def test_detect_command_with_calib_gives_object_ids(tmp_path, capsys):
 
 
 def test_perception_imports_no_hardware_library():
-    code = ("import sys; import dran_edge.perception.pipeline, dran_edge.perception.sources, "
-            "dran_edge.perception.render, dran_edge.cli.commands.detect; "
-            "bad = [m for m in ('pyrealsense2', 'depthai', 'zmq') if m in sys.modules]; "
-            "assert not bad, bad")
+    code = (
+        "import sys; import dran_edge.perception.pipeline, dran_edge.perception.sources, "
+        "dran_edge.perception.render, dran_edge.cli.commands.detect; "
+        "bad = [m for m in ('pyrealsense2', 'depthai', 'zmq') if m in sys.modules]; "
+        "assert not bad, bad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -29,14 +29,18 @@ K = np.array([[615.0, 0, 320.0], [0, 615.0, 240.0], [0, 0, 1]])
 
 def rot_deg(yaw: float, pitch: float, roll: float) -> np.ndarray:
     y, p, r = np.deg2rad([yaw, pitch, roll])
-    return (geo.so3_exp(np.array([0, y, 0])) @ geo.so3_exp(np.array([p, 0, 0]))
-            @ geo.so3_exp(np.array([0, 0, r])))
+    return (
+        geo.so3_exp(np.array([0, y, 0]))
+        @ geo.so3_exp(np.array([p, 0, 0]))
+        @ geo.so3_exp(np.array([0, 0, r]))
+    )
 
 
 def errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     d = geo.se3_log(geo.se3_between(T_est, T_true))
-    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(np.rad2deg(
-        np.linalg.norm(d[3:])))
+    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(
+        np.rad2deg(np.linalg.norm(d[3:]))
+    )
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +56,10 @@ def test_16cm_tag_at_1m_no_blur(tools):
     n = 0
     for yaw in (-40, -20, 0, 20, 40):
         for pitch in (-15, 15):
-            T = geo.se3_from_rt(rot_deg(yaw, pitch, rng.uniform(-180, 180)),
-                                [rng.uniform(-0.2, 0.2), rng.uniform(-0.1, 0.1), 1.0])
+            T = geo.se3_from_rt(
+                rot_deg(yaw, pitch, rng.uniform(-180, 180)),
+                [rng.uniform(-0.2, 0.2), rng.uniform(-0.1, 0.1), 1.0],
+            )
             colour, depth = renderer.render(K, 640, 480, [T], [4], 0.16, rng=rng)
             tp = estimate_tag_poses(det.detect(to_gray(colour)), K, [0.16], (640, 480), depth)
             assert tp.accepted.tolist() == [True]
@@ -72,11 +78,22 @@ def sweep(renderer, det, use_depth: bool):
     for dist in (1.0, 2.0, 3.0):
         for pitch in (-20.0, 0.0, 20.0):
             for yaw in np.arange(-70.0, 71.0, 5.0):
-                T = geo.se3_from_rt(rot_deg(yaw, pitch, rng.uniform(-180, 180)),
-                                    [rng.uniform(-0.1, 0.1) * dist, 0.0, dist])
-                colour, depth = renderer.render(K, 640, 480, [T], [9], 0.16, noise_sigma=3.0,
-                                                blur_sigma_px=0.6, rng=rng,
-                                                depth=DepthModel(coeff_per_m=0.002))
+                T = geo.se3_from_rt(
+                    rot_deg(yaw, pitch, rng.uniform(-180, 180)),
+                    [rng.uniform(-0.1, 0.1) * dist, 0.0, dist],
+                )
+                colour, depth = renderer.render(
+                    K,
+                    640,
+                    480,
+                    [T],
+                    [9],
+                    0.16,
+                    noise_sigma=3.0,
+                    blur_sigma_px=0.6,
+                    rng=rng,
+                    depth=DepthModel(coeff_per_m=0.002),
+                )
                 d = det.detect(to_gray(colour))
                 if len(d) != 1:
                     continue
@@ -143,8 +160,12 @@ TILTED = _tilted()
         (fake(np.asarray(SQUARE) - [300, 0]), 0.16, TagPoseParams(), REJECT_BORDER),
         (fake(SQUARE), np.nan, TagPoseParams(), REJECT_UNKNOWN),
         (fake(SQUARE), 0.16, TagPoseParams(max_range_m=0.5), REJECT_RANGE),
-        (fake(TILTED + [[0, 0], [0, 0], [2.0, -2.0], [0, 0]]), 0.16,
-         TagPoseParams(max_reproj_px=0.3), REJECT_REPROJ),
+        (
+            fake(TILTED + [[0, 0], [0, 0], [2.0, -2.0], [0, 0]]),
+            0.16,
+            TagPoseParams(max_reproj_px=0.3),
+            REJECT_REPROJ,
+        ),
     ],
 )
 def test_rejection_rules(det, size, params, why):

@@ -158,8 +158,14 @@ def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run
         base_port=_consecutive_free_ports(3),
         node_factory="dran_edge.experiments.dran_node:DranNode",
         node_config={
-            "sim": {"num_robots": 3, "num_objects": 6, "box_m": [12.0, 12.0, 3.0],
-                    "goals_per_robot": 2, "step_m": 1.5, "seed": 3},
+            "sim": {
+                "num_robots": 3,
+                "num_objects": 6,
+                "box_m": [12.0, 12.0, 3.0],
+                "goals_per_robot": 2,
+                "step_m": 1.5,
+                "seed": 3,
+            },
             "edges": [list(e) for e in edges],
             "agent": {"robust_kernel": "none"},
         },
@@ -181,9 +187,13 @@ def test_dran_agents_in_three_processes_over_radio_dish_match_the_in_process_run
 
 @needs_draft
 def test_a_node_process_that_fails_is_named_with_its_error():
-    spec = FleetSpec(robot_ids=(0, 1), edges=((0, 1),), rounds=3,
-                     node_factory="dran_edge.comms.loopback:NoSuchNode",
-                     base_port=_consecutive_free_ports(2))
+    spec = FleetSpec(
+        robot_ids=(0, 1),
+        edges=((0, 1),),
+        rounds=3,
+        node_factory="dran_edge.comms.loopback:NoSuchNode",
+        base_port=_consecutive_free_ports(2),
+    )
     with pytest.raises(DranError, match=r"(?s)robot 0: exited .*NoSuchNode"):
         run_loopback_fleet(spec, timeout_s=30.0)
 

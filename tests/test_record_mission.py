@@ -39,8 +39,25 @@ def test_a_daemon_recording_replays_as_it_is(tmp_path):
 
 def test_merge_records_builds_a_run_that_replays_and_evaluates(tmp_path, capsys):
     sim = tmp_path / "sim"
-    assert main(["simulate", str(sim), "--robots", "3", "--objects", "3", "--duration-s", "12",
-                 "--frames", "none", "--seed", "8"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(sim),
+                "--robots",
+                "3",
+                "--objects",
+                "3",
+                "--duration-s",
+                "12",
+                "--frames",
+                "none",
+                "--seed",
+                "8",
+            ]
+        )
+        == 0
+    )
     recs = []
     for name in ("dingo1", "dingo2", "dingo3"):  # what each robot's --record DIR holds
         r = tmp_path / f"rec_{name}" / "robots" / name
@@ -48,21 +65,45 @@ def test_merge_records_builds_a_run_that_replays_and_evaluates(tmp_path, capsys)
         recs.append(str(r.parent.parent))
     out = tmp_path / "run"
     orig = open_run(sim).mission
-    assert main(["merge-records", str(out), *recs, "--mocap", str(sim / "mocap.csv"),
-                 "--mocap-start-ns", str(orig.mocap_start_ns)]) == 0
+    assert (
+        main(
+            [
+                "merge-records",
+                str(out),
+                *recs,
+                "--mocap",
+                str(sim / "mocap.csv"),
+                "--mocap-start-ns",
+                str(orig.mocap_start_ns),
+            ]
+        )
+        == 0
+    )
     assert "3 robots" in capsys.readouterr().out
     m = open_run(out).mission
-    assert [(r.id, r.name, r.mocap_body) for r in m.robots] == \
-        [(r.id, r.name, r.name) for r in orig.robots]
+    assert [(r.id, r.name, r.mocap_body) for r in m.robots] == [
+        (r.id, r.name, r.name) for r in orig.robots
+    ]
     assert m.comm_graph == orig.comm_graph and m.fleet == orig.fleet
-    first, last = zip(*(ingest_span(sim / "robots" / n / "ingest.bin")
-                        for n in ("dingo1", "dingo2", "dingo3")))
+    first, last = zip(
+        *(ingest_span(sim / "robots" / n / "ingest.bin") for n in ("dingo1", "dingo2", "dingo3"))
+    )
     assert m.start_ns == min(first) and np.isclose(m.duration_s, (max(last) - min(first)) / 1e9)
     assert main(["replay", str(out), "--workers", "1", "--settle-rounds", "2"]) == 0
     assert main(["eval", str(out), "--no-plots", "--json"]) == 0
     cap = capsys.readouterr().out
     assert '"ate_m"' in cap and '"mission.yaml mocap.start_ns"' in cap
     # a robot already in the run is refused (named); rewriting mission.yaml in place works
-    assert main(["merge-records", str(out), str(tmp_path / "rec_dingo1"), "--mocap",
-                 str(tmp_path / "nope.csv")]) == 2
+    assert (
+        main(
+            [
+                "merge-records",
+                str(out),
+                str(tmp_path / "rec_dingo1"),
+                "--mocap",
+                str(tmp_path / "nope.csv"),
+            ]
+        )
+        == 2
+    )
     assert main(["merge-records", str(out)]) == 0

@@ -28,8 +28,13 @@ def _simulate(path, seed=0, duration_s=20):
     from dran_edge.sim.writer import write_run
     from dran_edge.sim.mission import SimParams, generate_mission
 
-    write_run(generate_mission(SimParams(robots=3, objects=4, duration_s=duration_s, seed=seed,
-                                         arena_m=6.0)), path, frames="none")
+    write_run(
+        generate_mission(
+            SimParams(robots=3, objects=4, duration_s=duration_s, seed=seed, arena_m=6.0)
+        ),
+        path,
+        frames="none",
+    )
     return path
 
 
@@ -55,13 +60,28 @@ def test_three_daemons_match_replay(tmp_path):
     run = _simulate(tmp_path / "run")
     # replay of the same run, in its own process meanwhile (it writes RUN/out, the rehearsal
     # its own directory)
-    replay = subprocess.Popen([sys.executable, "-m", "dran_edge.cli.app", "replay", str(run),
-                               "--json", "--workers", "1", "--settle-rounds", "10"],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    replay = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "dran_edge.cli.app",
+            "replay",
+            str(run),
+            "--json",
+            "--workers",
+            "1",
+            "--settle-rounds",
+            "10",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
     try:
-        res = rehearse(run, RehearsalOptions(speed=4.0, settle_rounds=10,
-                                             out_dir=str(tmp_path / "rh")))
+        res = rehearse(
+            run, RehearsalOptions(speed=4.0, settle_rounds=10, out_dir=str(tmp_path / "rh"))
+        )
         out, err = replay.communicate(timeout=120)
     finally:
         replay.kill()
@@ -92,10 +112,17 @@ def test_faults_lose_nothing_accepted_and_the_fleet_rejoins(tmp_path, net):
     from dran_edge.rehearsal.fleet import RehearsalOptions, rehearse
 
     run = _simulate(tmp_path / "run", seed=3, duration_s=30)
-    faults = fl.faults_from_flags(kill=["dingo2:8:14"], partition=["dingo3:6:12"],
-                                  loss=["dingo1-dingo3:0.3"], ids=IDS, mission_s=30)
-    res = rehearse(run, RehearsalOptions(speed=3.0, net=net, faults=tuple(faults),
-                                         out_dir=str(tmp_path / "rh")))
+    faults = fl.faults_from_flags(
+        kill=["dingo2:8:14"],
+        partition=["dingo3:6:12"],
+        loss=["dingo1-dingo3:0.3"],
+        ids=IDS,
+        mission_s=30,
+    )
+    res = rehearse(
+        run,
+        RehearsalOptions(speed=3.0, net=net, faults=tuple(faults), out_dir=str(tmp_path / "rh")),
+    )
     r = res.report
     assert not _leftover_namespaces()
     _check_inputs(r)
@@ -112,12 +139,14 @@ def test_faults_lose_nothing_accepted_and_the_fleet_rejoins(tmp_path, net):
 
 def test_fault_file_and_flags(tmp_path):
     p = tmp_path / "faults.yaml"
-    p.write_text("faults:\n"
-                 "  - {kind: kill, robot: dingo3, at_s: 6, restart_s: 9}\n"
-                 "  - {kind: partition, robots: [dingo1, 2], at_s: 3, end_s: 5}\n"
-                 "  - {kind: silent, robot: 2, at_s: 1, end_s: 2}\n"
-                 "  - {kind: loss, link: [dingo1, dingo2], probability: 0.5}\n"
-                 "  - {kind: clock_step, robot: dingo1, at_s: 4, step_s: -30}\n")
+    p.write_text(
+        "faults:\n"
+        "  - {kind: kill, robot: dingo3, at_s: 6, restart_s: 9}\n"
+        "  - {kind: partition, robots: [dingo1, 2], at_s: 3, end_s: 5}\n"
+        "  - {kind: silent, robot: 2, at_s: 1, end_s: 2}\n"
+        "  - {kind: loss, link: [dingo1, dingo2], probability: 0.5}\n"
+        "  - {kind: clock_step, robot: dingo1, at_s: 4, step_s: -30}\n"
+    )
     fs = fl.load_faults(p, IDS, 20.0)
     assert [f.kind for f in fs] == ["kill", "partition", "silent", "loss", "clock_step"]
     assert fs[0].robots == (3,) and fs[0].end_s == 9.0 and fs[1].robots == (1, 2)
@@ -125,21 +154,30 @@ def test_fault_file_and_flags(tmp_path):
     acts = fl.actions(fs)
     assert [a.t_s for a in acts] == sorted(a.t_s for a in acts)
     assert sum(a.what == "end" for a in acts) == 3  # kill, partition, silent (loss: no end)
-    same = fl.faults_from_flags(kill=["dingo3:6:9"], partition=["dingo1,2:3:5"],
-                                silent=["2:1:2"], loss=["dingo1-dingo2:0.5"],
-                                clock_step=["dingo1:4:-30"], ids=IDS, mission_s=20.0)
+    same = fl.faults_from_flags(
+        kill=["dingo3:6:9"],
+        partition=["dingo1,2:3:5"],
+        silent=["2:1:2"],
+        loss=["dingo1-dingo2:0.5"],
+        clock_step=["dingo1:4:-30"],
+        ids=IDS,
+        mission_s=20.0,
+    )
     assert same == fs
 
 
-@pytest.mark.parametrize("text, needle", [
-    ("faults:\n  - {kind: kill, robot: dingo9, at_s: 1}\n", "no robot 'dingo9'"),
-    ("faults:\n  - {kind: nap, robot: dingo1}\n", "kind one of"),
-    ("faults:\n  - {kind: silent, robot: dingo1, at_s: 5, end_s: 2}\n", "at_s <"),
-    ("faults:\n  - {kind: loss, link: [dingo1, dingo2], probability: 2}\n", "0 < p <= 1"),
-    ("faults:\n  - {kind: partition, robots: [1, 2, 3], at_s: 1, end_s: 2}\n", "both sides"),
-    ("faults:\n  - {kind: kill, robot: dingo1, at: 1}\n", "unknown ['at']"),
-    ("fault: []\n", "one key, 'faults'"),
-])
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("faults:\n  - {kind: kill, robot: dingo9, at_s: 1}\n", "no robot 'dingo9'"),
+        ("faults:\n  - {kind: nap, robot: dingo1}\n", "kind one of"),
+        ("faults:\n  - {kind: silent, robot: dingo1, at_s: 5, end_s: 2}\n", "at_s <"),
+        ("faults:\n  - {kind: loss, link: [dingo1, dingo2], probability: 2}\n", "0 < p <= 1"),
+        ("faults:\n  - {kind: partition, robots: [1, 2, 3], at_s: 1, end_s: 2}\n", "both sides"),
+        ("faults:\n  - {kind: kill, robot: dingo1, at: 1}\n", "unknown ['at']"),
+        ("fault: []\n", "one key, 'faults'"),
+    ],
+)
 def test_bad_fault_files_name_the_problem(tmp_path, text, needle):
     p = tmp_path / "f.yaml"
     p.write_text(text)
@@ -177,20 +215,28 @@ def test_namespaces_partition_and_silence_drop_at_the_network(tmp_path):
     from dran_edge.rehearsal.netns import NamespaceNet
 
     # the receiver listens until the flag file exists (created once the sender is done)
-    prog = ("import os,socket,sys;s=socket.socket(socket.AF_INET,socket.SOCK_DGRAM);"
-            "s.bind((sys.argv[1],9999));s.settimeout(0.1);print('ready',flush=True);got=0\n"
-            "while not os.path.exists(sys.argv[2]):\n"
-            " try: got|=s.recv(10)==b'hi'\n"
-            " except OSError: pass\n"
-            "print('hi' if got else 'none')")
-    send = ("import socket,sys,time;s=socket.socket(socket.AF_INET,socket.SOCK_DGRAM)\n"
-            "for _ in range(4): s.sendto(b'hi',(sys.argv[1],9999)); time.sleep(0.02)")
+    prog = (
+        "import os,socket,sys;s=socket.socket(socket.AF_INET,socket.SOCK_DGRAM);"
+        "s.bind((sys.argv[1],9999));s.settimeout(0.1);print('ready',flush=True);got=0\n"
+        "while not os.path.exists(sys.argv[2]):\n"
+        " try: got|=s.recv(10)==b'hi'\n"
+        " except OSError: pass\n"
+        "print('hi' if got else 'none')"
+    )
+    send = (
+        "import socket,sys,time;s=socket.socket(socket.AF_INET,socket.SOCK_DGRAM)\n"
+        "for _ in range(4): s.sendto(b'hi',(sys.argv[1],9999)); time.sleep(0.02)"
+    )
     with NamespaceNet(3) as net:
+
         def reaches(a: int, b: int) -> bool:
             addr = net.endpoints[b].address
             flag = tmp_path / f"done{time.monotonic_ns()}"
-            rx = subprocess.Popen(net.wrap(b, [sys.executable, "-c", prog, addr, str(flag)]),
-                                  stdout=subprocess.PIPE, text=True)
+            rx = subprocess.Popen(
+                net.wrap(b, [sys.executable, "-c", prog, addr, str(flag)]),
+                stdout=subprocess.PIPE,
+                text=True,
+            )
             assert rx.stdout.readline().strip() == "ready"
             tx = subprocess.run(net.wrap(a, [sys.executable, "-c", send, addr]))
             assert tx.returncode == 0  # the sender never sees an error
@@ -217,8 +263,11 @@ def test_rehearse_cli_names_bad_faults_and_options(tmp_path, capsys):
     from dran_edge.sim.writer import write_run
     from dran_edge.sim.mission import SimParams, generate_mission
 
-    write_run(generate_mission(SimParams(robots=2, objects=4, duration_s=4, seed=1,
-                                         arena_m=6.0)), run, frames="none")
+    write_run(
+        generate_mission(SimParams(robots=2, objects=4, duration_s=4, seed=1, arena_m=6.0)),
+        run,
+        frames="none",
+    )
     assert main(["rehearse", str(run), "--kill", "dingo9:1:2"]) == 2
     assert "no robot 'dingo9'" in capsys.readouterr().err
     assert main(["rehearse", str(run), "--partition", "dingo1:5"]) == 2

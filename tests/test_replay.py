@@ -75,8 +75,12 @@ def test_same_run_same_numbers(tiny, tmp_path):
     again = tmp_path / "again"
     shutil.copytree(run, again, ignore=shutil.ignore_patterns("out", "eval"))
     report2 = rp.replay_run(again, rp.ReplayOptions(workers=2, settle_rounds=10)).report
-    assert rp.compare_summary(rp.golden_summary(report2), rp.golden_summary(report),
-                              rtol=0, atol=0, count_rtol=0) == []
+    assert (
+        rp.compare_summary(
+            rp.golden_summary(report2), rp.golden_summary(report), rtol=0, atol=0, count_rtol=0
+        )
+        == []
+    )
     a = (run / "out" / "rounds.csv").read_text()
     b = (again / "out" / "rounds.csv").read_text()
     assert a == b
@@ -91,9 +95,19 @@ def test_same_run_same_numbers(tiny, tmp_path):
 GOLDEN_MACHINES = ("x86_64", "AMD64")  # tools/regen_golden.py ran on x86-64
 GOLDEN_RTOL = 1e-4
 GOLDEN_BYTES_RTOL = 0.01
-GOLDEN_EXACT = ("robots", "mission_s", "rounds", "mission_rounds", "frames_processed",
-                "observation_sources", "observations", "ingest_rejected", "keyframes",
-                "objects_known", "converged_robots")
+GOLDEN_EXACT = (
+    "robots",
+    "mission_s",
+    "rounds",
+    "mission_rounds",
+    "frames_processed",
+    "observation_sources",
+    "observations",
+    "ingest_rejected",
+    "keyframes",
+    "objects_known",
+    "converged_robots",
+)
 
 
 def test_matches_the_golden_summary(regen, tmp_path):
@@ -109,12 +123,18 @@ def test_matches_the_golden_summary(regen, tmp_path):
     if platform.machine() in GOLDEN_MACHINES:  # where the golden file was made: exactly
         diffs = rp.compare_summary(actual, golden, rtol=1e-9, atol=1e-12, count_rtol=0)
     else:
-        diffs = rp.compare_summary(actual, golden, rtol=GOLDEN_RTOL, atol=1e-9,
-                                   count_rtol=GOLDEN_BYTES_RTOL)
-    diffs += [f"{k}: {actual.get(k)!r} != golden {golden.get(k)!r} (exact)"
-              for k in GOLDEN_EXACT if actual.get(k) != golden.get(k)]
-    assert diffs == [], "replay differs from the golden summary (tools/regen_golden.py " \
-                        "regenerates it when the change is intended):\n" + "\n".join(diffs)
+        diffs = rp.compare_summary(
+            actual, golden, rtol=GOLDEN_RTOL, atol=1e-9, count_rtol=GOLDEN_BYTES_RTOL
+        )
+    diffs += [
+        f"{k}: {actual.get(k)!r} != golden {golden.get(k)!r} (exact)"
+        for k in GOLDEN_EXACT
+        if actual.get(k) != golden.get(k)
+    ]
+    assert diffs == [], (
+        "replay differs from the golden summary (tools/regen_golden.py "
+        "regenerates it when the change is intended):\n" + "\n".join(diffs)
+    )
 
 
 def _observations(data: bytes) -> dict[tuple[int, int], np.ndarray]:
@@ -124,8 +144,12 @@ def _observations(data: bytes) -> dict[tuple[int, int], np.ndarray]:
 
     events, rejected = decode_ingest(data, "test")
     assert not rejected
-    return {(o.stamp_ns, o.object_id): o.T_body_object for ev in events
-            if isinstance(ev, ObservationBatch) for o in ev.observations}
+    return {
+        (o.stamp_ns, o.object_id): o.T_body_object
+        for ev in events
+        if isinstance(ev, ObservationBatch)
+        for o in ev.observations
+    }
 
 
 @pytest.fixture(scope="module")
@@ -159,8 +183,7 @@ def test_redetect_runs_perception_again(tiny, tmp_path):
     run, report = tiny
     again = tmp_path / "redetect"
     shutil.copytree(run, again, ignore=shutil.ignore_patterns("out", "eval"))
-    rep = rp.replay_run(again, rp.ReplayOptions(workers=2, settle_rounds=10,
-                                                redetect=True)).report
+    rep = rp.replay_run(again, rp.ReplayOptions(workers=2, settle_rounds=10, redetect=True)).report
     assert rep["frames_processed"] == 3 * 60
     assert set(rep["observation_sources"].values()) == {"redetected"}
     a, b = rp.golden_summary(rep), rp.golden_summary(report)
@@ -209,10 +232,13 @@ def test_redetect_stays_within_tolerance_of_the_recording(regen, redetected):
 def test_compare_summary_tolerance_and_ignore_list():
     gold = {"a": 1.0, "b": {"c": 2}, "d": None}
     assert rp.compare_summary({"a": 1.0000001, "b": {"c": 2}, "d": None}, gold) == []
-    assert rp.compare_summary({"a": 1.1, "b": {"c": 2}, "d": None}, gold) == \
-        ["a: 1.1 != golden 1.0 (rtol 0.001)"]
-    assert rp.compare_summary({"a": 1.0, "b": {"c": 3}}, gold) == \
-        ["b.c: 3 != golden 2 (count rtol 0.02)", "d: missing"]
+    assert rp.compare_summary({"a": 1.1, "b": {"c": 2}, "d": None}, gold) == [
+        "a: 1.1 != golden 1.0 (rtol 0.001)"
+    ]
+    assert rp.compare_summary({"a": 1.0, "b": {"c": 3}}, gold) == [
+        "b.c: 3 != golden 2 (count rtol 0.02)",
+        "d: missing",
+    ]
     assert rp.compare_summary({"bytes_total": 1010}, {"bytes_total": 1000}) == []
     assert rp.compare_summary({"rounds": 71}, {"rounds": 70}) == ["rounds: 71 != golden 70"]
     summary = rp.golden_summary({"rounds": 3, "replay_wall_s": 9.9, "realtime_factor": 2.0})
@@ -223,8 +249,9 @@ def test_loss_reduces_what_arrives(tiny, tmp_path):
     run, report = tiny
     lossy = tmp_path / "lossy"
     shutil.copytree(run, lossy, ignore=shutil.ignore_patterns("out", "eval"))
-    rep = rp.replay_run(lossy, rp.ReplayOptions(loss=0.5, settle_rounds=2, evaluate=False,
-                                                workers=1)).report
+    rep = rp.replay_run(
+        lossy, rp.ReplayOptions(loss=0.5, settle_rounds=2, evaluate=False, workers=1)
+    ).report
     assert report["bytes_total"] > 0
     assert sum(rep["datagrams_lost"].values()) > 0
 
@@ -258,8 +285,9 @@ def test_udp_loopback_gives_the_bus_numbers(tiny, tmp_path):
     udp = tmp_path / "udp"
     shutil.copytree(run, udp, ignore=shutil.ignore_patterns("out", "eval"))
     try:
-        rep = rp.replay_run(udp, rp.ReplayOptions(transport="udp", settle_rounds=10,
-                                                  evaluate=False, workers=1)).report
+        rep = rp.replay_run(
+            udp, rp.ReplayOptions(transport="udp", settle_rounds=10, evaluate=False, workers=1)
+        ).report
     except DependencyError as exc:
         pytest.skip(f"no draft-enabled ZeroMQ here: {exc}")
     assert rep["transport"] == "udp"

@@ -9,8 +9,22 @@ from dran_edge.cli.app import main
 
 def test_simulate_then_replay_through_the_cli(tmp_path, capsys):
     run = tmp_path / "run"
-    rc = main(["simulate", str(run), "--robots", "2", "--objects", "4", "--duration-s", "12",
-               "--frames", "none", "--seed", "4"])
+    rc = main(
+        [
+            "simulate",
+            str(run),
+            "--robots",
+            "2",
+            "--objects",
+            "4",
+            "--duration-s",
+            "12",
+            "--frames",
+            "none",
+            "--seed",
+            "4",
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "simulated 2 robots, 4 boxes, 12 s (seed 4)" in out

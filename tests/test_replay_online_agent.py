@@ -95,6 +95,7 @@ def test_without_world_frame_only_the_lowest_id_anchors():
     assert lone.local_graph.anchor_first
     other = RobotCore(AgentConfig(robot_id=3, neighbours=(1, 5)))
     assert not other.local_graph.anchor_first
-    with_frame = RobotCore(dataclasses.replace(AgentConfig(robot_id=3, neighbours=(1,))),
-                             T_world_odom=np.eye(4))
+    with_frame = RobotCore(
+        dataclasses.replace(AgentConfig(robot_id=3, neighbours=(1,))), T_world_odom=np.eye(4)
+    )
     assert with_frame.local_graph.anchor_first

@@ -29,8 +29,13 @@ def _gram(sender, seq, epoch, fleet=3):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_verifier_windows_round_trip(seed):
     rng = np.random.default_rng(seed)
-    policy = AuthPolicy(fleet_id=3, self_id=1, fleet_robots=frozenset({1, 2, 3}),
-                        neighbours=frozenset({2, 3}), replay_window=32)
+    policy = AuthPolicy(
+        fleet_id=3,
+        self_id=1,
+        fleet_robots=frozenset({1, 2, 3}),
+        neighbours=frozenset({2, 3}),
+        replay_window=32,
+    )
     v = Verifier(KEY, policy)
     seen = {2: set(), 3: set()}
     for _ in range(60):
@@ -62,14 +67,23 @@ class _Quiet(Notifier):
 
 
 def _daemon(tmp_path, bus):
-    cfg = load_config(write_config(
-        tmp_path, robot={"id": 1, "name": "r1"}, ingest={"enabled": False},
-        comms={"period_s": 0.05},
-        daemon={"checkpoint_period_s": 3600.0}))  # only the first tick checkpoints
+    cfg = load_config(
+        write_config(
+            tmp_path,
+            robot={"id": 1, "name": "r1"},
+            ingest={"enabled": False},
+            comms={"period_s": 0.05},
+            daemon={"checkpoint_period_s": 3600.0},
+        )
+    )  # only the first tick checkpoints
 
     def transport(cfg, epoch):
-        policy = AuthPolicy(fleet_id=fleet_id(cfg.robot.fleet), self_id=1,
-                            fleet_robots=frozenset({1, 2}), neighbours=frozenset({2}))
+        policy = AuthPolicy(
+            fleet_id=fleet_id(cfg.robot.fleet),
+            self_id=1,
+            fleet_robots=frozenset({1, 2}),
+            neighbours=frozenset({2}),
+        )
         # a fresh endpoint per life: the previous life's was closed by its shutdown
         link = NeighbourLink(BusEndpoint(bus, 1), key=KEY, policy=policy, boot_epoch=epoch)
         return LinkTransport(link, {2: "r2"})
@@ -87,13 +101,22 @@ def _crash(d):
 def test_daemon_refuses_a_replay_after_restart(tmp_path, clean_stop):
     bus = Bus([1, 2], graph=[(1, 2)])
     cfg, d = _daemon(tmp_path, bus)
-    sender = NeighbourLink(bus.endpoint(2), key=KEY, boot_epoch=77, policy=AuthPolicy(
-        fleet_id=fleet_id(cfg.robot.fleet), self_id=2, fleet_robots=frozenset({1, 2}),
-        neighbours=frozenset({1})))
+    sender = NeighbourLink(
+        bus.endpoint(2),
+        key=KEY,
+        boot_epoch=77,
+        policy=AuthPolicy(
+            fleet_id=fleet_id(cfg.robot.fleet),
+            self_id=2,
+            fleet_robots=frozenset({1, 2}),
+            neighbours=frozenset({1}),
+        ),
+    )
     d.start()
     d.tick()  # the first tick checkpoints (nothing received yet)
     captured = sender.send_message(
-        NeighbourMessage(2, 1, 10, objects=(ObjectEntry(4, np.eye(4), 2),)), [1])
+        NeighbourMessage(2, 1, 10, objects=(ObjectEntry(4, np.eye(4), 2),)), [1]
+    )
     bus.advance()
     d.tick()
     assert d.transport.link.verifier.counts.accepted == 1

@@ -47,9 +47,17 @@ def test_conversion_of_ros2_messages(tmp_path):
         core.on_odometry(_ros2(msgs, msgs.odometry(s, (0.1 * k, 0, 0, 0, 0, 0, 1)), ODOM))
     core.on_odometry(_ros2(msgs, msgs.odometry(T0, (0, 0, 0, 0, 0, 0, 1)), ODOM))  # backwards
     core.on_keyframe(_ros2(msgs, msgs.odometry(T0 + 500_000_000, (0.5, 0, 0, 0, 0, 0, 1)), ODOM))
-    core.on_loop(_ros2(msgs, msgs.odometry(T0 + 900_000_000, (0.2, 0, 0, 0, 0, 0.6, 0.8),
-                                           twist=((T0 + 100_000_000) / 1e9, 0, 0, 33, 0, 0)),
-                       ODOM))
+    core.on_loop(
+        _ros2(
+            msgs,
+            msgs.odometry(
+                T0 + 900_000_000,
+                (0.2, 0, 0, 0, 0, 0.6, 0.8),
+                twist=((T0 + 100_000_000) / 1e9, 0, 0, 33, 0, 0),
+            ),
+            ODOM,
+        )
+    )
     core.on_reset(_ros2(msgs, msgs.ts.types["std_msgs/msg/Bool"](data=True), "std_msgs/msg/Bool"))
     bad = msgs.odometry(T0 + 2_000_000_000, (0, 0, 0, 0, 0, 0, 2.0))  # not a unit quaternion
     core.on_odometry(_ros2(msgs, bad, ODOM))
@@ -61,8 +69,9 @@ def test_conversion_of_ros2_messages(tmp_path):
     core.on_image(_ros2(msgs, msgs.image(s, colour, "mono8"), "sensor_msgs/msg/Image"))
     yuv = msgs.image(s + 300_000_000, np.zeros((16, 48), np.uint8), "yuv422")
     core.on_image(_ros2(msgs, yuv, "sensor_msgs/msg/Image"))
-    core.on_image(_ros2(msgs, msgs.image(s + 300_000_000, depth, "16UC1"),
-                        "sensor_msgs/msg/Image"), True)
+    core.on_image(
+        _ros2(msgs, msgs.image(s + 300_000_000, depth, "16UC1"), "sensor_msgs/msg/Image"), True
+    )
     recs = _events(sent)
     kinds = [r.kind for r in recs]
     assert kinds == [1] * 10 + [2, 3, 4, 5]
@@ -104,15 +113,21 @@ def test_bridge_into_a_real_daemon_and_its_estimate_back(tmp_path):
     for e in m.events:  # the VIO events as the ROS 2 topics carry them
         name = type(e).__name__
         if name in ("OdometrySample", "Keyframe"):
-            msg = _ros2(msgs, msgs.odometry(e.stamp_ns, se3_to_xyz_quat_xyzw(e.T_odom_body)),
-                        "nav_msgs/msg/Odometry")
+            msg = _ros2(
+                msgs,
+                msgs.odometry(e.stamp_ns, se3_to_xyz_quat_xyzw(e.T_odom_body)),
+                "nav_msgs/msg/Odometry",
+            )
             (core.on_odometry if name == "OdometrySample" else core.on_keyframe)(msg)
             n += 1
     assert client.flush(5.0)
     for _ in range(300):
         d.tick()
-        if d.ingest.counters.records >= n and d.journal.pending_count == 0 \
-                and d.last_estimate is not None:
+        if (
+            d.ingest.counters.records >= n
+            and d.journal.pending_count == 0
+            and d.last_estimate is not None
+        ):
             break
     try:
         st = query_status(d.runtime_dir / "status.sock")
@@ -128,8 +143,10 @@ def test_bridge_into_a_real_daemon_and_its_estimate_back(tmp_path):
 
 def test_the_rclpy_node_forwards_odometry(tmp_path):
     rclpy = pytest.importorskip(
-        "rclpy", reason="rclpy exists only in a ROS 2 installation (Humble/Jazzy: source "
-        "/opt/ros/<distro>/setup.bash); the node's conversion is tested above without it")
+        "rclpy",
+        reason="rclpy exists only in a ROS 2 installation (Humble/Jazzy: source "
+        "/opt/ros/<distro>/setup.bash); the node's conversion is tested above without it",
+    )
     from nav_msgs.msg import Odometry
 
     path = tmp_path / "ingest.sock"
@@ -137,9 +154,24 @@ def test_the_rclpy_node_forwards_odometry(tmp_path):
     srv.bind(str(path))
     srv.listen(1)
     srv.settimeout(20.0)
-    node_proc = subprocess.Popen([sys.executable, "-m", "dran_edge.ros.bridge2", "--ros-args",
-                                  "-p", f"socket:={path}", "-p", "odometry:=/test_odom",
-                                  "-p", "keyframes:=", "-p", "reset:=", "-p", "loop_topic:="])
+    node_proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "dran_edge.ros.bridge2",
+            "--ros-args",
+            "-p",
+            f"socket:={path}",
+            "-p",
+            "odometry:=/test_odom",
+            "-p",
+            "keyframes:=",
+            "-p",
+            "reset:=",
+            "-p",
+            "loop_topic:=",
+        ]
+    )
     try:
         rclpy.init()
         pub_node = rclpy.create_node("dran_edge_test_pub")

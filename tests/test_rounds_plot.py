@@ -11,10 +11,13 @@ from dran_edge.evaluation import score as evaluate
 
 
 def test_round_panels_name_their_quantities():
-    rounds = {"round": np.arange(4), "cost": np.array([5.0, 7, 9, 10]),
-              "consensus_error": np.array([0.1, 0.05, 0.02, 0.024]),
-              "bytes_round": np.array([600.0, 300, 300, 0]),
-              "bytes_total": np.array([600.0, 900, 1200, 1200])}
+    rounds = {
+        "round": np.arange(4),
+        "cost": np.array([5.0, 7, 9, 10]),
+        "consensus_error": np.array([0.1, 0.05, 0.02, 0.024]),
+        "bytes_round": np.array([600.0, 300, 300, 0]),
+        "bytes_total": np.array([600.0, 900, 1200, 1200]),
+    }
     panels = plots.round_panels(rounds, None, n_robots=3, n_links=2)
     titles = [t for t, _, _ in panels]
     assert "not the summary's CE" in titles[1] and "grows as the graphs grow" in titles[0]

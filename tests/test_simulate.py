@@ -103,7 +103,9 @@ def test_loops_measure_the_true_relative_pose_and_outliers_are_wrong():
                 n_in += 1
                 assert np.linalg.norm(err[:3]) < 6 * p.loop_noise_m * math.sqrt(3)
                 assert np.linalg.norm(err[3:]) < 6 * p.loop_noise_rad * math.sqrt(3)
-                assert np.linalg.norm(geo.se3_between(kf_T[o], kf_T[c])[:2, 3]) < p.loop_max_distance_m
+                assert (
+                    np.linalg.norm(geo.se3_between(kf_T[o], kf_T[c])[:2, 3]) < p.loop_max_distance_m
+                )
     assert n_in > 20
     assert 0 < n_out < n_in
 
@@ -128,8 +130,13 @@ def test_communication_graph_is_connected_and_sparse():
 
 def test_visibility_facing_range_and_occlusion():
     p = sim.SimParams(objects=2)
-    world = sim.World(np.arange(2), np.stack([np.eye(4), geo.se3_from_rt(np.eye(3), np.r_[3.0, 0, 0])]),
-                      0.4, 0.2, sim.face_tags(0.4))
+    world = sim.World(
+        np.arange(2),
+        np.stack([np.eye(4), geo.se3_from_rt(np.eye(3), np.r_[3.0, 0, 0])]),
+        0.4,
+        0.2,
+        sim.face_tags(0.4),
+    )
     body = geo.se3_from_rt(geo.so3_exp(np.r_[0, 0, math.pi]), np.r_[-2.0, 0.0, 0.0])
     # robot at (-2, 0) looks along -x: away from both boxes
     vis, _ = sim.visible_tags(world, (body @ sim.T_BODY_CAMERA)[None], p)
@@ -232,9 +239,11 @@ def test_written_mocap_is_motive_y_up_and_matches_the_truth(written_run, mission
     np.testing.assert_allclose(body.T_world_marker[k][:, :3, 3], T_true[:, :3, 3], atol=2e-6)
     assert not body.valid.all() or SMALL.mocap_dropout_per_min == 0
     box = take.body("box0")
-    np.testing.assert_allclose(box.T_world_marker[0][:3, 3],
-                               (mission.world.T_world_object[0] @ sim._object_marker(0.4))[:3, 3],
-                               atol=2e-6)
+    np.testing.assert_allclose(
+        box.T_world_marker[0][:3, 3],
+        (mission.world.T_world_object[0] @ sim._object_marker(0.4))[:3, 3],
+        atol=2e-6,
+    )
 
 
 def test_run_dir_rejects_bad_missions_with_file_and_line(written_run, tmp_path):

@@ -26,8 +26,9 @@ def _tail_setup(dim=2):
 
 @pytest.fixture(scope="module")
 def grid():
-    g, _ = synthetic_graph(dim=2, side=9, layers=1, loop_radius_m=1.1, sigma_t_m=0.05,
-                           sigma_r_rad=0.02, seed=4)
+    g, _ = synthetic_graph(
+        dim=2, side=9, layers=1, loop_radius_m=1.1, sigma_t_m=0.05, sigma_r_rad=0.02, seed=4
+    )
     return g, solve_g2o(g).objective_final
 
 
@@ -37,8 +38,9 @@ def _two_robot_agent(g, stop_rule: str, **kw):
     part = partition_contiguous(g.edges, g.num_vertices, 2)
     opt = solve_g2o(g).result.poses
     cfg, _ = table1_setup(g.dim)
-    cfg = dataclasses.replace(cfg, robot_id=1, neighbours=(0,), dim=g.dim, sor_omega=1.0,
-                              stop_rule=stop_rule, **kw)
+    cfg = dataclasses.replace(
+        cfg, robot_id=1, neighbours=(0,), dim=g.dim, sor_omega=1.0, stop_rule=stop_rule, **kw
+    )
     prob = LocalProblem.from_partition(g, part, 1, opt, kappa, tau, cfg.residual)
     return Agent(cfg, prob, weights={0: 0.5}), part.parts[1].anchors, opt
 
@@ -107,8 +109,11 @@ def test_same_seed_same_run(grid):
     cfg, kw = _tail_setup()
     a = run_g2o_dran(g, 3, cfg, max_rounds=200, **kw)
     b = run_g2o_dran(g, 3, cfg, max_rounds=200, **kw)
-    assert (a["rounds"], a["bytes_total"], a["stopped_by"]) == (b["rounds"], b["bytes_total"],
-                                                               b["stopped_by"])
+    assert (a["rounds"], a["bytes_total"], a["stopped_by"]) == (
+        b["rounds"],
+        b["bytes_total"],
+        b["stopped_by"],
+    )
     assert np.array_equal(a["poses"], b["poses"])
 
 
@@ -126,13 +131,22 @@ def test_the_harness_sets_the_done_counter_above_the_graph_diameter():
 def test_object_runs_with_the_tail_rule_are_deterministic_and_carry_the_counter():
     from dran_edge.experiments.objects import SimParams, make_scenario, run_objects
 
-    sc = make_scenario(SimParams(num_robots=3, num_objects=6, box_m=(12.0, 12.0, 3.0),
-                                 goals_per_robot=2, step_m=1.5, seed=3))
+    sc = make_scenario(
+        SimParams(
+            num_robots=3,
+            num_objects=6,
+            box_m=(12.0, 12.0, 3.0),
+            goals_per_robot=2,
+            step_m=1.5,
+            seed=3,
+        )
+    )
     cfg = AgentConfig(robust_kernel="none", stop_rule="tail")
     runs = [run_objects(sc, cfg, [(0, 1), (1, 2)], max_rounds=25) for _ in range(2)]
     keys = ("F", "ATE", "bytes", "rounds", "F_over_Fstar", "ATE_over_ATEstar")
     assert [runs[0][k] for k in keys] == [runs[1][k] for k in keys]
-    plain = run_objects(sc, dataclasses.replace(cfg, stop_rule="steps"), [(0, 1), (1, 2)],
-                        max_rounds=25)
+    plain = run_objects(
+        sc, dataclasses.replace(cfg, stop_rule="steps"), [(0, 1), (1, 2)], max_rounds=25
+    )
     assert plain["F"] == runs[0]["F"]  # the rule changes when to stop, not the iterates
     assert runs[0]["bytes"] > plain["bytes"]  # the counter rides on the wire

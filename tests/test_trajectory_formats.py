@@ -35,8 +35,9 @@ def test_write_then_detect_and_read_gives_the_poses_back(tmp_path, fmt, seed):
     tr.write_trajectory(p, stamps, T, fmt)
     kw = {"kitti_times": p.with_suffix(".times.txt")} if fmt == "kitti" else {}
     got = tr.read_trajectory(p, **kw)
-    assert got.format == fmt and got.quat_order == {"tum": "xyzw", "euroc": "wxyz",
-                                                    "kitti": None}[fmt]
+    assert (
+        got.format == fmt and got.quat_order == {"tum": "xyzw", "euroc": "wxyz", "kitti": None}[fmt]
+    )
     assert _same_poses(got.T, T) and np.allclose(got.stamps_s, stamps, atol=1e-6)
     assert not got.positions_only
 
@@ -46,14 +47,20 @@ def test_vins_and_euroc_groundtruth_layouts_are_w_first(tmp_path):
     v = geo.se3_to_xyz_quat_wxyz(T)
     ns = np.round(stamps * 1e9).astype(np.int64)
     vins = tmp_path / "vins_result_no_loop.csv"  # t_ns, p, q wxyz, v, trailing comma
-    vins.write_text("".join(f"{s}," + ",".join(f"{x:.12f}" for x in r) + ",0,0,0,\n"
-                            for s, r in zip(ns, v)))
+    vins.write_text(
+        "".join(f"{s}," + ",".join(f"{x:.12f}" for x in r) + ",0,0,0,\n" for s, r in zip(ns, v))
+    )
     gt = tmp_path / "data.csv"  # EuRoC state_groundtruth_estimate0: 17 columns with a header
-    gt.write_text("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
-                  "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1]"
-                  ", b_w_RS_S_x [rad s^-1], b_w_RS_S_y, b_w_RS_S_z, b_a_RS_S_x, b_a_RS_S_y, "
-                  "b_a_RS_S_z\n" + "".join(f"{s}," + ",".join(f"{x:.12f}" for x in r) +
-                                           ",0,0,0,0,0,0,0,0,0\n" for s, r in zip(ns, v)))
+    gt.write_text(
+        "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
+        "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1]"
+        ", b_w_RS_S_x [rad s^-1], b_w_RS_S_y, b_w_RS_S_z, b_a_RS_S_x, b_a_RS_S_y, "
+        "b_a_RS_S_z\n"
+        + "".join(
+            f"{s}," + ",".join(f"{x:.12f}" for x in r) + ",0,0,0,0,0,0,0,0,0\n"
+            for s, r in zip(ns, v)
+        )
+    )
     for p in (vins, gt):
         got = tr.read_trajectory(p)
         assert (got.format, got.quat_order) == ("euroc", "wxyz"), got.how
@@ -66,8 +73,9 @@ def test_an_ambiguous_w_first_csv_is_refused_not_scored_as_tum(tmp_path, capsys)
     stamps, T = _poses(4, 200)
     v = geo.se3_to_xyz_quat_wxyz(T)
     amb = tmp_path / "est.csv"
-    amb.write_text("".join(f"{s:.9f}," + ",".join(f"{x:.10f}" for x in r) + "\n"
-                           for s, r in zip(stamps, v)))
+    amb.write_text(
+        "".join(f"{s:.9f}," + ",".join(f"{x:.10f}" for x in r) + "\n" for s, r in zip(stamps, v))
+    )
     ref = tmp_path / "ref.tum"
     tr.write_trajectory(ref, stamps, T, "tum")
     with pytest.raises(InputError, match="cannot tell the quaternion order.*--quat-order"):
@@ -87,22 +95,36 @@ def test_an_ambiguous_w_first_csv_is_refused_not_scored_as_tum(tmp_path, capsys)
         tr.read_trajectory(named, quat_order="xyzw")
 
 
-def test_exported_mocap_as_reference_scores_like_the_motive_csv_and_evo(small_sim_run,
-                                                                          tmp_path, capsys):
+def test_exported_mocap_as_reference_scores_like_the_motive_csv_and_evo(
+    small_sim_run, tmp_path, capsys
+):
     run, _ = small_sim_run
     out = tmp_path / "mocap"
     assert main(["export", "mocap", str(run), "--format", "tum", "--out", str(out)]) == 0
-    assert capsys.readouterr().out.split() == [str(out / f"{b}.tum") for b in (
-        "dingo1", "dingo2", "dingo3", "box0", "box1", "box2")]
+    assert capsys.readouterr().out.split() == [
+        str(out / f"{b}.tum") for b in ("dingo1", "dingo2", "dingo3", "box0", "box1", "box2")
+    ]
     files = sorted(p.name for p in out.iterdir())
-    assert files == ["box0.tum", "box1.tum", "box2.tum", "dingo1.tum", "dingo2.tum",
-                     "dingo3.tum"]
+    assert files == ["box0.tum", "box1.tum", "box2.tum", "dingo1.tum", "dingo2.tum", "dingo3.tum"]
     est = run / "out" / "dingo2" / "dingo2.tum"
     assert main(["eval", "traj", str(est), "--json"]) == 0  # mocap, body, clock: mission.yaml
     by_run = json.loads(capsys.readouterr().out)
     assert by_run["time_offset_source"] == "mission.yaml mocap.start_ns"
-    assert main(["eval", "traj", str(est), "--ref", str(out / "dingo2.tum"), "--json",
-                 "--save-results", str(tmp_path / "res.zip")]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "traj",
+                str(est),
+                "--ref",
+                str(out / "dingo2.tum"),
+                "--json",
+                "--save-results",
+                str(tmp_path / "res.zip"),
+            ]
+        )
+        == 0
+    )
     by_file = json.loads(capsys.readouterr().out)
     assert by_file["time_offset_source"] == "clock overlap"
     assert by_file["matched_poses"] == by_run["matched_poses"] > 5
@@ -116,26 +138,32 @@ def test_exported_mocap_as_reference_scores_like_the_motive_csv_and_evo(small_si
     e.align(ref)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, e))
-    assert by_file["ate_rmse_m"] == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse),
-                                                  abs=1e-6)
+    assert by_file["ate_rmse_m"] == pytest.approx(
+        ape.get_statistic(metrics.StatisticsType.rmse), abs=1e-6
+    )
     res = evo_file.load_res_file(str(tmp_path / "res.zip"), load_trajectories=True)
     assert res.stats["rmse"] == pytest.approx(by_file["ate_rmse_m"], abs=1e-12)
-    assert res.info["est_name"] == "dingo2" and len(res.np_arrays["error_array"]) == \
-        by_file["matched_poses"]
+    assert (
+        res.info["est_name"] == "dingo2"
+        and len(res.np_arrays["error_array"]) == by_file["matched_poses"]
+    )
     # EuRoC and KITTI exports carry the same poses
     for fmt in ("euroc", "kitti"):
-        assert main(["export", "mocap", str(run), "--format", fmt, "--out",
-                     str(tmp_path / fmt)]) == 0
+        assert (
+            main(["export", "mocap", str(run), "--format", fmt, "--out", str(tmp_path / fmt)]) == 0
+        )
     a = tr.read_trajectory(out / "dingo2.tum")
     b = tr.read_trajectory(tmp_path / "euroc" / "dingo2.csv")
-    c = tr.read_trajectory(tmp_path / "kitti" / "dingo2.kitti",
-                           kitti_times=tmp_path / "kitti" / "dingo2.times.txt")
+    c = tr.read_trajectory(
+        tmp_path / "kitti" / "dingo2.kitti", kitti_times=tmp_path / "kitti" / "dingo2.times.txt"
+    )
     assert _same_poses(a.T, b.T) and _same_poses(a.T, c.T, atol=1e-9)
     assert np.allclose(a.stamps_s, b.stamps_s, atol=1e-6)
 
 
-def test_positions_only_estimate_finds_its_clock_by_position_correlation(small_sim_run,
-                                                                          tmp_path, capsys):
+def test_positions_only_estimate_finds_its_clock_by_position_correlation(
+    small_sim_run, tmp_path, capsys
+):
     """A dense positions-only track (identity quaternions), no offset given, no mission: the
     angular-speed search is skipped, the position correlation finds the clock."""
     from dran_edge.formats.motive import read_motive_csv
@@ -150,8 +178,20 @@ def test_positions_only_estimate_finds_its_clock_by_position_correlation(small_s
     T[:, :3, :3] = np.eye(3)
     est = tmp_path / "positions.tum"
     tr.write_trajectory(est, take.time_s[b.valid] + shift_s, T, "tum")
-    rc = main(["eval", "traj", str(est), "--mocap", str(run / "mocap.csv"), "--body", "dingo1",
-               "--json", "--plot", str(tmp_path / "p.png")])
+    rc = main(
+        [
+            "eval",
+            "traj",
+            str(est),
+            "--mocap",
+            str(run / "mocap.csv"),
+            "--body",
+            "dingo1",
+            "--json",
+            "--plot",
+            str(tmp_path / "p.png"),
+        ]
+    )
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     res = json.loads(cap.out)
@@ -189,8 +229,20 @@ def test_a_bag_topic_is_an_estimate_and_a_reference(small_sim_run, tmp_path, cap
     run, _ = small_sim_run
     (bag,), _ = write_run_bags(run, tmp_path / "bags", "mcap")
     est_t, ref_t = "/dingo1/vins_estimator/odometry", "/vrpn_client_node/dingo1/pose"
-    rc = main(["eval", "traj", str(bag), "--topic", est_t, "--ref", str(bag), "--ref-topic",
-               ref_t, "--json"])
+    rc = main(
+        [
+            "eval",
+            "traj",
+            str(bag),
+            "--topic",
+            est_t,
+            "--ref",
+            str(bag),
+            "--ref-topic",
+            ref_t,
+            "--json",
+        ]
+    )
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     by_bag = json.loads(cap.out)
@@ -199,11 +251,23 @@ def test_a_bag_topic_is_an_estimate_and_a_reference(small_sim_run, tmp_path, cap
     for topic, name in ((est_t, "est.tum"), (ref_t, "ref.tum")):
         t = tr.read_bag_trajectory(bag, topic)
         tr.write_trajectory(tmp_path / name, t.stamps_s, t.T, "tum")
-    assert main(["eval", "traj", str(tmp_path / "est.tum"), "--ref", str(tmp_path / "ref.tum"),
-                 "--json"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "traj",
+                str(tmp_path / "est.tum"),
+                "--ref",
+                str(tmp_path / "ref.tum"),
+                "--json",
+            ]
+        )
+        == 0
+    )
     by_file = json.loads(capsys.readouterr().out)
     assert by_file["ate_rmse_m"] == pytest.approx(by_bag["ate_rmse_m"], abs=1e-7)
-    rc = main(["eval", "traj", str(bag), "--topic", "/nope", "--ref", str(bag), "--ref-topic",
-               ref_t])
+    rc = main(
+        ["eval", "traj", str(bag), "--topic", "/nope", "--ref", str(bag), "--ref-topic", ref_t]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "no topic /nope in the bag" in err and est_t in err

@@ -39,15 +39,24 @@ def load_bridge():
 bridge = load_bridge()
 
 finite = st.floats(-1e4, 1e4, allow_nan=False)
-quat = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
-    lambda q: np.linalg.norm(q) > 0.1).map(lambda q: list(np.array(q) / np.linalg.norm(q)))
+quat = (
+    st.lists(st.floats(-1, 1), min_size=4, max_size=4)
+    .filter(lambda q: np.linalg.norm(q) > 0.1)
+    .map(lambda q: list(np.array(q) / np.linalg.norm(q)))
+)
 stamp = st.integers(1, 2**62)
 
 
 @settings(max_examples=80, deadline=None)
-@given(s=stamp, s2=stamp, xyz=st.lists(finite, min_size=3, max_size=3), q=quat,
-       cov=st.one_of(st.none(), st.lists(finite, min_size=36, max_size=36)),
-       inliers=st.integers(0, 2**31), code=st.integers(0, 3))
+@given(
+    s=stamp,
+    s2=stamp,
+    xyz=st.lists(finite, min_size=3, max_size=3),
+    q=quat,
+    cov=st.one_of(st.none(), st.lists(finite, min_size=36, max_size=36)),
+    inliers=st.integers(0, 2**31),
+    code=st.integers(0, 3),
+)
 def test_bridge_encoder_is_byte_identical(s, s2, xyz, q, cov, inliers, code):
     assert bridge.pack_odometry(s, xyz, q, cov) == I.pack_odometry(s, xyz, q, cov)
     assert bridge.pack_keyframe(s, xyz, q) == I.pack_keyframe(s, xyz, q)
@@ -58,8 +67,18 @@ def test_bridge_encoder_is_byte_identical(s, s2, xyz, q, cov, inliers, code):
 
 def test_bridge_is_python38_and_imports_only_stdlib_and_ros():
     tree = ast.parse(BRIDGE.read_text(), feature_version=(3, 8))
-    allowed = {"collections", "socket", "struct", "threading", "time", "zlib", "rospy",
-               "nav_msgs.msg", "std_msgs.msg", "sensor_msgs.msg"}
+    allowed = {
+        "collections",
+        "socket",
+        "struct",
+        "threading",
+        "time",
+        "zlib",
+        "rospy",
+        "nav_msgs.msg",
+        "std_msgs.msg",
+        "sensor_msgs.msg",
+    }
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             assert {a.name for a in node.names} <= allowed
@@ -80,10 +99,24 @@ def test_bridge_frame_bytes_decode_in_perception():
     header = SimpleNamespace(stamp=SimpleNamespace(secs=12, nsecs=34), frame_id="cam0")
     padded = np.zeros((6, 16), np.uint8)
     padded[:, :15] = colour.reshape(6, 15)  # ROS images may pad rows (step > width * 3)
-    cmsg = SimpleNamespace(header=header, width=5, height=6, step=16, encoding="bgr8",
-                           is_bigendian=0, data=padded.tobytes())
-    dmsg = SimpleNamespace(header=header, width=5, height=6, step=10, encoding="16UC1",
-                           is_bigendian=0, data=depth.astype("<u2").tobytes())
+    cmsg = SimpleNamespace(
+        header=header,
+        width=5,
+        height=6,
+        step=16,
+        encoding="bgr8",
+        is_bigendian=0,
+        data=padded.tobytes(),
+    )
+    dmsg = SimpleNamespace(
+        header=header,
+        width=5,
+        height=6,
+        step=10,
+        encoding="16UC1",
+        is_bigendian=0,
+        data=depth.astype("<u2").tobytes(),
+    )
     rec = bridge.frame_record(cmsg, dmsg)
     ev = I.decode_record(rec)
     assert ev.stamp_ns == 12_000_000_034
@@ -98,8 +131,9 @@ def test_bridge_frame_bytes_decode_in_perception():
 def _ros_available() -> str | None:
     if not shutil.which("roscore") or not Path(SYSTEM_PYTHON).exists():
         return "roscore not installed"
-    res = subprocess.run([SYSTEM_PYTHON, "-c", "import rospy, nav_msgs.msg, std_msgs.msg"],
-                         capture_output=True)
+    res = subprocess.run(
+        [SYSTEM_PYTHON, "-c", "import rospy, nav_msgs.msg, std_msgs.msg"], capture_output=True
+    )
     return None if res.returncode == 0 else "rospy/nav_msgs not importable by /usr/bin/python3"
 
 
@@ -153,8 +187,13 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}", ROS_HOME=str(tmp_path),
-               ROS_LOG_DIR=str(tmp_path / "log"), ROS_HOSTNAME="127.0.0.1")
+    env = dict(
+        os.environ,
+        ROS_MASTER_URI=f"http://127.0.0.1:{port}",
+        ROS_HOME=str(tmp_path),
+        ROS_LOG_DIR=str(tmp_path / "log"),
+        ROS_HOSTNAME="127.0.0.1",
+    )
     for var in ("PYTHONPATH", "VIRTUAL_ENV"):
         env.pop(var, None)
     got: list = []
@@ -167,8 +206,9 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
     frames: list = []
     server = IngestServer(tmp_path / "ingest.sock", on_record, frames.append)
     server.start()
-    core = subprocess.Popen(["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    core = subprocess.Popen(
+        ["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     procs = [core]
     try:
         deadline = time.monotonic() + 30
@@ -178,11 +218,22 @@ def test_bridge_forwards_real_ros_messages(tmp_path):
             time.sleep(0.3)
         else:
             pytest.skip("roscore did not come up")
-        procs.append(subprocess.Popen([SYSTEM_PYTHON, str(BRIDGE), f"_socket:={server.path}",
-                                       "_image_topic:=/camera/color/image_raw"],
-                                      env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
-        pub = subprocess.run([SYSTEM_PYTHON, "-c", PUBLISHER], env=env, capture_output=True,
-                             text=True, timeout=90)
+        procs.append(
+            subprocess.Popen(
+                [
+                    SYSTEM_PYTHON,
+                    str(BRIDGE),
+                    f"_socket:={server.path}",
+                    "_image_topic:=/camera/color/image_raw",
+                ],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+            )
+        )
+        pub = subprocess.run(
+            [SYSTEM_PYTHON, "-c", PUBLISHER], env=env, capture_output=True, text=True, timeout=90
+        )
         assert pub.returncode == 0, pub.stderr
         end = time.monotonic() + 15
         while time.monotonic() < end and (len(got) < 9 or not frames):

@@ -10,6 +10,7 @@ from dran_edge import geometry as geo
 from dran_edge.formats import run_dir as rd
 from dran_edge.sim import mission as sim
 
+
 @pytest.fixture(scope="module")
 def tool():
     """``dran-edge import-vins`` as the tests call it: ``tool.main(argv) -> exit code``."""
@@ -57,14 +58,32 @@ def test_odometry_keyframes_and_loops_round_trip(tmp_path, tool, robot):
             loop_index = 3
             a = geo.se3_to_xyz_quat_wxyz(T_rel)
             info = [f"{v:.9f}" for v in a] + ["5.7"]
-        vals = ([str(i), f"{stamps[k] / 1e9:.9f}"] + ["0"] * 6 + ["1", "0", "0", "0"] * 2
-                + [str(loop_index)] + info + ["100"])
+        vals = (
+            [str(i), f"{stamps[k] / 1e9:.9f}"]
+            + ["0"] * 6
+            + ["1", "0", "0", "0"] * 2
+            + [str(loop_index)]
+            + info
+            + ["100"]
+        )
         lines.append(" ".join(vals))
     (tmp_path / "pose_graph.txt").write_text("\n".join(lines) + "\n")
     out = tmp_path / "run"
-    rc = tool.main([str(out), "--name", "dingo1", "--id", "1", "--no-loop-csv",
-                    str(tmp_path / "no_loop.csv"), "--loop-csv", str(tmp_path / "loop.csv"),
-                    "--pose-graph", str(tmp_path / "pose_graph.txt")])
+    rc = tool.main(
+        [
+            str(out),
+            "--name",
+            "dingo1",
+            "--id",
+            "1",
+            "--no-loop-csv",
+            str(tmp_path / "no_loop.csv"),
+            "--loop-csv",
+            str(tmp_path / "loop.csv"),
+            "--pose-graph",
+            str(tmp_path / "pose_graph.txt"),
+        ]
+    )
     assert rc == 0
     run = rd.open_run(out)
     assert run.load_config("dingo1").robot.id == 1
@@ -73,15 +92,19 @@ def test_odometry_keyframes_and_loops_round_trip(tmp_path, tool, robot):
     ev = [x.event for x in items]
     odo = [e for e in ev if isinstance(e, OdometrySample)]
     assert len(odo) == len(stamps)
-    np.testing.assert_allclose(np.stack([e.T_odom_body for e in odo])[:, :3, 3], T[:, :3, 3],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        np.stack([e.T_odom_body for e in odo])[:, :3, 3], T[:, :3, 3], atol=1e-6
+    )
     resets = [e for e in ev if isinstance(e, VioReset)]
     assert [r.stamp_ns for r in resets] == [int(stamps[cut])]
     kfs = [e for e in ev if isinstance(e, Keyframe)]
     assert len(kfs) == len(kf)
     loops = [e for e in ev if isinstance(e, LoopClosure)]
     assert len(loops) == 1
-    assert (loops[0].stamp_old_ns, loops[0].stamp_cur_ns) == (int(stamps[kf[3]]), int(stamps[kf[40]]))
+    assert (loops[0].stamp_old_ns, loops[0].stamp_cur_ns) == (
+        int(stamps[kf[3]]),
+        int(stamps[kf[40]]),
+    )
     np.testing.assert_allclose(loops[0].T_old_cur, T_rel, atol=1e-6)
     m = run.mission
     assert m.start_ns == int(stamps[0])
@@ -93,8 +116,12 @@ def test_second_robot_extends_the_run_and_links_it(tmp_path, tool, robot):
     csv.write_text(_vins_rows(robot.odom_stamps_ns, robot.T_odom_body))
     out = tmp_path / "run"
     assert tool.main([str(out), "--name", "a", "--id", "1", "--no-loop-csv", str(csv)]) == 0
-    assert tool.main([str(out), "--name", "b", "--id", "2", "--no-loop-csv", str(csv),
-                      "--neighbours", "1"]) == 0
+    assert (
+        tool.main(
+            [str(out), "--name", "b", "--id", "2", "--no-loop-csv", str(csv), "--neighbours", "1"]
+        )
+        == 0
+    )
     run = rd.open_run(out)
     assert [r.name for r in run.mission.robots] == ["a", "b"]
     assert run.mission.comm_graph == ((1, 2),)
@@ -115,8 +142,12 @@ def test_images_become_a_frames_folder(tmp_path, tool, robot):
     for s in stamps.tolist():
         cv2.imwrite(str(imgs / f"{s}.png"), np.full((48, 64), 128, np.uint8))
     out = tmp_path / "run"
-    assert tool.main([str(out), "--name", "a", "--id", "1", "--no-loop-csv", str(csv),
-                      "--images", str(imgs)]) == 0
+    assert (
+        tool.main(
+            [str(out), "--name", "a", "--id", "1", "--no-loop-csv", str(csv), "--images", str(imgs)]
+        )
+        == 0
+    )
     frames = list(RecordedFramesSource(out / "robots" / "a" / "frames"))
     assert [f.stamp_ns for f in frames] == stamps.tolist()
     assert frames[0].colour.shape == (48, 64, 3)
@@ -125,14 +156,17 @@ def test_images_become_a_frames_folder(tmp_path, tool, robot):
 def test_malformed_csv_names_file_and_line(tmp_path, tool, capsys):
     bad = tmp_path / "bad.csv"
     bad.write_text("1000,0,0,0,1,0,0,0,0,0,0,\n2000,0,0,0,0.5,0,0,0,0,0,0,\n")
-    assert tool.main([str(tmp_path / "r"), "--name", "a", "--id", "1", "--no-loop-csv",
-                      str(bad)]) == 2
+    assert (
+        tool.main([str(tmp_path / "r"), "--name", "a", "--id", "1", "--no-loop-csv", str(bad)]) == 2
+    )
     assert "bad.csv:2: expected a unit quaternion" in capsys.readouterr().err
     bad.write_text("1000,0,0,0,1,0,0,0,\n")
-    assert tool.main([str(tmp_path / "r"), "--name", "a", "--id", "1", "--no-loop-csv",
-                      str(bad)]) == 2
+    assert (
+        tool.main([str(tmp_path / "r"), "--name", "a", "--id", "1", "--no-loop-csv", str(bad)]) == 2
+    )
     assert "bad.csv:1: expected at least 11" in capsys.readouterr().err
     bad.write_text("abc,0,0,0,1,0,0,0,0,0,0,\n")
-    assert tool.main([str(tmp_path / "r"), "--name", "a", "--id", "1", "--no-loop-csv",
-                      str(bad)]) == 2
+    assert (
+        tool.main([str(tmp_path / "r"), "--name", "a", "--id", "1", "--no-loop-csv", str(bad)]) == 2
+    )
     assert "bad.csv:1: expected a timestamp" in capsys.readouterr().err

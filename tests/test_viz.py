@@ -31,14 +31,16 @@ def test_daemon_live_view_reaches_a_websocket_client(tmp_path):
     from dran_edge.sim.vio import vio_mission
 
     port = _free_port()
-    cfg = load_config(write_config(tmp_path, comms={"period_s": 0.05},
-                                   daemon={"foxglove": f"127.0.0.1:{port}"}))
+    cfg = load_config(
+        write_config(tmp_path, comms={"period_s": 0.05}, daemon={"foxglove": f"127.0.0.1:{port}"})
+    )
     d = Daemon(cfg, notifier=RecordingNotifier(), environ={})
     d.start()
     try:
         assert d.live.port == port
-        with websockets_sync.connect(f"ws://127.0.0.1:{port}",
-                                     subprotocols=["foxglove.sdk.v1"]) as ws:
+        with websockets_sync.connect(
+            f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"]
+        ) as ws:
             channels = {}
             while len(channels) < 3:
                 msg = json.loads(ws.recv(timeout=10))
@@ -46,16 +48,25 @@ def test_daemon_live_view_reaches_a_websocket_client(tmp_path):
                     channels.update({c["topic"]: c for c in msg["channels"]})
             assert set(channels) == {"/testbot/path", "/testbot/objects", "/testbot/stats"}
             subs = {1: "/testbot/stats", 2: "/testbot/path"}
-            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                {"id": k, "channelId": channels[t]["id"]} for k, t in subs.items()]}))
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "subscribe",
+                        "subscriptions": [
+                            {"id": k, "channelId": channels[t]["id"]} for k, t in subs.items()
+                        ],
+                    }
+                )
+            )
             m = vio_mission(40, seed=3)
             with socket.socket(socket.AF_UNIX) as s:
                 s.connect(str(d.ingest.path))
                 s.sendall(b"".join(encode_event(e) for e in m.events))
             got: dict[str, list[bytes]] = {t: [] for t in subs.values()}
             end = time.monotonic() + 30
-            while time.monotonic() < end and not (got["/testbot/path"] and
-                                                  len(got["/testbot/stats"]) >= 2):
+            while time.monotonic() < end and not (
+                got["/testbot/path"] and len(got["/testbot/stats"]) >= 2
+            ):
                 d.tick()
                 try:
                     data = ws.recv(timeout=0.05)
@@ -92,17 +103,24 @@ def test_mcap_of_a_replayed_run_reads_back(tmp_path):
     from dran_edge.viz.record import write_run_mcap
 
     run = tmp_path / "run"
-    write_run(generate_mission(SimParams(robots=2, objects=4, duration_s=12, seed=2,
-                                         arena_m=6.0)), run, frames="none")
+    write_run(
+        generate_mission(SimParams(robots=2, objects=4, duration_s=12, seed=2, arena_m=6.0)),
+        run,
+        frames="none",
+    )
     replay_run(run, ReplayOptions(workers=1, evaluate=False, settle_rounds=4))
     path = tmp_path / "run.mcap"
     counts = write_run_mcap(run, path, step_s=1.0)
     with open(path, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
-        read = {ch.topic: summary.statistics.channel_message_counts.get(cid, 0)
-                for cid, ch in summary.channels.items()}
-        rounds = [json.loads(m.data) for _s, ch, m in reader.iter_messages(topics=["/fleet/rounds"])]
+        read = {
+            ch.topic: summary.statistics.channel_message_counts.get(cid, 0)
+            for cid, ch in summary.channels.items()
+        }
+        rounds = [
+            json.loads(m.data) for _s, ch, m in reader.iter_messages(topics=["/fleet/rounds"])
+        ]
     assert read == counts
     steps = 12  # one message per mission second
     for name in ("dingo1", "dingo2"):

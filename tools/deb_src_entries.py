@@ -93,8 +93,9 @@ def entries(etc_apt: str = "/etc/apt", official: set[str] | None = None) -> list
     """The deb-src lines for the archive entries configured under ``etc_apt``."""
     if official is None:
         try:
-            policy = subprocess.run(["apt-cache", "policy"], capture_output=True, text=True,
-                                    check=False).stdout
+            policy = subprocess.run(
+                ["apt-cache", "policy"], capture_output=True, text=True, check=False
+            ).stdout
         except OSError:
             policy = ""
         official = apt_origins(policy)

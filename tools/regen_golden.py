@@ -33,8 +33,11 @@ from golden_helpers import GOLDEN, replay_stored, simulate_tiny, store_recorded_
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--check", action="store_true", help="compare only; do not write")
-    ap.add_argument("--resimulate", action="store_true",
-                    help="rewrite the recorded run from the simulator first")
+    ap.add_argument(
+        "--resimulate",
+        action="store_true",
+        help="rewrite the recorded run from the simulator first",
+    )
     args = ap.parse_args(argv)
     from dran_edge.replay.run import compare_summary, golden_summary
 

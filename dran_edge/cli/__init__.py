@@ -1,2 +1,1 @@
-"""The ``dran-edge`` command line (``app``) and its sub-commands (``commands``).
-"""
+"""The ``dran-edge`` command line (``app``) and its sub-commands (``commands``)."""

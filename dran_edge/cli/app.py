@@ -20,29 +20,54 @@ from dran_edge.errors import DranError
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("dran_edge.cli.commands.demo", "run the end-to-end demo with no hardware"),
     "solve": ("dran_edge.cli.commands.solve", "optimise a g2o pose graph (centralised Schur-LM)"),
-    "bench": ("dran_edge.cli.commands.bench", "run the paper's experiments (Table 1, object simulation)"),
+    "bench": (
+        "dran_edge.cli.commands.bench",
+        "run the paper's experiments (Table 1, object simulation)",
+    ),
     "run": ("dran_edge.cli.commands.run", "run the robot daemon (what systemd starts)"),
     "status": ("dran_edge.cli.commands.status", "show the running daemon's health"),
-    "check-config": ("dran_edge.cli.commands.check_config",
-                     "load a robot config and everything it names, as 'run' does"),
-    "check-fleet": ("dran_edge.cli.commands.check_fleet",
-                    "check a directory of robot configs for consistency"),
-    "simulate": ("dran_edge.cli.commands.simulate", "simulate a multi-robot mission as a run directory"),
+    "check-config": (
+        "dran_edge.cli.commands.check_config",
+        "load a robot config and everything it names, as 'run' does",
+    ),
+    "check-fleet": (
+        "dran_edge.cli.commands.check_fleet",
+        "check a directory of robot configs for consistency",
+    ),
+    "simulate": (
+        "dran_edge.cli.commands.simulate",
+        "simulate a multi-robot mission as a run directory",
+    ),
     "replay": ("dran_edge.cli.commands.replay", "replay a recorded run through the robot code"),
-    "rehearse": ("dran_edge.cli.commands.rehearse",
-                 "run a recorded mission through real daemons, one per robot, with faults"),
-    "detect": ("dran_edge.cli.commands.detect", "detect AprilTags in images, recordings or a camera"),
-    "import-bag": ("dran_edge.cli.commands.import_bag",
-                   "import ROS 1 / ROS 2 bags (.bag, .db3, .mcap) as a run directory"),
-    "import-vins": ("dran_edge.cli.commands.import_vins",
-                    "import VINS-Mono CSV outputs as one robot of a run directory"),
-    "merge-records": ("dran_edge.cli.commands.merge_records",
-                      "combine robots' 'run --record' directories into one run"),
-    "export": ("dran_edge.cli.commands.export",
-               "export a run's mocap as TUM/EuRoC/KITTI files, or the run as ROS bags"),
+    "rehearse": (
+        "dran_edge.cli.commands.rehearse",
+        "run a recorded mission through real daemons, one per robot, with faults",
+    ),
+    "detect": (
+        "dran_edge.cli.commands.detect",
+        "detect AprilTags in images, recordings or a camera",
+    ),
+    "import-bag": (
+        "dran_edge.cli.commands.import_bag",
+        "import ROS 1 / ROS 2 bags (.bag, .db3, .mcap) as a run directory",
+    ),
+    "import-vins": (
+        "dran_edge.cli.commands.import_vins",
+        "import VINS-Mono CSV outputs as one robot of a run directory",
+    ),
+    "merge-records": (
+        "dran_edge.cli.commands.merge_records",
+        "combine robots' 'run --record' directories into one run",
+    ),
+    "export": (
+        "dran_edge.cli.commands.export",
+        "export a run's mocap as TUM/EuRoC/KITTI files, or the run as ROS bags",
+    ),
     "eval": ("dran_edge.cli.commands.eval", "score a run or a trajectory against OptiTrack mocap"),
-    "fleet-key": ("dran_edge.cli.commands.fleet_key",
-                  "create or check the datagram keys (fleet HMAC key, robot key pairs)"),
+    "fleet-key": (
+        "dran_edge.cli.commands.fleet_key",
+        "create or check the datagram keys (fleet HMAC key, robot key pairs)",
+    ),
 }
 
 EXIT_USAGE = 2
@@ -54,11 +79,20 @@ def add_common_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("output")
     taken = parser._option_string_actions  # a command that defines one of them keeps its own
     if "--verbose" not in taken:
-        group.add_argument("-v", "--verbose", action="count", default=0,
-                           help="more log output on stderr (-vv: debug)")
+        group.add_argument(
+            "-v",
+            "--verbose",
+            action="count",
+            default=0,
+            help="more log output on stderr (-vv: debug)",
+        )
     if "--quiet" not in taken:
-        group.add_argument("-q", "--quiet", action="store_true",
-                           help="only errors on stderr: no progress, no warnings")
+        group.add_argument(
+            "-q",
+            "--quiet",
+            action="store_true",
+            help="only errors on stderr: no progress, no warnings",
+        )
 
 
 def _top_parser() -> argparse.ArgumentParser:
@@ -94,8 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     if ns.command not in COMMANDS:
         print(
-            f"dran-edge: unknown command {ns.command!r}; expected one of: "
-            + ", ".join(COMMANDS),
+            f"dran-edge: unknown command {ns.command!r}; expected one of: " + ", ".join(COMMANDS),
             file=sys.stderr,
         )
         return EXIT_USAGE

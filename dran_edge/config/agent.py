@@ -225,4 +225,6 @@ class AgentConfig(_Checked):
         if len(set(self.neighbours)) != len(self.neighbours):
             raise ConfigError(f"neighbours: expected distinct ids, got {list(self.neighbours)}")
         if self.colour >= self.colours:
-            raise ConfigError(f"colour: expected a value < colours ({self.colours}), got {self.colour}")
+            raise ConfigError(
+                f"colour: expected a value < colours ({self.colours}), got {self.colour}"
+            )

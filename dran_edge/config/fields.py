@@ -56,8 +56,14 @@ class RobustKernel(StrChoice):
     CAUCHY = "cauchy"
 
 
-def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
-       choices: tuple | None = None, lo_open: bool = False) -> Any:
+def _f(
+    default: Any,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    choices: tuple | None = None,
+    lo_open: bool = False,
+) -> Any:
     """A dataclass field with its valid range (``lo <= v <= hi``; ``lo < v`` if ``lo_open``)."""
     meta = {"lo": lo, "hi": hi, "choices": choices, "lo_open": lo_open}
     if isinstance(default, (list, dict, tuple)) and not isinstance(default, tuple):

@@ -38,9 +38,7 @@ def _convert(value: Any, tp: Any, key: str, lines: dict[str, int]) -> Any:
         if not isinstance(value, list):
             raise _err(f"{key}: expected a list, got {_describe(value)}", key, lines)
         (item_tp, _ellipsis) = typing.get_args(tp)
-        return tuple(
-            _convert(v, item_tp, f"{key}[{i}]", lines) for i, v in enumerate(value)
-        )
+        return tuple(_convert(v, item_tp, f"{key}[{i}]", lines) for i, v in enumerate(value))
     if tp is bool:
         if not isinstance(value, bool):
             raise _err(f"{key}: expected true or false, got {_describe(value)}", key, lines)
@@ -106,8 +104,11 @@ def _fail(exc: _LoadError) -> None:
 
 def _required(cls: type, name: str, f: dataclasses.Field) -> bool:
     has_default = f.default is not dataclasses.MISSING and f.default is not None
-    return (not has_default and f.default_factory is dataclasses.MISSING  # type: ignore[misc]
-            and (cls.__name__, name) not in _DERIVED)
+    return (
+        not has_default
+        and f.default_factory is dataclasses.MISSING  # type: ignore[misc]
+        and (cls.__name__, name) not in _DERIVED
+    )
 
 
 def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
@@ -115,8 +116,9 @@ def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
     if not isinstance(data, dict):
         _fail(_err(f"{where}: expected a mapping of keys, got {_describe(data)}", prefix, lines))
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)
-              if (cls.__name__, f.name) not in _SKIP_ON_LOAD}
+    fields = {
+        f.name: f for f in dataclasses.fields(cls) if (cls.__name__, f.name) not in _SKIP_ON_LOAD
+    }
     settable = {n for n in fields if (cls.__name__, n) not in _DERIVED}
     kwargs: dict[str, Any] = {}
     failed: set[str] = set()
@@ -142,12 +144,22 @@ def _build(cls: type, data: Any, prefix: str, lines: dict[str, int]) -> Any:
         # Cross-field check: the message starts with the field name; prefix the section.
         msg = str(exc)
         path = f"{prefix}.{msg}" if prefix else msg
-        _fail(_err(path, f"{prefix}.{msg.split(':', 1)[0]}" if prefix else msg.split(":", 1)[0],
-                   lines))
+        _fail(
+            _err(
+                path, f"{prefix}.{msg.split(':', 1)[0]}" if prefix else msg.split(":", 1)[0], lines
+            )
+        )
 
 
-def _build_key(key: Any, value: Any, prefix: str, lines: dict[str, int], fields: dict,
-               settable: set, hints: dict) -> Any:
+def _build_key(
+    key: Any,
+    value: Any,
+    prefix: str,
+    lines: dict[str, int],
+    fields: dict,
+    settable: set,
+    hints: dict,
+) -> Any:
     """One key of a section, converted and range-checked."""
     path = f"{prefix}.{key}" if prefix else str(key)
     if key not in settable:
@@ -201,8 +213,9 @@ def _line_map(text: str) -> dict[str, int]:
     return lines
 
 
-def config_from_dict(data: Any, *, source_path: str = "", lines: dict[str, int] | None = None
-                     ) -> RobotConfig:
+def config_from_dict(
+    data: Any, *, source_path: str = "", lines: dict[str, int] | None = None
+) -> RobotConfig:
     """Build a :class:`RobotConfig` from parsed YAML; ConfigError (with key path) on any problem."""
     lines = lines or {}
     try:
@@ -275,7 +288,8 @@ def load_config_report(path: str | Path) -> tuple[RobotConfig | None, list[Confi
     if cfg is None:
         return None, out
     agent = dataclasses.replace(
-        cfg.agent, robot_id=cfg.robot.id, neighbours=tuple(n.id for n in cfg.neighbours))
+        cfg.agent, robot_id=cfg.robot.id, neighbours=tuple(n.id for n in cfg.neighbours)
+    )
     return dataclasses.replace(cfg, agent=agent, source_path=str(path)), out
 
 

@@ -39,11 +39,15 @@ class RobotSection(_Checked):
                 )
         pose = self.T_world_odom
         if pose and (len(pose) != 7 or not all(math.isfinite(v) for v in pose)):
-            raise ConfigError(f"T_world_odom: expected 7 finite numbers [x, y, z, qx, qy, qz, "
-                              f"qw] or [], got {list(pose)}")
+            raise ConfigError(
+                f"T_world_odom: expected 7 finite numbers [x, y, z, qx, qy, qz, "
+                f"qw] or [], got {list(pose)}"
+            )
         if pose and abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) > 1e-3:
-            raise ConfigError(f"T_world_odom: expected a unit quaternion (norm within 1e-3 of "
-                              f"1), got {list(pose[3:])}")
+            raise ConfigError(
+                f"T_world_odom: expected a unit quaternion (norm within 1e-3 of "
+                f"1), got {list(pose[3:])}"
+            )
 
 
 @dataclass(frozen=True)

@@ -59,8 +59,9 @@ def _unflatten(obj: Any, arrays: dict[str, np.ndarray]) -> Any:
         if set(obj) == {"__array__"}:
             return arrays[obj["__array__"]]
         if set(obj) == {"__items__"}:
-            return {_hashable(_unflatten(k, arrays)): _unflatten(v, arrays)
-                    for k, v in obj["__items__"]}
+            return {
+                _hashable(_unflatten(k, arrays)): _unflatten(v, arrays) for k, v in obj["__items__"]
+            }
         return {k: _unflatten(v, arrays) for k, v in obj.items()}
     if isinstance(obj, list):
         return [_unflatten(v, arrays) for v in obj]
@@ -87,9 +88,12 @@ def dumps(state: dict) -> bytes:
     meta = json.dumps({"format": FORMAT, "state": tree}, allow_nan=True).encode("utf-8")
     buf = io.BytesIO()
     # numpy's stub types **kwds as savez's own keywords (allow_pickle: bool); they are arrays
-    np.savez(buf, __meta__=np.frombuffer(meta, dtype=np.uint8),
-             __crc__=np.array([_crc(meta, arrays)], dtype=np.uint32),
-             **arrays)  # type: ignore[arg-type]
+    np.savez(
+        buf,
+        __meta__=np.frombuffer(meta, dtype=np.uint8),
+        __crc__=np.array([_crc(meta, arrays)], dtype=np.uint32),
+        **arrays,  # type: ignore[arg-type]
+    )
     return buf.getvalue()
 
 

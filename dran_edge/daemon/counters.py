@@ -20,8 +20,11 @@ APPLIED_PREFIX = "applied_"
 
 
 def _int_fields(obj: object) -> dict[str, int]:
-    return {f.name: int(getattr(obj, f.name)) for f in fields(obj)  # type: ignore[arg-type]
-            if f.type in ("int", int)}
+    return {
+        f.name: int(getattr(obj, f.name))
+        for f in fields(obj)  # type: ignore[arg-type]
+        if f.type in ("int", int)
+    }
 
 
 @dataclass
@@ -66,7 +69,7 @@ class DaemonCounters:
             if key in known:
                 setattr(c, key, int(value))
             elif key.startswith(APPLIED_PREFIX):
-                c.applied[key[len(APPLIED_PREFIX):]] = int(value)
+                c.applied[key[len(APPLIED_PREFIX) :]] = int(value)
             else:
                 log.warning("checkpoint counter %r is not a daemon counter; dropped", key)
         return c
@@ -110,9 +113,13 @@ class TickStats:
 
     def as_dict(self) -> dict:
         return {
-            "ticks": self.ticks, "late": self.late, "missed": self.missed,
-            "lag_max_s": self.lag_max_s, "lag_last_s": self.lag_last_s,
-            "solve_last_s": self.round_last_s, "solve_max_s": self.round_max_s,
+            "ticks": self.ticks,
+            "late": self.late,
+            "missed": self.missed,
+            "lag_max_s": self.lag_max_s,
+            "lag_last_s": self.lag_last_s,
+            "solve_last_s": self.round_last_s,
+            "solve_max_s": self.round_max_s,
             "solve_mean_s": self.round_total_s / self.ticks if self.ticks else 0.0,
             "agent_errors": self.agent_errors,
         }

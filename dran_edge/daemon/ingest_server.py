@@ -62,9 +62,14 @@ class IngestServer:
     from other threads.
     """
 
-    def __init__(self, path: str | Path, on_record: Callable[[Record], object],
-                 on_frame: Callable[[Record], None] | None = None, mode: int = 0o660,
-                 log_every_s: float = 10.0):
+    def __init__(
+        self,
+        path: str | Path,
+        on_record: Callable[[Record], object],
+        on_frame: Callable[[Record], None] | None = None,
+        mode: int = 0o660,
+        log_every_s: float = 10.0,
+    ):
         self.path = Path(path)
         self.on_record = on_record
         self.on_frame = on_frame
@@ -144,8 +149,11 @@ class IngestServer:
     def _drop(self, conn: socket.socket) -> None:
         dec = self._clients.pop(conn, None)
         if dec is not None and dec.pending_bytes:
-            self._reject(IngestDecodeError("truncated", f"client left {dec.pending_bytes} bytes "
-                                           "of an incomplete record"))
+            self._reject(
+                IngestDecodeError(
+                    "truncated", f"client left {dec.pending_bytes} bytes of an incomplete record"
+                )
+            )
         try:
             self._sel.unregister(conn)
         except (KeyError, ValueError):

@@ -49,8 +49,9 @@ class IngestJournal:
         return self.directory / f"{segment:08d}.bin"
 
     def _open(self, segment: int) -> int:
-        return os.open(self._path(segment), os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC,
-                       0o640)
+        return os.open(
+            self._path(segment), os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o640
+        )
 
     def segments(self) -> list[int]:
         out = []
@@ -119,8 +120,11 @@ class IngestJournal:
                 out.append((item, (seg, offset)))
             if dec.pending_bytes:
                 self.torn_tails += 1
-                log.warning("journal segment %d ends in %d bytes of a torn record (ignored)",
-                            seg, dec.pending_bytes)
+                log.warning(
+                    "journal segment %d ends in %d bytes of a torn record (ignored)",
+                    seg,
+                    dec.pending_bytes,
+                )
         return out
 
     def requeue(self, items: list[tuple[Record, Position]]) -> None:

@@ -59,11 +59,14 @@ class Notifier:
                 self._library = sd_daemon
             except ImportError:
                 self._library = None
-        self.backend = ("systemd-python" if self._library else "builtin") if self.socket_path \
-            else "none"
+        self.backend = (
+            ("systemd-python" if self._library else "builtin") if self.socket_path else "none"
+        )
         if not self.socket_path:
-            log.info("not started by systemd (no NOTIFY_SOCKET): readiness and watchdog "
-                     "notifications are off")
+            log.info(
+                "not started by systemd (no NOTIFY_SOCKET): readiness and watchdog "
+                "notifications are off"
+            )
         self.sent = 0
 
     @property

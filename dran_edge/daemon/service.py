@@ -103,8 +103,9 @@ class Daemon:
         record_dir: str | Path | None = None,
         environ: Mapping[str, str] | None = None,
         agent_factory: Callable[[RobotConfig, dict | None], AgentLike] = default_agent_factory,
-        transport_factory: Callable[[RobotConfig, int], Transport | None]
-        = default_transport_factory,
+        transport_factory: Callable[
+            [RobotConfig, int], Transport | None
+        ] = default_transport_factory,
         perception_factory: Callable[..., Any] = default_perception_factory,
         notifier: Notifier | None = None,
     ):
@@ -145,11 +146,18 @@ class Daemon:
         self._publish_status("running")
         self.notifier.ready(status_line(self))
         cfg = self.cfg
-        log.info("dran-edge ready: robot %s (id %d), boot epoch %d, state %s, ingest %s, "
-                 "camera %s, transport %s, systemd notify %s", cfg.robot.name, cfg.robot.id,
-                 self.boot_epoch, self.state_dir,
-                 self.ingest.path if self.ingest else "off", cfg.camera.source,
-                 cfg.comms.transport, self.notifier.backend)
+        log.info(
+            "dran-edge ready: robot %s (id %d), boot epoch %d, state %s, ingest %s, "
+            "camera %s, transport %s, systemd notify %s",
+            cfg.robot.name,
+            cfg.robot.id,
+            self.boot_epoch,
+            self.state_dir,
+            self.ingest.path if self.ingest else "off",
+            cfg.camera.source,
+            cfg.comms.transport,
+            self.notifier.backend,
+        )
 
     def _load_checkpoint(self) -> dict | None:
         """The newest usable checkpoint (None: start afresh), the core built from it, the
@@ -158,12 +166,20 @@ class Daemon:
         self.checkpoints = CheckpointStore(self.state_dir)
         saved = self.checkpoints.load()
         if saved is not None and saved.get("robot_id") != cfg.robot.id:
-            log.error("checkpoint in %s belongs to robot %s, not %s: ignoring it",
-                      self.state_dir, saved.get("robot_id"), cfg.robot.id)
+            log.error(
+                "checkpoint in %s belongs to robot %s, not %s: ignoring it",
+                self.state_dir,
+                saved.get("robot_id"),
+                cfg.robot.id,
+            )
             saved = None
         if saved is not None and saved.get("format") != STATE_FORMAT:
-            log.error("checkpoint in %s has state format %s, this daemon writes %s: ignoring it",
-                      self.state_dir, saved.get("format"), STATE_FORMAT)
+            log.error(
+                "checkpoint in %s has state format %s, this daemon writes %s: ignoring it",
+                self.state_dir,
+                saved.get("format"),
+                STATE_FORMAT,
+            )
             saved = None
         if saved is not None:
             pos = saved.get("journal_position")
@@ -197,8 +213,9 @@ class Daemon:
             robot_dir.mkdir(parents=True, exist_ok=True)
             import yaml
 
-            (robot_dir / "robot.yaml").write_text(yaml.safe_dump(config_to_dict(cfg),
-                                                                 sort_keys=False))
+            (robot_dir / "robot.yaml").write_text(
+                yaml.safe_dump(config_to_dict(cfg), sort_keys=False)
+            )
             self._record_file = open(robot_dir / "ingest.bin", "ab")
         self.transport = self.transport_factory(cfg, self.boot_epoch)
         self.windows = ReplayWindows(self.state_dir, self.transport, self.counters)
@@ -213,8 +230,9 @@ class Daemon:
 
             path = cfg.resolve(cfg.ingest.socket_path) or self.runtime_dir / "ingest.sock"
             on_frame = self.frames.put if cfg.camera.source == "forwarded" else None
-            self.ingest = IngestServer(path, self.journal.append, on_frame,
-                                       mode=cfg.ingest.socket_mode)
+            self.ingest = IngestServer(
+                path, self.journal.append, on_frame, mode=cfg.ingest.socket_mode
+            )
             self.ingest.start()
         self.status_server = StatusServer(self.runtime_dir / "status.sock", self.snapshot)
         self.status_server.start()
@@ -222,8 +240,9 @@ class Daemon:
             from dran_edge.viz.live import LiveView
 
             host, port = parse_address(cfg.daemon.foxglove, "daemon.foxglove")
-            self.live = LiveView(cfg.robot.name, host, port,
-                                 min_period_s=max(0.5, cfg.comms.period_s))
+            self.live = LiveView(
+                cfg.robot.name, host, port, min_period_s=max(0.5, cfg.comms.period_s)
+            )
             log.info("live view: Foxglove WebSocket server on ws://%s:%d", host, self.live.port)
         if self.perception is not None:
             self.perception.start()
@@ -275,8 +294,9 @@ class Daemon:
             except Exception:
                 self.stats.agent_errors += 1
                 ok = False
-                log.exception("local graph failed on %s; the record is dropped",
-                              type(record.event).__name__)
+                log.exception(
+                    "local graph failed on %s; the record is dropped", type(record.event).__name__
+                )
             self.applied_position = pos
             self.counters.applied[type(record.event).__name__] += 1
             if self._record_file is not None:
@@ -385,9 +405,11 @@ class Daemon:
             "journal_position": list(self.applied_position) if self.applied_position else None,
             "counters": self.counters.as_dict(),
             "ticks": self.stats.ticks,
-            "transport": (self.transport.to_state()  # type: ignore[attr-defined]
-                          if self.transport is not None and hasattr(self.transport, "to_state")
-                          else None),
+            "transport": (
+                self.transport.to_state()  # type: ignore[attr-defined]
+                if self.transport is not None and hasattr(self.transport, "to_state")
+                else None
+            ),
         }
         clash = own.keys() & core.keys()
         if clash:

@@ -32,8 +32,10 @@ def _estimate_section(est) -> dict | None:
 
     order = np.argsort(np.asarray(est.keyframe_stamps_ns))[-STATUS_MAX_KEYFRAMES:]
     v = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_body)[order])
-    kf = [[int(s)] + [round(float(x), 9) for x in row]
-          for s, row in zip(np.asarray(est.keyframe_stamps_ns)[order].tolist(), v)]
+    kf = [
+        [int(s)] + [round(float(x), 9) for x in row]
+        for s, row in zip(np.asarray(est.keyframe_stamps_ns)[order].tolist(), v)
+    ]
     objs = []
     if len(est.object_ids):
         w = geo.se3_to_xyz_quat_xyzw(np.asarray(est.T_world_object))
@@ -117,25 +119,43 @@ def status_document(d: Daemon, state: str) -> dict:
         "boot_epoch": getattr(d, "boot_epoch", None),
         "uptime_s": time.monotonic() - d.started_mono,
         "rounds": d.stats.as_dict(),
-        "graph": {"nodes": d.graph.num_nodes if has_graph else 0,
-                  "factors": d.graph.num_factors if has_graph else 0,
-                  **({} if est is None else {
-            "round": est.round, "keyframes": int(len(est.keyframe_stamps_ns)),
-            "objects": len(est.object_ids), "cost": est.cost,
-            "consensus_error": est.consensus_error, "converged": est.converged})},
+        "graph": {
+            "nodes": d.graph.num_nodes if has_graph else 0,
+            "factors": d.graph.num_factors if has_graph else 0,
+            **(
+                {}
+                if est is None
+                else {
+                    "round": est.round,
+                    "keyframes": int(len(est.keyframe_stamps_ns)),
+                    "objects": len(est.object_ids),
+                    "cost": est.cost,
+                    "consensus_error": est.consensus_error,
+                    "converged": est.converged,
+                }
+            ),
+        },
         "graph_counters": dict(d.graph.counters) if has_graph else {},
         "neighbours": transport_stats.get("neighbours", {}),
         "transport": transport_stats,
-        "ingest": None if ingest is None else {
-            "socket": str(ingest.path), **ingest.counters.as_dict(),
-            "rejected_by_reason": dict(ingest.rejected)},
-        "journal": {"pending": d.journal.pending_count if hasattr(d, "journal") else 0,
-                    "position": d.applied_position},
-        "queues": {"observations_dropped": d.observations.dropped
-                   if hasattr(d, "observations") else 0,
-                   "frames_dropped": d.frames.dropped if hasattr(d, "frames") else 0},
-        "perception": None if d.perception is None else {
-            "batches": d.perception.batches, "errors": d.perception.errors},
+        "ingest": None
+        if ingest is None
+        else {
+            "socket": str(ingest.path),
+            **ingest.counters.as_dict(),
+            "rejected_by_reason": dict(ingest.rejected),
+        },
+        "journal": {
+            "pending": d.journal.pending_count if hasattr(d, "journal") else 0,
+            "position": d.applied_position,
+        },
+        "queues": {
+            "observations_dropped": d.observations.dropped if hasattr(d, "observations") else 0,
+            "frames_dropped": d.frames.dropped if hasattr(d, "frames") else 0,
+        },
+        "perception": None
+        if d.perception is None
+        else {"batches": d.perception.batches, "errors": d.perception.errors},
         "counters": d.counters.as_dict(),
         "agent": d.agent_health,
         "estimate": _estimate_section(est),
@@ -148,18 +168,23 @@ def status_line(d: Daemon) -> str:
     s = d.snapshot()
     graph = s.get("graph") or {}
     ingest = s.get("ingest") or {}
-    return (f"rounds={d.stats.ticks} late={d.stats.late} "
-            f"solve_ms={1e3 * d.stats.round_last_s:.1f} "
-            f"keyframes={graph.get('keyframes', 0)} objects={graph.get('objects', 0)} "
-            f"records={ingest.get('records', 0)} rejected={ingest.get('rejected', 0)} "
-            f"obs_dropped={s.get('queues', {}).get('observations_dropped', 0)} "
-            f"neighbours={_heard_line(s.get('neighbours') or {})}")
+    return (
+        f"rounds={d.stats.ticks} late={d.stats.late} "
+        f"solve_ms={1e3 * d.stats.round_last_s:.1f} "
+        f"keyframes={graph.get('keyframes', 0)} objects={graph.get('objects', 0)} "
+        f"records={ingest.get('records', 0)} rejected={ingest.get('rejected', 0)} "
+        f"obs_dropped={s.get('queues', {}).get('observations_dropped', 0)} "
+        f"neighbours={_heard_line(s.get('neighbours') or {})}"
+    )
 
 
 def _heard_line(neighbours: dict) -> str:
     """``heard/configured``: neighbours heard within the last 10 s, of those listed."""
-    heard = sum(1 for n in neighbours.values()
-                if n.get("last_heard_s_ago") is not None and n["last_heard_s_ago"] < 10.0)
+    heard = sum(
+        1
+        for n in neighbours.values()
+        if n.get("last_heard_s_ago") is not None and n["last_heard_s_ago"] < 10.0
+    )
     return f"{heard}/{len(neighbours)}"
 
 

@@ -64,8 +64,9 @@ def default_agent_factory(cfg: RobotConfig, state: dict | None) -> AgentLike:
     try:
         from dran_edge.robot.core import RobotCore
     except ImportError as exc:
-        raise DependencyError(f"the DRAN agent (dran_edge.robot.core) is not available: {exc}"
-                              ) from None
+        raise DependencyError(
+            f"the DRAN agent (dran_edge.robot.core) is not available: {exc}"
+        ) from None
     if state is not None:
         return RobotCore.from_state(cfg.agent, state)
     T_world_odom = None
@@ -83,8 +84,9 @@ class LinkTransport:
     datagram of theirs is accepted). ``heartbeat_period_s`` > 0: ``heartbeat`` sends an
     entry-less message to each neighbour this link sent nothing for that long (counted)."""
 
-    def __init__(self, link: Any, neighbours: dict[int, str] | None = None,
-                 heartbeat_period_s: float = 0.0):
+    def __init__(
+        self, link: Any, neighbours: dict[int, str] | None = None, heartbeat_period_s: float = 0.0
+    ):
         self.link = link
         self.neighbours = dict(neighbours or {})
         self.heartbeat_period_s = float(heartbeat_period_s)
@@ -104,9 +106,11 @@ class LinkTransport:
             return 0
         from dran_edge.messages import NeighbourMessage
 
-        due = tuple(j for j in self.neighbours
-                    if now_ns - self._last_sent_ns.get(j, -(1 << 62))
-                    >= self.heartbeat_period_s * 1e9)
+        due = tuple(
+            j
+            for j in self.neighbours
+            if now_ns - self._last_sent_ns.get(j, -(1 << 62)) >= self.heartbeat_period_s * 1e9
+        )
         if due:
             self.send(NeighbourMessage(self.link.policy.self_id, max(0, int(round_)), now_ns), due)
             self.heartbeats_sent += len(due)
@@ -132,14 +136,18 @@ class LinkTransport:
             heard = c.get("last_heard_ns")
             neighbours[peer] = {
                 "name": names.get(peer, ""),
-                "bytes_sent": c.get("bytes_sent", 0), "bytes_received": c.get("bytes_received", 0),
+                "bytes_sent": c.get("bytes_sent", 0),
+                "bytes_received": c.get("bytes_received", 0),
                 "datagrams_rejected": c.get("datagrams_rejected", 0),
                 "last_heard_s_ago": None if not heard else round((now - heard) * 1e-9, 1),
             }
-        return {**snap["totals"], "neighbours": neighbours,
-                "next_sequence": self.link.next_sequence,
-                "heartbeats_sent": self.heartbeats_sent,
-                "heartbeats_received": self.heartbeats_received}
+        return {
+            **snap["totals"],
+            "neighbours": neighbours,
+            "next_sequence": self.link.next_sequence,
+            "heartbeats_sent": self.heartbeats_sent,
+            "heartbeats_received": self.heartbeats_received,
+        }
 
     def to_state(self) -> dict:
         return self.link.to_state()
@@ -172,13 +180,20 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
         neighbours[n.id] = f"udp://{host}:{port}" if ":" not in host else f"udp://[{host}]:{port}"
     bind = cfg.comms.bind_address
     bind = f"[{bind}]" if ":" in bind else bind
-    params = RadioParams(group=cfg.robot.fleet, bind=f"udp://{bind}:{cfg.comms.port}",
-                         neighbours=neighbours, max_datagram_bytes=cfg.comms.datagram_max_bytes)
+    params = RadioParams(
+        group=cfg.robot.fleet,
+        bind=f"udp://{bind}:{cfg.comms.port}",
+        neighbours=neighbours,
+        max_datagram_bytes=cfg.comms.datagram_max_bytes,
+    )
     ids = {n.id for n in cfg.neighbours}
-    policy = AuthPolicy(fleet_id=fleet_id(cfg.robot.fleet), self_id=cfg.robot.id,
-                        fleet_robots=frozenset(ids | set(cfg.comms.allow_relay_from)
-                                               | {cfg.robot.id}),
-                        neighbours=frozenset(ids), relay_from=frozenset(cfg.comms.allow_relay_from))
+    policy = AuthPolicy(
+        fleet_id=fleet_id(cfg.robot.fleet),
+        self_id=cfg.robot.id,
+        fleet_robots=frozenset(ids | set(cfg.comms.allow_relay_from) | {cfg.robot.id}),
+        neighbours=frozenset(ids),
+        relay_from=frozenset(cfg.comms.allow_relay_from),
+    )
     radio: Any = RadioTransport(params)
     drop_file = os.environ.get("DRAN_EDGE_DROP_FILE")
     if drop_file:  # set by `dran-edge rehearse` only (docs/rehearsal.md)
@@ -186,15 +201,20 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
 
         log.warning("rehearsal drop hook on: datagram loss by %s", drop_file)
         radio = DropHookTransport(radio, drop_file, seed=cfg.robot.id * 7919 + boot_epoch)
-    link = NeighbourLink(radio, key=key, policy=policy, boot_epoch=boot_epoch,
-                         max_datagram_bytes=cfg.comms.datagram_max_bytes,
-                         delta_every=cfg.comms.delta_every)
-    return LinkTransport(link, {n.id: n.name for n in cfg.neighbours},
-                         cfg.comms.heartbeat_period_s)
+    link = NeighbourLink(
+        radio,
+        key=key,
+        policy=policy,
+        boot_epoch=boot_epoch,
+        max_datagram_bytes=cfg.comms.datagram_max_bytes,
+        delta_every=cfg.comms.delta_every,
+    )
+    return LinkTransport(link, {n.id: n.name for n in cfg.neighbours}, cfg.comms.heartbeat_period_s)
 
 
-def default_perception_factory(cfg: RobotConfig, frames: DropOldestQueue
-                               ) -> Callable[[], ObservationBatch | None] | None:
+def default_perception_factory(
+    cfg: RobotConfig, frames: DropOldestQueue
+) -> Callable[[], ObservationBatch | None] | None:
     if cfg.camera.source == "none":
         return None
     try:
@@ -202,5 +222,6 @@ def default_perception_factory(cfg: RobotConfig, frames: DropOldestQueue
     except ImportError as exc:
         raise DependencyError(
             f"camera.source is {cfg.camera.source!r} but the perception pipeline is not "
-            f"available ({exc}); set camera.source: none to run without a camera") from None
+            f"available ({exc}); set camera.source: none to run without a camera"
+        ) from None
     return make_observation_source(cfg, frames)

@@ -102,16 +102,24 @@ SentKey = tuple[int, str, int]
 class Agent:
     """Robot ``config.robot_id``'s DRAN agent (see the module docstring)."""
 
-    def __init__(self, config: AgentConfig, problem: LocalProblem | None = None,
-                 weights: dict[int, float] | None = None):
+    def __init__(
+        self,
+        config: AgentConfig,
+        problem: LocalProblem | None = None,
+        weights: dict[int, float] | None = None,
+    ):
         self.config = config
         self.id = int(config.robot_id)
         self.neighbours = tuple(int(q) for q in config.neighbours)
         deg = len(self.neighbours)
         #: w_ij per neighbour (MH); without the neighbours' degrees we assume equal degrees.
-        self.w = {q: (float(weights[q]) if weights and q in weights else 1.0 / (1.0 + deg))
-                  for q in self.neighbours}
-        self.problem = problem if problem is not None else LocalProblem.empty(config.dim, config.residual)
+        self.w = {
+            q: (float(weights[q]) if weights and q in weights else 1.0 / (1.0 + deg))
+            for q in self.neighbours
+        }
+        self.problem = (
+            problem if problem is not None else LocalProblem.empty(config.dim, config.residual)
+        )
         self.x = self.problem.x0.copy()
         self.k = 0
         self.mu: float | None = None
@@ -186,20 +194,35 @@ class Agent:
     # ----------------------------------------------------------------- one round
     def _structure_for(self) -> _Structure:
         p, objects = self.problem, self.objects
-        anchor_keys = tuple(sorted({(int(o), int(a)) for o, a in zip(p.inter_owner, p.inter_anchor_id)
-                                    if (int(o), int(a)) in self.anchors}))
-        pair_keys = tuple(sorted(k for k in objects.neighbour_copies if k[1] in self.y and k[0] in self.w))
+        anchor_keys = tuple(
+            sorted(
+                {
+                    (int(o), int(a))
+                    for o, a in zip(p.inter_owner, p.inter_anchor_id)
+                    if (int(o), int(a)) in self.anchors
+                }
+            )
+        )
+        pair_keys = tuple(
+            sorted(k for k in objects.neighbour_copies if k[1] in self.y and k[0] in self.w)
+        )
         key = (tuple(sorted(self.y)), anchor_keys, pair_keys, objects.obs_ok.tobytes())
         if self._structure is None or self._structure.key != key:
             self._structure = build_structure(
-                p, self.config, key, objects.obs_ok,
-                lambda slot, base: self._consensus_blocks(slot, base, pair_keys))
+                p,
+                self.config,
+                key,
+                objects.obs_ok,
+                lambda slot, base: self._consensus_blocks(slot, base, pair_keys),
+            )
         return self._structure
 
-    def _consensus_blocks(self, obj_slot: dict[int, int], c_base: int,
-                          pair_keys: tuple[PairKey, ...]) -> tuple[ConsensusFactors, ...]:
-        return consensus_factors(self.config, pair_keys, obj_slot, c_base, self.lam, self.w,
-                                 self.objects.conflicts)
+    def _consensus_blocks(
+        self, obj_slot: dict[int, int], c_base: int, pair_keys: tuple[PairKey, ...]
+    ) -> tuple[ConsensusFactors, ...]:
+        return consensus_factors(
+            self.config, pair_keys, obj_slot, c_base, self.lam, self.w, self.objects.conflicts
+        )
 
     def _poses(self, s: _Structure) -> np.ndarray:
         return s.poses(self.x, self.y, self.anchors, self.objects.neighbour_copies)
@@ -277,7 +300,9 @@ class Agent:
         if not eps:
             return True
         optimal = norm_u <= c.eps_u and norm_v <= c.eps_v
-        if c.eps_cost_rel > 0 and self.last_decrease <= c.eps_cost_rel * max(self.last_cost, 1e-300):
+        if c.eps_cost_rel > 0 and self.last_decrease <= c.eps_cost_rel * max(
+            self.last_cost, 1e-300
+        ):
             optimal = True  # the local step no longer pays (docs/dran.md, termination)
         return optimal
 
@@ -309,7 +334,7 @@ class Agent:
         elif np.any(h <= 0.0):
             return False
         else:
-            rate = max(_log_rate(h), _log_rate(h[W // 2:]))
+            rate = max(_log_rate(h), _log_rate(h[W // 2 :]))
         test["rate"] = float(rate)
         if not rate < 1.0:
             return False
@@ -332,7 +357,9 @@ class Agent:
         nbr = [self.nbr_done.get(q, (0, -1))[0] for q in self.neighbours]
         self.done_count = min(self.config.stop_rounds, 1 + min([self.done_count, *nbr]))
 
-    def _local_step(self, graph: PoseGraph, s: _Structure, poses: np.ndarray) -> tuple[float, float]:
+    def _local_step(
+        self, graph: PoseGraph, s: _Structure, poses: np.ndarray
+    ) -> tuple[float, float]:
         """One damped LM step with the Schur complement (eqs. 7–12); keeps x, y on rejection."""
         c = self.config
         plan = s.plan
@@ -394,8 +421,11 @@ class Agent:
             for i in p.separators_for.get(q, np.zeros(0, np.int64)).tolist():
                 key = (q, "s", int(p.pose_ids[i]))
                 if self._changed(key, self.x[i], False):
-                    seps.append(SeparatorEntry(self.id, int(p.pose_ids[i]), int(p.pose_stamps_ns[i]),
-                                               self.x[i].copy()))
+                    seps.append(
+                        SeparatorEntry(
+                            self.id, int(p.pose_ids[i]), int(p.pose_stamps_ns[i]), self.x[i].copy()
+                        )
+                    )
                     self.last_sent[key] = (self.x[i].copy(), self.k)
             objs: list[ObjectEntry] = []
             for oid, T in objects:
@@ -418,12 +448,16 @@ class Agent:
                 if self.last_sent_done.get(q) != done:  # a new counter goes out at once
                     self.last_sent_done[q] = done
                     if not (seps or objs):  # alone: a header-only datagram
-                        out.append(Outgoing(NeighbourMessage(self.id, self.k, stamp_ns,
-                                                             done_count=done), (q,)))
+                        out.append(
+                            Outgoing(
+                                NeighbourMessage(self.id, self.k, stamp_ns, done_count=done), (q,)
+                            )
+                        )
                         continue
             if seps or objs:
-                msg = NeighbourMessage(self.id, self.k, stamp_ns, tuple(seps), tuple(objs),
-                                       done_count=done)
+                msg = NeighbourMessage(
+                    self.id, self.k, stamp_ns, tuple(seps), tuple(objs), done_count=done
+                )
                 out.append(Outgoing(msg, (q,)))
         out.append(self._estimate(stamp_ns, phi2))
         return out
@@ -437,27 +471,44 @@ class Agent:
         D = p.dim + 1
         objects = sorted(self.y.items())
         return EstimateUpdate(
-            stamp_ns=stamp_ns, round=self.k, keyframe_stamps_ns=p.pose_stamps_ns.copy(),
-            T_world_body=self.x.copy(), object_ids=tuple(o for o, _ in objects),
+            stamp_ns=stamp_ns,
+            round=self.k,
+            keyframe_stamps_ns=p.pose_stamps_ns.copy(),
+            T_world_body=self.x.copy(),
+            object_ids=tuple(o for o, _ in objects),
             T_world_object=(np.stack([T for _, T in objects]) if objects else np.zeros((0, D, D))),
-            cost=float(self.last_cost), step_norm_u=self.last_norms[0],
-            step_norm_v=self.last_norms[1], consensus_error=phi2, converged=self.converged)
+            cost=float(self.last_cost),
+            step_norm_u=self.last_norms[0],
+            step_norm_v=self.last_norms[1],
+            consensus_error=phi2,
+            converged=self.converged,
+        )
 
     # ----------------------------------------------------------------- checkpoints
     def to_state(self) -> dict[str, Any]:
         """Everything needed to resume (plain dicts, lists and numpy arrays)."""
         obj = self.objects.to_state()
         return {
-            "problem": self.problem.to_dict(), "x": self.x.copy(), "k": self.k, "mu": self.mu,
-            "y": obj["y"], "hops": obj["hops"], "origin": obj["origin"],
+            "problem": self.problem.to_dict(),
+            "x": self.x.copy(),
+            "k": self.k,
+            "mu": self.mu,
+            "y": obj["y"],
+            "hops": obj["hops"],
+            "origin": obj["origin"],
             "anchors": {k: v.copy() for k, v in self.anchors.items()},
             "anchor_round": dict(self.anchor_round),
-            "nbr_obj": obj["nbr_obj"], "nbr_origin": obj["nbr_origin"],
-            "nbr_support": obj["nbr_support"], "support": obj["support"],
-            "lam": {k: v.copy() for k, v in self.lam.items()}, "w": dict(self.w),
+            "nbr_obj": obj["nbr_obj"],
+            "nbr_origin": obj["nbr_origin"],
+            "nbr_support": obj["nbr_support"],
+            "support": obj["support"],
+            "lam": {k: v.copy() for k, v in self.lam.items()},
+            "w": dict(self.w),
             "counters": self.counters.to_dict(),
-            "decrements": list(self.decrements), "done_count": self.done_count,
-            "nbr_done": dict(self.nbr_done), "last_sent_done": dict(self.last_sent_done),
+            "decrements": list(self.decrements),
+            "done_count": self.done_count,
+            "nbr_done": dict(self.nbr_done),
+            "last_sent_done": dict(self.last_sent_done),
         }
 
     @classmethod
@@ -472,8 +523,9 @@ class Agent:
         agent.counters.update(state["counters"])
         agent.decrements = [float(d) for d in state.get("decrements", [])]
         agent.done_count = int(state.get("done_count", 0))
-        agent.nbr_done = {int(k): (int(v[0]), int(v[1]))
-                          for k, v in state.get("nbr_done", {}).items()}
+        agent.nbr_done = {
+            int(k): (int(v[0]), int(v[1])) for k, v in state.get("nbr_done", {}).items()
+        }
         agent.last_sent_done = {int(k): int(v) for k, v in state.get("last_sent_done", {}).items()}
         return agent
 

@@ -147,8 +147,10 @@ class ObjectAssociation:
         order = np.argsort(p.obs_object, kind="stable")
         ids, starts = np.unique(p.obs_object[order], return_index=True)
         self._obs_groups = {int(o): g for o, g in zip(ids.tolist(), np.split(order, starts[1:]))}
-        dists = {oid: np.linalg.norm(pos_all[idx][:, None] - pos_all[idx][None], axis=-1)
-                 for oid, idx in self._obs_groups.items()}
+        dists = {
+            oid: np.linalg.norm(pos_all[idx][:, None] - pos_all[idx][None], axis=-1)
+            for oid, idx in self._obs_groups.items()
+        }
         # views of its own object within the gate of each view (itself included)
         n_near = np.zeros(p.obs_object.size, np.int64)
         for oid, idx in self._obs_groups.items():
@@ -213,8 +215,12 @@ class ObjectAssociation:
             self.counters.stale_dropped += 1
             return False
         self.neighbour_copies[key] = NeighbourCopy(
-            np.asarray(entry.T_world_object, np.float64), int(entry.hop_count), round_,
-            int(entry.origin_robot), int(entry.support))
+            np.asarray(entry.T_world_object, np.float64),
+            int(entry.hop_count),
+            round_,
+            int(entry.origin_robot),
+            int(entry.support),
+        )
         return True
 
     def adopt_unknown(self) -> None:
@@ -314,8 +320,11 @@ class ObjectAssociation:
                     rejected[idx] = np.linalg.norm(pred[idx] - centre, axis=1) > gate
             self.centres[oid] = centre
             in_use = (self.obs_ok_gate[idx] | corroborated[idx] | latched[idx]) & ~rejected[idx]
-            if (oid in self.y and not in_use.any()
-                    and np.linalg.norm(self.y[oid][:-1, -1] - centre) > gate):
+            if (
+                oid in self.y
+                and not in_use.any()
+                and np.linalg.norm(self.y[oid][:-1, -1] - centre) > gate
+            ):
                 y = self.y[oid].copy()
                 y[:-1, -1] = centre
                 self.y[oid] = y
@@ -345,8 +354,9 @@ class ObjectAssociation:
         if not pend.size or not votes:
             return ok
         labels = np.concatenate([np.full(len(P), oid) for oid, (P, _w) in votes.items()])
-        d = np.linalg.norm(pred[pend][:, None] - np.vstack([P for P, _w in votes.values()])[None],
-                           axis=-1)
+        d = np.linalg.norm(
+            pred[pend][:, None] - np.vstack([P for P, _w in votes.values()])[None], axis=-1
+        )
         same = labels[None] == p.obs_object[pend][:, None]
         d_own = np.where(same, d, np.inf).min(axis=1)
         hit = d_own <= self.config.object_gate_m
@@ -441,16 +451,21 @@ class ObjectAssociation:
         hops = {int(k): int(v) for k, v in state["hops"].items()}
         origin = {int(k): int(v) for k, v in state["origin"].items()}
         support = {int(k): int(v) for k, v in state.get("support", {}).items()}
-        self.provenance = {k: Provenance(h, origin.get(k, self.id), support.get(k, 1))
-                           for k, h in hops.items()}
+        self.provenance = {
+            k: Provenance(h, origin.get(k, self.id), support.get(k, 1)) for k, h in hops.items()
+        }
         nbr_origin = {_pair(k): int(v) for k, v in state.get("nbr_origin", {}).items()}
         nbr_support = {_pair(k): int(v) for k, v in state.get("nbr_support", {}).items()}
         self.neighbour_copies = {}
         for k, v in state["nbr_obj"].items():
             key = _pair(k)
             self.neighbour_copies[key] = NeighbourCopy(
-                np.asarray(v[0]), int(v[1]), int(v[2]), nbr_origin.get(key, key[0]),
-                nbr_support.get(key, 1))
+                np.asarray(v[0]),
+                int(v[1]),
+                int(v[2]),
+                nbr_origin.get(key, key[0]),
+                nbr_support.get(key, 1),
+            )
 
 
 def _pair(key: Any) -> PairKey:

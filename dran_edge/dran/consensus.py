@@ -66,8 +66,9 @@ def phi_dim(kind: str, dim: int) -> int:
     return (6 if dim == 3 else 3) if kind == Residual.GEODESIC else dim * dim + dim
 
 
-def dual_update(lam: np.ndarray, phi_ij: np.ndarray, w: np.ndarray, beta: float, eta: float
-                ) -> np.ndarray:
+def dual_update(
+    lam: np.ndarray, phi_ij: np.ndarray, w: np.ndarray, beta: float, eta: float
+) -> np.ndarray:
     """Eq. 5b: ``λ_ij + η β w_ij φ(y_i, y_j)`` for (m, r) duals, (m, r) φ and (m,) weights."""
     lam_new: np.ndarray = lam + eta * beta * np.asarray(w)[:, None] * phi_ij
     return lam_new

@@ -44,8 +44,14 @@ from dran_edge.messages import InitEntry, InitStage
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Exchange", "GS_SOR", "InitParams", "InitResult", "direct_exchange",
-           "distributed_chordal_init"]
+__all__ = [
+    "Exchange",
+    "GS_SOR",
+    "InitParams",
+    "InitResult",
+    "direct_exchange",
+    "distributed_chordal_init",
+]
 
 HistoryEntry = tuple[str, int | str, float]
 """(stage name, iteration or "direct", largest change of the iteration or rounds used)."""
@@ -140,8 +146,9 @@ class _Sender:
     ``send_tol`` since last sent, or during the frame phase the solo values X̂ once and then the
     frame whenever it changed (``frames``: None sends the separators then too)."""
 
-    def __init__(self, stage: LinearStage, values: _ValueCodec, frames: _FrameCodec | None,
-                 send_tol: float):
+    def __init__(
+        self, stage: LinearStage, values: _ValueCodec, frames: _FrameCodec | None, send_tol: float
+    ):
         self.stage, self.values, self.frames, self.send_tol = stage, values, frames, send_tol
         self.last_sent: dict[tuple[int, int], np.ndarray] = {}  # (robot, neighbour) -> values sent
         self.base_sent: set[tuple[int, int]] = set()  # (robot, neighbour): X̂ sent for the frames
@@ -175,8 +182,10 @@ class _Sender:
                 self.last_sent[(r, q)] = prev
             # NaN (never sent) compares False, so it is sent
             changed = ~(np.max(np.abs(X - prev), axis=(1, 2)) <= self.send_tol)
-            entries = [to_entry(r, int(v), X[k]) for k, v in zip(np.flatnonzero(changed),
-                                                                 vs[changed].tolist())]
+            entries = [
+                to_entry(r, int(v), X[k])
+                for k, v in zip(np.flatnonzero(changed), vs[changed].tolist())
+            ]
             prev[changed] = X[changed]
             if entries:
                 sends.append((q, entries))
@@ -192,10 +201,19 @@ class _Sender:
                     stage.receive_frame(r, int(e.owner_robot), frames.from_entry(e))
 
 
-def _run_stage(stage: LinearStage, values: _ValueCodec, exchange: Exchange, params: InitParams,
-               tol: float, sor: float, send_tol: float, colour: np.ndarray | None,
-               history: list[HistoryEntry], max_iterations: int,
-               frames: _FrameCodec | None = None) -> int:
+def _run_stage(
+    stage: LinearStage,
+    values: _ValueCodec,
+    exchange: Exchange,
+    params: InitParams,
+    tol: float,
+    sor: float,
+    send_tol: float,
+    colour: np.ndarray | None,
+    history: list[HistoryEntry],
+    max_iterations: int,
+    frames: _FrameCodec | None = None,
+) -> int:
     """Iterate ``stage`` through ``exchange``; returns the iterations used.
 
     During the frame phase a robot sends each neighbour its solo-segment separator values X̂
@@ -204,8 +222,11 @@ def _run_stage(stage: LinearStage, values: _ValueCodec, exchange: Exchange, para
     Without ``frames`` the separators themselves are sent as in the block phase."""
     R = stage.partition.num_robots
     sender = _Sender(stage, values, frames, send_tol)
-    groups = [list(range(R))] if colour is None else [
-        [r for r in range(R) if colour[r] == c] for c in np.unique(colour)]
+    groups = (
+        [list(range(R))]
+        if colour is None
+        else [[r for r in range(R) if colour[r] == c] for c in np.unique(colour)]
+    )
     iterations = 0
     frames_done = params.frame_iterations == 0
     for it in range(max_iterations):
@@ -271,8 +292,19 @@ def distributed_chordal_init(
     d, D = dim, dim + 1
     colour = greedy_colouring(partition) if params.gauss_seidel else None
     tree = substructure.robot_tree(partition) if partition.num_robots > 1 else None
-    s = _Setting(n, d, edges, partition, exchange, params, gauge, colour,
-                 GS_SOR if params.gauss_seidel else 1.0, tree, [])
+    s = _Setting(
+        n,
+        d,
+        edges,
+        partition,
+        exchange,
+        params,
+        gauge,
+        colour,
+        GS_SOR if params.gauss_seidel else 1.0,
+        tree,
+        [],
+    )
     R_views, it_rot = _rotation_stage(s, measurements[:, :d, :d], np.asarray(kappa, float))
     tr_views, it_tr = _translation_stage(s, R_views, measurements[:, :d, d], np.asarray(tau, float))
     poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
@@ -283,8 +315,9 @@ def distributed_chordal_init(
     return InitResult(poses, it_rot, it_tr, s.history)
 
 
-def _rotation_stage(s: _Setting, R_meas: np.ndarray, kappa: np.ndarray
-                    ) -> tuple[list[np.ndarray], int]:
+def _rotation_stage(
+    s: _Setting, R_meas: np.ndarray, kappa: np.ndarray
+) -> tuple[list[np.ndarray], int]:
     """Stage 1: relaxed rotations X_v = R_vᵀ (b = d), then each robot projects what it knows
     (own values and the neighbours' last relaxed values) to SO(d). Returns the (n, d, d)
     rotations each robot holds and the iterations (or rounds) used."""
@@ -303,30 +336,69 @@ def _rotation_stage(s: _Setting, R_meas: np.ndarray, kappa: np.ndarray
     if _use_direct(params, partition, d, d, s.gauge, s.tree):
         owner = partition.owner
         rot_views, it_rot = substructure.solve_direct(
-            partition, n, d, d, s.edges, rot_M, lambda r: np.zeros((m, d, d)),
-            kappa, s.gauge, I_d, s.exchange, InitStage.ROTATION_SCHUR,
-            InitStage.ROTATION, lambda v, X: rot_entry(int(owner[v]), v, X),
-            rot_value, X0, s.tree)
+            partition,
+            n,
+            d,
+            d,
+            s.edges,
+            rot_M,
+            lambda r: np.zeros((m, d, d)),
+            kappa,
+            s.gauge,
+            I_d,
+            s.exchange,
+            InitStage.ROTATION_SCHUR,
+            InitStage.ROTATION,
+            lambda v, X: rot_entry(int(owner[v]), v, X),
+            rot_value,
+            X0,
+            s.tree,
+        )
         s.history.append((InitStage.ROTATION.name, "direct", it_rot))
     else:
-        rot = LinearStage(partition, n, d, s.edges, np.swapaxes(R_meas, 1, 2),
-                          lambda r: np.zeros((m, d, d)), kappa, s.gauge, I_d, X0)
-        frames = _FrameCodec(InitStage.ROTATION_FRAME,
-                             lambda r, G: InitEntry(InitStage.ROTATION_FRAME, r, 0, G.copy()),
-                             lambda e: np.asarray(e.value, float))
-        it_rot = _run_stage(rot, _ValueCodec(InitStage.ROTATION, rot_entry, rot_value),
-                            s.exchange, params, params.rotation_tol,
-                            s.sor if params.sor is None else params.sor, params.send_tol,
-                            s.colour, s.history, params.max_iterations,
-                            frames if params.frame_entries else None)
+        rot = LinearStage(
+            partition,
+            n,
+            d,
+            s.edges,
+            np.swapaxes(R_meas, 1, 2),
+            lambda r: np.zeros((m, d, d)),
+            kappa,
+            s.gauge,
+            I_d,
+            X0,
+        )
+        frames = _FrameCodec(
+            InitStage.ROTATION_FRAME,
+            lambda r, G: InitEntry(InitStage.ROTATION_FRAME, r, 0, G.copy()),
+            lambda e: np.asarray(e.value, float),
+        )
+        it_rot = _run_stage(
+            rot,
+            _ValueCodec(InitStage.ROTATION, rot_entry, rot_value),
+            s.exchange,
+            params,
+            params.rotation_tol,
+            s.sor if params.sor is None else params.sor,
+            params.send_tol,
+            s.colour,
+            s.history,
+            params.max_iterations,
+            frames if params.frame_entries else None,
+        )
         rot_views = rot.views
-    R_views = [geo.so3_project(v.reshape(n, d, d).swapaxes(1, 2)) if d == 3 else
-               _so2_project(v.reshape(n, d, d).swapaxes(1, 2)) for v in rot_views]
+    R_views = [
+        geo.so3_project(v.reshape(n, d, d).swapaxes(1, 2))
+        if d == 3
+        else _so2_project(v.reshape(n, d, d).swapaxes(1, 2))
+        for v in rot_views
+    ]
     return R_views, it_rot
 
 
-def _translation_stage(s: _Setting, R_views: list[np.ndarray], t_meas: np.ndarray,
-                       tau: np.ndarray) -> tuple[list[np.ndarray], int]:
+def _translation_stage(
+    s: _Setting, R_views: list[np.ndarray], t_meas: np.ndarray, tau: np.ndarray
+) -> tuple[list[np.ndarray], int]:
     """Stage 2: translations X_v = t_vᵀ (b = 1) with each robot's rotations fixed. Returns the
     (n, d) translations each robot holds and the iterations (or rounds) used."""
     n, d, m, partition, params = s.n, s.d, s.m, s.partition, s.params
@@ -351,30 +423,70 @@ def _translation_stage(s: _Setting, R_views: list[np.ndarray], t_meas: np.ndarra
         return InitEntry(InitStage.TRANSLATION_FRAME, r, 0, T)
 
     if _use_direct(params, partition, 1, d, s.gauge, s.tree):
+
         def value_entry(v: int, X_v: np.ndarray) -> InitEntry:
             # the owner's rotation rides along (the pose layout needs one); receivers use t
             return trans_entry(int(partition.owner[v]), v, X_v)
 
         tr_views, it_tr = substructure.solve_direct(
-            partition, n, 1, d, edges, np.ones((m, 1, 1)), c_of, tau, s.gauge,
-            np.zeros((1, d)), s.exchange, InitStage.TRANSLATION_SCHUR, InitStage.TRANSLATION,
-            value_entry, trans_value, np.zeros((n, d)), s.tree)
+            partition,
+            n,
+            1,
+            d,
+            edges,
+            np.ones((m, 1, 1)),
+            c_of,
+            tau,
+            s.gauge,
+            np.zeros((1, d)),
+            s.exchange,
+            InitStage.TRANSLATION_SCHUR,
+            InitStage.TRANSLATION,
+            value_entry,
+            trans_value,
+            np.zeros((n, d)),
+            s.tree,
+        )
         s.history.append((InitStage.TRANSLATION.name, "direct", it_tr))
     else:
-        trans = LinearStage(partition, n, 1, edges, np.ones((m, 1, 1)), c_of, tau, s.gauge,
-                            np.zeros((1, d)), np.zeros((n, d)))
+        trans = LinearStage(
+            partition,
+            n,
+            1,
+            edges,
+            np.ones((m, 1, 1)),
+            c_of,
+            tau,
+            s.gauge,
+            np.zeros((1, d)),
+            np.zeros((n, d)),
+        )
         frames = _FrameCodec(InitStage.TRANSLATION_FRAME, offset_entry, trans_value)
-        it_tr = _run_stage(trans, _ValueCodec(InitStage.TRANSLATION, trans_entry, trans_value),
-                           s.exchange, params, params.translation_tol,
-                           s.sor if params.translation_sor is None else params.translation_sor,
-                           params.translation_send_tol, s.colour, s.history,
-                           params.max_iterations, frames if params.frame_entries else None)
+        it_tr = _run_stage(
+            trans,
+            _ValueCodec(InitStage.TRANSLATION, trans_entry, trans_value),
+            s.exchange,
+            params,
+            params.translation_tol,
+            s.sor if params.translation_sor is None else params.translation_sor,
+            params.translation_send_tol,
+            s.colour,
+            s.history,
+            params.max_iterations,
+            frames if params.frame_entries else None,
+        )
         tr_views = trans.views
     return tr_views, it_tr
 
 
-def _use_direct(params: InitParams, partition: Partition, b: int, ncol: int, gauge: int,
-                tree: substructure.RobotTree | None) -> bool:
+def _use_direct(
+    params: InitParams,
+    partition: Partition,
+    b: int,
+    ncol: int,
+    gauge: int,
+    tree: substructure.RobotTree | None,
+) -> bool:
     """``InitParams.direct`` for a stage with block size ``b`` and ``ncol`` columns."""
     if params.direct not in ("auto", "always", "never"):
         raise ValueError(f"InitParams.direct must be auto, always or never, got {params.direct!r}")

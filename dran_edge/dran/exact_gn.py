@@ -112,17 +112,20 @@ class RefineResult:
     """One step's floats over one round's separator values (``step_budget``'s test)."""
 
 
-def step_ratio(partition: Partition, dim: int, gauge: int = 0,
-               tree: substructure.RobotTree | None = None) -> float:
+def step_ratio(
+    partition: Partition, dim: int, gauge: int = 0, tree: substructure.RobotTree | None = None
+) -> float:
     """Floats of one refinement step over one round in which every separator pose travels."""
     b = geo.dof(dim)
     tree = tree or substructure.robot_tree(partition)
     return substructure.direct_floats(partition, b, 1, gauge, tree) / max(
-        substructure.iteration_floats(partition, b, 1), 1)
+        substructure.iteration_floats(partition, b, 1), 1
+    )
 
 
-def scatter_blocks(H_blocks: np.ndarray, g_blocks: np.ndarray, variables: np.ndarray, n: int,
-                   b: int) -> tuple[sp.csr_matrix, np.ndarray]:
+def scatter_blocks(
+    H_blocks: np.ndarray, g_blocks: np.ndarray, variables: np.ndarray, n: int, b: int
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """Per-factor normal-equation blocks ((m, k·b, k·b), (m, k·b), factor ``variables`` (m, k))
     summed into the n·b square H and the gradient g."""
     m, k = variables.shape
@@ -133,17 +136,25 @@ def scatter_blocks(H_blocks: np.ndarray, g_blocks: np.ndarray, variables: np.nda
     return H, np.bincount(idx.ravel(), weights=g_blocks.ravel(), minlength=n * b)
 
 
-def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np.ndarray,
-          W: np.ndarray, poses: np.ndarray, exact: bool = False
-          ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
+def share(
+    part: RobotPart,
+    n: int,
+    dim: int,
+    edges: np.ndarray,
+    measurements: np.ndarray,
+    W: np.ndarray,
+    poses: np.ndarray,
+    exact: bool = False,
+) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
     """Robot's share (H⁽ʳ⁾, g⁽ʳ⁾, f_r, diag J_rᵀJ_r) at ``poses``: n·dof square, its edges with
     the inter-robot ones at half weight (``W`` the (m, r) whitening of all edges); ``exact``
     adds the second-order terms to H⁽ʳ⁾ (not to the returned diagonal, the damping's scale)."""
     b = geo.dof(dim)
     eidx = np.concatenate([part.intra_edges, part.inter_edges]).astype(np.int64)
     scale = np.concatenate([np.ones(part.intra_edges.size), np.full(part.inter_edges.size, 0.5)])
-    block = BetweenFactors(edges[eidx], measurements[eidx], W[eidx] * np.sqrt(scale)[:, None],
-                           residual="chordal")
+    block = BetweenFactors(
+        edges[eidx], measurements[eidx], W[eidx] * np.sqrt(scale)[:, None], residual="chordal"
+    )
     Hb, gb, cost = block_normal_equations(cast(Factor, block), poses)
     H, g = scatter_blocks(Hb, gb, edges[eidx], n, b)
     D = H.diagonal()
@@ -156,8 +167,9 @@ def share(part: RobotPart, n: int, dim: int, edges: np.ndarray, measurements: np
 
 #: ``share_of(part, poses, exact) -> (H⁽ʳ⁾, g⁽ʳ⁾, f_r, damping diagonal)``: a robot's share of
 #: the Gauss–Newton system (``share`` for the chordal pose graph), own vertices and anchors only.
-ShareFn = Callable[[RobotPart, np.ndarray, bool], tuple[sp.csr_matrix, np.ndarray, float,
-                                                        np.ndarray]]
+ShareFn = Callable[
+    [RobotPart, np.ndarray, bool], tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]
+]
 
 
 def _split(x: float) -> list[float]:
@@ -229,13 +241,24 @@ def _step_entry(owner: np.ndarray, d: int, b: int) -> Callable[[int, np.ndarray]
         value = np.zeros(d * d)
         value[:b] = step.ravel()
         return InitEntry(InitStage.REFINE_STEP, int(owner[v]), v, value.reshape(d, d))
+
     return to_entry
 
 
-def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa: np.ndarray,
-           tau: np.ndarray, partition: Partition, poses: np.ndarray, exchange: Exchange,
-           params: RefineParams = RefineParams(), gauge: int = 0,
-           wire_dtype: type | None = np.float32) -> RefineResult:
+def refine(
+    dim: int,
+    n: int,
+    edges: np.ndarray,
+    measurements: np.ndarray,
+    kappa: np.ndarray,
+    tau: np.ndarray,
+    partition: Partition,
+    poses: np.ndarray,
+    exchange: Exchange,
+    params: RefineParams = RefineParams(),
+    gauge: int = 0,
+    wire_dtype: type | None = np.float32,
+) -> RefineResult:
     """Refine ``poses`` (every robot starts from them) by exact distributed LM steps on the
     chordal pose graph (module docstring); every value crosses ``exchange``
     (``dist_init.Exchange``). ``wire_dtype``: the value type the exchange delivers (the
@@ -244,17 +267,26 @@ def refine(dim: int, n: int, edges: np.ndarray, measurements: np.ndarray, kappa:
     tests)."""
     W = isotropic_whitening(kappa, tau, "chordal", dim)
 
-    def share_of(part: RobotPart, T: np.ndarray, exact: bool
-                 ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
+    def share_of(
+        part: RobotPart, T: np.ndarray, exact: bool
+    ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
         return share(part, n, dim, edges, measurements, W, T, exact)
 
     return refine_shares(dim, n, partition, share_of, poses, exchange, params, gauge, wire_dtype)
 
 
-def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, poses: np.ndarray,
-                  exchange: Exchange, params: RefineParams = RefineParams(), gauge: int = 0,
-                  wire_dtype: type | None = np.float32,
-                  tree: substructure.RobotTree | None = None) -> RefineResult:
+def refine_shares(
+    dim: int,
+    n: int,
+    partition: Partition,
+    share_of: ShareFn,
+    poses: np.ndarray,
+    exchange: Exchange,
+    params: RefineParams = RefineParams(),
+    gauge: int = 0,
+    wire_dtype: type | None = np.float32,
+    tree: substructure.RobotTree | None = None,
+) -> RefineResult:
     """``refine`` for any objective whose robot shares ``share_of`` gives (``ShareFn``; F in
     the results is 2 Σ f_r), over ``tree`` (default: the BFS tree of the partition's robot
     graph); ``gauge`` < 0: no gauge vertex (priors fix it). A loop over gather → decide →
@@ -267,8 +299,9 @@ def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, pos
     tree = tree or substructure.robot_tree(partition)
     ratio = step_ratio(partition, dim, gauge, tree)
     if params.mode == "auto" and ratio > params.step_budget:
-        return RefineResult(poses.copy(), False, reason=f"a step costs {ratio:.0f} rounds",
-                            ratio_floats=ratio)
+        return RefineResult(
+            poses.copy(), False, reason=f"a step costs {ratio:.0f} rounds", ratio_floats=ratio
+        )
     b, d = geo.dof(dim), dim
     mu0 = params.mu_init if wire_dtype is None else float(wire_dtype(params.mu_init))
     root = LMRule(params, wire_dtype)
@@ -280,14 +313,19 @@ def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, pos
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
             H, g, cost, D = share_of(part, rob.T, rob.exact)
-            loc = substructure.condense(part, partition, H + rob.mu * sp.diags(D),
-                                        -g[:, None], b, gauge, np.zeros((b, 1)))
+            loc = substructure.condense(
+                part, partition, H + rob.mu * sp.diags(D), -g[:, None], b, gauge, np.zeros((b, 1))
+            )
             locs.append(loc)
             shares.append((H, g))
-            packed.append(substructure.pack(loc, b, _split(cost) + _split(rob.pred)
-                                            + [float(loc.positive_definite)]))
-        bundle, res.rounds = substructure.gather(tree, packed, d, exchange,
-                                                 InitStage.REFINE_SCHUR, res.rounds)
+            packed.append(
+                substructure.pack(
+                    loc, b, _split(cost) + _split(rob.pred) + [float(loc.positive_definite)]
+                )
+            )
+        bundle, res.rounds = substructure.gather(
+            tree, packed, d, exchange, InitStage.REFINE_SCHUR, res.rounds
+        )
         values, scalars, pd = substructure.solve_interface(bundle, b, 1, 5)
         F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:4].sum())
         was_trial = root.trial
@@ -302,15 +340,25 @@ def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, pos
             root.indefinite()
             res.indefinite += 1
         flags = int(accept) | int(stop) << 1 | int(step) << 2 | int(root.exact) << 3
-        control = InitEntry(InitStage.REFINE_CONTROL, tree.root, 0,
-                            np.resize(np.array([flags, root.mu] + [0.0] * (d * d - 2)), (d, d)))
+        control = InitEntry(
+            InitStage.REFINE_CONTROL,
+            tree.root,
+            0,
+            np.resize(np.array([flags, root.mu] + [0.0] * (d * d - 2)), (d, d)),
+        )
         if step and wire_dtype is not None:  # what the other robots receive
             values = {v: x.astype(wire_dtype).astype(np.float64) for v, x in values.items()}
         known, extra, res.rounds = substructure.scatter(  # 3. steps and decision down
-            tree, [loc.B for loc in locs] if step else no_boundary, values if step else {},
-            exchange, InitStage.REFINE_STEP, to_entry,
-            lambda e: np.asarray(e.value, float).ravel()[:b].reshape(b, 1), res.rounds,
-            [control])
+            tree,
+            [loc.B for loc in locs] if step else no_boundary,
+            values if step else {},
+            exchange,
+            InitStage.REFINE_STEP,
+            to_entry,
+            lambda e: np.asarray(e.value, float).ravel()[:b].reshape(b, 1),
+            res.rounds,
+            [control],
+        )
         for r, (part, rob, loc) in enumerate(zip(partition.parts, robots, locs)):
             ctl = [e for e in extra[r] if InitStage(e.stage) == InitStage.REFINE_CONTROL]
             if not ctl:
@@ -332,8 +380,7 @@ def refine_shares(dim: int, n: int, partition: Partition, share_of: ShareFn, pos
             H, g = shares[r]
             rob.pred = float(-g @ delta - 0.5 * delta @ (H @ delta))
             moved = np.concatenate([loc.I, loc.B])
-            rob.T[moved] = geo.retract(rob.T_acc[moved],
-                                       delta.reshape(n, b)[moved])
+            rob.T[moved] = geo.retract(rob.T_acc[moved], delta.reshape(n, b)[moved])
         if stop:
             res.reason, res.converged = reason, reason.startswith("relative decrease")
             break

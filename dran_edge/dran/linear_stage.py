@@ -50,8 +50,9 @@ class _Block:
     updated: bool = False  # has made a block update in this stage
 
 
-def normal_equations(n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.ndarray,
-                     w: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+def normal_equations(
+    n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.ndarray, w: np.ndarray
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """(Q, Bv) of ``Σ_e w_e ‖X_j − M_e X_i − c_e‖²`` (see the module docstring), vectorised.
 
     ``M`` is (m, b, b), ``c`` is (m, b, ncol), ``w`` (m,); Q is (n b, n b), Bv (n b, ncol).
@@ -61,15 +62,20 @@ def normal_equations(n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.nda
     ar = np.arange(b)
     I = np.broadcast_to(np.eye(b), (m, b, b))
     MtM = np.swapaxes(M, 1, 2) @ M
-    blocks = [(i, i, w[:, None, None] * MtM), (j, j, w[:, None, None] * I),
-              (i, j, -w[:, None, None] * np.swapaxes(M, 1, 2)), (j, i, -w[:, None, None] * M)]
+    blocks = [
+        (i, i, w[:, None, None] * MtM),
+        (j, j, w[:, None, None] * I),
+        (i, j, -w[:, None, None] * np.swapaxes(M, 1, 2)),
+        (j, i, -w[:, None, None] * M),
+    ]
     rows, cols, vals = [], [], []
     for p, q, val in blocks:
         rows.append((p[:, None, None] * b + ar[None, :, None] + 0 * ar[None, None, :]).ravel())
         cols.append((q[:, None, None] * b + ar[None, None, :] + 0 * ar[None, :, None]).ravel())
         vals.append(val.ravel())
-    Q = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(n * b, n * b))
+    Q = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n * b, n * b)
+    )
     ncol = c.shape[-1]
     Bv = np.zeros((n * b, ncol))
     Mtc = -w[:, None, None] * (np.swapaxes(M, 1, 2) @ c)
@@ -112,9 +118,19 @@ class _SegmentFrame:
 class LinearStage:
     """One distributed linear least-squares stage over a partition (rotations or translations)."""
 
-    def __init__(self, partition: Partition, n: int, b: int, edges: np.ndarray, M: np.ndarray,
-                 c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
-                 X_gauge: np.ndarray, X0: np.ndarray):
+    def __init__(
+        self,
+        partition: Partition,
+        n: int,
+        b: int,
+        edges: np.ndarray,
+        M: np.ndarray,
+        c_of: Callable[[int], np.ndarray],
+        w: np.ndarray,
+        gauge: int,
+        X_gauge: np.ndarray,
+        X0: np.ndarray,
+    ):
         """``c_of(r)`` gives robot r's (m, b, ncol) constants (they may use r's own knowledge)."""
         self.partition, self.b = partition, b
         self.X_known = X0.copy()  # each robot's view is taken from here per robot below
@@ -131,8 +147,12 @@ class LinearStage:
             ro, rk = block_rows(own, b), block_rows(known, b)
             Q = Q.tocsr()
             Q_rr = sp.csc_matrix(Q[ro][:, ro])
-            lu = spla.splu(Q_rr, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
+            lu = spla.splu(
+                Q_rr,
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True},
+            )
             view = X0.copy()
             view[block_rows(np.array([gauge]), b)] = X_gauge
             # Warm start: the segment solved alone (intra edges, its first vertex as gauge).
@@ -150,20 +170,30 @@ class LinearStage:
                 # towards X0 keeps the pieces without the local gauge defined.
                 Qs = sp.csc_matrix(Qi[rl][:, rl])
                 eps = 1e-9 * max(float(np.abs(Qs.diagonal()).max(initial=0.0)), 1.0)
-                X_hat[rl] = spla.spsolve(Qs + eps * sp.identity(rl.size, format="csc"),
-                                         Bi[rl] - Qi[rl][:, rf] @ X_first + eps * X0[rl]
-                                         ).reshape(-1, X0.shape[1])
+                X_hat[rl] = spla.spsolve(
+                    Qs + eps * sp.identity(rl.size, format="csc"),
+                    Bi[rl] - Qi[rl][:, rf] @ X_first + eps * X0[rl],
+                ).reshape(-1, X0.shape[1])
             view[block_rows(part.vertices, b)] = X_hat[block_rows(part.vertices, b)]
             self.views.append(view)
-            self.blocks.append(_Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], view[ro].copy()))
+            self.blocks.append(
+                _Block(own, known, lu, Q[ro][:, rk].tocsr(), Bv[ro], view[ro].copy())
+            )
             ex = edges[part.inter_edges]
             mine_j = partition.owner[ex[:, 1]] == part.robot_id
-            self.frames.append(_SegmentFrame(
-                fixed=bool(np.any(part.vertices == gauge)),
-                X_hat=X_hat[block_rows(part.vertices, b)].reshape(part.vertices.size, b, -1),
-                verts=part.vertices, mine_j=mine_j,
-                own=np.where(mine_j, ex[:, 1], ex[:, 0]), other=np.where(mine_j, ex[:, 0], ex[:, 1]),
-                M=M[part.inter_edges], c=c_of(part.robot_id)[part.inter_edges], w=w[part.inter_edges]))
+            self.frames.append(
+                _SegmentFrame(
+                    fixed=bool(np.any(part.vertices == gauge)),
+                    X_hat=X_hat[block_rows(part.vertices, b)].reshape(part.vertices.size, b, -1),
+                    verts=part.vertices,
+                    mine_j=mine_j,
+                    own=np.where(mine_j, ex[:, 1], ex[:, 0]),
+                    other=np.where(mine_j, ex[:, 0], ex[:, 1]),
+                    M=M[part.inter_edges],
+                    c=c_of(part.robot_id)[part.inter_edges],
+                    w=w[part.inter_edges],
+                )
+            )
         self.heard = [np.zeros(n, bool) for _ in partition.parts]
         self.multiplicative = b > 1
         #: per robot: the neighbours' separator values as last received (the solo-segment
@@ -228,7 +258,7 @@ class LinearStage:
         return change
 
     def own_value(self, r: int, v: int) -> np.ndarray:
-        return self.views[r][v * self.b:(v + 1) * self.b]
+        return self.views[r][v * self.b : (v + 1) * self.b]
 
     def solo_values(self, r: int, vs: np.ndarray) -> np.ndarray:
         """Robot r's solo-segment values X̂ at its vertices ``vs`` (what its frames transform)."""
@@ -238,7 +268,7 @@ class LinearStage:
         return X_hat
 
     def receive(self, r: int, v: int, X_v: np.ndarray) -> None:
-        self.views[r][v * self.b:(v + 1) * self.b] = X_v
+        self.views[r][v * self.b : (v + 1) * self.b] = X_v
         self.heard[r][v] = True
         self.base[r][v] = X_v
 

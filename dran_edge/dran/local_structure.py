@@ -60,8 +60,13 @@ class LocalStructure:
         """(c, D, D) the neighbours' copies y_j of the consensus pairs, in pair order."""
         return np.stack([copies[k].T_world_object for k in self.pair_keys])
 
-    def poses(self, x: np.ndarray, y: Mapping[int, np.ndarray], anchors: Mapping[AnchorKey, np.ndarray],
-              copies: Mapping[PairKey, NeighbourCopy]) -> np.ndarray:
+    def poses(
+        self,
+        x: np.ndarray,
+        y: Mapping[int, np.ndarray],
+        anchors: Mapping[AnchorKey, np.ndarray],
+        copies: Mapping[PairKey, NeighbourCopy],
+    ) -> np.ndarray:
         """The values of every variable, stacked in variable order."""
         parts = [x]
         D = x.shape[-1]
@@ -74,10 +79,13 @@ class LocalStructure:
         return np.concatenate(parts) if len(parts) > 1 else x.reshape(-1, D, D).copy()
 
 
-def build_structure(problem: LocalProblem, config: AgentConfig, key: StructureKey,
-                    obs_ok: BoolArray,
-                    consensus: Callable[[dict[int, int], int], tuple[ConsensusFactors, ...]]
-                    ) -> LocalStructure:
+def build_structure(
+    problem: LocalProblem,
+    config: AgentConfig,
+    key: StructureKey,
+    obs_ok: BoolArray,
+    consensus: Callable[[dict[int, int], int], tuple[ConsensusFactors, ...]],
+) -> LocalStructure:
     """The structure of ``key`` (its object ids, anchors and pairs; ``obs_ok``: the own
     observations in use); ``consensus(object_slot, consensus_base)`` gives the consensus
     terms, whose pattern the plan includes."""
@@ -87,23 +95,33 @@ def build_structure(problem: LocalProblem, config: AgentConfig, key: StructureKe
     o_base, a_base, c_base = n, n + n_o, n + n_o + n_a
     obj_slot = {oid: o_base + i for i, oid in enumerate(obj_ids)}
     anc_slot = {k: a_base + i for i, k in enumerate(anchor_keys)}
-    kinds = kinds_array(n + n_o + n_a + n_c, public=np.arange(o_base, a_base),
-                        fixed=np.arange(a_base, c_base + n_c))
+    kinds = kinds_array(
+        n + n_o + n_a + n_c, public=np.arange(o_base, a_base), fixed=np.arange(a_base, c_base + n_c)
+    )
     c = config
-    blocks = p.factors(anc_slot, obj_slot, obs_ok,
-                       make_kernel(c.robust_kernel, c.robust_threshold),
-                       make_kernel(c.robust_kernel, c.object_kernel_width))
+    blocks = p.factors(
+        anc_slot,
+        obj_slot,
+        obs_ok,
+        make_kernel(c.robust_kernel, c.robust_threshold),
+        make_kernel(c.robust_kernel, c.object_kernel_width),
+    )
     graph = PoseGraph(dim=p.dim, kinds=kinds, factors=blocks)
     plan = build_plan(graph.with_factors(*consensus(obj_slot, c_base)))
-    return LocalStructure(key, n, graph, plan, obj_ids, anchor_keys, pair_keys,
-                          cholesky_factorizer(plan))
+    return LocalStructure(
+        key, n, graph, plan, obj_ids, anchor_keys, pair_keys, cholesky_factorizer(plan)
+    )
 
 
-def consensus_factors(config: AgentConfig, pair_keys: tuple[PairKey, ...],
-                      object_slot: Mapping[int, int], consensus_base: int,
-                      lam: Mapping[PairKey, np.ndarray], w: Mapping[int, float],
-                      conflicts: Callable[[tuple[PairKey, ...]], BoolArray]
-                      ) -> tuple[ConsensusFactors, ...]:
+def consensus_factors(
+    config: AgentConfig,
+    pair_keys: tuple[PairKey, ...],
+    object_slot: Mapping[int, int],
+    consensus_base: int,
+    lam: Mapping[PairKey, np.ndarray],
+    w: Mapping[int, float],
+    conflicts: Callable[[tuple[PairKey, ...]], BoolArray],
+) -> tuple[ConsensusFactors, ...]:
     """The consensus terms of ``pair_keys`` (duals ``lam``, weights ``w`` per neighbour):
     pair i joins its object's copy y_i to the variable ``consensus_base + i`` holding y_j.
 
@@ -121,8 +139,11 @@ def consensus_factors(config: AgentConfig, pair_keys: tuple[PairKey, ...],
     lam_k = np.stack([lam.get(k, np.zeros(r)) for k in pair_keys])
     w_k = np.array([w[j] for j, _ in pair_keys])
     kernel = None
-    if c.robust_kernel != "none" and c.object_gate_m > 0 and (
-            c.conflict_reach_m > 0 or c.centre_reach_m > 0):
+    if (
+        c.robust_kernel != "none"
+        and c.object_gate_m > 0
+        and (c.conflict_reach_m > 0 or c.centre_reach_m > 0)
+    ):
         conflict = conflicts(pair_keys)
         if conflict.any():
             scale = float(np.sqrt(c.beta) * np.mean(w_k) * c.object_gate_m)

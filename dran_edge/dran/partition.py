@@ -66,7 +66,9 @@ class Partition:
 
     def neighbour_pairs(self) -> list[tuple[int, int]]:
         """Undirected communication edges (i < j) of the measurement-induced topology."""
-        return sorted({(min(p.robot_id, q), max(p.robot_id, q)) for p in self.parts for q in p.neighbours})
+        return sorted(
+            {(min(p.robot_id, q), max(p.robot_id, q)) for p in self.parts for q in p.neighbours}
+        )
 
 
 def contiguous_owner(num_vertices: int, num_robots: int) -> np.ndarray:

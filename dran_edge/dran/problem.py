@@ -18,7 +18,13 @@ import numpy.typing as npt
 
 from dran_edge.config import Residual
 from dran_edge.dran.partition import Partition
-from dran_edge.solver.factors import BetweenFactors, Factor, Kernel, PriorFactors, isotropic_whitening
+from dran_edge.solver.factors import (
+    BetweenFactors,
+    Factor,
+    Kernel,
+    PriorFactors,
+    isotropic_whitening,
+)
 
 IntArray = npt.NDArray[np.int64]
 
@@ -97,7 +103,9 @@ class LocalProblem:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LocalProblem:
         kw = dict(data)
-        kw["separators_for"] = {int(k): np.asarray(v, np.int64) for k, v in data["separators_for"].items()}
+        kw["separators_for"] = {
+            int(k): np.asarray(v, np.int64) for k, v in data["separators_for"].items()
+        }
         return cls(**kw)
 
     @classmethod
@@ -105,13 +113,44 @@ class LocalProblem:
         D, r = dim + 1, (6 if dim == 3 else 3) if residual == Residual.GEODESIC else dim * dim + dim
         z = np.zeros(0, np.int64)
         T, W = np.zeros((0, D, D)), np.zeros((0, r))
-        return cls(dim, residual, z, z, T, np.zeros((0, 2), np.int64), T, W, np.zeros(0, bool),
-                   z, z, z, np.zeros(0, bool), T, W, np.zeros(0, bool), z, T, W, z, z, T, W, {})
+        return cls(
+            dim,
+            residual,
+            z,
+            z,
+            T,
+            np.zeros((0, 2), np.int64),
+            T,
+            W,
+            np.zeros(0, bool),
+            z,
+            z,
+            z,
+            np.zeros(0, bool),
+            T,
+            W,
+            np.zeros(0, bool),
+            z,
+            T,
+            W,
+            z,
+            z,
+            T,
+            W,
+            {},
+        )
 
     @classmethod
-    def from_partition(cls, graph: EdgeGraph, partition: Partition, robot: int, x0: np.ndarray,
-                       kappa: np.ndarray,
-                       tau: np.ndarray, residual: str = "chordal") -> LocalProblem:
+    def from_partition(
+        cls,
+        graph: EdgeGraph,
+        partition: Partition,
+        robot: int,
+        x0: np.ndarray,
+        kappa: np.ndarray,
+        tau: np.ndarray,
+        residual: str = "chordal",
+    ) -> LocalProblem:
         """Robot ``robot``'s problem from a partitioned g2o graph (Table 1, object-free mode);
         keyframe ids are vertex positions; SE-Sync isotropic weights (κ, τ)."""
         part = partition.parts[robot]
@@ -131,23 +170,40 @@ class LocalProblem:
         prior_T = x0[prior_own] if gauge is not None else np.zeros((0, D, D))
         prior_W = np.full((prior_own.size, W.shape[1]), 1e4 * float(np.sqrt(np.max(kappa))))
         return cls(
-            dim=dim, residual=residual, pose_ids=part.vertices.astype(np.int64),
-            pose_stamps_ns=part.vertices.astype(np.int64), x0=x0[part.vertices].copy(),
-            between=local[e_in], between_T=graph.measurements[part.intra_edges],
-            between_W=W[part.intra_edges], between_robust=np.zeros(e_in.shape[0], bool),
-            inter_own=local[own_end], inter_owner=partition.owner[other].astype(np.int64),
-            inter_anchor_id=other.astype(np.int64), inter_own_is_p=own_is_p,
-            inter_T=graph.measurements[part.inter_edges], inter_W=W[part.inter_edges],
+            dim=dim,
+            residual=residual,
+            pose_ids=part.vertices.astype(np.int64),
+            pose_stamps_ns=part.vertices.astype(np.int64),
+            x0=x0[part.vertices].copy(),
+            between=local[e_in],
+            between_T=graph.measurements[part.intra_edges],
+            between_W=W[part.intra_edges],
+            between_robust=np.zeros(e_in.shape[0], bool),
+            inter_own=local[own_end],
+            inter_owner=partition.owner[other].astype(np.int64),
+            inter_anchor_id=other.astype(np.int64),
+            inter_own_is_p=own_is_p,
+            inter_T=graph.measurements[part.inter_edges],
+            inter_W=W[part.inter_edges],
             inter_robust=np.zeros(e_x.shape[0], bool),
-            prior_own=prior_own, prior_T=prior_T, prior_W=prior_W,
-            obs_own=z, obs_object=z, obs_T=np.zeros((0, D, D)), obs_W=np.zeros((0, W.shape[1])),
+            prior_own=prior_own,
+            prior_T=prior_T,
+            prior_W=prior_W,
+            obs_own=z,
+            obs_object=z,
+            obs_T=np.zeros((0, D, D)),
+            obs_W=np.zeros((0, W.shape[1])),
             separators_for={q: local[v] for q, v in part.separators_for.items()},
         )
 
-
-    def factors(self, anchor_slot: Mapping[tuple[int, int], int], object_slot: Mapping[int, int],
-                obs_ok: np.ndarray, kernel: Kernel | None,
-                object_kernel: Kernel | None) -> tuple[Factor, ...]:
+    def factors(
+        self,
+        anchor_slot: Mapping[tuple[int, int], int],
+        object_slot: Mapping[int, int],
+        obs_ok: np.ndarray,
+        kernel: Kernel | None,
+        object_kernel: Kernel | None,
+    ) -> tuple[Factor, ...]:
         """The factor blocks of L̂_i but the consensus terms: f_intra (odometry without a
         kernel, loops with ``kernel``), f_inter against the neighbours' separators held as
         fixed anchors (only those in ``anchor_slot``: (owner, keyframe id) -> variable), the
@@ -158,8 +214,16 @@ class LocalProblem:
             rob = self.between_robust
             for mask, ker, label in ((~rob, None, "intra"), (rob, kernel, "intra-loop")):
                 if mask.any():
-                    blocks.append(BetweenFactors(self.between[mask], self.between_T[mask],
-                                                 self.between_W[mask], self.residual, ker, label))
+                    blocks.append(
+                        BetweenFactors(
+                            self.between[mask],
+                            self.between_T[mask],
+                            self.between_W[mask],
+                            self.residual,
+                            ker,
+                            label,
+                        )
+                    )
         if self.inter_own.size:
             ends = list(zip(self.inter_owner, self.inter_anchor_id))
             keep = np.array([(int(o), int(a)) in anchor_slot for o, a in ends])
@@ -169,15 +233,31 @@ class LocalProblem:
                 var = np.stack([np.where(is_p, own, a_idx), np.where(is_p, a_idx, own)], axis=1)
                 for m, ker in ((~self.inter_robust[keep], None), (self.inter_robust[keep], kernel)):
                     if m.any():
-                        blocks.append(BetweenFactors(var[m], self.inter_T[keep][m],
-                                                     self.inter_W[keep][m], self.residual, ker, "inter"))
+                        blocks.append(
+                            BetweenFactors(
+                                var[m],
+                                self.inter_T[keep][m],
+                                self.inter_W[keep][m],
+                                self.residual,
+                                ker,
+                                "inter",
+                            )
+                        )
         if self.prior_own.size:
-            blocks.append(PriorFactors(self.prior_own[:, None], self.prior_T, self.prior_W,
-                                       self.residual, None))
+            blocks.append(
+                PriorFactors(
+                    self.prior_own[:, None], self.prior_T, self.prior_W, self.residual, None
+                )
+            )
         ok = obs_ok
         if ok.any():
-            var = np.stack([self.obs_own[ok],
-                            np.array([object_slot[int(o)] for o in self.obs_object[ok]])], axis=1)
-            blocks.append(BetweenFactors(var, self.obs_T[ok], self.obs_W[ok], self.residual,
-                                         object_kernel, "object"))
+            var = np.stack(
+                [self.obs_own[ok], np.array([object_slot[int(o)] for o in self.obs_object[ok]])],
+                axis=1,
+            )
+            blocks.append(
+                BetweenFactors(
+                    var, self.obs_T[ok], self.obs_W[ok], self.residual, object_kernel, "object"
+                )
+            )
         return tuple(blocks)

@@ -85,8 +85,7 @@ def _bfs(adj: list[Any], root: int) -> np.ndarray:
     return depth
 
 
-def robot_tree(partition: Partition, adjacency: Sequence[Iterable[int]] | None = None
-               ) -> RobotTree:
+def robot_tree(partition: Partition, adjacency: Sequence[Iterable[int]] | None = None) -> RobotTree:
     """BFS tree rooted at a centre of the robot graph (least eccentricity; among those the
     robot with the most boundary vertices, whose condensed system then does not travel;
     then the lowest id). ``adjacency`` (per robot its neighbours): the links to use instead of
@@ -95,8 +94,11 @@ def robot_tree(partition: Partition, adjacency: Sequence[Iterable[int]] | None =
     boundary value comes down from it (a factor between two robots that are no neighbours
     travels over the tree's path, counted on the links it crosses)."""
     R = partition.num_robots
-    adj = [sorted(p.neighbours) for p in partition.parts] if adjacency is None else \
-        [sorted(int(q) for q in a) for a in adjacency]
+    adj = (
+        [sorted(p.neighbours) for p in partition.parts]
+        if adjacency is None
+        else [sorted(int(q) for q in a) for a in adjacency]
+    )
     ecc = np.array([int(_bfs(adj, r).max()) for r in range(R)])
     size = np.array([np.union1d(p.separators, p.anchors).size for p in partition.parts])
     root = int(np.lexsort((np.arange(R), -size, ecc))[0])
@@ -125,7 +127,9 @@ class _Structure:
     B: np.ndarray  # boundary vertex positions (sorted)
     I: np.ndarray  # interior vertex positions (sorted)
     pairs: np.ndarray  # (p, 2) boundary-local (i ≤ j) pairs joined by an edge, and (i, i)
-    comps: tuple[tuple[np.ndarray, np.ndarray], ...]  # per connected piece C of the interior: (C local rows into I, N(C) into B)
+    comps: tuple[
+        tuple[np.ndarray, np.ndarray], ...
+    ]  # per connected piece C of the interior: (C local rows into I, N(C) into B)
 
 
 def _structure(part: Any, partition: Partition, gauge: int) -> _Structure:
@@ -176,8 +180,9 @@ def direct_floats(partition: Partition, b: int, ncol: int, gauge: int, tree: Rob
     for r in range(partition.num_robots):
         if r == tree.root:
             continue
-        need = np.unique(np.concatenate([boundary(partition.parts[q], gauge)
-                                         for q in tree.subtree(r)]))
+        need = np.unique(
+            np.concatenate([boundary(partition.parts[q], gauge) for q in tree.subtree(r)])
+        )
         total += need.size * b * ncol
     return total
 
@@ -225,8 +230,15 @@ class Condensed:
         return X_I
 
 
-def condense(part: Any, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b: int, gauge: int,
-             X_gauge: np.ndarray) -> Condensed:
+def condense(
+    part: Any,
+    partition: Partition,
+    Q: sp.spmatrix,
+    rhs: np.ndarray,
+    b: int,
+    gauge: int,
+    X_gauge: np.ndarray,
+) -> Condensed:
     """Robot's share ``Q⁽ʳ⁾ X = rhs⁽ʳ⁾`` (n·b square, its own and anchor vertices only; block
     size b) condensed onto its boundary, the gauge vertex held at ``X_gauge``. The interior
     block must be positive definite (no pivoting)."""
@@ -235,12 +247,19 @@ def condense(part: Any, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b
     st = _structure(part, partition, gauge)
     rb, ri = expand(st.B, b), expand(st.I, b)
     Q_B = Q[rb][:, rb]
-    Q_BB = np.stack([Q_B[i * b:(i + 1) * b][:, j * b:(j + 1) * b].toarray() for i, j in st.pairs]) \
-        if len(st.pairs) else np.zeros((0, b, b))
+    Q_BB = (
+        np.stack([Q_B[i * b : (i + 1) * b][:, j * b : (j + 1) * b].toarray() for i, j in st.pairs])
+        if len(st.pairs)
+        else np.zeros((0, b, b))
+    )
     g, lu, Q_IB, pieces = rhs[rb].copy(), None, sp.csr_matrix((ri.size, rb.size)), []
     if ri.size:
-        lu = spla.splu(sp.csc_matrix(Q[ri][:, ri]), permc_spec="MMD_AT_PLUS_A",
-                       diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        lu = spla.splu(
+            sp.csc_matrix(Q[ri][:, ri]),
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
         Q_IB = Q[ri][:, rb].tocsr()
         Y = lu.solve(np.column_stack([Q_IB.toarray(), rhs[ri]]))
         for C, N in st.comps:  # Y is zero outside each piece's own rows and neighbours
@@ -248,12 +267,13 @@ def condense(part: Any, partition: Partition, Q: sp.spmatrix, rhs: np.ndarray, b
             Qc = Q_IB[rc][:, rn].toarray()
             P = -Qc.T @ Y[rc][:, rn]
             pieces.append(0.5 * (P + P.T))
-            g[rn] -= Qc.T @ Y[rc, rb.size:]
+            g[rn] -= Qc.T @ Y[rc, rb.size :]
     return Condensed(st, lu, Q_IB, rhs[ri], Q_BB, pieces, g)
 
 
-def _stage_share(part: Any, n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.ndarray,
-                 w: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+def _stage_share(
+    part: Any, n: int, b: int, edges: np.ndarray, M: np.ndarray, c: np.ndarray, w: np.ndarray
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """Robot's share of a linear init stage: its edges, inter-robot ones at half weight."""
     from dran_edge.dran.linear_stage import normal_equations
 
@@ -277,8 +297,9 @@ def pack(loc: Condensed, b: int, scalars: Any = ()) -> np.ndarray:
     return np.concatenate([np.asarray(x, float) for x in out])
 
 
-def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0
-            ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+def _unpack(
+    flat: np.ndarray, b: int, ncol: int, nscalars: int = 0
+) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
     """(B ids, g, pieces, scalars): the condensed system as (boundary-local indices, dense
     block) terms, and the ``nscalars`` values after it."""
     pos = 0
@@ -288,7 +309,7 @@ def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0
         pos += k
         if pos > flat.size:
             raise ValueError("truncated condensed system")
-        return flat[pos - k:pos]
+        return flat[pos - k : pos]
 
     nb = int(round(take(1)[0]))
     B = np.rint(take(nb)).astype(np.int64)
@@ -300,8 +321,9 @@ def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0
         if i == j:
             pieces.append((np.array([i]), blk))
         else:
-            pieces.append((np.array([i, j]), np.block([[np.zeros((b, b)), blk],
-                                                       [blk.T, np.zeros((b, b))]])))
+            pieces.append(
+                (np.array([i, j]), np.block([[np.zeros((b, b)), blk], [blk.T, np.zeros((b, b))]]))
+            )
     for _ in range(int(round(take(1)[0]))):
         nn = int(round(take(1)[0]))
         N = np.rint(take(nn)).astype(np.int64)
@@ -313,8 +335,10 @@ def _unpack(flat: np.ndarray, b: int, ncol: int, nscalars: int = 0
 
 
 def missing(what: str) -> None:
-    raise RuntimeError(f"substructured solve: {what} (a lost datagram?); it needs every "
-                       "message delivered: over lossy links use InitParams(direct='never')")
+    raise RuntimeError(
+        f"substructured solve: {what} (a lost datagram?); it needs every "
+        "message delivered: over lossy links use InitParams(direct='never')"
+    )
 
 
 def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
@@ -322,12 +346,13 @@ def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
     flat = np.concatenate([[flat.size], flat])
     size = d * d
     pad = np.zeros(-(-flat.size // size) * size)
-    pad[:flat.size] = flat
+    pad[: flat.size] = flat
     return list(pad.reshape(-1, d, d))
 
 
-def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange: Any, kind: InitStage,
-           rounds: int) -> tuple[dict[int, np.ndarray], int]:
+def gather(
+    tree: RobotTree, packed: list[np.ndarray], d: int, exchange: Any, kind: InitStage, rounds: int
+) -> tuple[dict[int, np.ndarray], int]:
     """Step 1 (module docstring): every robot's packed vector travels up the tree as ``kind``
     chunks (d × d); returns the root's ``{origin robot: packed vector}`` and the rounds count."""
     R = len(packed)
@@ -335,9 +360,11 @@ def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange: Any, kin
     for level in range(tree.height, 0, -1):
         outgoing: dict[int, list[Any]] = {}
         for r in np.flatnonzero(tree.depth == level):
-            entries = [InitEntry(kind, int(o), k, ch)
-                       for o, flat in sorted(bundles[r].items())
-                       for k, ch in enumerate(_chunks(flat, d))]
+            entries = [
+                InitEntry(kind, int(o), k, ch)
+                for o, flat in sorted(bundles[r].items())
+                for k, ch in enumerate(_chunks(flat, d))
+            ]
             outgoing[int(r)] = [(int(tree.parent[r]), entries)]
         incoming = exchange(kind, rounds, outgoing)
         rounds += 1
@@ -345,23 +372,28 @@ def gather(tree: RobotTree, packed: list[np.ndarray], d: int, exchange: Any, kin
             parts: dict[int, dict[int, Any]] = {}
             for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
                 if InitStage(e.stage) == kind:
-                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = \
-                        np.asarray(e.value, float).ravel()
+                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = np.asarray(
+                        e.value, float
+                    ).ravel()
             for o, by_index in parts.items():
                 chunks = sorted(by_index.items())
                 flat = np.concatenate([v for _, v in chunks])
-                if [k for k, _ in chunks] != list(range(len(chunks))) or \
-                        flat.size < 1 + int(round(flat[0])):
+                if [k for k, _ in chunks] != list(range(len(chunks))) or flat.size < 1 + int(
+                    round(flat[0])
+                ):
                     missing(f"robot {o}'s condensed system reached robot {q} incomplete")
-                bundles[q][o] = flat[1:1 + int(round(flat[0]))]
+                bundles[q][o] = flat[1 : 1 + int(round(flat[0]))]
     if len(bundles[tree.root]) != R:
-        missing(f"the root (robot {tree.root}) lacks the condensed systems of robots "
-                 f"{sorted(set(range(R)) - set(bundles[tree.root]))}")
+        missing(
+            f"the root (robot {tree.root}) lacks the condensed systems of robots "
+            f"{sorted(set(range(R)) - set(bundles[tree.root]))}"
+        )
     return bundles[tree.root], rounds
 
 
-def solve_interface(bundle: dict[int, np.ndarray], b: int, ncol: int, nscalars: int = 0
-                    ) -> tuple[dict[int, np.ndarray], np.ndarray, bool]:
+def solve_interface(
+    bundle: dict[int, np.ndarray], b: int, ncol: int, nscalars: int = 0
+) -> tuple[dict[int, np.ndarray], np.ndarray, bool]:
     """Step 2: the root assembles ``Σ S_r``, ``Σ g_r`` from the gathered vectors and solves;
     returns ``{boundary vertex: (b, ncol) value}``, the (R, nscalars) scalars by robot and
     whether ``Σ S_r`` is positive definite (its LU pivots, no pivoting, all positive)."""
@@ -380,38 +412,57 @@ def solve_interface(bundle: dict[int, np.ndarray], b: int, ncol: int, nscalars: 
     X_B: np.ndarray = np.zeros_like(g_glob)
     pd = True
     if Bglob.size:
-        S_glob = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                               shape=(Bglob.size * b,) * 2)
-        lu = spla.splu(S_glob, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
+        S_glob = sp.csc_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(Bglob.size * b,) * 2,
+        )
+        lu = spla.splu(
+            S_glob,
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
         X_B, pd = lu.solve(g_glob), bool(np.all(lu.U.diagonal() > 0))
     X_B = X_B.reshape(Bglob.size, b, ncol)
     scalars = np.array([u[3] for u in unpacked]).reshape(len(unpacked), nscalars)
     return {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}, scalars, pd
 
 
-def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict[int, np.ndarray],
-            exchange: Any, kind: InitStage, to_entry: Callable[..., InitEntry],
-            from_entry: Callable[[InitEntry], np.ndarray], rounds: int,
-            extra: list[Any] | None = None
-            ) -> tuple[list[dict[int, np.ndarray]], list[list[Any]], int]:
+def scatter(
+    tree: RobotTree,
+    boundaries: list[np.ndarray],
+    root_values: dict[int, np.ndarray],
+    exchange: Any,
+    kind: InitStage,
+    to_entry: Callable[..., InitEntry],
+    from_entry: Callable[[InitEntry], np.ndarray],
+    rounds: int,
+    extra: list[Any] | None = None,
+) -> tuple[list[dict[int, np.ndarray]], list[list[Any]], int]:
     """Step 3: each link carries the boundary values its subtree needs as ``kind`` entries
     (``to_entry(v, X_v)`` / ``from_entry(entry)``), plus the root's ``extra`` entries (which
     every robot receives). Returns per robot ``{vertex: value}`` and its extra entries."""
     R = len(boundaries)
     known: list[dict[int, np.ndarray]] = [dict() for _ in range(R)]
     known[tree.root] = dict(root_values)
-    others: list[dict[Any, Any]] = [dict() for _ in range(R)]  # keyed: a duplicated datagram repeats
-    others[tree.root] = {(int(e.stage), int(e.owner_robot), int(e.keyframe_id)): e
-                         for e in extra or []}
+    others: list[dict[Any, Any]] = [
+        dict() for _ in range(R)
+    ]  # keyed: a duplicated datagram repeats
+    others[tree.root] = {
+        (int(e.stage), int(e.owner_robot), int(e.keyframe_id)): e for e in extra or []
+    }
     for level in range(1, tree.height + 1):
         outgoing: dict[int, list[Any]] = {}
         for c in np.flatnonzero(tree.depth == level):
             p = int(tree.parent[c])
             need = np.unique(np.concatenate([boundaries[q] for q in tree.subtree(int(c))]))
             outgoing.setdefault(p, []).append(
-                (int(c), [to_entry(int(v), known[p][int(v)]) for v in need.tolist()]
-                 + list(others[p].values())))
+                (
+                    int(c),
+                    [to_entry(int(v), known[p][int(v)]) for v in need.tolist()]
+                    + list(others[p].values()),
+                )
+            )
         incoming = exchange(kind, rounds, outgoing)
         rounds += 1
         for q, entries in incoming.items():
@@ -429,16 +480,32 @@ def scatter(tree: RobotTree, boundaries: list[np.ndarray], root_values: dict[int
 
 def boundary_values(loc: Condensed, known: dict[int, np.ndarray], ncol: int) -> np.ndarray:
     """The (|B|·b, ncol) stacked values of the robot's boundary from ``known``."""
-    return np.concatenate([known[int(v)] for v in loc.B.tolist()]) if loc.B.size else \
-        np.zeros((0, ncol))
+    return (
+        np.concatenate([known[int(v)] for v in loc.B.tolist()])
+        if loc.B.size
+        else np.zeros((0, ncol))
+    )
 
 
-def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray,
-                 M: np.ndarray, c_of: Callable[[int], np.ndarray], w: np.ndarray, gauge: int,
-                 X_gauge: np.ndarray, exchange: Any, schur_kind: InitStage,
-                 value_kind: InitStage, to_entry: Callable[..., InitEntry],
-                 from_entry: Callable[[InitEntry], np.ndarray], X0: np.ndarray,
-                 tree: RobotTree | None = None) -> tuple[list[np.ndarray], int]:
+def solve_direct(
+    partition: Partition,
+    n: int,
+    b: int,
+    d: int,
+    edges: np.ndarray,
+    M: np.ndarray,
+    c_of: Callable[[int], np.ndarray],
+    w: np.ndarray,
+    gauge: int,
+    X_gauge: np.ndarray,
+    exchange: Any,
+    schur_kind: InitStage,
+    value_kind: InitStage,
+    to_entry: Callable[..., InitEntry],
+    from_entry: Callable[[InitEntry], np.ndarray],
+    X0: np.ndarray,
+    tree: RobotTree | None = None,
+) -> tuple[list[np.ndarray], int]:
     """Solve the stage exactly (module docstring). Returns each robot's view ((n·b, ncol):
     its own vertices and anchors solved, the rest ``X0``) and the rounds used. ``to_entry(v,
     X_v)`` / ``from_entry(entry)`` convert one separator value to / from its init entry."""
@@ -450,8 +517,16 @@ def solve_direct(partition: Partition, n: int, b: int, d: int, edges: np.ndarray
         locs.append(condense(p, partition, Q, rhs, b, gauge, X_gauge))
     bundle, rounds = gather(tree, [pack(loc, b) for loc in locs], d, exchange, schur_kind, 0)
     root_values, _, _ = solve_interface(bundle, b, ncol)
-    known, _, rounds = scatter(tree, [loc.B for loc in locs], root_values, exchange, value_kind,
-                               to_entry, from_entry, rounds)
+    known, _, rounds = scatter(
+        tree,
+        [loc.B for loc in locs],
+        root_values,
+        exchange,
+        value_kind,
+        to_entry,
+        from_entry,
+        rounds,
+    )
     views = []  # 4. back-substitution of each robot's interior
     for r, loc in enumerate(locs):
         view = X0.copy()

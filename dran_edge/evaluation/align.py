@@ -129,8 +129,10 @@ def associate(
     Tq, ok = interpolate_track(time_ref_s, T_ref, q, valid=valid_ref, max_gap_s=max_gap_s)
     idx = np.flatnonzero(ok)
     if idx.size == 0:
-        raise InputError(f"{what}: no estimated pose falls within tracked mocap frames "
-                         f"(occlusion gaps longer than {max_gap_s} s everywhere)")
+        raise InputError(
+            f"{what}: no estimated pose falls within tracked mocap frames "
+            f"(occlusion gaps longer than {max_gap_s} s everywhere)"
+        )
     return Association(stamps_est_s[idx], idx, T_est[idx], Tq[idx], float(time_offset_s))
 
 
@@ -175,9 +177,17 @@ def _smooth(w, smooth_n):
     return w
 
 
-def _speed_signals(stamps_est_s: np.ndarray, T_est: np.ndarray, time_ref_s: np.ndarray,
-                   T_ref: np.ndarray, vr: np.ndarray, initial_offset_s: float, rate_hz: float,
-                   smooth_s: float, signal: str) -> tuple[np.ndarray, np.ndarray, int]:
+def _speed_signals(
+    stamps_est_s: np.ndarray,
+    T_est: np.ndarray,
+    time_ref_s: np.ndarray,
+    T_ref: np.ndarray,
+    vr: np.ndarray,
+    initial_offset_s: float,
+    rate_hz: float,
+    smooth_s: float,
+    signal: str,
+) -> tuple[np.ndarray, np.ndarray, int]:
     """(estimate speeds, mocap speeds, j0): both resampled at ``rate_hz`` on grids of the same
     phase in the estimate's clock, the mocap's shifted by ``initial_offset_s``; mocap sample 0
     is estimate grid step ``j0``. NaN where a signal is undefined."""
@@ -201,8 +211,9 @@ def _speed_signals(stamps_est_s: np.ndarray, T_est: np.ndarray, time_ref_s: np.n
     return e, r, j0
 
 
-def _lag_correlation(e: np.ndarray, r: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _lag_correlation(
+    e: np.ndarray, r: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(rho, n, var_e, var_r) per lag L = k − (len(e) − 1): the normalised cross-correlation
     of the finite samples of ``e`` and ``r`` over their overlap, its sample count and the
     (unnormalised) variances of both signals there."""
@@ -273,8 +284,9 @@ def estimate_time_offset(
     if initial_offset_s is None:
         initial_offset_s = float(time_ref_s[vr][0] - stamps_est_s[0])
     step = 1.0 / rate_hz
-    e, r, j0 = _speed_signals(stamps_est_s, T_est, time_ref_s, T_ref, vr, initial_offset_s,
-                              rate_hz, smooth_s, signal)
+    e, r, j0 = _speed_signals(
+        stamps_est_s, T_est, time_ref_s, T_ref, vr, initial_offset_s, rate_hz, smooth_s, signal
+    )
     n_e, n_r = len(e), len(r)
     min_n = int(min_overlap_s * rate_hz)
     if n_e < 3 or n_r < 3 or min(n_e, n_r) < min(min_n, 3):
@@ -290,9 +302,11 @@ def estimate_time_offset(
     if max_offset_s is not None:
         ok &= np.abs(offset_of_L - initial_offset_s) <= max_offset_s + 0.5 * step
     if not ok.any():
-        raise InputError(f"time offset: no lag with enough overlap and {signal} motion (does "
-                         f"the robot {'turn' if signal == 'angular' else 'move'}? does the "
-                         "estimate overlap the reference in time?); give --time-offset S")
+        raise InputError(
+            f"time offset: no lag with enough overlap and {signal} motion (does "
+            f"the robot {'turn' if signal == 'angular' else 'move'}? does the "
+            "estimate overlap the reference in time?); give --time-offset S"
+        )
     k, frac = _peak(rho, ok)
     return TimeOffset(float(offset_of_L[k] + frac * step), float(rho[k]), float(n[k] * step))
 
@@ -323,12 +337,17 @@ class Alignment:
         return out
 
     def to_json(self) -> dict:
-        return {"kind": self.kind, "R": self.R.tolist(), "t_m": self.t.tolist(),
-                "scale": self.scale}
+        return {
+            "kind": self.kind,
+            "R": self.R.tolist(),
+            "t_m": self.t.tolist(),
+            "scale": self.scale,
+        }
 
 
-def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = False
-            ) -> tuple[np.ndarray, np.ndarray, float]:
+def umeyama(
+    src: np.ndarray, dst: np.ndarray, *, with_scale: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
     """(R, t, s) minimising Σ‖dst_i − (s R src_i + t)‖² (Umeyama 1991, eqs. 34–42)."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
@@ -356,8 +375,10 @@ def yaw_alignment(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndar
         raise InputError(f"yaw alignment needs at least 2 matched positions, got {len(src)}")
     xs, xd = src - src.mean(0), dst - dst.mean(0)
     # d/dψ of the cost vanishes at tan ψ = Σ(x_s y_d − y_s x_d) / Σ(x_s x_d + y_s y_d).
-    psi = np.arctan2(np.sum(xs[:, 0] * xd[:, 1] - xs[:, 1] * xd[:, 0]),
-                     np.sum(xs[:, 0] * xd[:, 0] + xs[:, 1] * xd[:, 1]))
+    psi = np.arctan2(
+        np.sum(xs[:, 0] * xd[:, 1] - xs[:, 1] * xd[:, 0]),
+        np.sum(xs[:, 0] * xd[:, 0] + xs[:, 1] * xd[:, 1]),
+    )
     c, s = np.cos(psi), np.sin(psi)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return R, dst.mean(0) - R @ src.mean(0)

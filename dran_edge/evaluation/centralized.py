@@ -48,13 +48,13 @@ def initial_objective(g: G2oGraph, vmap: VertexMap, inits: dict[str, Track]) -> 
         if len(sel) == 0:
             continue
         stamps_ns = np.array([kind[k][2] for k in sel], np.int64)
-        P0[sel], _ = geo.se3_interpolate(np.round(s_init * 1e9).astype(np.int64), T_init,
-                                         stamps_ns)
+        P0[sel], _ = geo.se3_interpolate(np.round(s_init * 1e9).astype(np.int64), T_init, stamps_ns)
     if any(kd[0] == "pose" and kd[1] not in inits for kd in kind):
         return None
     is_obj = np.array([kd[0] == "object" for kd in kind])
-    stamp = np.array([kd[2] if kd[0] == "pose" else np.iinfo(np.int64).max for kd in kind],
-                     np.int64)
+    stamp = np.array(
+        [kd[2] if kd[0] == "pose" else np.iinfo(np.int64).max for kd in kind], np.int64
+    )
     placed = np.zeros(len(ids), bool)
     obs = [k for k, (a, b) in enumerate(g.edges.tolist()) if is_obj[b] and not is_obj[a]]
     for k in sorted(obs, key=lambda k: stamp[g.edges[k, 0]]):
@@ -77,8 +77,10 @@ def _solve_centrally(g: G2oGraph, notes: list[str]) -> tuple[SolveReport, bool]:
     except InputError as exc:
         # e.g. a disconnected merged graph (robots that never met, each fixed by its own
         # gauge): chordal initialisation needs one component; start from the file instead.
-        notes.append(f"centralized: chordal initialisation failed ({exc}); solved from the "
-                     "decentralized estimate, so F_init is not the chordal one")
+        notes.append(
+            f"centralized: chordal initialisation failed ({exc}); solved from the "
+            "decentralized estimate, so F_init is not the chordal one"
+        )
         return solve_g2o(g, init="file"), False
 
 
@@ -96,8 +98,9 @@ def _cost_of(rep: SolveReport, chordal: bool) -> dict[str, Any]:
     return cost
 
 
-def _robot_tracks(g: G2oGraph, vmap: VertexMap, poses: np.ndarray, finals: dict[str, Track],
-                  cost: dict[str, Any]) -> dict[str, Track]:
+def _robot_tracks(
+    g: G2oGraph, vmap: VertexMap, poses: np.ndarray, finals: dict[str, Track], cost: dict[str, Any]
+) -> dict[str, Track]:
     """{robot: (stamps_s, T)} of the centralized ``poses``, by merged_vertices.csv.
 
     Also checks the file's vertex values against the exported final trajectory at the same
@@ -106,8 +109,9 @@ def _robot_tracks(g: G2oGraph, vmap: VertexMap, poses: np.ndarray, finals: dict[
     out = {}
     ids = g.vertex_ids
     for name in finals:
-        sel_list = [k for k, vid in enumerate(ids)
-                    if vmap.get(int(vid), ("", "", 0))[:2] == ("pose", name)]
+        sel_list = [
+            k for k, vid in enumerate(ids) if vmap.get(int(vid), ("", "", 0))[:2] == ("pose", name)
+        ]
         if not sel_list:
             continue
         sel = np.array(sel_list)
@@ -126,9 +130,12 @@ def _robot_tracks(g: G2oGraph, vmap: VertexMap, poses: np.ndarray, finals: dict[
     return out
 
 
-def centralized_from_g2o(run_dir: Path, finals: dict[str, Track], notes: list[str],
-                         inits: dict[str, Track] | None = None,
-                         ) -> tuple[dict[str, Track], dict[str, Any]]:
+def centralized_from_g2o(
+    run_dir: Path,
+    finals: dict[str, Track],
+    notes: list[str],
+    inits: dict[str, Track] | None = None,
+) -> tuple[dict[str, Track], dict[str, Any]]:
     """Centralized trajectories {robot: (stamps_s, T)} and costs from merged.g2o.
 
     ``finals`` are the robots' exported final estimates: merged.g2o's vertex values must be
@@ -142,20 +149,25 @@ def centralized_from_g2o(run_dir: Path, finals: dict[str, Track], notes: list[st
         return {}, {}
     g = read_g2o(g2o_path)
     if g.dim != 3:
-        raise InputError(f"expected SE(3) vertices in merged.g2o, got SE({g.dim})",
-                         path=str(g2o_path))
+        raise InputError(
+            f"expected SE(3) vertices in merged.g2o, got SE({g.dim})", path=str(g2o_path)
+        )
     rep, chordal = _solve_centrally(g, notes)
     cost = _cost_of(rep, chordal)
     vmap_path = run_dir / "out" / "merged_vertices.csv"
     if not vmap_path.exists():
-        notes.append("SR_ATE / SR_cost: out/merged_vertices.csv absent, cannot map merged.g2o "
-                     "vertices to robots and stamps")
+        notes.append(
+            "SR_ATE / SR_cost: out/merged_vertices.csv absent, cannot map merged.g2o "
+            "vertices to robots and stamps"
+        )
         return {}, cost
     vmap = read_vertex_map(vmap_path)
     F_init = initial_objective(g, vmap, inits or {})
     if F_init is None:
-        notes.append("SR_cost: some robot has no out/<robot>/<robot>_init.tum (or an object "
-                     "no observation), so F_init at the initial estimate is unknown")
+        notes.append(
+            "SR_cost: some robot has no out/<robot>/<robot>_init.tum (or an object "
+            "no observation), so F_init at the initial estimate is unknown"
+        )
     else:
         cost["F_init"] = F_init
     out = _robot_tracks(g, vmap, rep.result.poses, finals, cost)
@@ -163,5 +175,6 @@ def centralized_from_g2o(run_dir: Path, finals: dict[str, Track], notes: list[st
         notes.append(
             f"merged.g2o: its vertex values differ from out/<robot>/<robot>.tum by up to "
             f"{cost['merged_vs_trajectory_max_m']:.3f} m at the same stamps (another frame?); "
-            "F_k, SR_cost and the centralized solution (SR_ATE) are then not comparable")
+            "F_k, SR_cost and the centralized solution (SR_ATE) are then not comparable"
+        )
     return out, cost

@@ -38,16 +38,20 @@ class ObjectPlotData:
     y_avg: np.ndarray
 
 
-def inter_robot_errors(robots: dict[str, RobotTracks],
-                       aligned: dict[str, dict[str, np.ndarray]], offset: float,
-                       rate_hz: float, max_gap_s: float) -> dict[str, Any]:
+def inter_robot_errors(
+    robots: dict[str, RobotTracks],
+    aligned: dict[str, dict[str, np.ndarray]],
+    offset: float,
+    rate_hz: float,
+    max_gap_s: float,
+) -> dict[str, Any]:
     """Robot b seen from robot a, for every pair, at common instants: the aligned final
     estimates (with the paper's per-robot frames these differ from the files)."""
     out: dict[str, Any] = {"pairs": {}}
     tr_all, rot_all = [], []
     scored = [n for n in robots if "final" in aligned.get(n, {})]
     for i, a in enumerate(scored):
-        for b in scored[i + 1:]:
+        for b in scored[i + 1 :]:
             sa, Ta = robots[a].assoc["final"].stamps_s, aligned[a]["final"]
             sb, Tb = robots[b].assoc["final"].stamps_s, aligned[b]["final"]
             lo, hi = max(sa[0], sb[0]), min(sa[-1], sb[-1])
@@ -73,13 +77,18 @@ def inter_robot_errors(robots: dict[str, RobotTracks],
     return out
 
 
-def object_maps(mission: Mission, robots: dict[str, RobotTracks], take: motive.MotiveTake | None,
-             final_align: dict[str, align.Alignment], notes: list[str]
-             ) -> tuple[dict[str, Any], ObjectPlotData | None]:
+def object_maps(
+    mission: Mission,
+    robots: dict[str, RobotTracks],
+    take: motive.MotiveTake | None,
+    final_align: dict[str, align.Alignment],
+    notes: list[str],
+) -> tuple[dict[str, Any], ObjectPlotData | None]:
     """The report's ``objects`` section (CE, Bias, per-object errors) and the plot's data."""
     names = list(robots)
-    ids = sorted({oid for rb in robots.values() for oid in rb.objects}
-                 | {o.id for o in mission.objects})
+    ids = sorted(
+        {oid for rb in robots.values() for oid in rb.objects} | {o.id for o in mission.objects}
+    )
     if not ids or not any(rb.objects for rb in robots.values()):
         notes.append("objects: no out/<robot>/objects.csv; CE and Bias not computed")
         return {}, None
@@ -100,9 +109,11 @@ def object_maps(mission: Mission, robots: dict[str, RobotTracks], take: motive.M
             if body is None:
                 continue
             if body not in take.bodies:
-                raise InputError(f"object {o.name}: mocap_body {body!r} is not a rigid body of "
-                                 f"the Motive take; it has: {', '.join(sorted(take.bodies))}",
-                                 path=take.path)
+                raise InputError(
+                    f"object {o.name}: mocap_body {body!r} is not a rigid body of "
+                    f"the Motive take; it has: {', '.join(sorted(take.bodies))}",
+                    path=take.path,
+                )
             b = take.bodies[body]
             if not b.valid.any():
                 notes.append(f"object {o.name}: never tracked by mocap")
@@ -127,9 +138,9 @@ def object_maps(mission: Mission, robots: dict[str, RobotTracks], take: motive.M
                 "trans_err_m": {names[i]: tr[i, k] for i in range(N) if present[i, k]},
                 "rot_err_deg": {names[i]: rot[i, k] for i in range(N) if present[i, k]},
             }
-            for oid, k in col.items() if has_gt[k]
+            for oid, k in col.items()
+            if has_gt[k]
         }
     else:
         notes.append("objects: no object has a mocap rigid body; Bias not computed")
-    return rep, ObjectPlotData(ids=ids, names=names, Y=Y_al, present=present, gt=gt,
-                               y_avg=y_avg)
+    return rep, ObjectPlotData(ids=ids, names=names, Y=Y_al, present=present, gt=gt, y_avg=y_avg)

@@ -66,8 +66,9 @@ def ate_log_rmse(T_est: np.ndarray, T_ref: np.ndarray, group: np.ndarray | None 
     return float(np.sqrt(_group_mean(np.sum(e * e, axis=-1), group)))
 
 
-def ate_trans_rmse_m(T_est: np.ndarray, T_ref: np.ndarray, group: np.ndarray | None = None
-                     ) -> float:
+def ate_trans_rmse_m(
+    T_est: np.ndarray, T_ref: np.ndarray, group: np.ndarray | None = None
+) -> float:
     """Translation ATE (m): RMSE of ‖p_est − p_ref‖ (evo's APE translation part).
 
     With ``group`` each robot weighs 1/N, as in :func:`ate_log_rmse`.
@@ -232,8 +233,9 @@ def object_bias_of_mean(y_avg: np.ndarray, Y_gt: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(e * e, axis=-1))))
 
 
-def object_errors(Y: np.ndarray, present: np.ndarray, Y_gt: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def object_errors(
+    Y: np.ndarray, present: np.ndarray, Y_gt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-copy errors against ground truth: (translation (m), rotation (deg)), each ``(N, m)``,
     NaN where a copy or the ground truth is missing."""
     Y = np.asarray(Y, dtype=np.float64)
@@ -258,16 +260,21 @@ def relative_errors(T_est_a, T_ref_a, T_est_b, T_ref_b) -> tuple[np.ndarray, np.
     return np.linalg.norm(E[..., :3, 3], axis=-1), rotation_angle_deg(E[..., :3, :3])
 
 
-def rpe(stamps_s: np.ndarray, T_est: np.ndarray, T_ref: np.ndarray, *, delta_s: float = 1.0
-        ) -> dict[str, float]:
+def rpe(
+    stamps_s: np.ndarray, T_est: np.ndarray, T_ref: np.ndarray, *, delta_s: float = 1.0
+) -> dict[str, float]:
     """Relative pose error over pose pairs ``delta_s`` apart (the first pose at least
     ``delta_s`` later): translation RMSE (m), rotation RMSE (deg), pair count."""
     stamps_s = np.asarray(stamps_s, dtype=np.float64)
     j = np.searchsorted(stamps_s, stamps_s + delta_s - 1e-9, side="left")
     i = np.flatnonzero(j < len(stamps_s))
     if i.size == 0:
-        return {"delta_s": delta_s, "pairs": 0, "trans_rmse_m": float("nan"),
-                "rot_rmse_deg": float("nan")}
+        return {
+            "delta_s": delta_s,
+            "pairs": 0,
+            "trans_rmse_m": float("nan"),
+            "rot_rmse_deg": float("nan"),
+        }
     j = j[i]
     tr, rot = relative_errors(T_est[i], T_ref[i], T_est[j], T_ref[j])
     return {

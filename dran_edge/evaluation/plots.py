@@ -26,8 +26,9 @@ def _plt() -> Any:
     try:
         import matplotlib
     except ImportError:
-        raise DependencyError("plots need matplotlib: pip install 'dran-edge[eval]' (or pass "
-                              "--no-plots)") from None
+        raise DependencyError(
+            "plots need matplotlib: pip install 'dran-edge[eval]' (or pass --no-plots)"
+        ) from None
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
@@ -46,8 +47,9 @@ def write_plots(evaluation: RunEvaluation, eval_dir: Path) -> list[Path]:
     return written
 
 
-def _trajectories(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path
-                  ) -> Path | None:
+def _trajectories(
+    plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path
+) -> Path | None:
     robots = data.robots
     aligned = data.aligned
     if not aligned and not data.objects:
@@ -59,8 +61,14 @@ def _trajectories(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir:
         if name not in aligned:
             continue
         a = rb.assoc["final"]
-        ax.plot(a.T_ref[:, 0, 3], a.T_ref[:, 1, 3], color="0.25", lw=1.0, ls="--",
-                label="mocap" if k == 0 else None)
+        ax.plot(
+            a.T_ref[:, 0, 3],
+            a.T_ref[:, 1, 3],
+            color="0.25",
+            lw=1.0,
+            ls="--",
+            label="mocap" if k == 0 else None,
+        )
         if "init" in aligned[name]:
             Ti = aligned[name]["init"]
             ax.plot(Ti[:, 0, 3], Ti[:, 1, 3], color=c, lw=0.8, ls=":", alpha=0.7)
@@ -75,11 +83,23 @@ def _trajectories(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir:
             ax.scatter(P[:, 0, 3], P[:, 1, 3], marker="x", s=25, color=c, lw=1)
         ok = np.all(np.isfinite(gt), axis=(-1, -2))
         if ok.any():
-            ax.scatter(gt[ok, 0, 3], gt[ok, 1, 3], marker="s", s=70, facecolors="none",
-                       edgecolors="k", label="objects (mocap)")
+            ax.scatter(
+                gt[ok, 0, 3],
+                gt[ok, 1, 3],
+                marker="s",
+                s=70,
+                facecolors="none",
+                edgecolors="k",
+                label="objects (mocap)",
+            )
             for oid, g in zip(np.array(ob.ids)[ok], gt[ok]):
-                ax.annotate(str(oid), (g[0, 3], g[1, 3]), xytext=(4, 4),
-                            textcoords="offset points", fontsize=7)
+                ax.annotate(
+                    str(oid),
+                    (g[0, 3], g[1, 3]),
+                    xytext=(4, 4),
+                    textcoords="offset points",
+                    fontsize=7,
+                )
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -97,8 +117,9 @@ def _trajectories(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir:
     return p
 
 
-def round_panels(rounds: dict[str, np.ndarray], ref: dict[str, float] | None, n_robots: int,
-                 n_links: int) -> list[tuple[str, str, np.ndarray]]:
+def round_panels(
+    rounds: dict[str, np.ndarray], ref: dict[str, float] | None, n_robots: int, n_links: int
+) -> list[tuple[str, str, np.ndarray]]:
     """(title, y label, values) of rounds.png's panels, each saying what it plots.
 
     The consensus panel is rounds.csv's ``consensus_error``: per round, the largest of the
@@ -109,39 +130,61 @@ def round_panels(rounds: dict[str, np.ndarray], ref: dict[str, float] | None, n_
     """
     panels = []
     if "cost" in rounds and ref is not None:
-        panels.append(("SR_cost per round (paper Sec. 6.2)", "SR_cost (%)",
-                       metrics.sr_cost(ref["F_init"], rounds["cost"], ref["F_star"])))
+        panels.append(
+            (
+                "SR_cost per round (paper Sec. 6.2)",
+                "SR_cost (%)",
+                metrics.sr_cost(ref["F_init"], rounds["cost"], ref["F_star"]),
+            )
+        )
     elif "cost" in rounds:
-        panels.append(("sum of the robots' local costs (grows as the graphs grow; "
-                       "not F/F*)", "cost (SE-Sync objective units)", rounds["cost"]))
+        panels.append(
+            (
+                "sum of the robots' local costs (grows as the graphs grow; not F/F*)",
+                "cost (SE-Sync objective units)",
+                rounds["cost"],
+            )
+        )
     if "consensus_error" in rounds:
-        panels.append(("largest robot's own consensus residual per round (not the "
-                       "summary's CE)", "max_i residual_i", rounds["consensus_error"]))
+        panels.append(
+            (
+                "largest robot's own consensus residual per round (not the summary's CE)",
+                "max_i residual_i",
+                rounds["consensus_error"],
+            )
+        )
     if "bias" in rounds:
         panels.append(("Bias per round", "Bias", rounds["bias"]))
     if "bytes_round" in rounds:
         b = np.asarray(rounds["bytes_round"], dtype=np.float64)
-        panels.append(("bytes sent per round: per robot (mean) and per link (mean)",
-                       "bytes / round", np.stack([b / max(n_robots, 1), b / max(n_links, 1)])))
+        panels.append(
+            (
+                "bytes sent per round: per robot (mean) and per link (mean)",
+                "bytes / round",
+                np.stack([b / max(n_robots, 1), b / max(n_links, 1)]),
+            )
+        )
     if "bytes_total" in rounds:
-        panels.append(("bytes sent by all robots, cumulative", "bytes (total)",
-                       rounds["bytes_total"]))
+        panels.append(
+            ("bytes sent by all robots, cumulative", "bytes (total)", rounds["bytes_total"])
+        )
     return panels
 
 
-def _rounds(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path
-            ) -> Path | None:
+def _rounds(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path) -> Path | None:
     rounds = data.rounds
     if rounds is None or len(rounds.get("round", [])) == 0:
         return None
     r = rounds["round"]
     n_links = len(data.comm_graph or ()) or 1
-    panels = round_panels(rounds, data.round_cost_ref, len(report.get("robots") or {}) or 1,
-                          n_links)
+    panels = round_panels(
+        rounds, data.round_cost_ref, len(report.get("robots") or {}) or 1, n_links
+    )
     if not panels:
         return None
-    fig, axes = plt.subplots(len(panels), 1, figsize=(7.5, 2.5 * len(panels)), sharex=True,
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(panels), 1, figsize=(7.5, 2.5 * len(panels)), sharex=True, squeeze=False
+    )
     for ax, (title, label, y) in zip(axes[:, 0], panels):
         if np.ndim(y) == 2:
             ax.plot(r, y[0], lw=1.4, label="per robot")
@@ -162,8 +205,7 @@ def _rounds(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path
     return p
 
 
-def _errors(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path
-            ) -> Path | None:
+def _errors(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path) -> Path | None:
     per = report.get("robots", {})
     if not per:
         return None

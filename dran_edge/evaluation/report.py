@@ -41,14 +41,19 @@ def summary_markdown(r: dict[str, Any]) -> str:
     lines.append(f"- alignment: **{r['align']}**")
     t = r.get("time") or {}
     if t:
-        lines.append(f"- clock offset t_mocap − t_est: {_f(t.get('time_offset_s'), '.4f')} s "
-                     f"({t.get('source')})")
+        lines.append(
+            f"- clock offset t_mocap − t_est: {_f(t.get('time_offset_s'), '.4f')} s "
+            f"({t.get('source')})"
+        )
     lines.append("")
     if r["robots"]:
-        lines += ["## Trajectories", "",
-                  "| robot | poses | ATE trans (m) | ATE max (m) | rot RMSE (deg) | ATE log "
-                  "(paper) | ATE⁰ log | ATE* log | SR_ATE (%) | ATE/ATE* |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "## Trajectories",
+            "",
+            "| robot | poses | ATE trans (m) | ATE max (m) | rot RMSE (deg) | ATE log "
+            "(paper) | ATE⁰ log | ATE* log | SR_ATE (%) | ATE/ATE* |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for n, e in r["robots"].items():
             f = e.get("final", {})
             lines.append(
@@ -56,30 +61,47 @@ def summary_markdown(r: dict[str, Any]) -> str:
                 f"{_f(f.get('ate_trans_max_m'))} | {_f(f.get('ate_rot_rmse_deg'), '.3f')} | "
                 f"{_f(f.get('ate_log_rmse'))} | {_f(e.get('init', {}).get('ate_log_rmse'))} | "
                 f"{_f(e.get('centralized', {}).get('ate_log_rmse'))} | "
-                f"{_f(e.get('sr_ate_pct'), '.1f')} | {_na(e.get('ate_over_atestar'))} |")
+                f"{_f(e.get('sr_ate_pct'), '.1f')} | {_na(e.get('ate_over_atestar'))} |"
+            )
         o = r["overall"]
-        lines += ["", f"Overall (each robot weighs 1/N): ATE log "
-                  f"{_f(o.get('final', {}).get('ate_log_rmse'))}, ATE trans "
-                  f"{_f(o.get('final', {}).get('ate_trans_rmse_m'))} m, SR_ATE "
-                  f"{_f(o.get('sr_ate_pct'), '.1f')} %, ATE/ATE* {_na(o.get('ate_over_atestar'))}.",
-                  ""]
+        lines += [
+            "",
+            f"Overall (each robot weighs 1/N): ATE log "
+            f"{_f(o.get('final', {}).get('ate_log_rmse'))}, ATE trans "
+            f"{_f(o.get('final', {}).get('ate_trans_rmse_m'))} m, SR_ATE "
+            f"{_f(o.get('sr_ate_pct'), '.1f')} %, ATE/ATE* {_na(o.get('ate_over_atestar'))}.",
+            "",
+        ]
     ob = r.get("objects") or {}
     if ob:
-        lines += ["## Objects", "",
-                  f"- {ob.get('count')} objects, {ob.get('copies')} robot copies",
-                  f"- CE (paper): {_f(ob.get('ce'), '.6f')}",
-                  f"- Bias (paper formula): {_f(ob.get('bias'))}; error of the mean map: "
-                  f"{_f(ob.get('bias_of_mean'))}", ""]
+        lines += [
+            "## Objects",
+            "",
+            f"- {ob.get('count')} objects, {ob.get('copies')} robot copies",
+            f"- CE (paper): {_f(ob.get('ce'), '.6f')}",
+            f"- Bias (paper formula): {_f(ob.get('bias'))}; error of the mean map: "
+            f"{_f(ob.get('bias_of_mean'))}",
+            "",
+        ]
     c = r.get("cost") or {}
     if c:
-        lines += ["## Cost", "", f"- F_init {_f(c.get('F_init'))}, F_k {_f(c.get('F_k'))}, "
-                  f"F* {_f(c.get('F_star'))}, SR_cost {_f(c.get('sr_cost_pct'), '.1f')} %, "
-                  f"F/F* {_na(c.get('F_over_Fstar'))}", ""]
+        lines += [
+            "## Cost",
+            "",
+            f"- F_init {_f(c.get('F_init'))}, F_k {_f(c.get('F_k'))}, "
+            f"F* {_f(c.get('F_star'))}, SR_cost {_f(c.get('sr_cost_pct'), '.1f')} %, "
+            f"F/F* {_na(c.get('F_over_Fstar'))}",
+            "",
+        ]
     ir = r.get("inter_robot") or {}
     if ir.get("pairs"):
-        lines += ["## Inter-robot relative poses", "",
-                  f"- {len(ir['pairs'])} pairs: translation RMSE {_f(ir.get('trans_rmse_m'))} m, "
-                  f"rotation RMSE {_f(ir.get('rot_rmse_deg'), '.3f')} deg", ""]
+        lines += [
+            "## Inter-robot relative poses",
+            "",
+            f"- {len(ir['pairs'])} pairs: translation RMSE {_f(ir.get('trans_rmse_m'))} m, "
+            f"rotation RMSE {_f(ir.get('rot_rmse_deg'), '.3f')} deg",
+            "",
+        ]
     rd = r.get("rounds") or {}
     if rd:
         lines += ["## Rounds and bytes", ""] + [f"- {k}: {v}" for k, v in rd.items()] + [""]

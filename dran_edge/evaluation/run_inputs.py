@@ -49,12 +49,12 @@ class RobotTracks:
             raise ValueError(f"robot {self.name}: no mocap ground truth")
         return self.gt_time_s, self.gt_T, self.gt_valid
 
-    def ground_truth_at(self, time_s: np.ndarray, max_gap_s: float
-                        ) -> tuple[np.ndarray, np.ndarray]:
+    def ground_truth_at(
+        self, time_s: np.ndarray, max_gap_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(T_world_body, ok) of the mocap track interpolated at ``time_s`` (mocap clock)."""
         gt_time_s, gt_T, gt_valid = self.ground_truth()
-        return align.interpolate_track(gt_time_s, gt_T, time_s, valid=gt_valid,
-                                       max_gap_s=max_gap_s)
+        return align.interpolate_track(gt_time_s, gt_T, time_s, valid=gt_valid, max_gap_s=max_gap_s)
 
 
 def find_mocap(run_dir: Path, mission: Mission, mocap_path: str | None) -> Path | None:
@@ -66,8 +66,9 @@ def find_mocap(run_dir: Path, mission: Mission, mocap_path: str | None) -> Path 
     if mission.mocap_file:
         p = run_dir / mission.mocap_file
         if not p.exists():
-            raise InputError("mission.yaml names this mocap file but it does not exist",
-                             path=str(p))
+            raise InputError(
+                "mission.yaml names this mocap file but it does not exist", path=str(p)
+            )
         return p
     p = run_dir / "mocap.csv"
     return p if p.exists() else None
@@ -90,8 +91,11 @@ def read_estimates(mission: Mission, out_dir: Path, notes: list[str]) -> dict[st
             continue
         robots[r.name] = rb
     if not robots:
-        raise InputError("no robot has out/<name>/<name>.tum (written by 'dran-edge "
-                         "replay' for every robot that produced an estimate)", path=str(out_dir))
+        raise InputError(
+            "no robot has out/<name>/<name>.tum (written by 'dran-edge "
+            "replay' for every robot that produced an estimate)",
+            path=str(out_dir),
+        )
     return robots
 
 
@@ -103,32 +107,41 @@ def read_replay_report(out_dir: Path) -> dict[str, Any]:
     try:
         replay_report: dict[str, Any] = json.loads(report_json.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON: {exc.msg}", path=str(report_json),
-                         line=exc.lineno) from None
+        raise InputError(
+            f"not valid JSON: {exc.msg}", path=str(report_json), line=exc.lineno
+        ) from None
     return replay_report
 
 
-def _robot_body(name: str, mission: Mission, take: motive.MotiveTake, mocap_path: Path,
-                notes: list[str]) -> str | None:
+def _robot_body(
+    name: str, mission: Mission, take: motive.MotiveTake, mocap_path: Path, notes: list[str]
+) -> str | None:
     """The Motive rigid body of robot ``name`` (mocap_body, else its own name), or None."""
     body = {r.name: r for r in mission.robots}[name].mocap_body
     if body is None:
         if name in take.bodies:
             return name
-        notes.append(f"robot {name}: no mocap_body in mission.yaml and no rigid body "
-                     f"of that name; not scored against mocap")
+        notes.append(
+            f"robot {name}: no mocap_body in mission.yaml and no rigid body "
+            f"of that name; not scored against mocap"
+        )
         return None
     if body not in take.bodies:
         raise InputError(
             f"robot {name}: mocap_body {body!r} is not a rigid body of the Motive "
             f"take; it has: {', '.join(sorted(take.bodies)) or '(none)'}",
-            path=str(mocap_path))
+            path=str(mocap_path),
+        )
     return body
 
 
-def read_ground_truth(run_dir: Path, mission: Mission, robots: dict[str, RobotTracks],
-                      mocap_path_given: str | None, notes: list[str]
-                      ) -> tuple[Path | None, motive.MotiveTake | None]:
+def read_ground_truth(
+    run_dir: Path,
+    mission: Mission,
+    robots: dict[str, RobotTracks],
+    mocap_path_given: str | None,
+    notes: list[str],
+) -> tuple[Path | None, motive.MotiveTake | None]:
     """(Motive CSV, take) of the run; sets each matched robot's ground-truth track."""
     mocap_path = find_mocap(run_dir, mission, mocap_path_given)
     if mocap_path is None:
@@ -146,5 +159,7 @@ def read_ground_truth(run_dir: Path, mission: Mission, robots: dict[str, RobotTr
         raise InputError(
             "no robot of mission.yaml matches a rigid body of the Motive take (robots: "
             f"{', '.join(robots)}; bodies: {', '.join(sorted(take.bodies)) or '(none)'}); "
-            "set mocap_body in mission.yaml", path=str(mocap_path))
+            "set mocap_body in mission.yaml",
+            path=str(mocap_path),
+        )
     return mocap_path, take

@@ -106,8 +106,9 @@ class RunEvaluation:
 # ----------------------------------------------------------------------------------- scoring
 
 
-def _centralized(run_dir: Path, robots: dict[str, RobotTracks], opt: EvalOptions,
-                 notes: list[str]) -> dict[str, Any]:
+def _centralized(
+    run_dir: Path, robots: dict[str, RobotTracks], opt: EvalOptions, notes: list[str]
+) -> dict[str, Any]:
     """Adds the centralized estimate to ``robots`` (from merged.g2o where none was exported);
     returns merged.g2o's costs (empty without them)."""
     cost: dict[str, Any] = {}
@@ -115,15 +116,19 @@ def _centralized(run_dir: Path, robots: dict[str, RobotTracks], opt: EvalOptions
         notes.append("centralized trajectories read from out/centralized/")
     elif opt.centralized:
         central, cost = centralized_from_g2o(
-            run_dir, {n: rb.est["final"] for n, rb in robots.items()}, notes,
-            {n: rb.est["init"] for n, rb in robots.items() if "init" in rb.est})
+            run_dir,
+            {n: rb.est["final"] for n, rb in robots.items()},
+            notes,
+            {n: rb.est["init"] for n, rb in robots.items() if "init" in rb.est},
+        )
         for name, est in central.items():
             robots[name].est["centralized"] = est
     return cost
 
 
-def _cost_report(cost: dict[str, Any], replay_report: dict[str, Any]
-                 ) -> tuple[dict[str, Any], dict[str, float] | None]:
+def _cost_report(
+    cost: dict[str, Any], replay_report: dict[str, Any]
+) -> tuple[dict[str, Any], dict[str, float] | None]:
     """(the report's cost section with SR_cost and F/F*, the per-round cost reference).
 
     Costs given by the replay (cost_init / cost_final / cost_centralized) are in the
@@ -131,11 +136,16 @@ def _cost_report(cost: dict[str, Any], replay_report: dict[str, Any]
     the replay's are used only without merged.g2o's, and per-round SR_cost needs F_init and
     F* in rounds.csv's convention (None without them).
     """
-    replay_cost = {k_cost: float(replay_report[k_rep]) for k_rep, k_cost in
-                   (("cost_init", "F_init"), ("cost_final", "F_k"),
-                    ("cost_centralized", "F_star"))
-                   if isinstance(replay_report.get(k_rep), (int, float))
-                   and not isinstance(replay_report.get(k_rep), bool)}
+    replay_cost = {
+        k_cost: float(replay_report[k_rep])
+        for k_rep, k_cost in (
+            ("cost_init", "F_init"),
+            ("cost_final", "F_k"),
+            ("cost_centralized", "F_star"),
+        )
+        if isinstance(replay_report.get(k_rep), (int, float))
+        and not isinstance(replay_report.get(k_rep), bool)
+    }
     if not cost and replay_cost:
         cost = {"source": "out/report.json (the convention of rounds.csv)", **replay_cost}
     if all(cost.get(k) is not None for k in ("F_init", "F_k", "F_star")):
@@ -146,8 +156,9 @@ def _cost_report(cost: dict[str, Any], replay_report: dict[str, Any]
     return cost, round_cost_ref
 
 
-def _estimated_offset(robots: dict[str, RobotTracks], scored: list[str], notes: list[str]
-                      ) -> dict[str, float]:
+def _estimated_offset(
+    robots: dict[str, RobotTracks], scored: list[str], notes: list[str]
+) -> dict[str, float]:
     """{robot: mocap clock offset (s)} estimated from angular, else linear, speeds."""
     per = {}
     for n in scored:
@@ -158,20 +169,27 @@ def _estimated_offset(robots: dict[str, RobotTracks], scored: list[str], notes: 
         src = rb.est.get("init", rb.est["final"])
         for signal in ("angular", "linear"):
             try:
-                per[n] = align.estimate_time_offset(*src, gt_time_s, gt_T, valid_ref=gt_valid,
-                                                    signal=signal).offset_s
+                per[n] = align.estimate_time_offset(
+                    *src, gt_time_s, gt_T, valid_ref=gt_valid, signal=signal
+                ).offset_s
                 break
             except InputError as exc:
-                notes.append(f"robot {n}: time offset not estimated from {signal} "
-                             f"speeds ({exc})")
+                notes.append(f"robot {n}: time offset not estimated from {signal} speeds ({exc})")
     if not per:
-        raise InputError("could not estimate the mocap clock offset from any robot; "
-                         "give --time-offset or mocap.start_ns in mission.yaml")
+        raise InputError(
+            "could not estimate the mocap clock offset from any robot; "
+            "give --time-offset or mocap.start_ns in mission.yaml"
+        )
     return per
 
 
-def _time_offset(mission: Mission, robots: dict[str, RobotTracks], scored: list[str],
-                 opt: EvalOptions, notes: list[str]) -> dict[str, Any]:
+def _time_offset(
+    mission: Mission,
+    robots: dict[str, RobotTracks],
+    scored: list[str],
+    opt: EvalOptions,
+    notes: list[str],
+) -> dict[str, Any]:
     """The report's ``time`` section: ``t_mocap = t_est + time_offset_s`` and its source."""
     offset_info: dict[str, Any] = {}
     if opt.time_offset_s is not None:
@@ -186,21 +204,29 @@ def _time_offset(mission: Mission, robots: dict[str, RobotTracks], scored: list[
     return offset_info
 
 
-def _associate(robots: dict[str, RobotTracks], scored: list[str], offset_s: float,
-               opt: EvalOptions) -> None:
+def _associate(
+    robots: dict[str, RobotTracks], scored: list[str], offset_s: float, opt: EvalOptions
+) -> None:
     """Matches every estimate of the ``scored`` robots to their ground truth."""
     for n in scored:
         rb = robots[n]
         gt_time_s, gt_T, gt_valid = rb.ground_truth()
         for kind, (s, T) in rb.est.items():
-            rb.assoc[kind] = align.associate(s, T, gt_time_s, gt_T,
-                                             valid_ref=gt_valid, time_offset_s=offset_s,
-                                             max_gap_s=opt.max_gap_s,
-                                             what=f"robot {n} ({kind} estimate)")
+            rb.assoc[kind] = align.associate(
+                s,
+                T,
+                gt_time_s,
+                gt_T,
+                valid_ref=gt_valid,
+                time_offset_s=offset_s,
+                max_gap_s=opt.max_gap_s,
+                what=f"robot {n} ({kind} estimate)",
+            )
 
 
-def _fit_alignments(robots: dict[str, RobotTracks], scored: list[str], align_kind: str
-                    ) -> dict[str, dict[str, align.Alignment]]:
+def _fit_alignments(
+    robots: dict[str, RobotTracks], scored: list[str], align_kind: str
+) -> dict[str, dict[str, align.Alignment]]:
     """Estimate kind -> robot -> alignment: per robot (paper: anchored on the initial
     estimate, else the final) or one for all robots (se3 / sim3 / yaw / none)."""
     alignments: dict[str, dict[str, align.Alignment]] = {}
@@ -222,9 +248,11 @@ def _fit_alignments(robots: dict[str, RobotTracks], scored: list[str], align_kin
     return alignments
 
 
-def _trajectory_metrics(robots: dict[str, RobotTracks],
-                        alignments: dict[str, dict[str, align.Alignment]], opt: EvalOptions
-                        ) -> tuple[dict[str, Any], dict[str, Any], dict[str, dict[str, np.ndarray]]]:
+def _trajectory_metrics(
+    robots: dict[str, RobotTracks],
+    alignments: dict[str, dict[str, align.Alignment]],
+    opt: EvalOptions,
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, dict[str, np.ndarray]]]:
     """(per robot, overall, aligned poses): ATE per robot and estimate kind, and over all."""
     per_robot: dict[str, Any] = {}
     overall: dict[str, Any] = {}
@@ -261,34 +289,47 @@ def _trajectory_metrics(robots: dict[str, RobotTracks],
     return per_robot, overall, aligned
 
 
-def _success_rates(per_robot: dict[str, Any], overall: dict[str, Any], scored: list[str],
-                   notes: list[str]) -> None:
+def _success_rates(
+    per_robot: dict[str, Any], overall: dict[str, Any], scored: list[str], notes: list[str]
+) -> None:
     """Adds SR_ATE and ATE/ATE* (paper Sec. 6.2) per robot and overall where all estimates are."""
     for e in per_robot.values():
         if {"init", "final", "centralized"} <= e.keys():
-            e["sr_ate_pct"] = metrics.sr_ate(e["init"]["ate_log_rmse"], e["final"]["ate_log_rmse"],
-                                             e["centralized"]["ate_log_rmse"])
+            e["sr_ate_pct"] = metrics.sr_ate(
+                e["init"]["ate_log_rmse"],
+                e["final"]["ate_log_rmse"],
+                e["centralized"]["ate_log_rmse"],
+            )
         if {"final", "centralized"} <= e.keys():
-            e["ate_over_atestar"] = metrics.ate_ratio(e["final"]["ate_log_rmse"],
-                                                      e["centralized"]["ate_log_rmse"])
+            e["ate_over_atestar"] = metrics.ate_ratio(
+                e["final"]["ate_log_rmse"], e["centralized"]["ate_log_rmse"]
+            )
     if {"init", "final", "centralized"} <= overall.keys():
-        overall["sr_ate_pct"] = metrics.sr_ate(overall["init"]["ate_log_rmse"],
-                                               overall["final"]["ate_log_rmse"],
-                                               overall["centralized"]["ate_log_rmse"])
-        overall["sr_ate_trans_pct"] = metrics.sr_ate(overall["init"]["ate_trans_rmse_m"],
-                                                     overall["final"]["ate_trans_rmse_m"],
-                                                     overall["centralized"]["ate_trans_rmse_m"])
+        overall["sr_ate_pct"] = metrics.sr_ate(
+            overall["init"]["ate_log_rmse"],
+            overall["final"]["ate_log_rmse"],
+            overall["centralized"]["ate_log_rmse"],
+        )
+        overall["sr_ate_trans_pct"] = metrics.sr_ate(
+            overall["init"]["ate_trans_rmse_m"],
+            overall["final"]["ate_trans_rmse_m"],
+            overall["centralized"]["ate_trans_rmse_m"],
+        )
     if {"final", "centralized"} <= overall.keys():
-        overall["ate_over_atestar"] = metrics.ate_ratio(overall["final"]["ate_log_rmse"],
-                                                        overall["centralized"]["ate_log_rmse"])
+        overall["ate_over_atestar"] = metrics.ate_ratio(
+            overall["final"]["ate_log_rmse"], overall["centralized"]["ate_log_rmse"]
+        )
     elif scored:
         missing = [k for k in ESTIMATE_KINDS if k not in overall]
         notes.append(f"SR_ATE: no {' / '.join(missing)} estimate to compare")
 
 
-def _rounds_report(rounds: dict[str, np.ndarray] | None,
-                   round_cost_ref: dict[str, float] | None, replay_report: dict[str, Any],
-                   notes: list[str]) -> dict[str, Any]:
+def _rounds_report(
+    rounds: dict[str, np.ndarray] | None,
+    round_cost_ref: dict[str, float] | None,
+    replay_report: dict[str, Any],
+    notes: list[str],
+) -> dict[str, Any]:
     """The report's ``rounds`` section: rounds.csv's count, bytes and last SR_cost, and the
     replay's own totals."""
     rounds_rep: dict[str, Any] = {}
@@ -297,20 +338,27 @@ def _rounds_report(rounds: dict[str, np.ndarray] | None,
         if "bytes_total" in rounds:
             rounds_rep["bytes_total"] = float(np.nanmax(rounds["bytes_total"]))
         if "cost" in rounds and round_cost_ref is not None:
-            rounds_rep["sr_cost_pct_last"] = float(metrics.sr_cost(
-                round_cost_ref["F_init"], rounds["cost"][-1], round_cost_ref["F_star"]))
+            rounds_rep["sr_cost_pct_last"] = float(
+                metrics.sr_cost(
+                    round_cost_ref["F_init"], rounds["cost"][-1], round_cost_ref["F_star"]
+                )
+            )
         elif "cost" in rounds:
-            notes.append("rounds: no cost_init / cost_centralized in out/report.json, so "
-                         "rounds.csv's cost is plotted as is, not as SR_cost")
+            notes.append(
+                "rounds: no cost_init / cost_centralized in out/report.json, so "
+                "rounds.csv's cost is plotted as is, not as SR_cost"
+            )
     for key in ("bytes_total", "rounds", "mission_s", "replay_wall_s"):
         if key in replay_report:
-            rounds_rep.setdefault(key if key.startswith("replay") else f"replay_{key}",
-                                  replay_report[key])
+            rounds_rep.setdefault(
+                key if key.startswith("replay") else f"replay_{key}", replay_report[key]
+            )
     return rounds_rep
 
 
-def _summary(overall: dict[str, Any], cost: dict[str, Any], objects_rep: dict[str, Any]
-             ) -> dict[str, Any]:
+def _summary(
+    overall: dict[str, Any], cost: dict[str, Any], objects_rep: dict[str, Any]
+) -> dict[str, Any]:
     """The headline numbers (report.json's ``summary``)."""
     final = overall.get("final", {})
     return {
@@ -334,8 +382,9 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     if not run_dir.is_dir():
         raise InputError("expected a run directory (docs/run-format.md)", path=str(run_dir))
     if opt.align not in align.ALIGN_KINDS:
-        raise InputError(f"alignment must be one of {', '.join(align.ALIGN_KINDS)}, "
-                         f"got {opt.align!r}")
+        raise InputError(
+            f"alignment must be one of {', '.join(align.ALIGN_KINDS)}, got {opt.align!r}"
+        )
     mission = read_mission(run_dir / "mission.yaml")
     out_dir = run_dir / "out"
     notes: list[str] = []
@@ -343,8 +392,7 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     cost = _centralized(run_dir, robots, opt, notes)
     replay_report = read_replay_report(out_dir)
     cost, round_cost_ref = _cost_report(cost, replay_report)
-    rounds = read_rounds_csv(out_dir / "rounds.csv") if (out_dir / "rounds.csv").exists() \
-        else None
+    rounds = read_rounds_csv(out_dir / "rounds.csv") if (out_dir / "rounds.csv").exists() else None
     mocap_path, take = read_ground_truth(run_dir, mission, robots, opt.mocap_path, notes)
 
     scored = [n for n, rb in robots.items() if rb.gt_T is not None]
@@ -356,10 +404,14 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     per_robot, overall, aligned = _trajectory_metrics(robots, alignments, opt)
     _success_rates(per_robot, overall, scored, notes)
     # Inter-robot relative poses at common instants (no alignment needed).
-    inter = inter_robot_errors(robots, aligned, offset_info.get("time_offset_s", 0.0),
-                               opt.inter_robot_rate_hz, opt.max_gap_s)
-    objects_rep, obj_plot = object_maps(mission, robots, take, alignments.get("final", {}),
-                                        notes)
+    inter = inter_robot_errors(
+        robots,
+        aligned,
+        offset_info.get("time_offset_s", 0.0),
+        opt.inter_robot_rate_hz,
+        opt.max_gap_s,
+    )
+    objects_rep, obj_plot = object_maps(mission, robots, take, alignments.get("final", {}), notes)
     rounds_rep = _rounds_report(rounds, round_cost_ref, replay_report, notes)
 
     report = {
@@ -377,16 +429,23 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
         "rounds": rounds_rep,
         "notes": notes,
     }
-    plot_data = RunPlotData(robots=robots, aligned=aligned, rounds=rounds, objects=obj_plot,
-                            round_cost_ref=round_cost_ref, comm_graph=list(mission.comm_graph))
+    plot_data = RunPlotData(
+        robots=robots,
+        aligned=aligned,
+        rounds=rounds,
+        objects=obj_plot,
+        round_cost_ref=round_cost_ref,
+        comm_graph=list(mission.comm_graph),
+    )
     return RunEvaluation(json_safe(report), plot_data)
 
 
 # ----------------------------------------------------------------------------------- output
 
 
-def write_report(evaluation: RunEvaluation, eval_dir: str | Path, *, plots: bool = True
-                 ) -> list[Path]:
+def write_report(
+    evaluation: RunEvaluation, eval_dir: str | Path, *, plots: bool = True
+) -> list[Path]:
     """Write ``report.json``, ``summary.md`` and (``plots``) PNGs into ``eval_dir``."""
     eval_dir = Path(eval_dir)
     eval_dir.mkdir(parents=True, exist_ok=True)

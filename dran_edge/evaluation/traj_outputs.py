@@ -20,10 +20,13 @@ from dran_edge import geometry as geo
 from dran_edge.errors import DependencyError
 from dran_edge.evaluation.traj_score import TrajectoryEvaluation
 
-_ALIGN_TITLE = {"se3": "\n(with SE(3) Umeyama alignment)",
-                "sim3": "\n(with Sim(3) Umeyama alignment)",
-                "yaw": "\n(with yaw + translation alignment)", "none": "\n(not aligned)",
-                "paper": "\n(aligned at the first pose)"}
+_ALIGN_TITLE = {
+    "se3": "\n(with SE(3) Umeyama alignment)",
+    "sim3": "\n(with Sim(3) Umeyama alignment)",
+    "yaw": "\n(with yaw + translation alignment)",
+    "none": "\n(not aligned)",
+    "paper": "\n(aligned at the first pose)",
+}
 
 
 def _errors(res: TrajectoryEvaluation) -> np.ndarray:
@@ -37,19 +40,33 @@ def _tum_text(stamps_s: np.ndarray, T: np.ndarray) -> str:
     return buf.getvalue()
 
 
-def write_evo_results(path: str | Path, res: TrajectoryEvaluation, est_name: str, ref_name: str
-                      ) -> Path:
+def write_evo_results(
+    path: str | Path, res: TrajectoryEvaluation, est_name: str, ref_name: str
+) -> Path:
     """The evo results zip of one ``evaluate_trajectory`` result (APE, translation part)."""
     e = _errors(res)
     ref_name = ref_name if ref_name != est_name else ref_name + "_ref"
-    info = {"title": "APE w.r.t. translation part (m)" + _ALIGN_TITLE.get(
-        res.result["align"]["kind"], ""), "ref_name": ref_name, "est_name": est_name,
-        "label": "APE (m)"}
-    stats = {"rmse": float(np.sqrt(np.mean(e * e))), "mean": float(np.mean(e)),
-             "median": float(np.median(e)), "std": float(np.std(e)), "min": float(np.min(e)),
-             "max": float(np.max(e)), "sse": float(np.sum(e * e))}
-    arrays = {"error_array": e, "timestamps": res.stamps_s,
-              "seconds_from_start": res.stamps_s - res.stamps_s[0]}
+    info = {
+        "title": "APE w.r.t. translation part (m)"
+        + _ALIGN_TITLE.get(res.result["align"]["kind"], ""),
+        "ref_name": ref_name,
+        "est_name": est_name,
+        "label": "APE (m)",
+    }
+    stats = {
+        "rmse": float(np.sqrt(np.mean(e * e))),
+        "mean": float(np.mean(e)),
+        "median": float(np.median(e)),
+        "std": float(np.std(e)),
+        "min": float(np.min(e)),
+        "max": float(np.max(e)),
+        "sse": float(np.sum(e * e)),
+    }
+    arrays = {
+        "error_array": e,
+        "timestamps": res.stamps_s,
+        "seconds_from_start": res.stamps_s - res.stamps_s[0],
+    }
     path = Path(path)
     with zipfile.ZipFile(path, "w") as z:
         z.writestr("info.json", json.dumps(info))
@@ -63,8 +80,9 @@ def write_evo_results(path: str | Path, res: TrajectoryEvaluation, est_name: str
     return path
 
 
-def plot_trajectory(path: str | Path, res: TrajectoryEvaluation, est_name: str, ref_name: str
-                    ) -> Path:
+def plot_trajectory(
+    path: str | Path, res: TrajectoryEvaluation, est_name: str, ref_name: str
+) -> Path:
     """Top view (x-y) of the aligned estimate and the reference, and the error over time."""
     try:
         import matplotlib

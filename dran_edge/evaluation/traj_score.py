@@ -34,8 +34,9 @@ class TrajectoryEvaluation:
     """The reference poses at the same instants, (n, 4, 4)."""
 
 
-def body_ground_truth(take: motive.MotiveTake, body: str, T_body_marker: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def body_ground_truth(
+    take: motive.MotiveTake, body: str, T_body_marker: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(time_s, T_world_body, valid) of a Motive body carrying a marker at ``T_body_marker``."""
     b = take.body(body)
     T = b.T_world_marker @ geo.se3_inverse(T_body_marker)
@@ -49,10 +50,17 @@ def _overlap_fraction(stamps_s: np.ndarray, ref_s: np.ndarray) -> float:
     return float(max(hi - lo, 0.0) / span)
 
 
-def resolve_time_offset(stamps_s: np.ndarray, T_est: np.ndarray, gt_time_s: np.ndarray,
-                        gt_T: np.ndarray, gt_valid: np.ndarray | None, given: float | None, *,
-                        positions_only: bool = False, same_clock_first: bool = False
-                        ) -> tuple[float, str, dict[str, Any]]:
+def resolve_time_offset(
+    stamps_s: np.ndarray,
+    T_est: np.ndarray,
+    gt_time_s: np.ndarray,
+    gt_T: np.ndarray,
+    gt_valid: np.ndarray | None,
+    given: float | None,
+    *,
+    positions_only: bool = False,
+    same_clock_first: bool = False,
+) -> tuple[float, str, dict[str, Any]]:
     """(offset ``t_ref = t_est + offset``, how it was found, details).
 
     In order: the ``given`` offset; with ``same_clock_first`` (a reference file with absolute
@@ -63,39 +71,53 @@ def resolve_time_offset(stamps_s: np.ndarray, T_est: np.ndarray, gt_time_s: np.n
     """
     if given is not None:
         return float(given), "given", {}
-    ref_s = np.asarray(gt_time_s)[np.asarray(gt_valid, bool)] if gt_valid is not None \
+    ref_s = (
+        np.asarray(gt_time_s)[np.asarray(gt_valid, bool)]
+        if gt_valid is not None
         else np.asarray(gt_time_s)
+    )
     overlap = _overlap_fraction(np.asarray(stamps_s), ref_s) if len(ref_s) else 0.0
     if same_clock_first and overlap >= 0.5:
         return 0.0, "clock overlap", {"overlap_fraction": overlap}
     tried = []
-    for signal, name in (("angular", "angular-speed correlation"),
-                         ("linear", "position correlation")):
+    for signal, name in (
+        ("angular", "angular-speed correlation"),
+        ("linear", "position correlation"),
+    ):
         if signal == "angular" and positions_only:
             tried.append(f"{name}: skipped, the estimate has no orientations")
             continue
         try:
-            res = align.estimate_time_offset(stamps_s, T_est, gt_time_s, gt_T,
-                                             valid_ref=gt_valid, signal=signal)
+            res = align.estimate_time_offset(
+                stamps_s, T_est, gt_time_s, gt_T, valid_ref=gt_valid, signal=signal
+            )
         except InputError as exc:
             tried.append(f"{name}: {str(exc).replace('; give --time-offset S', '')}")
             continue
-        return res.offset_s, f"estimated ({name})", {
-            "correlation": res.correlation, "overlap_s": res.overlap_s, "tried": tried}
+        return (
+            res.offset_s,
+            f"estimated ({name})",
+            {"correlation": res.correlation, "overlap_s": res.overlap_s, "tried": tried},
+        )
     if overlap >= 0.5:
         return 0.0, "clock overlap", {"overlap_fraction": overlap, "tried": tried}
-    raise InputError("no clock offset found: " + "; ".join(tried) + "; and the clocks do not "
-                     "overlap. Give --time-offset S (t_ref = t_est + S)")
+    raise InputError(
+        "no clock offset found: " + "; ".join(tried) + "; and the clocks do not "
+        "overlap. Give --time-offset S (t_ref = t_est + S)"
+    )
 
 
 def _positions_only(T: np.ndarray) -> bool:
     return bool(np.all(np.abs(np.asarray(T)[:, :3, :3] - np.eye(3)) < 1e-12))
 
 
-def _reference_track(take: motive.MotiveTake | None, body: str | None,
-                     T_body_marker: np.ndarray | None, max_gap_s: float,
-                     reference: tuple[np.ndarray, np.ndarray] | None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str]:
+def _reference_track(
+    take: motive.MotiveTake | None,
+    body: str | None,
+    T_body_marker: np.ndarray | None,
+    max_gap_s: float,
+    reference: tuple[np.ndarray, np.ndarray] | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str]:
     """(time_s, T, valid, max_gap_s, what) of the reference: the file or the Motive body."""
     if reference is not None:
         gt_t, gt_T = np.asarray(reference[0], np.float64), np.asarray(reference[1], np.float64)
@@ -134,21 +156,36 @@ def evaluate_trajectory(
     scored on positions: its rotation errors are reported as None. ``time_offset_source``
     names where a given offset came from (default "given").
     """
-    gt_t, gt_T, gt_v, max_gap_s, what = _reference_track(take, body, T_body_marker, max_gap_s,
-                                                          reference)
+    gt_t, gt_T, gt_v, max_gap_s, what = _reference_track(
+        take, body, T_body_marker, max_gap_s, reference
+    )
     pos_only = _positions_only(T_est)
     offset, source, details = resolve_time_offset(
-        stamps_s, T_est, gt_t, gt_T, gt_v, time_offset_s, positions_only=pos_only,
-        same_clock_first=reference is not None)
+        stamps_s,
+        T_est,
+        gt_t,
+        gt_T,
+        gt_v,
+        time_offset_s,
+        positions_only=pos_only,
+        same_clock_first=reference is not None,
+    )
     if time_offset_s is not None and time_offset_source:
         source = time_offset_source
-    a = align.associate(stamps_s, T_est, gt_t, gt_T, valid_ref=gt_v, time_offset_s=offset,
-                        max_gap_s=max_gap_s, what=what)
+    a = align.associate(
+        stamps_s,
+        T_est,
+        gt_t,
+        gt_T,
+        valid_ref=gt_v,
+        time_offset_s=offset,
+        max_gap_s=max_gap_s,
+        what=what,
+    )
     al = align.fit_alignment(align_kind, a.T_est, a.T_ref)
     T_al = al.apply(a.T_est)
     stats = metrics.ate_trans_stats_m(T_al, a.T_ref)
-    rpe: dict[str, float | None] = dict(metrics.rpe(a.stamps_s, T_al, a.T_ref,
-                                                   delta_s=rpe_delta_s))
+    rpe: dict[str, float | None] = dict(metrics.rpe(a.stamps_s, T_al, a.T_ref, delta_s=rpe_delta_s))
     if pos_only:
         rpe = {k: (None if "rot" in k else v) for k, v in rpe.items()}
     err_m = np.linalg.norm(T_al[:, :3, 3] - a.T_ref[:, :3, 3], axis=1)

@@ -49,8 +49,9 @@ def _expand(v: np.ndarray, b: int) -> np.ndarray:
     return (v[:, None] * b + np.arange(b)[None]).ravel()
 
 
-def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params: DGSParams,
-                   gauge: int = 0) -> tuple[np.ndarray, int]:
+def dgs_pose_stage(
+    g, partition, poses: np.ndarray, kappa, tau, exchange, params: DGSParams, gauge: int = 0
+) -> tuple[np.ndarray, int]:
     """Step 2 of the module docstring; returns (poses, sweeps)."""
     from dran_edge.solver.graph import PoseGraph, kinds_array
     from dran_edge.solver.lm import build_plan, linearize
@@ -66,7 +67,9 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
     blocks = []
     for part in partition.parts:
         e = np.concatenate([part.intra_edges, part.inter_edges])
-        block = edge_factors(g.dim, g.edges[e], g.measurements[e], g.information[e], "chordal", "sesync")
+        block = edge_factors(
+            g.dim, g.edges[e], g.measurements[e], g.information[e], "chordal", "sesync"
+        )
         # frozen factor dataclasses against Factor's settable attributes (solver/factors.py)
         graph = PoseGraph(g.dim, kinds_array(n, fixed=fixed), (block,))  # type: ignore[arg-type]
         plan = build_plan(graph)
@@ -77,10 +80,22 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
         known = part.anchors
         ro, rk = _expand(slot[own], dof), _expand(slot[known[known != gauge]], dof)
         H = lin.A.tocsr()
-        lu = spla.splu(sp.csc_matrix(H[ro][:, ro]), permc_spec="MMD_AT_PLUS_A",
-                       diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        blocks.append({"own": own, "known": known[known != gauge], "lu": lu, "H_rk": H[ro][:, rk].tocsr(),
-                           "g": lin.g_x[ro], "delta": np.zeros(ro.size)})
+        lu = spla.splu(
+            sp.csc_matrix(H[ro][:, ro]),
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+        blocks.append(
+            {
+                "own": own,
+                "known": known[known != gauge],
+                "lu": lu,
+                "H_rk": H[ro][:, rk].tocsr(),
+                "g": lin.g_x[ro],
+                "delta": np.zeros(ro.size),
+            }
+        )
     last_sent: dict = {}
     sweeps = 0
     for it in range(params.max_iterations):
@@ -106,8 +121,10 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
                     T: np.ndarray | list[np.ndarray] = (
                         geo.retract(poses[vs[changed]], D[changed]) if changed.any() else []
                     )
-                    entries = [InitEntry(InitStage.TRANSLATION, r, int(v), T[k])
-                               for k, v in enumerate(vs[changed].tolist())]
+                    entries = [
+                        InitEntry(InitStage.TRANSLATION, r, int(v), T[k])
+                        for k, v in enumerate(vs[changed].tolist())
+                    ]
                     if entries:
                         sends.append((q, entries))
                 outgoing[r] = sends
@@ -115,7 +132,7 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
                 for e in entries:
                     v = int(e.keyframe_id)
                     delta = geo.log(geo.inverse(poses[v]) @ np.asarray(e.value, float))
-                    views[r][v * dof:(v + 1) * dof] = delta
+                    views[r][v * dof : (v + 1) * dof] = delta
         if max_change < params.tol:
             break
     out = poses.copy()
@@ -125,9 +142,17 @@ def dgs_pose_stage(g, partition, poses: np.ndarray, kappa, tau, exchange, params
     return out, sweeps
 
 
-def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params=None,
-                links=None, partitions=(), delta_every: int = 0,
-                initial_poses: np.ndarray | None = None, partition=None) -> dict:
+def run_g2o_dgs(
+    g,
+    num_robots: int,
+    params: DGSParams = DGSParams(),
+    init_params=None,
+    links=None,
+    partitions=(),
+    delta_every: int = 0,
+    initial_poses: np.ndarray | None = None,
+    partition=None,
+) -> dict:
     """DGS on a g2o graph split like Table 1; same bus and byte accounting as ``run_g2o_dran``
     (``links``: the bus's ``BusParams``, default lossless; ``delta_every``: the delta layout,
     see ``Fleet``; ``initial_poses`` (diagnostics): run the pose stage from these instead of
@@ -140,17 +165,32 @@ def run_g2o_dgs(g, num_robots: int, params: DGSParams = DGSParams(), init_params
 
     t0 = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
-    part = partition if partition is not None else partition_contiguous(
-        g.edges, g.num_vertices, num_robots)
-    bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
-              partitions=partitions)
+    part = (
+        partition
+        if partition is not None
+        else partition_contiguous(g.edges, g.num_vertices, num_robots)
+    )
+    bus = Bus(
+        range(num_robots),
+        graph=part.neighbour_pairs(),
+        params=links or BusParams(),
+        partitions=partitions,
+    )
     fleet = Fleet([], bus, delta_every=delta_every)
     if initial_poses is not None:
         start = np.asarray(initial_poses, np.float64).copy()
     else:
         start = distributed_chordal_init(
-            g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
-            fleet.init_exchange, init_params or default_init_params(links, partitions)).poses
+            g.dim,
+            g.num_vertices,
+            g.edges,
+            g.measurements,
+            kappa,
+            tau,
+            part,
+            fleet.init_exchange,
+            init_params or default_init_params(links, partitions),
+        ).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     poses, sweeps = dgs_pose_stage(g, part, start, kappa, tau, fleet.init_exchange, params)
 

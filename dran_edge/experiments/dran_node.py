@@ -31,8 +31,9 @@ class DranNode:
     """Robot ``robot_id`` of the simulated scenario, driven round by round."""
 
     def __init__(self, robot_id: int, neighbours: list[int], config: dict):
-        sim_kw: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
-                                  for k, v in config.get("sim", {}).items()}
+        sim_kw: dict[str, Any] = {
+            k: tuple(v) if isinstance(v, list) else v for k, v in config.get("sim", {}).items()
+        }
         sim = SimParams(**sim_kw)
         scenario = make_scenario(sim)
         n = sim.num_robots
@@ -40,24 +41,33 @@ class DranNode:
         for a, b in config["edges"]:
             A[a, b] = A[b, a] = True
         W = metropolis_hastings_matrix(A)
-        cfg = dataclasses.replace(AgentConfig(**config.get("agent", {})), robot_id=robot_id,
-                                  neighbours=tuple(sorted(neighbours)))
-        self.agent = Agent(cfg, scenario.problems[robot_id],
-                           {q: float(W[robot_id, q]) for q in neighbours})
+        cfg = dataclasses.replace(
+            AgentConfig(**config.get("agent", {})),
+            robot_id=robot_id,
+            neighbours=tuple(sorted(neighbours)),
+        )
+        self.agent = Agent(
+            cfg, scenario.problems[robot_id], {q: float(W[robot_id, q]) for q in neighbours}
+        )
 
-    def step(self, round_: int, received: list[NeighbourMessage]
-             ) -> list[tuple[NeighbourMessage, list[int]]]:
+    def step(
+        self, round_: int, received: list[NeighbourMessage]
+    ) -> list[tuple[NeighbourMessage, list[int]]]:
         stamp_ns = round_ * ROUND_PERIOD_NS
         for message in received:
             self.agent.handle(NeighbourData(stamp_ns, message))
-        return [(o.message, list(o.to)) for o in self.agent.handle(Tick(stamp_ns))
-                if isinstance(o, Outgoing)]
+        return [
+            (o.message, list(o.to))
+            for o in self.agent.handle(Tick(stamp_ns))
+            if isinstance(o, Outgoing)
+        ]
 
     def result(self) -> dict:
         """The estimate, exactly (floats as hex so JSON round-trips every bit)."""
         return {
             "rounds": self.agent.k,
             "trajectory": [float(v).hex() for v in np.asarray(self.agent.x).ravel()],
-            "objects": {str(o): [float(v).hex() for v in T.ravel()]
-                        for o, T in sorted(self.agent.y.items())},
+            "objects": {
+                str(o): [float(v).hex() for v in T.ravel()] for o, T in sorted(self.agent.y.items())
+            },
         }

@@ -98,9 +98,14 @@ class Traffic:
 class Fleet:
     """Agents (agent i is robot ``bus.robot_ids[i]``) and the datagram exchange between them."""
 
-    def __init__(self, agents: list[Agent], bus: Bus,
-                 max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES, fleet_id: int = 1,
-                 delta_every: int = 0):
+    def __init__(
+        self,
+        agents: list[Agent],
+        bus: Bus,
+        max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES,
+        fleet_id: int = 1,
+        delta_every: int = 0,
+    ):
         """``delta_every > 0``: delta layout on every link (``dran_edge.comms.delta``), each key
         sent absolute again after that many rounds; 0: absolute values only."""
         self.agents = agents
@@ -124,20 +129,32 @@ class Fleet:
     @property
     def traffic(self) -> Traffic:
         st = self.bus.stats()
-        return Traffic(st["datagrams_sent"], st["bytes_total"], int(sum(st["lost"].values())),
-                       self.decode_errors, st["bytes_by_kind"], st["bytes_by_sender"])
+        return Traffic(
+            st["datagrams_sent"],
+            st["bytes_total"],
+            int(sum(st["lost"].values())),
+            self.decode_errors,
+            st["bytes_by_kind"],
+            st["bytes_by_sender"],
+        )
 
-    def send(self, sender: int, message: NeighbourMessage, to, latency_rounds: int | None = None
-             ) -> None:
+    def send(
+        self, sender: int, message: NeighbourMessage, to, latency_rounds: int | None = None
+    ) -> None:
         """Encode (once, or once per link with deltas), then hand every datagram to the bus for
         every recipient in ``to`` whose link is up this round (agent indices)."""
         up = set(self.bus.neighbours(self.ids[sender]))
         ep = self.endpoints[sender]
 
         def encode(enc=None):
-            grams = codec.encode_datagrams(message, fleet_id=self.fleet_id, boot_epoch=1,
-                                           first_sequence=self.sequence[sender],
-                                           max_datagram_bytes=self.max_datagram_bytes, delta=enc)
+            grams = codec.encode_datagrams(
+                message,
+                fleet_id=self.fleet_id,
+                boot_epoch=1,
+                first_sequence=self.sequence[sender],
+                max_datagram_bytes=self.max_datagram_bytes,
+                delta=enc,
+            )
             self.sequence[sender] += len(grams)
             return grams
 
@@ -155,7 +172,9 @@ class Fleet:
         inbox: list[list[NeighbourMessage]] = [[] for _ in self.ids]
         for i, ep in enumerate(self.endpoints):
             for sender, data in ep.receive():
-                dec = self._dec.setdefault((i, sender), DeltaDecoder()) if self.delta_every else None
+                dec = (
+                    self._dec.setdefault((i, sender), DeltaDecoder()) if self.delta_every else None
+                )
                 try:
                     inbox[i].append(codec.decode_datagram(data, dec))
                 except DecodeError:
@@ -237,7 +256,8 @@ def default_init_params(links: BusParams | None = None, partitions=()):
 def lossy_links(links: BusParams | None) -> bool:
     """Whether ``links`` lose datagrams (the tree protocols need every message)."""
     return links is not None and (
-        links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values()))
+        links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values())
+    )
 
 
 def refine_over_fleet(fleet: Fleet, mode: str, run, lossy: bool) -> dict:
@@ -256,16 +276,23 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, lossy: bool) -> dict:
         sent.append(fleet.traffic.bytes_total)
         return incoming
 
-    res = exact_gn.RefineResult(np.zeros(0), False, reason="lossy links") if lossy else \
-        run(exchange)
-    return {"poses_refined": res.poses if res.poses.size else None, "refine_mode": mode,
-            "refine_used": res.used,
-            "refine_reason": res.reason, "refine_rounds": fleet.round - r0,
-            "refine_bytes": fleet.traffic.bytes_total - b0, "refine_steps": res.steps,
-            "refine_trials": res.trials, "refine_F_history": res.F_history,
-            "refine_converged": res.converged,
-            "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
-            "refine_step_over_round_floats": res.ratio_floats}
+    res = (
+        exact_gn.RefineResult(np.zeros(0), False, reason="lossy links") if lossy else run(exchange)
+    )
+    return {
+        "poses_refined": res.poses if res.poses.size else None,
+        "refine_mode": mode,
+        "refine_used": res.used,
+        "refine_reason": res.reason,
+        "refine_rounds": fleet.round - r0,
+        "refine_bytes": fleet.traffic.bytes_total - b0,
+        "refine_steps": res.steps,
+        "refine_trials": res.trials,
+        "refine_F_history": res.F_history,
+        "refine_converged": res.converged,
+        "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
+        "refine_step_over_round_floats": res.ratio_floats,
+    }
 
 
 def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> dict:
@@ -275,9 +302,23 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> di
 
     if params is None:
         return {}
-    out = refine_over_fleet(fleet, params.mode, lambda exchange: exact_gn.refine(
-        g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, poses, exchange,
-        params), lossy)
+    out = refine_over_fleet(
+        fleet,
+        params.mode,
+        lambda exchange: exact_gn.refine(
+            g.dim,
+            g.num_vertices,
+            g.edges,
+            g.measurements,
+            kappa,
+            tau,
+            part,
+            poses,
+            exchange,
+            params,
+        ),
+        lossy,
+    )
     if out["poses_refined"] is None:
         out["poses_refined"] = poses.copy()
     return out
@@ -299,17 +340,30 @@ def table1_setup(dim: int, residual: str = "chordal", plain: bool = False, stop:
         cfg = AgentConfig(dim=dim, residual=res, robust_kernel=kernel)
         kw = {"schedule": "parallel", "delta_every": 0}
     else:
-        cfg = AgentConfig(dim=dim, residual=res, robust_kernel=kernel,
-                          sor_omega=TABLE1_SOR_OMEGA, eps_cost_rel=TABLE1_EPS_COST_REL)
+        cfg = AgentConfig(
+            dim=dim,
+            residual=res,
+            robust_kernel=kernel,
+            sor_omega=TABLE1_SOR_OMEGA,
+            eps_cost_rel=TABLE1_EPS_COST_REL,
+        )
         kw = {"schedule": "colour", "delta_every": TABLE1_DELTA_EVERY}
     if stop == "tail":
         cfg = dataclasses.replace(cfg, stop_rule="tail", eps_cost_rel=0.0)
     return cfg, kw
 
 
-def _table1_agents(g: G2oGraph, part: Partition, init_poses: np.ndarray,
-                   W: list[dict[int, float]], config: AgentConfig, colour: np.ndarray, stop_rounds: int, kappa: np.ndarray,
-                   tau: np.ndarray) -> list[Agent]:
+def _table1_agents(
+    g: G2oGraph,
+    part: Partition,
+    init_poses: np.ndarray,
+    W: list[dict[int, float]],
+    config: AgentConfig,
+    colour: np.ndarray,
+    stop_rounds: int,
+    kappa: np.ndarray,
+    tau: np.ndarray,
+) -> list[Agent]:
     """One agent per part of the split, started at ``init_poses`` and holding its neighbours'
     separators (the distributed init's last exchange left every robot with them)."""
     import dataclasses
@@ -318,9 +372,15 @@ def _table1_agents(g: G2oGraph, part: Partition, init_poses: np.ndarray,
 
     agents = []
     for r in range(len(part.parts)):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=g.dim,
-                                  colour=int(colour[r]), colours=int(colour.max()) + 1,
-                                  stop_rounds=stop_rounds)
+        cfg = dataclasses.replace(
+            config,
+            robot_id=r,
+            neighbours=tuple(sorted(W[r])),
+            dim=g.dim,
+            colour=int(colour[r]),
+            colours=int(colour.max()) + 1,
+            stop_rounds=stop_rounds,
+        )
         prob = LocalProblem.from_partition(g, part, r, init_poses, kappa, tau, cfg.residual)
         agent = Agent(cfg, prob, weights=W[r])
         for p in part.parts:
@@ -332,11 +392,22 @@ def _table1_agents(g: G2oGraph, part: Partition, init_poses: np.ndarray,
     return agents
 
 
-def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int | None = None,
-                 links: BusParams | None = None, partitions=(), callback=None,
-                 schedule: str = "parallel", delta_every: int = 0,
-                 initial_poses: np.ndarray | None = None, partition=None,
-                 stop: bool = True, refine=None) -> dict:
+def run_g2o_dran(
+    g,
+    num_robots: int,
+    config,
+    init_params=None,
+    max_rounds: int | None = None,
+    links: BusParams | None = None,
+    partitions=(),
+    callback=None,
+    schedule: str = "parallel",
+    delta_every: int = 0,
+    initial_poses: np.ndarray | None = None,
+    partition=None,
+    stop: bool = True,
+    refine=None,
+) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
     network model ``links`` (default lossless) and ``partitions``. ``schedule``: "parallel"
@@ -361,29 +432,56 @@ def run_g2o_dran(g, num_robots: int, config, init_params=None, max_rounds: int |
 
     t_start = time.perf_counter()
     kappa, tau = sesync_weights(g.dim, g.information)
-    part = partition if partition is not None else partition_contiguous(
-        g.edges, g.num_vertices, num_robots)
-    bus = Bus(range(num_robots), graph=part.neighbour_pairs(), params=links or BusParams(),
-              partitions=partitions)
+    part = (
+        partition
+        if partition is not None
+        else partition_contiguous(g.edges, g.num_vertices, num_robots)
+    )
+    bus = Bus(
+        range(num_robots),
+        graph=part.neighbour_pairs(),
+        params=links or BusParams(),
+        partitions=partitions,
+    )
     W = neighbour_weights(bus)
     fleet = Fleet([], bus, delta_every=delta_every)
     if initial_poses is not None:
         init_poses = np.asarray(initial_poses, np.float64).copy()
     else:
         init_poses = distributed_chordal_init(
-            g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part,
-            fleet.init_exchange, init_params or default_init_params(links, partitions)).poses
+            g.dim,
+            g.num_vertices,
+            g.edges,
+            g.measurements,
+            kappa,
+            tau,
+            part,
+            fleet.init_exchange,
+            init_params or default_init_params(links, partitions),
+        ).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init_poses)
-    start, refined = init_poses, _refine(g, part, init_poses, kappa, tau, fleet, refine,
-                                         lossy=bool(partitions) or lossy_links(links))
+    start, refined = (
+        init_poses,
+        _refine(
+            g,
+            part,
+            init_poses,
+            kappa,
+            tau,
+            fleet,
+            refine,
+            lossy=bool(partitions) or lossy_links(links),
+        ),
+    )
     if refined:
         start = refined["poses_refined"]
         refined["objective_refined"] = F(start)
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
-    agents = _table1_agents(g, part, start, W, config, colour,
-                            stop_rounds_for(bus, config), kappa, tau)
+    agents = _table1_agents(
+        g, part, start, W, config, colour, stop_rounds_for(bus, config), kappa, tau
+    )
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)

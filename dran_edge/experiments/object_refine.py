@@ -74,8 +74,13 @@ def object_graph(graph: PoseGraph, off: np.ndarray) -> ObjectGraph:
     compact = np.full(owner_all.size, -1, np.int64)
     compact[vertices] = np.arange(vertices.size)
     owner = owner_all[vertices]
-    edges = np.concatenate([compact[np.asarray(b.variables)] for b in graph.factors
-                            if np.asarray(b.variables).shape[1] == 2])
+    edges = np.concatenate(
+        [
+            compact[np.asarray(b.variables)]
+            for b in graph.factors
+            if np.asarray(b.variables).shape[1] == 2
+        ]
+    )
     partition = partition_edges(edges, owner)
     per_robot: list[list] = [[] for _ in partition.parts]
     for block in cast(tuple[BetweenFactors | PriorFactors, ...], graph.factors):
@@ -86,16 +91,26 @@ def object_graph(graph: PoseGraph, off: np.ndarray) -> ObjectGraph:
             if rows.size:
                 half = ~(own[rows] == r).all(axis=1)
                 scale = np.where(half, np.sqrt(0.5), 1.0)[:, None]
-                per_robot[r].append(dataclasses.replace(
-                    block, variables=var[rows], measurements=block.measurements[rows],
-                    whitening=block.whitening[rows] * scale))
+                per_robot[r].append(
+                    dataclasses.replace(
+                        block,
+                        variables=var[rows],
+                        measurements=block.measurements[rows],
+                        whitening=block.whitening[rows] * scale,
+                    )
+                )
     return ObjectGraph(vertices, partition, tuple(tuple(b) for b in per_robot))
 
 
-def refine_objects(graph: PoseGraph, off: np.ndarray, poses: np.ndarray,
-                   adjacency: list[list[int]],
-                   exchange, params: exact_gn.RefineParams,
-                   wire_dtype: type | None = np.float32) -> exact_gn.RefineResult:
+def refine_objects(
+    graph: PoseGraph,
+    off: np.ndarray,
+    poses: np.ndarray,
+    adjacency: list[list[int]],
+    exchange,
+    params: exact_gn.RefineParams,
+    wire_dtype: type | None = np.float32,
+) -> exact_gn.RefineResult:
     """``exact_gn.refine_shares`` on the scenario's centralized graph from ``poses`` (N, 4, 4)
     over a BFS tree of ``adjacency`` (the communication graph, per robot its neighbours).
     The result's poses are all N (unobserved objects unchanged); its F is twice the
@@ -105,8 +120,9 @@ def refine_objects(graph: PoseGraph, off: np.ndarray, poses: np.ndarray,
     og = object_graph(graph, off)
     n = og.vertices.size
 
-    def share_of(part: RobotPart, T: np.ndarray, exact: bool
-                 ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
+    def share_of(
+        part: RobotPart, T: np.ndarray, exact: bool
+    ) -> tuple[sp.csr_matrix, np.ndarray, float, np.ndarray]:
         H, g, cost = sp.csr_matrix((n * B_SE3, n * B_SE3)), np.zeros(n * B_SE3), 0.0
         H2 = H
         for block in og.blocks[part.robot_id]:
@@ -119,8 +135,9 @@ def refine_objects(graph: PoseGraph, off: np.ndarray, poses: np.ndarray,
         return H + H2, g, cost, H.diagonal()
 
     tree = robot_tree(og.partition, adjacency)
-    res = exact_gn.refine_shares(3, n, og.partition, share_of, poses[og.vertices], exchange,
-                                 params, -1, wire_dtype, tree)
+    res = exact_gn.refine_shares(
+        3, n, og.partition, share_of, poses[og.vertices], exchange, params, -1, wire_dtype, tree
+    )
     out = np.asarray(poses, np.float64).copy()
     out[og.vertices] = res.poses
     res.poses = out

@@ -85,7 +85,9 @@ class SimParams:
         ]
         for name, ok, expected in checks:
             if not ok:
-                raise InputError(f"SimParams.{name}: expected {expected}, got {getattr(self, name)!r}")
+                raise InputError(
+                    f"SimParams.{name}: expected {expected}, got {getattr(self, name)!r}"
+                )
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,7 +135,9 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
     gt_robots, problems = [], []
     for r in range(params.num_robots):
         start = rng.random(3) * box
-        goals = obj_t[rng.choice(M, params.goals_per_robot, replace=False)] + rng.normal(0, 1.0, (params.goals_per_robot, 3))
+        goals = obj_t[rng.choice(M, params.goals_per_robot, replace=False)] + rng.normal(
+            0, 1.0, (params.goals_per_robot, 3)
+        )
         way = np.vstack([start, goals])
         pts = []
         for a, b in itertools.pairwise(way):
@@ -178,21 +182,41 @@ def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -
                 robust = np.concatenate([robust, np.ones(n_loops, bool)])
         z = np.zeros(0, np.int64)
         E = np.zeros((0, 4, 4))
-        problems.append(LocalProblem(
-            dim=3, residual=residual, pose_ids=np.arange(n, dtype=np.int64),
-            pose_stamps_ns=np.arange(n, dtype=np.int64) * 500_000_000, x0=x0,
-            between=between.astype(np.int64), between_T=between_T,
-            between_W=np.tile(W, (between.shape[0], 1)), between_robust=robust,
-            inter_own=z, inter_owner=z, inter_anchor_id=z, inter_own_is_p=np.zeros(0, bool),
-            inter_T=E, inter_W=np.zeros((0, 6)), inter_robust=np.zeros(0, bool),
-            prior_own=np.array([0]), prior_T=T_gt[:1], prior_W=np.full((1, 6), 1e3 * max(wt, wr)),
-            obs_own=pi.astype(np.int64), obs_object=obs_obj.astype(np.int64), obs_T=Z_obs,
-            obs_W=np.tile(W, (pi.size, 1)), separators_for={}))
+        problems.append(
+            LocalProblem(
+                dim=3,
+                residual=residual,
+                pose_ids=np.arange(n, dtype=np.int64),
+                pose_stamps_ns=np.arange(n, dtype=np.int64) * 500_000_000,
+                x0=x0,
+                between=between.astype(np.int64),
+                between_T=between_T,
+                between_W=np.tile(W, (between.shape[0], 1)),
+                between_robust=robust,
+                inter_own=z,
+                inter_owner=z,
+                inter_anchor_id=z,
+                inter_own_is_p=np.zeros(0, bool),
+                inter_T=E,
+                inter_W=np.zeros((0, 6)),
+                inter_robust=np.zeros(0, bool),
+                prior_own=np.array([0]),
+                prior_T=T_gt[:1],
+                prior_W=np.full((1, 6), 1e3 * max(wt, wr)),
+                obs_own=pi.astype(np.int64),
+                obs_object=obs_obj.astype(np.int64),
+                obs_T=Z_obs,
+                obs_W=np.tile(W, (pi.size, 1)),
+                separators_for={},
+            )
+        )
         gt_robots.append(T_gt)
     return Scenario(params, gt_robots, gt_objects, problems)
 
 
-def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def centralized(
+    sc: Scenario, kernel=None, object_kernel=None
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """The global graph (all trajectories + one copy per object), its initial values, offsets.
 
     ``kernel`` on the robust loops, ``object_kernel`` on the observations (None: least squares)."""
@@ -207,9 +231,15 @@ def centralized(sc: Scenario, kernel=None, object_kernel=None) -> tuple[PoseGrap
     for r, p in enumerate(sc.problems):
         o = off[r]
         rob = p.between_robust
-        blocks.append(BetweenFactors(p.between[~rob] + o, p.between_T[~rob], p.between_W[~rob], p.residual))
+        blocks.append(
+            BetweenFactors(p.between[~rob] + o, p.between_T[~rob], p.between_W[~rob], p.residual)
+        )
         if rob.any():
-            blocks.append(BetweenFactors(p.between[rob] + o, p.between_T[rob], p.between_W[rob], p.residual, kernel))
+            blocks.append(
+                BetweenFactors(
+                    p.between[rob] + o, p.between_T[rob], p.between_W[rob], p.residual, kernel
+                )
+            )
         blocks.append(PriorFactors(p.prior_own[:, None] + o, p.prior_T, p.prior_W, p.residual))
         var = np.stack([p.obs_own + o, off[-1] + p.obs_object], axis=1)
         blocks.append(BetweenFactors(var, p.obs_T, p.obs_W, p.residual, object_kernel))
@@ -238,11 +268,14 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     average it into the relays before the check drops it ("Thirteenth session"). ``min_views``
     overrides the min views. The fleet stops on the "tail" rule (docs/notes/stopping-rule.md):
     the paper's ε_u/ε_v test let a run stop at K_max 27 % above F*."""
-    return AgentConfig(stop_rule="tail",
-                       robust_kernel=RobustKernel.CAUCHY if robust else RobustKernel.NONE,
-                       robust_threshold=0.05,
-                       object_robust_threshold=1.0, conflict_reach_m=0.0 if robust else 16.0,
-                       object_min_views=min_views if min_views is not None else 2 if robust else 1)
+    return AgentConfig(
+        stop_rule="tail",
+        robust_kernel=RobustKernel.CAUCHY if robust else RobustKernel.NONE,
+        robust_threshold=0.05,
+        object_robust_threshold=1.0,
+        conflict_reach_m=0.0 if robust else 16.0,
+        object_min_views=min_views if min_views is not None else 2 if robust else 1,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,20 +306,31 @@ def _reference(sc: Scenario, config: AgentConfig) -> _Reference:
     """
     ref_sc = sc
     if sc.params.outlier_ratio > 0:
-        ref_sc = make_scenario(dataclasses.replace(sc.params, outlier_ratio=0.0), sc.problems[0].residual)
+        ref_sc = make_scenario(
+            dataclasses.replace(sc.params, outlier_ratio=0.0), sc.problems[0].residual
+        )
     graph, init, off = centralized(
-        ref_sc, make_kernel(config.robust_kernel, config.robust_threshold),
-        make_kernel(config.robust_kernel, config.object_kernel_width))
+        ref_sc,
+        make_kernel(config.robust_kernel, config.robust_threshold),
+        make_kernel(config.robust_kernel, config.object_kernel_width),
+    )
     ref = solve(graph, init, LMParams(max_iterations=100))
     gt_x = np.concatenate(sc.gt_robots)
     n_x = int(off[-1])
-    return _Reference(graph, init, off, n_x, gt_x, evaluate_cost(graph, init), ref.cost,
-                      metrics.ate_log_rmse(init[:n_x], gt_x),
-                      metrics.ate_log_rmse(ref.poses[:n_x], gt_x))
+    return _Reference(
+        graph,
+        init,
+        off,
+        n_x,
+        gt_x,
+        evaluate_cost(graph, init),
+        ref.cost,
+        metrics.ate_log_rmse(init[:n_x], gt_x),
+        metrics.ate_log_rmse(ref.poses[:n_x], gt_x),
+    )
 
 
-def _snapshot(sc: Scenario, ref: _Reference, agents: list[Agent], fleet: Fleet
-              ) -> dict[str, Any]:
+def _snapshot(sc: Scenario, ref: _Reference, agents: list[Agent], fleet: Fleet) -> dict[str, Any]:
     """The paper's metrics of the fleet's current estimate (objects: the robots' mean)."""
     M = sc.params.num_objects
     Y = np.broadcast_to(np.eye(4), (len(agents), M, 4, 4)).copy()
@@ -296,22 +340,34 @@ def _snapshot(sc: Scenario, ref: _Reference, agents: list[Agent], fleet: Fleet
             Y[i, oid], present[i, oid] = T, True
     x = np.concatenate([a.x for a in agents])
     have = present.any(axis=0)
-    y_mean = ref.init[ref.n_x:].copy()
+    y_mean = ref.init[ref.n_x :].copy()
     if have.any():
         y_mean[have] = metrics.object_mean(Y[:, have], present[:, have])
     F_k = evaluate_cost(ref.graph, np.concatenate([x, y_mean]))
     ate_k = metrics.ate_log_rmse(x, ref.gt_x)
     ce = metrics.consistency_error(Y[:, have], present[:, have])[0] if have.any() else 0.0
-    bias = metrics.object_bias(Y[:, have], present[:, have], sc.gt_objects[have]) if have.any() else 0.0
-    return {"round": fleet.round, "F": F_k, "SR_cost": metrics.sr_cost(ref.F_init, F_k, ref.F_star),
-            "F_over_Fstar": metrics.cost_ratio(F_k, ref.F_star),
-            "ATE": ate_k, "SR_ATE": metrics.sr_ate(ref.ate0, ate_k, ref.ate_star),
-            "ATE_over_ATEstar": metrics.ate_ratio(ate_k, ref.ate_star), "CE": float(ce),
-            "Bias": float(bias), "bytes": fleet.traffic.bytes_total}
+    bias = (
+        metrics.object_bias(Y[:, have], present[:, have], sc.gt_objects[have])
+        if have.any()
+        else 0.0
+    )
+    return {
+        "round": fleet.round,
+        "F": F_k,
+        "SR_cost": metrics.sr_cost(ref.F_init, F_k, ref.F_star),
+        "F_over_Fstar": metrics.cost_ratio(F_k, ref.F_star),
+        "ATE": ate_k,
+        "SR_ATE": metrics.sr_ate(ref.ate0, ate_k, ref.ate_star),
+        "ATE_over_ATEstar": metrics.ate_ratio(ate_k, ref.ate_star),
+        "CE": float(ce),
+        "Bias": float(bias),
+        "bytes": fleet.traffic.bytes_total,
+    }
 
 
-def _refine(sc: Scenario, graph: PoseGraph, init: np.ndarray, off: np.ndarray, fleet, params,
-            links) -> dict:
+def _refine(
+    sc: Scenario, graph: PoseGraph, init: np.ndarray, off: np.ndarray, fleet, params, links
+) -> dict:
     """``run_objects``' refinement over the fleet's bus ({} when ``params`` is None); the
     curve's and history's F are the root's 2 Σ f_r (halved by the caller)."""
     from dran_edge.experiments import object_refine
@@ -321,16 +377,31 @@ def _refine(sc: Scenario, graph: PoseGraph, init: np.ndarray, off: np.ndarray, f
         return {}
     adjacency = [fleet.bus.neighbours(r) for r in fleet.ids]
     kernels = any(b.kernel is not None for b in graph.factors) or sc.params.outlier_ratio > 0
-    out = refine_over_fleet(fleet, params.mode, lambda exchange: object_refine.refine_objects(
-        graph, off, init, adjacency, exchange, params), lossy=lossy_links(links) or kernels)
+    out = refine_over_fleet(
+        fleet,
+        params.mode,
+        lambda exchange: object_refine.refine_objects(
+            graph, off, init, adjacency, exchange, params
+        ),
+        lossy=lossy_links(links) or kernels,
+    )
     if kernels:
         out["refine_reason"] = "robust kernels or outliers: least squares only"
     return out
 
 
-def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
-                max_rounds: int = 200, seed: int = 0, history_every: int = 0,
-                progress=None, refine=None, stop: bool = True) -> dict:
+def run_objects(
+    sc: Scenario,
+    config: AgentConfig,
+    comm_graph,
+    links=None,
+    max_rounds: int = 200,
+    seed: int = 0,
+    history_every: int = 0,
+    progress=None,
+    refine=None,
+    stop: bool = True,
+) -> dict:
     """DRAN on the scenario over the in-process bus, with the paper's metrics.
 
     ``comm_graph``: the communication graph as ``comms.bus.Bus`` takes it (undirected robot
@@ -352,8 +423,11 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     from dran_edge.experiments.fleet import Fleet, neighbour_weights, stop_rounds_for
 
     ref = _reference(sc, config)
-    bus = Bus(range(len(sc.problems)), graph=comm_graph,
-              params=dataclasses.replace(links or BusParams(), seed=seed))
+    bus = Bus(
+        range(len(sc.problems)),
+        graph=comm_graph,
+        params=dataclasses.replace(links or BusParams(), seed=seed),
+    )
     W = neighbour_weights(bus)
     fleet = Fleet([], bus)
     refined = _refine(sc, ref.graph, ref.init, ref.off, fleet, refine, links)
@@ -362,10 +436,11 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
     agents = []
     K = stop_rounds_for(bus, config)
     for r, p in enumerate(sc.problems):
-        cfg = dataclasses.replace(config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3,
-                                  stop_rounds=K)
+        cfg = dataclasses.replace(
+            config, robot_id=r, neighbours=tuple(sorted(W[r])), dim=3, stop_rounds=K
+        )
         if refine is not None:
-            p = dataclasses.replace(p, x0=start[off[r]:off[r + 1]].copy())
+            p = dataclasses.replace(p, x0=start[off[r] : off[r + 1]].copy())
         agent = Agent(cfg, p, weights=W[r])
         if refine is not None:  # every copy of an observed object at the refined value
             for oid in agent.y:
@@ -390,10 +465,19 @@ def run_objects(sc: Scenario, config: AgentConfig, comm_graph, links=None,
         refined["refine_curve"] = [(k, b, F / 2) for k, b, F in refined["refine_curve"]]
         refined["refine_F_history"] = [F / 2 for F in refined["refine_F_history"]]
     out.update(refined)
-    out.update({"rounds": rounds, "stopped_by": "+".join(reasons) if rounds < max_rounds else None,
-                "F_init": ref.F_init, "F_star": ref.F_star, "ATE_init": ref.ate0,
-                "ATE_star": ref.ate_star, "history": history,
-                "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
-                "datagrams": fleet.traffic.datagrams, "dropped": fleet.traffic.dropped,
-                "consensus_conflicts": sum(a.counters.consensus_conflicts for a in agents)})
+    out.update(
+        {
+            "rounds": rounds,
+            "stopped_by": "+".join(reasons) if rounds < max_rounds else None,
+            "F_init": ref.F_init,
+            "F_star": ref.F_star,
+            "ATE_init": ref.ate0,
+            "ATE_star": ref.ate_star,
+            "history": history,
+            "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
+            "datagrams": fleet.traffic.datagrams,
+            "dropped": fleet.traffic.dropped,
+            "consensus_conflicts": sum(a.counters.consensus_conflicts for a in agents),
+        }
+    )
     return out

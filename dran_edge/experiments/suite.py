@@ -86,10 +86,22 @@ def make_graph(case: Case):
     n, seed = case.num_poses, case.seed
     if fam.kind == "road":
         blocks = max(3, int(np.sqrt(n * fam.step_m / (4 * fam.block_m))))
-        T = gg.road_trajectory(fam.dim, n, seed, step_m=fam.step_m, block_m=fam.block_m,
-                               blocks=blocks, hills_m=fam.hills_m)
-        loops = gg.loop_pairs(T, 1.5 * fam.step_m, int(2 * fam.block_m / fam.step_m),
-                              int(round(case.loop_fraction * n)), seed)
+        T = gg.road_trajectory(
+            fam.dim,
+            n,
+            seed,
+            step_m=fam.step_m,
+            block_m=fam.block_m,
+            blocks=blocks,
+            hills_m=fam.hills_m,
+        )
+        loops = gg.loop_pairs(
+            T,
+            1.5 * fam.step_m,
+            int(2 * fam.block_m / fam.step_m),
+            int(round(case.loop_fraction * n)),
+            seed,
+        )
     else:
         side = max(6, int(np.sqrt(n / 2)) if fam.dim == 2 else int((n / 2) ** (1 / 3)) + 4)
         T = gg.grid_walk_trajectory(fam.dim, n, seed, side=side)
@@ -135,8 +147,13 @@ class _CurveRecorder:
     (round 0, the initialisation's end, filled in by the caller), and in ``stop`` the round
     where every robot had reported convergence for three rounds in a row (with F, bytes, ATE)."""
 
-    def __init__(self, part: Any, shape: tuple[int, int, int],
-                 F: Callable[[np.ndarray], float], T_true: np.ndarray):
+    def __init__(
+        self,
+        part: Any,
+        shape: tuple[int, int, int],
+        F: Callable[[np.ndarray], float],
+        T_true: np.ndarray,
+    ):
         self.part, self.shape, self.F, self.T_true = part, shape, F, T_true
         self.curve: list[tuple[int, Any, Any]] = []
         self.stop: dict[str, Any] = {"round": None}
@@ -158,12 +175,18 @@ class _CurveRecorder:
         self.curve.append((fleet.round, fleet.traffic.bytes_total, self.F(T)))
         k = self.curve[-1][0]
         if self.streak >= 3 and self.stop["round"] is None:
-            self.stop.update(round=k, F=self.curve[-1][2], bytes=self.curve[-1][1],
-                             ate=ate_m(T, self.T_true))
+            self.stop.update(
+                round=k, F=self.curve[-1][2], bytes=self.curve[-1][1], ate=ate_m(T, self.T_true)
+            )
 
 
-def _curve_numbers(curve: list[tuple[int, Any, Any]], stop: dict[str, Any], F_star: float,
-                   rounds: int, checkpoints: Sequence[int]) -> dict[str, Any]:
+def _curve_numbers(
+    curve: list[tuple[int, Any, Any]],
+    stop: dict[str, Any],
+    F_star: float,
+    rounds: int,
+    checkpoints: Sequence[int],
+) -> dict[str, Any]:
     """F/F* at the checkpoints, the convergence stop, and the first round and bytes within
     1 % and 0.1 % of F*."""
     out: dict[str, Any] = {}
@@ -172,16 +195,18 @@ def _curve_numbers(curve: list[tuple[int, Any, Any]], stop: dict[str, Any], F_st
             out[f"F_over_F_star_at_{c}"] = [f for k, _, f in curve if k <= c][-1] / F_star
     out["stop_round"] = stop["round"]
     if stop["round"] is not None:
-        out.update(stop_F_over_F_star=stop["F"] / F_star, stop_bytes=stop["bytes"],
-                   stop_ATE_m=stop["ate"])
+        out.update(
+            stop_F_over_F_star=stop["F"] / F_star, stop_bytes=stop["bytes"], stop_ATE_m=stop["ate"]
+        )
     for ratio, key in ((1.01, "1pct"), (1.001, "01pct")):
         k, b = _first(curve, ratio, F_star)
         out[f"round_at_{key}"], out[f"bytes_at_{key}"] = k, b
     return out
 
 
-def _curve_after_init(rec: _CurveRecorder, res: dict[str, Any], rounds: int, refined: bool
-                      ) -> tuple[list[tuple[int, Any, Any]], dict[str, Any]]:
+def _curve_after_init(
+    rec: _CurveRecorder, res: dict[str, Any], rounds: int, refined: bool
+) -> tuple[list[tuple[int, Any, Any]], dict[str, Any]]:
     """The recorder's curve and stop on the axis of rounds after the init: round 0 is the
     init's end; with a refinement, the root's F at each of its accepted points and at its end
     come first (their rounds count), then DRAN's rounds, cut at ``rounds``."""
@@ -191,15 +216,25 @@ def _curve_after_init(rec: _CurveRecorder, res: dict[str, Any], rounds: int, ref
     curve[1:] = [(k - r0, b, f) for k, b, f in curve[1:] if k - r0 <= rounds]
     if refined:
         curve[1:1] = [(k, res["bytes_init"] + b, f) for k, b, f in res["refine_curve"][1:]] + [
-            (res["refine_rounds"], res["bytes_init"] + res["refine_bytes"],
-             res["objective_refined"])]
+            (
+                res["refine_rounds"],
+                res["bytes_init"] + res["refine_bytes"],
+                res["objective_refined"],
+            )
+        ]
     if stop["round"] is not None:
         stop["round"] -= r0
     return curve, stop
 
 
-def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: bool = True,
-             checkpoints=CHECKPOINTS, refine=None) -> dict:
+def run_case(
+    case: Case,
+    rounds: int = 1000,
+    init_direct: str = "auto",
+    dgs: bool = True,
+    checkpoints=CHECKPOINTS,
+    refine=None,
+) -> dict:
     """Every number of one case (module docstring); ``curve`` holds (round, bytes so far, F)
     per round, round 0 being the initialisation's end. ``refine`` (``exact_gn.RefineParams``):
     exact LM steps after the init (``run_g2o_dran``); their rounds count on the same axis (the
@@ -226,24 +261,43 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
     cfg, run_kw = table1_setup(g.dim)
     rec = _CurveRecorder(part, (g.num_vertices, g.dim + 1, g.dim + 1), F, T_true)
     t1 = time.perf_counter()
-    res = run_g2o_dran(g, case.robots, cfg, init_params=InitParams(gauss_seidel=True,
-                                                                   direct=init_direct),
-                       max_rounds=rounds, callback=rec, partition=part, stop=False,
-                       refine=refine, **run_kw)
+    res = run_g2o_dran(
+        g,
+        case.robots,
+        cfg,
+        init_params=InitParams(gauss_seidel=True, direct=init_direct),
+        max_rounds=rounds,
+        callback=rec,
+        partition=part,
+        stop=False,
+        refine=refine,
+        **run_kw,
+    )
     t_dran = time.perf_counter() - t1
     F_init = res["objective_init"]
     curve, stop = _curve_after_init(rec, res, rounds, refined=refine is not None)
     out = {
-        "case": case.name, "family": case.family, "seed": case.seed, "dim": g.dim,
-        "poses": g.num_vertices, "edges": g.num_edges, "robots": case.robots,
-        "split": case.split, "loop_fraction": case.loop_fraction if FAMILIES[case.family].kind
-        == "road" else None, "init_direct": init_direct,
-        "F_star": F_star, "F_chordal": F_chordal, "ATE_star_m": ate_m(central.result.poses, T_true),
+        "case": case.name,
+        "family": case.family,
+        "seed": case.seed,
+        "dim": g.dim,
+        "poses": g.num_vertices,
+        "edges": g.num_edges,
+        "robots": case.robots,
+        "split": case.split,
+        "loop_fraction": case.loop_fraction if FAMILIES[case.family].kind == "road" else None,
+        "init_direct": init_direct,
+        "F_star": F_star,
+        "F_chordal": F_chordal,
+        "ATE_star_m": ate_m(central.result.poses, T_true),
         "ATE_chordal_m": ate_m(central.poses_init, T_true),
-        "F_init": F_init, "F_init_over_F_chordal": F_init / F_chordal,
-        "init_rounds": res["init_rounds"], "init_bytes": res["bytes_init"],
+        "F_init": F_init,
+        "F_init_over_F_chordal": F_init / F_chordal,
+        "init_rounds": res["init_rounds"],
+        "init_bytes": res["bytes_init"],
         "ATE_init_m": ate_m(res["poses_init"], T_true),
-        "dran_rounds": res["rounds"], "dran_bytes": res["bytes_total"],
+        "dran_rounds": res["rounds"],
+        "dran_bytes": res["bytes_total"],
         **{k: v for k, v in res.items() if k.startswith("refine_") or k == "objective_refined"},
         **({"ATE_refined_m": ate_m(res["poses_refined"], T_true)} if refine is not None else {}),
         "dran_F_end": curve[-1][2],  # at ``rounds`` (with refine: DRAN ran refine_rounds more)
@@ -253,12 +307,20 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
     out.update(_curve_numbers(curve, stop, F_star, rounds, checkpoints))
     if dgs:
         t2 = time.perf_counter()
-        d = run_g2o_dgs(g, case.robots, initial_poses=res["poses_init"], partition=part,
-                        delta_every=TABLE1_DELTA_EVERY)
-        out.update(dgs_F_end_over_F_star=d["objective_final"] / F_star,
-                   dgs_rounds=res["init_rounds"] + d["rounds"],
-                   dgs_bytes=res["bytes_init"] + d["bytes_total"],
-                   dgs_ATE_end_m=ate_m(d["poses"], T_true), dgs_wall_s=time.perf_counter() - t2)
+        d = run_g2o_dgs(
+            g,
+            case.robots,
+            initial_poses=res["poses_init"],
+            partition=part,
+            delta_every=TABLE1_DELTA_EVERY,
+        )
+        out.update(
+            dgs_F_end_over_F_star=d["objective_final"] / F_star,
+            dgs_rounds=res["init_rounds"] + d["rounds"],
+            dgs_bytes=res["bytes_init"] + d["bytes_total"],
+            dgs_ATE_end_m=ate_m(d["poses"], T_true),
+            dgs_wall_s=time.perf_counter() - t2,
+        )
     out.update(central_wall_s=t_central, dran_wall_s=t_dran, wall_s=time.perf_counter() - t0)
     out["curve"] = [(k, b, f / F_star) for k, b, f in curve]
     return out
@@ -267,8 +329,10 @@ def run_case(case: Case, rounds: int = 1000, init_direct: str = "auto", dgs: boo
 def default_cases(quick: bool = False, seeds=(1, 2, 3)) -> list[Case]:
     """The suite. Quick: two small families, 3 robots, for the test and a smoke run."""
     if quick:
-        return [Case("car2d", 240, 1, robots=3), Case("city3d", 150, 2, robots=3,
-                                                       split="interleaved")]
+        return [
+            Case("car2d", 240, 1, robots=3),
+            Case("city3d", 150, 2, robots=3, split="interleaved"),
+        ]
     cases = []
     for fam in FAMILIES:
         for k, seed in enumerate(seeds):
@@ -284,8 +348,12 @@ def default_cases(quick: bool = False, seeds=(1, 2, 3)) -> list[Case]:
 
 def worst_by_family(rows: list[dict]) -> dict:
     """Per family the worst (largest) value of each ratio and the latest 1 % round."""
-    keys = ["F_init_over_F_chordal", "dran_F_end_over_F_star", "stop_F_over_F_star",
-            "dgs_F_end_over_F_star"] + [f"F_over_F_star_at_{c}" for c in CHECKPOINTS]
+    keys = [
+        "F_init_over_F_chordal",
+        "dran_F_end_over_F_star",
+        "stop_F_over_F_star",
+        "dgs_F_end_over_F_star",
+    ] + [f"F_over_F_star_at_{c}" for c in CHECKPOINTS]
     out: dict = {}
     for r in rows:
         w = out.setdefault(r["family"], {"cases": 0})
@@ -294,8 +362,11 @@ def worst_by_family(rows: list[dict]) -> dict:
             if r.get(k) is not None:
                 w[k] = max(w.get(k, -np.inf), r[k])
         k1 = r.get("round_at_1pct")
-        w["round_at_1pct"] = None if k1 is None or w.get("round_at_1pct", 0) is None \
+        w["round_at_1pct"] = (
+            None
+            if k1 is None or w.get("round_at_1pct", 0) is None
             else max(w.get("round_at_1pct", 0), k1)
+        )
     return out
 
 
@@ -306,20 +377,28 @@ def _fmt(v, spec=".4f") -> str:
 def markdown_table(rows: list[dict]) -> str:
     """One line per case: the numbers of ``run_case`` (ratios to F*, bytes in kB)."""
     cps = [c for c in CHECKPOINTS if any(f"F_over_F_star_at_{c}" in r for r in rows)]
-    head = (["case", "F_init/F_chord", "init rnd/kB"] + [f"F/F* @{c}" for c in cps]
-            + ["stop rnd", "F/F* stop", "kB @1.01F*", "F/F* end", "ATE end/ATE*",
-               "DGS F/F*", "DGS kB"])
+    head = (
+        ["case", "F_init/F_chord", "init rnd/kB"]
+        + [f"F/F* @{c}" for c in cps]
+        + ["stop rnd", "F/F* stop", "kB @1.01F*", "F/F* end", "ATE end/ATE*", "DGS F/F*", "DGS kB"]
+    )
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [r["case"], _fmt(r["F_init_over_F_chordal"]),
-                 f"{r['init_rounds']}/{r['init_bytes'] / 1e3:.0f}"]
+        cells = [
+            r["case"],
+            _fmt(r["F_init_over_F_chordal"]),
+            f"{r['init_rounds']}/{r['init_bytes'] / 1e3:.0f}",
+        ]
         cells += [_fmt(r.get(f"F_over_F_star_at_{c}")) for c in cps]
-        cells += [str(r["stop_round"]), _fmt(r.get("stop_F_over_F_star")),
-                  _fmt(None if r["bytes_at_1pct"] is None else r["bytes_at_1pct"] / 1e3, ".0f"),
-                  _fmt(r["dran_F_end_over_F_star"]),
-                  _fmt(r["dran_ATE_end_m"] / max(r["ATE_star_m"], 1e-12), ".3f"),
-                  _fmt(r.get("dgs_F_end_over_F_star")),
-                  _fmt(None if r.get("dgs_bytes") is None else r["dgs_bytes"] / 1e3, ".0f")]
+        cells += [
+            str(r["stop_round"]),
+            _fmt(r.get("stop_F_over_F_star")),
+            _fmt(None if r["bytes_at_1pct"] is None else r["bytes_at_1pct"] / 1e3, ".0f"),
+            _fmt(r["dran_F_end_over_F_star"]),
+            _fmt(r["dran_ATE_end_m"] / max(r["ATE_star_m"], 1e-12), ".3f"),
+            _fmt(r.get("dgs_F_end_over_F_star")),
+            _fmt(None if r.get("dgs_bytes") is None else r["dgs_bytes"] / 1e3, ".0f"),
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -134,8 +134,10 @@ def _required_topic(n: rd._Node, key: str) -> str:
 
 
 def _image(n: rd._Node) -> ImageMap:
-    n.check({"topic"}, {"camera_info", "depth", "T_body_camera", "depth_unit_m", "max_rate_hz",
-                        "encode"})
+    n.check(
+        {"topic"},
+        {"camera_info", "depth", "T_body_camera", "depth_unit_m", "max_rate_hz", "encode"},
+    )
     enc = n.get("encode", "str", "png")
     if enc not in ("png", "pnm"):
         raise n._err(f"{n.key('encode')}: expected png or pnm, got {enc!r}", n.key("encode"))
@@ -143,8 +145,15 @@ def _image(n: rd._Node) -> ImageMap:
     unit = n.get("depth_unit_m", "float", 0.001)
     if (rate is not None and rate <= 0) or unit <= 0:
         raise n._err(f"{n.where}: max_rate_hz and depth_unit_m must be > 0", n.where)
-    return ImageMap(_required_topic(n, "topic"), _topic(n, "camera_info"), _topic(n, "depth"),
-                    n.get("T_body_camera", "pose"), unit, rate, enc)
+    return ImageMap(
+        _required_topic(n, "topic"),
+        _topic(n, "camera_info"),
+        _topic(n, "depth"),
+        n.get("T_body_camera", "pose"),
+        unit,
+        rate,
+        enc,
+    )
 
 
 def _loops(n: rd._Node) -> LoopMap:
@@ -154,15 +163,27 @@ def _loops(n: rd._Node) -> LoopMap:
         return LoopMap("vins", topic=_required_topic(n, "topic"))
     if form == "pose_pair":
         n.check({"old", "cur", "form"})
-        return LoopMap("pose_pair", old=_required_topic(n, "old"),
-                        cur=_required_topic(n, "cur"))
+        return LoopMap("pose_pair", old=_required_topic(n, "old"), cur=_required_topic(n, "cur"))
     raise n._err(f"{n.key('form')}: expected one of {LOOP_FORMS}, got {form!r}", n.key("form"))
 
 
 def _robot(n: rd._Node, path: str, lines: dict) -> RobotMap:
-    n.check({"id", "name", "odometry"},
-            {"bag", "clock_offset_ns", "keyframes", "keyframe_every", "reset", "loops", "image",
-             "config", "mocap_body", "T_body_marker", "T_world_odom"})
+    n.check(
+        {"id", "name", "odometry"},
+        {
+            "bag",
+            "clock_offset_ns",
+            "keyframes",
+            "keyframe_every",
+            "reset",
+            "loops",
+            "image",
+            "config",
+            "mocap_body",
+            "T_body_marker",
+            "T_world_odom",
+        },
+    )
     rid = n.get("id", "int")
     if not 0 <= rid <= 65535:
         raise n._err(f"{n.key('id')}: expected 0..65535, got {rid}", n.key("id"))
@@ -174,11 +195,22 @@ def _robot(n: rd._Node, path: str, lines: dict) -> RobotMap:
         loops = _loops(rd._Node(n.get("loops", "dict"), n.key("loops"), path, lines))
     if "image" in n.data:
         image = _image(rd._Node(n.get("image", "dict"), n.key("image"), path, lines))
-    return RobotMap(rid, n.get("name", "name"), _required_topic(n, "odometry"), n.get("bag", "str"),
-                    n.get("clock_offset_ns", "int", 0), _topic(n, "keyframes"), every,
-                    _topic(n, "reset"), loops, image, n.get("config", "str"),
-                    n.get("mocap_body", "str"), n.get("T_body_marker", "pose", np.eye(4)),
-                    n.get("T_world_odom", "pose"))
+    return RobotMap(
+        rid,
+        n.get("name", "name"),
+        _required_topic(n, "odometry"),
+        n.get("bag", "str"),
+        n.get("clock_offset_ns", "int", 0),
+        _topic(n, "keyframes"),
+        every,
+        _topic(n, "reset"),
+        loops,
+        image,
+        n.get("config", "str"),
+        n.get("mocap_body", "str"),
+        n.get("T_body_marker", "pose", np.eye(4)),
+        n.get("T_world_odom", "pose"),
+    )
 
 
 def read_mapping(path: str | Path) -> BagMapping:
@@ -186,63 +218,109 @@ def read_mapping(path: str | Path) -> BagMapping:
     path = Path(path)
     data, lines = rd._yaml_with_lines(path)
     top = rd._Node(data if data is not None else {}, "", str(path), lines)
-    top.check({"format", "robots"}, {"fleet", "clock", "comm_graph", "objects", "mocap", "calib",
-                                     "start_ns", "duration_s", "reorder_window_s"})
+    top.check(
+        {"format", "robots"},
+        {
+            "fleet",
+            "clock",
+            "comm_graph",
+            "objects",
+            "mocap",
+            "calib",
+            "start_ns",
+            "duration_s",
+            "reorder_window_s",
+        },
+    )
     if data["format"] != MAP_FORMAT:
         raise top._err(f"format: expected {MAP_FORMAT!r}, got {data['format']!r}", "format")
     clock = top.get("clock", "str", "header")
     if clock not in CLOCKS:
         raise top._err(f"clock: expected one of {CLOCKS}, got {clock!r}", "clock")
-    robots = [_robot(rd._Node(item, f"robots[{i}]", str(path), lines), str(path), lines)
-              for i, item in enumerate(top.get("robots", "list"))]
+    robots = [
+        _robot(rd._Node(item, f"robots[{i}]", str(path), lines), str(path), lines)
+        for i, item in enumerate(top.get("robots", "list"))
+    ]
     rd.check_robot_list(top, robots)
     seen: dict[tuple[str | None, str], str] = {}
     for r in robots:
         for role, t in r.topics().items():
             key = (r.bag, t)
             if key in seen:
-                raise top._err(f"robots: topic {t} is mapped twice ({seen[key]} and "
-                               f"{r.name}.{role}); give each robot its own bag or topic", "robots")
+                raise top._err(
+                    f"robots: topic {t} is mapped twice ({seen[key]} and "
+                    f"{r.name}.{role}); give each robot its own bag or topic",
+                    "robots",
+                )
             seen[key] = f"{r.name}.{role}"
     ids = {r.id for r in robots}
     if "comm_graph" in data:
         edges = set()
         for i, e in enumerate(top.get("comm_graph", "list")):
-            if (not isinstance(e, list) or len(e) != 2 or any(x not in ids for x in e)
-                    or e[0] == e[1]):
-                raise top._err(f"comm_graph[{i}]: expected two different robot ids of this "
-                               f"mapping ({sorted(ids)}), got {e!r}", f"comm_graph[{i}]")
+            if (
+                not isinstance(e, list)
+                or len(e) != 2
+                or any(x not in ids for x in e)
+                or e[0] == e[1]
+            ):
+                raise top._err(
+                    f"comm_graph[{i}]: expected two different robot ids of this "
+                    f"mapping ({sorted(ids)}), got {e!r}",
+                    f"comm_graph[{i}]",
+                )
             edges.add((min(e), max(e)))
         comm = tuple(sorted(edges))
     else:
         s = sorted(ids)
-        comm = tuple((a, b) for i, a in enumerate(s) for b in s[i + 1:])
+        comm = tuple((a, b) for i, a in enumerate(s) for b in s[i + 1 :])
     objects = []
     for i, item in enumerate(top.get("objects", "list", [])):
         n = rd._Node(item, f"objects[{i}]", str(path), lines)
         n.check({"id"}, {"name", "mocap_body", "T_object_marker"})
         oid = n.get("id", "int")
-        objects.append(rd.RunObject(oid, n.get("name", "str", f"object{oid}"),
-                                    n.get("mocap_body", "str"),
-                                    n.get("T_object_marker", "pose", np.eye(4))))
+        objects.append(
+            rd.RunObject(
+                oid,
+                n.get("name", "str", f"object{oid}"),
+                n.get("mocap_body", "str"),
+                n.get("T_object_marker", "pose", np.eye(4)),
+            )
+        )
     mocap = None
     if "mocap" in data:
         m = rd._Node(top.get("mocap", "dict"), "mocap", str(path), lines)
         m.check({"bodies"}, {"up_axis", "clock_offset_ns", "bag"})
         bodies = m.get("bodies", "dict")
-        if not bodies or not all(isinstance(k, str) and isinstance(v, str) and v
-                                 for k, v in bodies.items()):
-            raise m._err("mocap.bodies: expected a mapping of rigid-body name -> topic",
-                         "mocap.bodies")
+        if not bodies or not all(
+            isinstance(k, str) and isinstance(v, str) and v for k, v in bodies.items()
+        ):
+            raise m._err(
+                "mocap.bodies: expected a mapping of rigid-body name -> topic", "mocap.bodies"
+            )
         up = m.get("up_axis", "str", "z")
         if up not in ("y", "z"):
             raise m._err(f"mocap.up_axis: expected 'y' or 'z', got {up!r}", "mocap.up_axis")
-        mocap = MocapMap({k: v if v.startswith("/") else "/" + v for k, v in bodies.items()},
-                         up, m.get("clock_offset_ns", "int", 0), m.get("bag", "str"))
+        mocap = MocapMap(
+            {k: v if v.startswith("/") else "/" + v for k, v in bodies.items()},
+            up,
+            m.get("clock_offset_ns", "int", 0),
+            m.get("bag", "str"),
+        )
     start = top.get("start_ns", "int")
     dur = top.get("duration_s", "float")
     window = top.get("reorder_window_s", "float", 2.0)
     if (start is not None and start <= 0) or (dur is not None and dur <= 0) or window < 0:
         raise top._err("start_ns and duration_s must be > 0, reorder_window_s >= 0", "start_ns")
-    return BagMapping(str(path), top.get("fleet", "name", "bagfleet"), clock, tuple(robots),
-                      comm, tuple(objects), mocap, top.get("calib", "str"), start, dur, window)
+    return BagMapping(
+        str(path),
+        top.get("fleet", "name", "bagfleet"),
+        clock,
+        tuple(robots),
+        comm,
+        tuple(objects),
+        mocap,
+        top.get("calib", "str"),
+        start,
+        dur,
+        window,
+    )

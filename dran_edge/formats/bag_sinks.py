@@ -94,8 +94,9 @@ class RobotSink:
         last = self._last_stream_ns.get(stream, 0)
         if s <= last:
             self.skipped[f"non_monotonic:{stream}"] += 1
-            _first_note(self, f"non_monotonic:{stream}",
-                        f"stamp {s} ns after {last} ns on {stream}")
+            _first_note(
+                self, f"non_monotonic:{stream}", f"stamp {s} ns after {last} ns on {stream}"
+            )
             return False
         self._last_stream_ns[stream] = s
         return True
@@ -114,8 +115,10 @@ class RobotSink:
             self.first_ns = it.stamp_ns if self.first_ns is None else self.first_ns
             self.last_ns = it.stamp_ns
             self._emit(it)
-            if self.r.keyframes is None and (self.counts["odometry"] - 1) \
-                    % self.r.keyframe_every == 0:
+            if (
+                self.r.keyframes is None
+                and (self.counts["odometry"] - 1) % self.r.keyframe_every == 0
+            ):
                 self._emit(rm.keyframe_from_odometry(it))
         elif role == "keyframes":
             it = rm.keyframe_record(msg, off, stamp)
@@ -135,17 +138,21 @@ class RobotSink:
             (self._pair_old if role == "loop_old" else self._pair_cur).append(msg)
             if self._pair_old and self._pair_cur:
                 o, c = self._pair_old.popleft(), self._pair_cur.popleft()
-                self._loop(rm.stamp_ns(o.header), rm.stamp_ns(c.header),
-                           rm.pose_vector(rm._pose_of(c)), 0)
+                self._loop(
+                    rm.stamp_ns(o.header), rm.stamp_ns(c.header), rm.pose_vector(rm._pose_of(c)), 0
+                )
         elif role in ("image", "depth"):
             self._image(role, msg, receive_ns + off if recv else rm.stamp_ns(msg.header) + off)
         elif role == "camera_info":
             if self.camera is None:
                 im = self._image_map
                 if im.T_body_camera is None:
-                    raise InputError(f"robots: {self.r.name}.image: T_body_camera is needed to "
-                                     "build the camera file from camera_info (or give calib with "
-                                     f"cameras/{self.r.name}.yaml)", path=self.mapping.path)
+                    raise InputError(
+                        f"robots: {self.r.name}.image: T_body_camera is needed to "
+                        "build the camera file from camera_info (or give calib with "
+                        f"cameras/{self.r.name}.yaml)",
+                        path=self.mapping.path,
+                    )
                 self.camera = rm.camera_file(msg, self.r.name, im.T_body_camera, im.depth_unit_m)
 
     def _loop(self, old: int, cur: int, v: tuple, inliers: int) -> None:
@@ -163,8 +170,11 @@ class RobotSink:
         """Receive-clock stamp of the keyframe whose header stamp is within 1 ms of
         ``header_ns``."""
         i = bisect.bisect_left(self._kf_header, header_ns)
-        best = min((j for j in (i - 1, i) if 0 <= j < len(self._kf_header)),
-                   key=lambda j: abs(self._kf_header[j] - header_ns), default=None)
+        best = min(
+            (j for j in (i - 1, i) if 0 <= j < len(self._kf_header)),
+            key=lambda j: abs(self._kf_header[j] - header_ns),
+            default=None,
+        )
         if best is None or abs(self._kf_header[best] - header_ns) > 1_000_000:
             return None
         return self._kf_receive[best] - self.r.clock_offset_ns
@@ -176,8 +186,9 @@ class RobotSink:
         if s in self._decided:
             return self._decided[s]
         rate = self._image_map.max_rate_hz
-        keep = not rate or not self._last_keep_ns or \
-            s - self._last_keep_ns >= int(1e9 / rate) - 1000
+        keep = (
+            not rate or not self._last_keep_ns or s - self._last_keep_ns >= int(1e9 / rate) - 1000
+        )
         if keep:
             self._last_keep_ns = s
         self._decided[s] = keep

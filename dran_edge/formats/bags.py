@@ -60,28 +60,35 @@ def open_bag(path: str | Path):
     try:
         from rosbags.highlevel import AnyReader
     except ImportError:
-        raise DependencyError("reading bags needs the 'rosbags' package: "
-                              "pip install 'dran-edge[bags]'") from None
+        raise DependencyError(
+            "reading bags needs the 'rosbags' package: pip install 'dran-edge[bags]'"
+        ) from None
     p = Path(path)
     if not p.exists():
         raise InputError("bag not found", path=str(p))
     if p.is_file() and p.suffix in (".db3", ".mcap"):
         if not (p.parent / "metadata.yaml").exists():
-            raise InputError("a ROS 2 bag file needs its folder's metadata.yaml next to it "
-                             "(ros2 bag reindex writes one)", path=str(p))
+            raise InputError(
+                "a ROS 2 bag file needs its folder's metadata.yaml next to it "
+                "(ros2 bag reindex writes one)",
+                path=str(p),
+            )
         p = p.parent
     elif p.is_file() and p.suffix != ".bag":
-        raise InputError("expected a ROS 1 .bag file, or a ROS 2 bag folder (or its .db3/.mcap)",
-                         path=str(p))
+        raise InputError(
+            "expected a ROS 1 .bag file, or a ROS 2 bag folder (or its .db3/.mcap)", path=str(p)
+        )
     elif p.is_dir() and not (p / "metadata.yaml").exists():
         raise InputError("expected a ROS 2 bag folder with metadata.yaml", path=str(p))
     return AnyReader([p]), p
 
 
 def bag_size_bytes(p: Path) -> int:
-    return p.stat().st_size if p.is_file() else sum(f.stat().st_size for f in p.iterdir()
-                                                     if f.is_file())
-
+    return (
+        p.stat().st_size
+        if p.is_file()
+        else sum(f.stat().st_size for f in p.iterdir() if f.is_file())
+    )
 
 
 def _select(reader, bag_name: str, wanted: dict[str, tuple[str, str]]) -> dict[str, Any]:
@@ -93,8 +100,11 @@ def _select(reader, bag_name: str, wanted: dict[str, tuple[str, str]]) -> dict[s
         owner, role = wanted[c.topic]
         allowed = ROLE_TYPES[role]
         if c.msgtype not in allowed:
-            raise InputError(f"topic {c.topic} ({owner} {role}) has message type {c.msgtype}; "
-                             f"expected {' or '.join(allowed)} (docs/bags.md)", path=bag_name)
+            raise InputError(
+                f"topic {c.topic} ({owner} {role}) has message type {c.msgtype}; "
+                f"expected {' or '.join(allowed)} (docs/bags.md)",
+                path=bag_name,
+            )
         out.setdefault(c.topic, []).append(c)
     return out
 
@@ -116,18 +126,29 @@ def _assign(bags: list[Path], mapping: BagMapping) -> list[dict[str, tuple[str, 
     for bag_sel, topic, owner, role in wants:
         idx = [i for i, b in enumerate(bags) if bag_sel is None or bag_sel in _bag_key(b)]
         if bag_sel is not None and not idx:
-            raise InputError(f"{owner}: bag {bag_sel!r} is not among the bags given "
-                             f"({', '.join(b.name for b in bags)})", path=mapping.path)
+            raise InputError(
+                f"{owner}: bag {bag_sel!r} is not among the bags given "
+                f"({', '.join(b.name for b in bags)})",
+                path=mapping.path,
+            )
         for i in idx:
             if topic in per_bag[i] and per_bag[i][topic] != (owner, role):
-                raise InputError(f"topic {topic} is mapped to {per_bag[i][topic][0]} and "
-                                 f"{owner}; name each robot's bag with 'bag:'", path=mapping.path)
+                raise InputError(
+                    f"topic {topic} is mapped to {per_bag[i][topic][0]} and "
+                    f"{owner}; name each robot's bag with 'bag:'",
+                    path=mapping.path,
+                )
             per_bag[i][topic] = (owner, role)
     return per_bag
 
 
-def import_bags(bag_paths: list[str | Path], mapping: BagMapping, out_dir: str | Path, *,
-                progress: ProgressFn | None = None) -> dict:
+def import_bags(
+    bag_paths: list[str | Path],
+    mapping: BagMapping,
+    out_dir: str | Path,
+    *,
+    progress: ProgressFn | None = None,
+) -> dict:
     """Import ``bag_paths`` as a run directory at ``out_dir`` (new or empty); returns the
     summary (also written as ``import.json``)."""
     root = Path(out_dir)
@@ -165,13 +186,16 @@ def _read_one(reader, path: Path, wanted, sinks, mocap, found, stats, progress) 
         total = sum(c.msgcount for cs in conns.values() for c in cs)
         done = 0
         sel = [c for cs in conns.values() for c in cs]
-        for conn, receive_ns, raw in (reader.messages(connections=sel) if sel else ()):
+        for conn, receive_ns, raw in reader.messages(connections=sel) if sel else ():
             done += 1
             owner, role = wanted[conn.topic]
             found.add((conn.topic, str(path)))
             target = sinks.get(owner)
-            if role in ("image", "depth") and target.r.image.max_rate_hz \
-                    and target.mapping.clock == "header":
+            if (
+                role in ("image", "depth")
+                and target.r.image.max_rate_hz
+                and target.mapping.clock == "header"
+            ):
                 s = peek_header_stamp_ns(raw, reader.is2)
                 if s is not None and not target.keep_frame(role, s + target.r.clock_offset_ns):
                     continue  # dropped by max_rate_hz: never deserialised
@@ -192,8 +216,14 @@ def _read_one(reader, path: Path, wanted, sinks, mocap, found, stats, progress) 
             if progress and (done % 2000 == 0 or done == total):
                 progress(f"import-bag: {path.name}", done, total)
         stats["messages"] += done
-        stats["bags"].append({"path": str(path), "messages": done, "bytes": size,
-                              "seconds": round(time.monotonic() - t_start, 3)})
+        stats["bags"].append(
+            {
+                "path": str(path),
+                "messages": done,
+                "bytes": size,
+                "seconds": round(time.monotonic() - t_start, 3),
+            }
+        )
     finally:
         reader.close()
 
@@ -206,9 +236,11 @@ def _check_found(per_bag, found, bags, mapping) -> None:
             topics_in.setdefault((t, owner, role), set()).add(str(b))
     for (t, owner, role), where in topics_in.items():
         if not any((t, w) in found for w in where):
-            raise InputError(f"topic {t} ({owner} {role}) has no messages in "
-                             f"{', '.join(sorted(where))} (mapping {mapping.path}; "
-                             "'dran-edge import-bag --list BAG' lists a bag's topics)")
+            raise InputError(
+                f"topic {t} ({owner} {role}) has no messages in "
+                f"{', '.join(sorted(where))} (mapping {mapping.path}; "
+                "'dran-edge import-bag --list BAG' lists a bag's topics)"
+            )
 
 
 def _finish(root: Path, mapping: BagMapping, sinks: dict[str, RobotSink], mocap, stats) -> dict:
@@ -216,16 +248,18 @@ def _finish(root: Path, mapping: BagMapping, sinks: dict[str, RobotSink], mocap,
     tags = False
     if calib_src is not None:
         if not (calib_src / "tags.yaml").exists():
-            raise InputError("calib: expected a folder with tags.yaml (docs/calibration.md)",
-                             path=str(calib_src))
+            raise InputError(
+                "calib: expected a folder with tags.yaml (docs/calibration.md)", path=str(calib_src)
+            )
         (root / "calib" / "cameras").mkdir(parents=True, exist_ok=True)
         shutil.copyfile(calib_src / "tags.yaml", root / "calib" / "tags.yaml")
         tags = True
     for r in mapping.robots:
         s = sinks[r.name]
         if s.first_ns is None:
-            raise InputError(f"robot {r.name}: no usable odometry on {r.odometry}",
-                             path=mapping.path)
+            raise InputError(
+                f"robot {r.name}: no usable odometry on {r.odometry}", path=mapping.path
+            )
         cam_dst = root / "calib" / "cameras" / f"{r.name}.yaml"
         if r.image is not None:
             given = calib_src / "cameras" / f"{r.name}.yaml" if calib_src else None
@@ -235,8 +269,10 @@ def _finish(root: Path, mapping: BagMapping, sinks: dict[str, RobotSink], mocap,
             elif s.camera is not None:
                 rd.write_yaml(cam_dst, s.camera, header=f"{r.name}: from camera_info")
             elif s.counts["frames"]:
-                raise InputError(f"robot {r.name}: no camera_info message and no "
-                                 f"cameras/{r.name}.yaml in calib", path=mapping.path)
+                raise InputError(
+                    f"robot {r.name}: no camera_info message and no cameras/{r.name}.yaml in calib",
+                    path=mapping.path,
+                )
     # every robot has a first (and so a last) stamp: checked above
     start = mapping.start_ns or min(s.first_ns for s in sinks.values() if s.first_ns is not None)
     end = max(s.last_ns for s in sinks.values() if s.last_ns is not None)
@@ -244,15 +280,23 @@ def _finish(root: Path, mapping: BagMapping, sinks: dict[str, RobotSink], mocap,
     mocap_start = None
     if mocap is not None:
         assert mapping.mocap is not None  # a mocap sink exists only for a mocap mapping
-        mocap_start = mocap.write(root / "mocap.csv", mapping.mocap.up_axis,
-                                  list(mapping.mocap.bodies))
+        mocap_start = mocap.write(
+            root / "mocap.csv", mapping.mocap.up_axis, list(mapping.mocap.bodies)
+        )
     mission = rd.Mission(
-        fleet=mapping.fleet, start_ns=int(start), duration_s=float(duration),
-        robots=tuple(rd.RunRobot(r.id, r.name, r.mocap_body, r.T_body_marker, r.T_world_odom)
-                     for r in mapping.robots),
-        objects=mapping.objects, comm_graph=mapping.comm_graph,
+        fleet=mapping.fleet,
+        start_ns=int(start),
+        duration_s=float(duration),
+        robots=tuple(
+            rd.RunRobot(r.id, r.name, r.mocap_body, r.T_body_marker, r.T_world_odom)
+            for r in mapping.robots
+        ),
+        objects=mapping.objects,
+        comm_graph=mapping.comm_graph,
         mocap_file="mocap.csv" if mocap_start is not None else None,
-        mocap_start_ns=mocap_start, mocap_up_axis=mapping.mocap.up_axis if mapping.mocap else "y")
+        mocap_start_ns=mocap_start,
+        mocap_up_axis=mapping.mocap.up_axis if mapping.mocap else "y",
+    )
     for r in mapping.robots:
         _write_config(root, mapping, mission, r, sinks[r.name], tags)
     rd.write_mission(root, mission)
@@ -261,18 +305,29 @@ def _finish(root: Path, mapping: BagMapping, sinks: dict[str, RobotSink], mocap,
         "bags": stats["bags"],
         "messages": stats["messages"],
         "undecodable": dict(stats["undecodable"]),
-        "robots": {n: {"written": dict(s.counts), "skipped": dict(s.skipped),
-                       "first_skip": getattr(s, "notes", {})} for n, s in sinks.items()},
-        "mocap": ({"bodies": {b: len(v) for b, v in mocap.stamps.items()},
-                   "skipped": dict(mocap.skipped)} if mocap else None),
-        "start_ns": int(start), "duration_s": float(duration),
+        "robots": {
+            n: {
+                "written": dict(s.counts),
+                "skipped": dict(s.skipped),
+                "first_skip": getattr(s, "notes", {}),
+            }
+            for n, s in sinks.items()
+        },
+        "mocap": (
+            {"bodies": {b: len(v) for b, v in mocap.stamps.items()}, "skipped": dict(mocap.skipped)}
+            if mocap
+            else None
+        ),
+        "start_ns": int(start),
+        "duration_s": float(duration),
     }
     (root / "import.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     return summary
 
 
-def _write_config(root: Path, mapping: BagMapping, mission: rd.Mission, r: RobotMap,
-                  sink: RobotSink, tags: bool) -> None:
+def _write_config(
+    root: Path, mapping: BagMapping, mission: rd.Mission, r: RobotMap, sink: RobotSink, tags: bool
+) -> None:
     from dran_edge.config import config_from_dict, config_to_dict
 
     dst = root / "robots" / r.name / "robot.yaml"
@@ -283,22 +338,32 @@ def _write_config(root: Path, mapping: BagMapping, mission: rd.Mission, r: Robot
     names = {x.id: x.name for x in mission.robots}
     camera: dict = {"source": "none"}
     if sink.counts["frames"] and tags:
-        camera = {"source": "recorded", "calib_dir": "../../calib",
-                  "tags_file": "../../calib/tags.yaml", "recording": "frames"}
+        camera = {
+            "source": "recorded",
+            "calib_dir": "../../calib",
+            "tags_file": "../../calib/tags.yaml",
+            "recording": "frames",
+        }
         cam = rd._yaml_with_lines(root / "calib" / "cameras" / f"{r.name}.yaml")[0]
         camera |= {"width": int(cam["width"]), "height": int(cam["height"])}
         span = (sink._last_frame_ns - int(mission.start_ns)) / 1e9
         if span > 0:
             camera["fps"] = max(1, int(round(sink.counts["frames"] / max(span, 1e-3))))
-    cfg = config_from_dict({
-        "robot": {"id": r.id, "name": r.name, "fleet": mapping.fleet},
-        "neighbours": [{"id": n, "name": names[n], "address": f"127.0.0.1:{_BASE_PORT + n}"}
-                       for n in nb],
-        "comms": {"transport": "udp", "bind_address": "127.0.0.1", "port": _BASE_PORT + r.id},
-        "camera": camera,
-    })
-    rd.write_yaml(dst, config_to_dict(cfg),
-                  header=f"{r.name}: generated by dran-edge import-bag (docs/bags.md)")
+    cfg = config_from_dict(
+        {
+            "robot": {"id": r.id, "name": r.name, "fleet": mapping.fleet},
+            "neighbours": [
+                {"id": n, "name": names[n], "address": f"127.0.0.1:{_BASE_PORT + n}"} for n in nb
+            ],
+            "comms": {"transport": "udp", "bind_address": "127.0.0.1", "port": _BASE_PORT + r.id},
+            "camera": camera,
+        }
+    )
+    rd.write_yaml(
+        dst,
+        config_to_dict(cfg),
+        header=f"{r.name}: generated by dran-edge import-bag (docs/bags.md)",
+    )
 
 
 def list_topics(path: str | Path) -> list[tuple[str, str, int]]:

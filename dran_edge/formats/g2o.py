@@ -233,9 +233,7 @@ class _Records:
         i = _parse_id(tokens[1], path, lineno, tag)
         j = _parse_id(tokens[2], path, lineno, tag)
         if i == j:
-            raise InputError(
-                f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno
-            )
+            raise InputError(f"{tag}: edge connects vertex {i} to itself", path=path, line=lineno)
         self.edge_ids.append((i, j))
         self.edge_nums.append(_parse_floats(tokens[3:], path, lineno, tag))
         self.edge_lines.append(lineno)
@@ -276,8 +274,7 @@ def _parse_records(text: str, path: str) -> _Records:
     return rec
 
 
-def _vertex_poses(rec: _Records, dim: int, vertex_ids: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _vertex_poses(rec: _Records, dim: int, vertex_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(poses, has_pose) of every vertex: the VERTEX line's pose, else the identity."""
     n, D = vertex_ids.shape[0], dim + 1
     poses = np.broadcast_to(np.eye(D), (n, D, D)).copy()
@@ -296,8 +293,9 @@ def _vertex_poses(rec: _Records, dim: int, vertex_ids: np.ndarray
     return poses, has_pose
 
 
-def _edge_arrays(rec: _Records, dim: int, ij: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _edge_arrays(
+    rec: _Records, dim: int, ij: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(measurements, information, lines) of the edges; the information checked."""
     nums = np.asarray(rec.edge_nums)
     lines = np.asarray(rec.edge_lines, dtype=np.int64)

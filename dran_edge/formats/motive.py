@@ -163,7 +163,8 @@ def _parse_table(
             raise InputError(
                 f"expected {width} cells like the header, got {line.count(',') + 1} (truncated "
                 "or malformed row)",
-                path=path, line=first_line + r,
+                path=path,
+                line=first_line + r,
             )
     if n == 0:
         return np.zeros((0, width)), np.zeros((0, width), bool)
@@ -184,17 +185,20 @@ def _parse_table(
                     raise InputError(
                         f"expected a number or a blank cell in column {c + 1} "
                         f"({column_names[c]}), got {cell!r}",
-                        path=path, line=first_line + r,
+                        path=path,
+                        line=first_line + r,
                     )
-        raise InputError("could not parse the data rows as numbers", path=path,
-                         line=first_line)
+        raise InputError("could not parse the data rows as numbers", path=path, line=first_line)
     values = values.reshape(n, width)
     blank = np.isnan(values)
     bad = np.isinf(values)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise InputError(f"expected a finite number in column {c + 1} ({column_names[c]}), "
-                         f"got {values[r, c]}", path=path, line=first_line + int(r))
+        raise InputError(
+            f"expected a finite number in column {c + 1} ({column_names[c]}), got {values[r, c]}",
+            path=path,
+            line=first_line + int(r),
+        )
     return values, blank
 
 
@@ -204,8 +208,9 @@ def _read_text(path: str) -> str:
     except FileNotFoundError:
         raise InputError("Motive CSV file not found", path=path) from None
     except UnicodeDecodeError as exc:
-        raise InputError(f"expected a text (UTF-8) Motive CSV, got undecodable bytes: {exc}",
-                         path=path) from None
+        raise InputError(
+            f"expected a text (UTF-8) Motive CSV, got undecodable bytes: {exc}", path=path
+        ) from None
 
 
 def _check_metadata(rows: list[list[str]], path: str) -> dict[str, str]:
@@ -227,26 +232,31 @@ def _check_metadata(rows: list[list[str]], path: str) -> dict[str, str]:
         except ValueError:
             newer = False
         if not newer:
-            raise InputError(f"expected Motive CSV format version 1.2x, got {version!r}",
-                             path=path, line=1)
-        log.warning("%s: Motive CSV format version %s is newer than 1.2x; reading it as 1.2x",
-                    path, version)
+            raise InputError(
+                f"expected Motive CSV format version 1.2x, got {version!r}", path=path, line=1
+            )
+        log.warning(
+            "%s: Motive CSV format version %s is newer than 1.2x; reading it as 1.2x", path, version
+        )
     rotation_type = meta.setdefault("Rotation Type", "Quaternion")
     if rotation_type not in ROTATION_TYPES:
         raise InputError(
             f"expected Rotation Type one of {', '.join(ROTATION_TYPES)}, got {rotation_type!r}",
-            path=path, line=1,
+            path=path,
+            line=1,
         )
     units = meta.setdefault("Length Units", "Meters")
     if units not in LENGTH_UNITS_M:
         raise InputError(
             f"expected Length Units one of {', '.join(LENGTH_UNITS_M)}, got {units!r}",
-            path=path, line=1,
+            path=path,
+            line=1,
         )
     space = meta.get("Coordinate Space", "Global")
     if space != "Global":
-        raise InputError(f"expected Coordinate Space 'Global' (world poses), got {space!r}",
-                         path=path, line=1)
+        raise InputError(
+            f"expected Coordinate Space 'Global' (world poses), got {space!r}", path=path, line=1
+        )
     return meta
 
 
@@ -294,18 +304,23 @@ def _find_header(rows: list[list[str]], path: str) -> _Header:
             raise InputError(
                 f"header row {key!r} has {len(row)} cells, expected {width} like the "
                 f"'Frame,Time (Seconds),...' row",
-                path=path, line=i + 1,
+                path=path,
+                line=i + 1,
             )
         cells[key] = [c.strip() for c in row]
     axis = [c.strip() for c in rows[i_axis]]
     if width < 2 or not axis[1].startswith("Time"):
-        raise InputError(f"expected 'Frame,Time (Seconds)' to start the axis row, got "
-                         f"{','.join(axis[:2])!r}", path=path, line=i_axis + 1)
+        raise InputError(
+            f"expected 'Frame,Time (Seconds)' to start the axis row, got {','.join(axis[:2])!r}",
+            path=path,
+            line=i_axis + 1,
+        )
     return _Header(cells, axis, find["Name"], find.get("ID", find["Name"]), i_axis)
 
 
-def _rigid_body_columns(h: _Header, path: str
-                        ) -> tuple[dict[str, dict[tuple[str, str], int]], dict[str, str]]:
+def _rigid_body_columns(
+    h: _Header, path: str
+) -> tuple[dict[str, dict[tuple[str, str], int]], dict[str, str]]:
     """Rigid-body columns grouped by name: ``{name: {(component, axis): column}}``, and each
     body's Motive ID."""
     layout: dict[str, dict[tuple[str, str], int]] = {}
@@ -315,16 +330,22 @@ def _rigid_body_columns(h: _Header, path: str
             continue
         name = h.cells["Name"][c]
         if not name:
-            raise InputError(f"rigid body column {c + 1} has no name", path=path,
-                             line=h.i_name + 1)
+            raise InputError(f"rigid body column {c + 1} has no name", path=path, line=h.i_name + 1)
         bid = h.cells["ID"][c] if "ID" in h.cells else ""
         if ids.setdefault(name, bid) != bid:
-            raise InputError(f"two rigid bodies are named {name!r} (IDs {ids[name]!r} and "
-                             f"{bid!r}); names must be unique", path=path, line=h.i_id + 1)
+            raise InputError(
+                f"two rigid bodies are named {name!r} (IDs {ids[name]!r} and "
+                f"{bid!r}); names must be unique",
+                path=path,
+                line=h.i_id + 1,
+            )
         key = (h.cells["component"][c], h.axis[c])
         if key in layout.setdefault(name, {}):
-            raise InputError(f"rigid body {name!r} has two '{key[0]} {key[1]}' columns",
-                             path=path, line=h.i_axis + 1)
+            raise InputError(
+                f"rigid body {name!r} has two '{key[0]} {key[1]}' columns",
+                path=path,
+                line=h.i_axis + 1,
+            )
         layout[name][key] = c
     return layout, ids
 
@@ -334,21 +355,37 @@ def _frames_and_times(table: np.ndarray, blank_all: np.ndarray, first: int, path
     fr_t, blank = table[:, :2], blank_all[:, :2]
     if blank.any():
         r = int(np.argwhere(blank)[0][0])
-        raise InputError("expected a frame number and a time in every data row, got a blank",
-                         path=path, line=first + r + 1)
+        raise InputError(
+            "expected a frame number and a time in every data row, got a blank",
+            path=path,
+            line=first + r + 1,
+        )
     frame = fr_t[:, 0].astype(np.int64)
     time_s = fr_t[:, 1]
     back = np.flatnonzero(np.diff(time_s) <= 0)
     if back.size:
         r = int(back[0]) + 1
-        raise InputError(f"expected increasing times, got {time_s[r]:.6f} s after "
-                         f"{time_s[r - 1]:.6f} s", path=path, line=first + r + 1)
+        raise InputError(
+            f"expected increasing times, got {time_s[r]:.6f} s after {time_s[r - 1]:.6f} s",
+            path=path,
+            line=first + r + 1,
+        )
     return frame, time_s
 
 
-def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
-                rotation_type: str, scale_m: float, R_up: np.ndarray, first: int,
-                i_axis: int, path: str, body_id: str) -> MotiveBody:
+def _rigid_body(
+    name: str,
+    cols: dict,
+    table: np.ndarray,
+    blank_all: np.ndarray,
+    rotation_type: str,
+    scale_m: float,
+    R_up: np.ndarray,
+    first: int,
+    i_axis: int,
+    path: str,
+    body_id: str,
+) -> MotiveBody:
     """One rigid body's track: all its rotation/position cells blank (occluded) or none."""
     rot_axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
     need = [("Rotation", a) for a in rot_axes] + [("Position", a) for a in AXES]
@@ -357,7 +394,8 @@ def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
         raise InputError(
             f"rigid body {name!r} lacks the columns {', '.join(missing)} needed for "
             f"Rotation Type {rotation_type}",
-            path=path, line=i_axis + 1,
+            path=path,
+            line=i_axis + 1,
         )
     sel = [cols[k] for k in need]
     values, blank = table[:, sel], blank_all[:, sel]
@@ -365,9 +403,12 @@ def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
     partial = blank.any(axis=1) & ~occluded
     if partial.any():
         r = int(np.flatnonzero(partial)[0])
-        raise InputError(f"rigid body {name!r}: some rotation/position cells are blank "
-                         "and some are not (expected all blank when occluded)",
-                         path=path, line=first + r + 1)
+        raise InputError(
+            f"rigid body {name!r}: some rotation/position cells are blank "
+            "and some are not (expected all blank when occluded)",
+            path=path,
+            line=first + r + 1,
+        )
     n = table.shape[0]
     valid = np.asarray(~occluded, dtype=bool)
     nr = len(rot_axes)
@@ -381,9 +422,11 @@ def _rigid_body(name: str, cols: dict, table: np.ndarray, blank_all: np.ndarray,
             off = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
             if off.size:
                 r = int(np.flatnonzero(valid)[off[0]])
-                raise InputError(f"rigid body {name!r}: expected a unit quaternion, got "
-                                 f"norm {norm[off[0]]:.6f}", path=path,
-                                 line=first + r + 1)
+                raise InputError(
+                    f"rigid body {name!r}: expected a unit quaternion, got norm {norm[off[0]]:.6f}",
+                    path=path,
+                    line=first + r + 1,
+                )
             R[valid] = geo.rotmat_from_quat_xyzw(q)
         else:
             R[valid] = _euler_to_rotmat(rot[valid], rotation_type)
@@ -419,12 +462,24 @@ def read_motive_csv(path: str | Path, *, up_axis: str = "y") -> MotiveTake:
         data_lines.pop()
     column_names = ["Frame", "Time"] + [
         f"{h.cells['Name'][c]} {h.cells['component'][c]} {h.axis[c]}".strip()
-        for c in range(2, h.width)]
+        for c in range(2, h.width)
+    ]
     table, blank_all = _parse_table(data_lines, h.width, first + 1, path, column_names)
     frame, time_s = _frames_and_times(table, blank_all, first, path)
     bodies = {
-        name: _rigid_body(name, cols, table, blank_all, rotation_type, LENGTH_UNITS_M[units],
-                          R_up, first, h.i_axis, path, ids.get(name, ""))
+        name: _rigid_body(
+            name,
+            cols,
+            table,
+            blank_all,
+            rotation_type,
+            LENGTH_UNITS_M[units],
+            R_up,
+            first,
+            h.i_axis,
+            path,
+            ids.get(name, ""),
+        )
         for name, cols in layout.items()
     }
     if not bodies:

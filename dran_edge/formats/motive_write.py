@@ -72,7 +72,6 @@ def _rotmat_to_euler(R: np.ndarray, order: str) -> np.ndarray:
     return out
 
 
-
 def write_motive_csv(
     path: str | Path,
     take: MotiveTake,
@@ -117,8 +116,10 @@ def write_motive_csv(
     ids_ = ["", "ID"]
     comps = ["", ""]
     axes = ["Frame", "Time (Seconds)"]
-    blocks = [take.frame.astype(np.int64).astype(str)[:, None],
-              np.char.mod("%.6f", take.time_s)[:, None]]
+    blocks = [
+        take.frame.astype(np.int64).astype(str)[:, None],
+        np.char.mod("%.6f", take.time_s)[:, None],
+    ]
     for body in take.bodies.values():
         types += ["Rigid Body"] * per_body
         names += [body.name] * per_body

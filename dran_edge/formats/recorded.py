@@ -50,8 +50,11 @@ def _robot_yaml(path: Path) -> tuple[int, str, str, tuple[int, ...]]:
         nb = tuple(int(n["id"]) for n in data.get("neighbours") or ())
         return int(r["id"]), str(r["name"]), str(r.get("fleet", "fleet")), nb
     except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"expected a recorded robot config with robot.id, robot.name "
-                         f"({type(exc).__name__}: {exc})", path=str(path)) from None
+        raise InputError(
+            f"expected a recorded robot config with robot.id, robot.name "
+            f"({type(exc).__name__}: {exc})",
+            path=str(path),
+        ) from None
 
 
 def recorded_mission(run_dir: str | Path) -> rd.Mission:
@@ -80,8 +83,9 @@ def recorded_mission(run_dir: str | Path) -> rd.Mission:
         robots.append(prev if prev is not None and prev.id == rid else rd.RunRobot(rid, name))
         links |= {(min(rid, n), max(rid, n)) for n in nb}
     if not robots:
-        raise InputError("no robot with robot.yaml and a non-empty ingest.bin under robots/",
-                         path=str(root))
+        raise InputError(
+            "no robot with robot.yaml and a non-empty ingest.bin under robots/", path=str(root)
+        )
     assert fleet is not None  # set by the first robot
     ids = {r.id for r in robots}
     mocap_file = old.mocap_file if old else None
@@ -93,13 +97,17 @@ def recorded_mission(run_dir: str | Path) -> rd.Mission:
     start = min(s[0] for s in spans)
     end = max(s[1] for s in spans)
     return rd.Mission(
-        fleet=old.fleet if old else fleet, start_ns=start, duration_s=max((end - start) / 1e9,
-                                                                          1e-3),
+        fleet=old.fleet if old else fleet,
+        start_ns=start,
+        duration_s=max((end - start) / 1e9, 1e-3),
         robots=tuple(sorted(robots, key=lambda r: r.id)),
         objects=old.objects if old else (),
         comm_graph=tuple(sorted(e for e in links if set(e) <= ids)),
-        mocap_file=mocap_file, mocap_start_ns=old.mocap_start_ns if old else None,
-        mocap_up_axis=up, simulation=old.simulation if old else None)
+        mocap_file=mocap_file,
+        mocap_start_ns=old.mocap_start_ns if old else None,
+        mocap_up_axis=up,
+        simulation=old.simulation if old else None,
+    )
 
 
 def _with_mocap_bodies(path: Path, robots: list, up: str) -> list:
@@ -109,8 +117,12 @@ def _with_mocap_bodies(path: Path, robots: list, up: str) -> list:
         bodies = set(read_motive_csv(path, up_axis=up).bodies)
     except InputError:
         return robots
-    return [rd.RunRobot(r.id, r.name, r.name, r.T_body_marker, r.T_world_odom)
-            if r.mocap_body is None and r.name in bodies else r for r in robots]
+    return [
+        rd.RunRobot(r.id, r.name, r.name, r.T_body_marker, r.T_world_odom)
+        if r.mocap_body is None and r.name in bodies
+        else r
+        for r in robots
+    ]
 
 
 def write_recorded_mission(run_dir: str | Path, mocap_start_ns: int | None = None) -> Path:
@@ -121,14 +133,19 @@ def write_recorded_mission(run_dir: str | Path, mocap_start_ns: int | None = Non
     m = recorded_mission(run_dir)
     if mocap_start_ns is not None:
         if m.mocap_file is None:
-            raise InputError("a mocap start was given but the run has no mocap CSV",
-                             path=str(run_dir))
+            raise InputError(
+                "a mocap start was given but the run has no mocap CSV", path=str(run_dir)
+            )
         m = replace(m, mocap_start_ns=int(mocap_start_ns))
     return rd.write_mission(run_dir, m)
 
 
-def merge_recordings(out_dir: str | Path, recordings: list[str | Path],
-                     mocap: str | Path | None = None, mocap_start_ns: int | None = None) -> Path:
+def merge_recordings(
+    out_dir: str | Path,
+    recordings: list[str | Path],
+    mocap: str | Path | None = None,
+    mocap_start_ns: int | None = None,
+) -> Path:
     """Copy each recording's ``robots/<name>/`` (and a mocap CSV) into ``out_dir``, then write
     its mission.yaml. A robot name present twice is an error."""
     out = Path(out_dir)
@@ -136,8 +153,9 @@ def merge_recordings(out_dir: str | Path, recordings: list[str | Path],
     for rec in map(Path, recordings):
         src = rec / "robots"
         if not src.is_dir():
-            raise InputError("expected a recording with robots/<name>/ (dran-edge run --record)",
-                             path=str(rec))
+            raise InputError(
+                "expected a recording with robots/<name>/ (dran-edge run --record)", path=str(rec)
+            )
         for d in sorted(p for p in src.iterdir() if p.is_dir()):
             dst = out / "robots" / d.name
             if dst.exists() and dst.resolve() != d.resolve():

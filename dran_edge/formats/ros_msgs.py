@@ -98,11 +98,14 @@ def matrix_from_vector(v: tuple[float, ...]) -> np.ndarray:
     """(x, y, z, qx, qy, qz, qw) -> 4x4, the quaternion normalised (scalar code: one message)."""
     n = math.sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5] + v[6] * v[6])
     x, y, z, w = v[3] / n, v[4] / n, v[5] / n, v[6] / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), v[0]],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), v[1]],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), v[2]],
-        [0.0, 0.0, 0.0, 1.0]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), v[0]],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), v[1]],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), v[2]],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def pose_matrix(pose: Any) -> np.ndarray:
@@ -164,27 +167,34 @@ def keyframe_from_odometry(item: Item) -> Item:
     v = item.pose
     if v is None:
         raise ValueError("keyframe_from_odometry: the record has no pose")
-    return Item(item.stamp_ns, ingest.KIND_KEYFRAME,
-                ingest.pack_keyframe(item.stamp_ns, v[:3], v[3:]), v)
+    return Item(
+        item.stamp_ns, ingest.KIND_KEYFRAME, ingest.pack_keyframe(item.stamp_ns, v[:3], v[3:]), v
+    )
 
 
-def loop_record(stamp_old_ns: int, stamp_cur_ns: int, v: tuple[float, ...],
-                inliers: int = 0) -> Item:
+def loop_record(
+    stamp_old_ns: int, stamp_cur_ns: int, v: tuple[float, ...], inliers: int = 0
+) -> Item:
     """A LOOP record (``v`` = xyz + quat_xyzw of ``T_old_cur``)."""
     _check_stamp(stamp_old_ns, "loop (old keyframe)")
     _check_stamp(stamp_cur_ns, "loop (current keyframe)")
     if stamp_old_ns == stamp_cur_ns:
         raise MessageError("bad_stamp", "loop: old and current keyframe stamps are equal")
-    return Item(stamp_cur_ns, ingest.KIND_LOOP,
-                ingest.pack_loop(stamp_old_ns, stamp_cur_ns, v[:3], v[3:], inliers), v)
+    return Item(
+        stamp_cur_ns,
+        ingest.KIND_LOOP,
+        ingest.pack_loop(stamp_old_ns, stamp_cur_ns, v[:3], v[3:], inliers),
+        v,
+    )
 
 
 def vins_loop_parts(msg: Any) -> tuple[int, int, tuple[float, ...], int]:
     """docs/vins-mono.md's loop edge (nav_msgs/Odometry) -> (old_ns, cur_ns, T_old_cur, inliers)."""
     old_s = float(msg.twist.twist.linear.x)
     if not math.isfinite(old_s) or old_s <= 0:
-        raise MessageError("bad_stamp", f"loop edge: twist.linear.x (old keyframe stamp, s) "
-                                        f"is {old_s!r}")
+        raise MessageError(
+            "bad_stamp", f"loop edge: twist.linear.x (old keyframe stamp, s) is {old_s!r}"
+        )
     inl = float(msg.twist.twist.angular.x)
     inl = min(int(round(inl)), 2**32 - 1) if math.isfinite(inl) and inl > 0 else 0
     return seconds_to_ns(old_s), stamp_ns(msg.header), pose_vector(_pose_of(msg)), inl
@@ -198,12 +208,17 @@ def vins_loop_record(msg: Any, offset_ns: int = 0) -> Item:
 
 def pose_pair_loop_record(old_msg: Any, cur_msg: Any, offset_ns: int = 0) -> Item:
     """Two PoseWithCovarianceStamped: old's stamp = old keyframe; cur carries ``T_old_cur``."""
-    return loop_record(stamp_ns(old_msg.header) + offset_ns, stamp_ns(cur_msg.header) + offset_ns,
-                       pose_vector(_pose_of(cur_msg)), 0)
+    return loop_record(
+        stamp_ns(old_msg.header) + offset_ns,
+        stamp_ns(cur_msg.header) + offset_ns,
+        pose_vector(_pose_of(cur_msg)),
+        0,
+    )
 
 
-def reset_record(msg: Any, last_odometry_ns: int, offset_ns: int = 0,
-                 stamp: int | None = None) -> Item | None:
+def reset_record(
+    msg: Any, last_odometry_ns: int, offset_ns: int = 0, stamp: int | None = None
+) -> Item | None:
     """A reset: std_msgs/Bool (true: 1 ns after the last odometry) or a stamped message.
 
     ``stamp`` (receive-clock mode) replaces the header stamp of a stamped message.
@@ -215,11 +230,16 @@ def reset_record(msg: Any, last_odometry_ns: int, offset_ns: int = 0,
     elif not bool(getattr(msg, "data", True)):
         return None
     elif last_odometry_ns <= 0:
-        raise MessageError("reset_before_odometry", "reset (std_msgs/Bool) before any odometry: "
-                                                    "no stamp to give it")
+        raise MessageError(
+            "reset_before_odometry",
+            "reset (std_msgs/Bool) before any odometry: no stamp to give it",
+        )
     else:
-        return Item(last_odometry_ns + 1, ingest.KIND_RESET,
-                    ingest.pack_reset(last_odometry_ns + 1, ingest.RESET_FEATURE_TRACKER_RESTART))
+        return Item(
+            last_odometry_ns + 1,
+            ingest.KIND_RESET,
+            ingest.pack_reset(last_odometry_ns + 1, ingest.RESET_FEATURE_TRACKER_RESTART),
+        )
     s = _check_stamp(s + offset_ns, "reset")
     return Item(s, ingest.KIND_RESET, ingest.pack_reset(s, ingest.RESET_FEATURE_TRACKER_RESTART))
 
@@ -247,11 +267,13 @@ def _packed(msg: Any, bytes_per_px: int) -> np.ndarray:
     h, step = int(msg.height), int(msg.step)
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     if step < row or len(data) < step * (h - 1) + row:
-        raise MessageError("bad_image", f"image data of {len(data)} bytes is too short for "
-                                        f"{msg.width}x{h} with step {step}")
+        raise MessageError(
+            "bad_image",
+            f"image data of {len(data)} bytes is too short for {msg.width}x{h} with step {step}",
+        )
     if step == row:
-        return data[:row * h].reshape(h, row)
-    return np.stack([data[r * step:r * step + row] for r in range(h)])
+        return data[: row * h].reshape(h, row)
+    return np.stack([data[r * step : r * step + row] for r in range(h)])
 
 
 def _png(array: np.ndarray) -> bytes:
@@ -279,9 +301,11 @@ def decode_image(msg: Any, depth: bool = False) -> np.ndarray:
     w, h = int(msg.width), int(msg.height)
     allowed = DEPTH_ENCODINGS if depth else COLOUR_ENCODINGS
     if enc not in allowed:
-        raise MessageError("unsupported_encoding",
-                           f"{'depth' if depth else 'colour'} image encoding {enc!r} is not "
-                           f"supported (expected one of {', '.join(allowed)})")
+        raise MessageError(
+            "unsupported_encoding",
+            f"{'depth' if depth else 'colour'} image encoding {enc!r} is not "
+            f"supported (expected one of {', '.join(allowed)})",
+        )
     if depth:
         rows = _packed(msg, 2)
         return rows.view(">u2" if msg.is_bigendian else "<u2").reshape(h, w).astype(np.uint16)
@@ -319,16 +343,20 @@ def compressed_image(msg: Any, depth: bool = False) -> EncodedImage:
     data = bytes(msg.data)
     if depth and "compresseddepth" in fmt:
         if "rvl" in fmt:
-            raise MessageError("unsupported_encoding", f"compressed depth format {msg.format!r}:"
-                                                       " only PNG compressedDepth is supported")
+            raise MessageError(
+                "unsupported_encoding",
+                f"compressed depth format {msg.format!r}: only PNG compressedDepth is supported",
+            )
         data = data[COMPRESSED_DEPTH_HEADER:]
     if data.startswith(PNG_MAGIC) and ("png" in fmt or not fmt):
         return EncodedImage(data, ".png")
     if not depth and data.startswith(JPEG_MAGIC) and ("jpeg" in fmt or "jpg" in fmt or not fmt):
         return EncodedImage(data, ".jpg")
-    raise MessageError("unsupported_encoding",
-                       f"compressed {'depth ' if depth else ''}image format {msg.format!r} is "
-                       "not supported (expected PNG" + ("" if depth else " or JPEG") + " data)")
+    raise MessageError(
+        "unsupported_encoding",
+        f"compressed {'depth ' if depth else ''}image format {msg.format!r} is "
+        "not supported (expected PNG" + ("" if depth else " or JPEG") + " data)",
+    )
 
 
 def image_file(msg: Any, depth: bool = False, encode: str = "png") -> EncodedImage:
@@ -339,28 +367,38 @@ def image_file(msg: Any, depth: bool = False, encode: str = "png") -> EncodedIma
 
 
 # ------------------------------------------------------------------------------ camera info
-def camera_file(msg: Any, robot: str, T_body_camera: np.ndarray,
-                depth_unit_m: float = 0.001) -> dict:
+def camera_file(
+    msg: Any, robot: str, T_body_camera: np.ndarray, depth_unit_m: float = 0.001
+) -> dict:
     """sensor_msgs/CameraInfo -> the ``cameras/<robot>.yaml`` mapping (docs/calibration.md)."""
     K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), dtype=np.float64).reshape(-1)
     D = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), dtype=np.float64).reshape(-1)
     model = str(getattr(msg, "distortion_model", "plumb_bob") or "plumb_bob")
     if K.shape != (9,) or K[0] <= 0 or K[4] <= 0:
-        raise MessageError("bad_camera_info", f"camera_info K is {K.tolist()}: expected a 3x3 "
-                                              "matrix with positive focal lengths")
+        raise MessageError(
+            "bad_camera_info",
+            f"camera_info K is {K.tolist()}: expected a 3x3 matrix with positive focal lengths",
+        )
     if model not in ("plumb_bob", "rational_polynomial") or np.any(D[5:]):
-        raise MessageError("bad_camera_info", f"camera_info distortion {model!r} with "
-                                              f"{len(D)} coefficients: expected plumb_bob (5)")
+        raise MessageError(
+            "bad_camera_info",
+            f"camera_info distortion {model!r} with {len(D)} coefficients: expected plumb_bob (5)",
+        )
     dist = np.zeros(5)
-    dist[:min(5, len(D))] = D[:5]
+    dist[: min(5, len(D))] = D[:5]
     from dran_edge.formats.run_dir import pose_to_yaml
 
-    return {"format": "dran-edge-camera/1", "robot": robot, "model": "from camera_info",
-            "width": int(msg.width), "height": int(msg.height),
-            "intrinsics": {"fx": float(K[0]), "fy": float(K[4]), "cx": float(K[2]),
-                           "cy": float(K[5])},
-            "distortion": [float(x) for x in dist], "depth_unit_m": float(depth_unit_m),
-            "T_body_camera": pose_to_yaml(T_body_camera)}
+    return {
+        "format": "dran-edge-camera/1",
+        "robot": robot,
+        "model": "from camera_info",
+        "width": int(msg.width),
+        "height": int(msg.height),
+        "intrinsics": {"fx": float(K[0]), "fy": float(K[4]), "cx": float(K[2]), "cy": float(K[5])},
+        "distortion": [float(x) for x in dist],
+        "depth_unit_m": float(depth_unit_m),
+        "T_body_camera": pose_to_yaml(T_body_camera),
+    }
 
 
 def compressed_depth_header() -> bytes:

@@ -95,8 +95,10 @@ class Mission:
 def pose_to_yaml(T: np.ndarray) -> dict:
     """``{xyz: [...], quat_xyzw: [...]}`` (the calibration files' pose layout)."""
     a = geo.se3_to_xyz_quat_xyzw(np.asarray(T, dtype=np.float64))
-    return {"xyz": [round(float(v), 9) for v in a[:3]],
-            "quat_xyzw": [round(float(v), 12) for v in a[3:]]}
+    return {
+        "xyz": [round(float(v), 9) for v in a[:3]],
+        "quat_xyzw": [round(float(v), 12) for v in a[3:]],
+    }
 
 
 class _Node:
@@ -105,8 +107,9 @@ class _Node:
     def __init__(self, data: Any, where: str, path: str, lines: dict[str, int]):
         self.where, self.path, self.lines = where, path, lines
         if not isinstance(data, dict):
-            raise self._err(f"{where or 'top level'}: expected a mapping, got "
-                            f"{type(data).__name__}", where)
+            raise self._err(
+                f"{where or 'top level'}: expected a mapping, got {type(data).__name__}", where
+            )
         self.data = data
 
     def _err(self, msg: str, key: str) -> InputError:
@@ -118,12 +121,14 @@ class _Node:
     def key(self, name: str) -> str:
         return f"{self.where}.{name}" if self.where else name
 
-    def check(self, required: set[str], optional: frozenset[str] | set[str] = frozenset()
-              ) -> None:
+    def check(self, required: set[str], optional: frozenset[str] | set[str] = frozenset()) -> None:
         for k in self.data:
             if k not in required and k not in optional:
-                raise self._err(f"{self.key(str(k))}: unknown key (allowed: "
-                                f"{', '.join(sorted(required | set(optional)))})", self.key(str(k)))
+                raise self._err(
+                    f"{self.key(str(k))}: unknown key (allowed: "
+                    f"{', '.join(sorted(required | set(optional)))})",
+                    self.key(str(k)),
+                )
         for k in sorted(required):
             if k not in self.data:
                 raise self._err(f"{self.key(k)}: required key is missing", self.where)
@@ -142,7 +147,9 @@ class _Node:
             v = float(v)
         elif kind == "name":
             if not isinstance(v, str) or not _NAME_RE.match(v):
-                raise self._err(f"{key}: expected 1-15 characters of [A-Za-z0-9_.-], got {v!r}", key)
+                raise self._err(
+                    f"{key}: expected 1-15 characters of [A-Za-z0-9_.-], got {v!r}", key
+                )
         elif kind == "str":
             if not isinstance(v, str) or not v:
                 raise self._err(f"{key}: expected a non-empty string, got {v!r}", key)
@@ -151,8 +158,11 @@ class _Node:
             n.check({"xyz", "quat_xyzw"})
             xyz, q = n.vector("xyz", 3), n.vector("quat_xyzw", 4)
             if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-                raise self._err(f"{key}.quat_xyzw: expected a unit quaternion, got norm "
-                                f"{np.linalg.norm(q):.6g}", key)
+                raise self._err(
+                    f"{key}.quat_xyzw: expected a unit quaternion, got norm "
+                    f"{np.linalg.norm(q):.6g}",
+                    key,
+                )
             v = geo.se3_from_xyz_quat_xyzw(np.r_[xyz, q / np.linalg.norm(q)])
         elif kind == "list":
             if not isinstance(v, list):
@@ -165,9 +175,12 @@ class _Node:
     def vector(self, name: str, n: int) -> np.ndarray:
         v = self.data.get(name)
         key = self.key(name)
-        if (not isinstance(v, list) or len(v) != n
-                or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
-                or not all(math.isfinite(x) for x in v)):
+        if (
+            not isinstance(v, list)
+            or len(v) != n
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)
+            or not all(math.isfinite(x) for x in v)
+        ):
             raise self._err(f"{key}: expected a list of {n} finite numbers, got {v!r}", key)
         return np.asarray(v, dtype=np.float64)
 
@@ -178,8 +191,9 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise InputError("file not found (a run directory needs it; docs/run-format.md)",
-                         path=str(path)) from None
+        raise InputError(
+            "file not found (a run directory needs it; docs/run-format.md)", path=str(path)
+        ) from None
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
     lines: dict[str, int] = {}
@@ -188,8 +202,11 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        raise InputError(f"not valid YAML: {getattr(exc, 'problem', None) or exc}",
-                         path=str(path), line=mark.line + 1 if mark else None) from None
+        raise InputError(
+            f"not valid YAML: {getattr(exc, 'problem', None) or exc}",
+            path=str(path),
+            line=mark.line + 1 if mark else None,
+        ) from None
 
     def walk(node: Any, prefix: str) -> None:
         if isinstance(node, yaml.MappingNode):
@@ -209,6 +226,7 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
 
 # ------------------------------------------------------------------------------ mission.yaml
 
+
 def check_robot_list(top: _Node, robots: list) -> None:
     """At least one robot, and no id or name twice (the ``robots`` list of mission.yaml or of a
     bag mapping file)."""
@@ -226,8 +244,10 @@ def read_mission(path: str | Path) -> Mission:
     path = Path(path)
     data, lines = _yaml_with_lines(path)
     top = _Node(data if data is not None else {}, "", str(path), lines)
-    top.check({"format", "fleet", "start_ns", "duration_s", "robots", "comm_graph"},
-              {"objects", "mocap", "simulation"})
+    top.check(
+        {"format", "fleet", "start_ns", "duration_s", "robots", "comm_graph"},
+        {"objects", "mocap", "simulation"},
+    )
     if data["format"] != RUN_FORMAT:
         raise top._err(f"format: expected {RUN_FORMAT!r}, got {data['format']!r}", "format")
     fleet = top.get("fleet", "name")
@@ -244,29 +264,45 @@ def read_mission(path: str | Path) -> Mission:
         rid = n.get("id", "int")
         if not 0 <= rid <= 65535:
             raise n._err(f"{n.key('id')}: expected 0..65535, got {rid}", n.key("id"))
-        robots.append(RunRobot(rid, n.get("name", "name"), n.get("mocap_body", "str"),
-                               n.get("T_body_marker", "pose", np.eye(4)),
-                               n.get("T_world_odom", "pose")))
+        robots.append(
+            RunRobot(
+                rid,
+                n.get("name", "name"),
+                n.get("mocap_body", "str"),
+                n.get("T_body_marker", "pose", np.eye(4)),
+                n.get("T_world_odom", "pose"),
+            )
+        )
     check_robot_list(top, robots)
     objects = []
     for i, item in enumerate(top.get("objects", "list", [])):
         n = _Node(item, f"objects[{i}]", str(path), lines)
         n.check({"id"}, {"name", "mocap_body", "T_object_marker"})
         oid = n.get("id", "int")
-        objects.append(RunObject(oid, n.get("name", "str", f"object{oid}"),
-                                 n.get("mocap_body", "str"),
-                                 n.get("T_object_marker", "pose", np.eye(4))))
+        objects.append(
+            RunObject(
+                oid,
+                n.get("name", "str", f"object{oid}"),
+                n.get("mocap_body", "str"),
+                n.get("T_object_marker", "pose", np.eye(4)),
+            )
+        )
     ids = {r.id for r in robots}
     edges = set()
     for i, e in enumerate(top.get("comm_graph", "list")):
         key = f"comm_graph[{i}]"
-        if (not isinstance(e, list) or len(e) != 2
-                or any(isinstance(x, bool) or not isinstance(x, int) for x in e)):
+        if (
+            not isinstance(e, list)
+            or len(e) != 2
+            or any(isinstance(x, bool) or not isinstance(x, int) for x in e)
+        ):
             raise top._err(f"{key}: expected a pair of robot ids [a, b], got {e!r}", key)
         a, b = e
         if a == b or a not in ids or b not in ids:
-            raise top._err(f"{key}: expected two different robot ids of this run "
-                           f"({sorted(ids)}), got {e!r}", key)
+            raise top._err(
+                f"{key}: expected two different robot ids of this run ({sorted(ids)}), got {e!r}",
+                key,
+            )
         edges.add((min(a, b), max(a, b)))
     mocap_file = mocap_start = None
     up = "y"
@@ -279,8 +315,18 @@ def read_mission(path: str | Path) -> Mission:
         if up not in ("y", "z"):
             raise m._err(f"mocap.up_axis: expected 'y' or 'z', got {up!r}", "mocap.up_axis")
     sim = top.get("simulation", "dict") if "simulation" in data else None
-    return Mission(fleet, start_ns, duration_s, tuple(robots), tuple(objects),
-                   tuple(sorted(edges)), mocap_file, mocap_start, up, sim)
+    return Mission(
+        fleet,
+        start_ns,
+        duration_s,
+        tuple(robots),
+        tuple(objects),
+        tuple(sorted(edges)),
+        mocap_file,
+        mocap_start,
+        up,
+        sim,
+    )
 
 
 #: mission.yaml's start_ns this far from the recorded stamps is an error, not a warning: a
@@ -288,8 +334,9 @@ def read_mission(path: str | Path) -> Mission:
 CLOCK_ERROR_S = 86_400.0
 
 
-def check_mission_clock(m: Mission, span_ns: tuple[int, int] | None, period_s: float,
-                        path: str = "mission.yaml") -> list[str]:
+def check_mission_clock(
+    m: Mission, span_ns: tuple[int, int] | None, period_s: float, path: str = "mission.yaml"
+) -> list[str]:
     """Check mission.yaml's clock against the recorded stamps ``span_ns`` = (first, last).
 
     Raises InputError when ``start_ns`` lies after every record or more than a day before the
@@ -304,36 +351,51 @@ def check_mission_clock(m: Mission, span_ns: tuple[int, int] | None, period_s: f
     warn: list[str] = []
     early_s = (first - m.start_ns) * 1e-9
     if m.start_ns > last:
-        raise InputError(f"start_ns {m.start_ns} is after every recorded stamp (records span "
-                         f"{first}..{last}); expected the mission start on the robots' clock",
-                         path=path)
+        raise InputError(
+            f"start_ns {m.start_ns} is after every recorded stamp (records span "
+            f"{first}..{last}); expected the mission start on the robots' clock",
+            path=path,
+        )
     if early_s > CLOCK_ERROR_S:
-        raise InputError(f"start_ns {m.start_ns} is {early_s:.3g} s before the first recorded "
-                         f"stamp {first}: the replay would tick {early_s / period_s:.3g} empty "
-                         f"rounds; expected the mission start on the robots' clock (the first "
-                         f"stamp, {first})", path=path)
+        raise InputError(
+            f"start_ns {m.start_ns} is {early_s:.3g} s before the first recorded "
+            f"stamp {first}: the replay would tick {early_s / period_s:.3g} empty "
+            f"rounds; expected the mission start on the robots' clock (the first "
+            f"stamp, {first})",
+            path=path,
+        )
     tol_s = max(2.0, 2 * period_s)
     if early_s > tol_s:
-        warn.append(f"{path}: start_ns is {early_s:.1f} s before the first recorded stamp: the "
-                    f"replay runs {int(early_s / period_s)} rounds with no input first "
-                    f"(set start_ns: {first} if that is not intended)")
+        warn.append(
+            f"{path}: start_ns is {early_s:.1f} s before the first recorded stamp: the "
+            f"replay runs {int(early_s / period_s)} rounds with no input first "
+            f"(set start_ns: {first} if that is not intended)"
+        )
     elif early_s < -tol_s:
-        warn.append(f"{path}: start_ns is {-early_s:.1f} s after the first recorded stamp: the "
-                    f"records before it are all applied in the first round")
+        warn.append(
+            f"{path}: start_ns is {-early_s:.1f} s after the first recorded stamp: the "
+            f"records before it are all applied in the first round"
+        )
     span_s = (last - m.start_ns) * 1e-9
     if span_s > m.duration_s + max(tol_s, 0.1 * m.duration_s):
-        warn.append(f"{path}: the records run {span_s:.1f} s from start_ns, but duration_s is "
-                    f"{m.duration_s:g}: the replay runs {span_s:.1f} s of rounds")
+        warn.append(
+            f"{path}: the records run {span_s:.1f} s from start_ns, but duration_s is "
+            f"{m.duration_s:g}: the replay runs {span_s:.1f} s of rounds"
+        )
     elif span_s < 0.5 * m.duration_s - tol_s:
-        warn.append(f"{path}: the records end {span_s:.1f} s after start_ns, duration_s is "
-                    f"{m.duration_s:g}: the rest are rounds with no new input")
+        warn.append(
+            f"{path}: the records end {span_s:.1f} s after start_ns, duration_s is "
+            f"{m.duration_s:g}: the rest are rounds with no new input"
+        )
     if m.mocap_start_ns is not None:
         off_s = (m.mocap_start_ns - first) * 1e-9
         if abs(off_s) > 60.0:
-            warn.append(f"{path}: mocap.start_ns is {off_s:+.3g} s from the first recorded stamp "
-                        f"{first}; the ground truth will not line up with the trajectories "
-                        f"(expected Motive's time 0 on the robots' clock; remove it to let "
-                        f"eval estimate the offset)")
+            warn.append(
+                f"{path}: mocap.start_ns is {off_s:+.3g} s from the first recorded stamp "
+                f"{first}; the ground truth will not line up with the trajectories "
+                f"(expected Motive's time 0 on the robots' clock; remove it to let "
+                f"eval estimate the offset)"
+            )
     return warn
 
 
@@ -385,8 +447,7 @@ def write_yaml(path: str | Path, data: Any, header: str = "") -> None:
 
 def write_mission(run_dir: str | Path, m: Mission) -> Path:
     path = Path(run_dir) / "mission.yaml"
-    write_yaml(path, mission_to_yaml_dict(m),
-               header="dran-edge recorded run (docs/run-format.md)")
+    write_yaml(path, mission_to_yaml_dict(m), header="dran-edge recorded run (docs/run-format.md)")
     return path
 
 
@@ -428,8 +489,11 @@ class Run:
         try:
             return path.read_bytes()
         except FileNotFoundError:
-            raise InputError("file not found: every robot of a run needs its ingest records "
-                             "(docs/run-format.md)", path=str(path)) from None
+            raise InputError(
+                "file not found: every robot of a run needs its ingest records "
+                "(docs/run-format.md)",
+                path=str(path),
+            ) from None
 
     def load_config(self, name: str):
         """The robot's config, strictly loaded; its id and name must match the mission."""
@@ -437,13 +501,17 @@ class Run:
 
         path = self.config_path(name)
         if not path.exists():
-            raise InputError("file not found: every robot of a run needs its config",
-                             path=str(path))
+            raise InputError(
+                "file not found: every robot of a run needs its config", path=str(path)
+            )
         cfg = load_config(path)
         r = self.mission.robot(name)
         if cfg.robot.id != r.id or cfg.robot.name != r.name:
-            raise InputError(f"robot: expected id {r.id} name {r.name!r} (mission.yaml), got id "
-                             f"{cfg.robot.id} name {cfg.robot.name!r}", path=str(path))
+            raise InputError(
+                f"robot: expected id {r.id} name {r.name!r} (mission.yaml), got id "
+                f"{cfg.robot.id} name {cfg.robot.name!r}",
+                path=str(path),
+            )
         return cfg
 
 
@@ -456,9 +524,12 @@ def open_run(run_dir: str | Path) -> Run:
     run = Run(root, mission)
     for r in mission.robots:
         if not run.ingest_path(r.name).exists():
-            raise InputError(f"robot {r.name!r} of mission.yaml has no ingest.bin",
-                             path=str(run.ingest_path(r.name)))
+            raise InputError(
+                f"robot {r.name!r} of mission.yaml has no ingest.bin",
+                path=str(run.ingest_path(r.name)),
+            )
     if run.mocap_path is not None and not run.mocap_path.exists():
-        raise InputError("mission.yaml names this mocap file but it does not exist",
-                         path=str(run.mocap_path))
+        raise InputError(
+            "mission.yaml names this mocap file but it does not exist", path=str(run.mocap_path)
+        )
     return run

@@ -19,8 +19,10 @@ from dran_edge.errors import InputError
 
 #: Per-robot trajectory files under ``out/`` by kind: the name replay writes (it carries the
 #: robot, so evo's legends say which robot) and the name older runs have.
-TRAJECTORY_NAMES = {"final": ("{robot}.tum", "trajectory.tum"),
-                    "init": ("{robot}_init.tum", "trajectory_init.tum")}
+TRAJECTORY_NAMES = {
+    "final": ("{robot}.tum", "trajectory.tum"),
+    "init": ("{robot}_init.tum", "trajectory_init.tum"),
+}
 
 
 def trajectory_file(out_dir: Path, robot: str, kind: str = "final") -> Path | None:
@@ -45,17 +47,24 @@ def read_objects_csv(path: Path) -> dict[int, np.ndarray]:
             if n == 1 and row[0].strip() == "object_id":
                 continue
             if len(row) != 8:
-                raise InputError(f"expected 8 fields object_id,x,y,z,qx,qy,qz,qw, got {len(row)}",
-                                 path=str(path), line=n)
+                raise InputError(
+                    f"expected 8 fields object_id,x,y,z,qx,qy,qz,qw, got {len(row)}",
+                    path=str(path),
+                    line=n,
+                )
             try:
                 oid = int(row[0])
                 v = np.array([float(c) for c in row[1:]])
             except ValueError:
-                raise InputError(f"expected an integer id and 7 numbers, got {','.join(row)!r}",
-                                 path=str(path), line=n) from None
+                raise InputError(
+                    f"expected an integer id and 7 numbers, got {','.join(row)!r}",
+                    path=str(path),
+                    line=n,
+                ) from None
             if not np.isfinite(v).all() or abs(np.linalg.norm(v[3:]) - 1) > 1e-3:
-                raise InputError("expected finite numbers and a unit quaternion",
-                                 path=str(path), line=n)
+                raise InputError(
+                    "expected finite numbers and a unit quaternion", path=str(path), line=n
+                )
             if oid in out:
                 raise InputError(f"object {oid} appears twice", path=str(path), line=n)
             out[oid] = geo.se3_from_xyz_quat_xyzw(v)
@@ -67,22 +76,29 @@ def read_rounds_csv(path: Path) -> dict[str, np.ndarray]:
     with open(path, newline="", encoding="utf-8") as f:
         rows = list(csv.reader(f))
     if not rows or "round" not in [c.strip() for c in rows[0]]:
-        raise InputError("expected a header line naming the columns, with 'round' among them",
-                         path=str(path), line=1)
+        raise InputError(
+            "expected a header line naming the columns, with 'round' among them",
+            path=str(path),
+            line=1,
+        )
     head = [c.strip() for c in rows[0]]
     cols: dict[str, list[float]] = {h: [] for h in head}
     for n, row in enumerate(rows[1:], start=2):
         if not row:
             continue
         if len(row) != len(head):
-            raise InputError(f"expected {len(head)} fields like the header, got {len(row)}",
-                             path=str(path), line=n)
+            raise InputError(
+                f"expected {len(head)} fields like the header, got {len(row)}",
+                path=str(path),
+                line=n,
+            )
         for h, c in zip(head, row):
             try:
                 cols[h].append(float(c) if c.strip() else math.nan)
             except ValueError:
-                raise InputError(f"column {h!r}: expected a number, got {c!r}",
-                                 path=str(path), line=n) from None
+                raise InputError(
+                    f"column {h!r}: expected a number, got {c!r}", path=str(path), line=n
+                ) from None
     return {h: np.array(v) for h, v in cols.items()}
 
 
@@ -93,18 +109,21 @@ def read_vertex_map(path: Path) -> dict[int, tuple[str, str, int]]:
     with open(path, newline="", encoding="utf-8") as f:
         rows = list(csv.reader(f))
     if not rows or [c.strip() for c in rows[0]] != ["vertex_id", "kind", "name", "stamp_ns"]:
-        raise InputError("expected the header vertex_id,kind,name,stamp_ns", path=str(path),
-                         line=1)
+        raise InputError("expected the header vertex_id,kind,name,stamp_ns", path=str(path), line=1)
     for n, row in enumerate(rows[1:], start=2):
         if not row:
             continue
         try:
             vid, kind, name, stamp = int(row[0]), row[1].strip(), row[2].strip(), int(row[3])
         except (ValueError, IndexError):
-            raise InputError(f"expected vertex_id,kind,name,stamp_ns, got {','.join(row)!r}",
-                             path=str(path), line=n) from None
+            raise InputError(
+                f"expected vertex_id,kind,name,stamp_ns, got {','.join(row)!r}",
+                path=str(path),
+                line=n,
+            ) from None
         if kind not in ("pose", "object"):
-            raise InputError(f"kind: expected 'pose' or 'object', got {kind!r}",
-                             path=str(path), line=n)
+            raise InputError(
+                f"kind: expected 'pose' or 'object', got {kind!r}", path=str(path), line=n
+            )
         out[vid] = (kind, name, stamp)
     return out

@@ -38,7 +38,8 @@ def read_tum(path: str | Path, *, require_increasing: bool = True) -> tuple[np.n
         if len(cells) != 8:
             raise InputError(
                 f"expected 8 numbers 'stamp_s x y z qx qy qz qw', got {len(cells)} fields",
-                path=path, line=n,
+                path=path,
+                line=n,
             )
         try:
             vals = [float(c) for c in cells]
@@ -52,21 +53,24 @@ def read_tum(path: str | Path, *, require_increasing: bool = True) -> tuple[np.n
     line_of = np.array(lines)
     bad = ~np.isfinite(a).all(axis=1)
     if bad.any():
-        raise InputError("expected finite numbers, got NaN or inf", path=path,
-                         line=int(line_of[bad][0]))
+        raise InputError(
+            "expected finite numbers, got NaN or inf", path=path, line=int(line_of[bad][0])
+        )
     norm = np.linalg.norm(a[:, 4:8], axis=1)
     off = np.abs(norm - 1.0) > QUAT_NORM_TOL
     if off.any():
         k = int(np.flatnonzero(off)[0])
-        raise InputError(f"expected a unit quaternion, got norm {norm[k]:.6f}", path=path,
-                         line=int(line_of[k]))
+        raise InputError(
+            f"expected a unit quaternion, got norm {norm[k]:.6f}", path=path, line=int(line_of[k])
+        )
     if require_increasing:
         back = np.flatnonzero(np.diff(a[:, 0]) <= 0)
         if back.size:
             k = int(back[0]) + 1
             raise InputError(
                 f"expected increasing stamps, got {a[k, 0]:.9f} after {a[k - 1, 0]:.9f}",
-                path=path, line=int(line_of[k]),
+                path=path,
+                line=int(line_of[k]),
             )
     return geo.se3_from_tum_rows(a)
 

@@ -60,7 +60,9 @@ def _stamp_ns(text: str, path: str, line: int, unit: str = "ns") -> int:
     try:
         d = Decimal(t)
     except InvalidOperation:
-        raise InputError(f"expected a timestamp in {unit}, got {t!r}", path=path, line=line) from None
+        raise InputError(
+            f"expected a timestamp in {unit}, got {t!r}", path=path, line=line
+        ) from None
     if not d.is_finite() or d <= 0:
         raise InputError(f"expected a positive timestamp, got {t!r}", path=path, line=line)
     return int(d * (1 if unit == "ns" else 1_000_000_000))
@@ -86,20 +88,28 @@ def read_vins_csv(path: str | Path, min_fields: int) -> tuple[np.ndarray, np.nda
         if cells and cells[-1] == "":
             cells = cells[:-1]
         if len(cells) < min_fields:
-            raise InputError(f"expected at least {min_fields} comma-separated fields "
-                             f"(t_ns, p xyz, q wxyz ...), got {len(cells)}", path=path, line=lineno)
+            raise InputError(
+                f"expected at least {min_fields} comma-separated fields "
+                f"(t_ns, p xyz, q wxyz ...), got {len(cells)}",
+                path=path,
+                line=lineno,
+            )
         stamp = _stamp_ns(cells[0], path, lineno)
         try:
             vals = [float(c) for c in cells[1:8]]
         except ValueError:
-            raise InputError(f"expected numbers, got {','.join(cells[1:8])!r}", path=path,
-                             line=lineno) from None
+            raise InputError(
+                f"expected numbers, got {','.join(cells[1:8])!r}", path=path, line=lineno
+            ) from None
         if not all(np.isfinite(vals)):
             raise InputError("expected finite numbers", path=path, line=lineno)
         q = np.array(vals[3:7])
         if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise InputError(f"expected a unit quaternion (w, x, y, z), got norm "
-                             f"{np.linalg.norm(q):.6g}", path=path, line=lineno)
+            raise InputError(
+                f"expected a unit quaternion (w, x, y, z), got norm {np.linalg.norm(q):.6g}",
+                path=path,
+                line=lineno,
+            )
         stamps.append(stamp)
         rows.append(vals[:3] + list(q / np.linalg.norm(q)))
     if not stamps:
@@ -121,27 +131,36 @@ def read_pose_graph_loops(path: str | Path) -> list[tuple[int, int, np.ndarray]]
         if not f:
             continue
         if len(f) != 26:
-            raise InputError(f"expected 26 fields (index time vioT pgT vioQ pgQ loop_index "
-                             f"loop_info n_keypoints), got {len(f)}", path=path, line=lineno)
+            raise InputError(
+                f"expected 26 fields (index time vioT pgT vioQ pgQ loop_index "
+                f"loop_info n_keypoints), got {len(f)}",
+                path=path,
+                line=lineno,
+            )
         try:
             index, loop_index = int(f[0]), int(f[16])
             info = [float(x) for x in f[17:25]]
         except ValueError:
-            raise InputError("expected integer index/loop_index and numeric loop_info",
-                             path=path, line=lineno) from None
+            raise InputError(
+                "expected integer index/loop_index and numeric loop_info", path=path, line=lineno
+            ) from None
         index_stamp[index] = _stamp_ns(f[1], path, lineno, unit="s")
         if loop_index >= 0:
             q = np.array(info[3:7])
             if not np.all(np.isfinite(info)) or abs(np.linalg.norm(q) - 1) > 1e-3:
-                raise InputError("loop_info: expected finite t and a unit quaternion (w, x, y, z)",
-                                 path=path, line=lineno)
+                raise InputError(
+                    "loop_info: expected finite t and a unit quaternion (w, x, y, z)",
+                    path=path,
+                    line=lineno,
+                )
             T = geo.se3_from_xyz_quat_wxyz(np.r_[info[:3], q / np.linalg.norm(q)])
             pending.append((loop_index, index, T, lineno))
     loops = []
     for old, cur, T, lineno in pending:
         if old not in index_stamp:
-            raise InputError(f"loop_index {old} names no keyframe of the file", path=path,
-                             line=lineno)
+            raise InputError(
+                f"loop_index {old} names no keyframe of the file", path=path, line=lineno
+            )
         loops.append((index_stamp[old], index_stamp[cur], T))
     return loops
 
@@ -161,19 +180,27 @@ def image_stamps(folder: str | Path) -> list[tuple[int, Path]]:
         elif re.fullmatch(r"\d+\.\d+", stem):
             out.append((_stamp_ns(stem, str(p), 0, unit="s"), p))
         else:
-            raise InputError("expected an image named by its stamp (<t_ns>.png or <t_s>.png)",
-                             path=str(p))
+            raise InputError(
+                "expected an image named by its stamp (<t_ns>.png or <t_s>.png)", path=str(p)
+            )
     out.sort()
     for (a, pa), (b, pb) in zip(out, out[1:]):
         if a == b:
-            raise InputError(f"two images with the stamp {a}: {pa.name}, {pb.name}", path=str(folder))
+            raise InputError(
+                f"two images with the stamp {a}: {pa.name}, {pb.name}", path=str(folder)
+            )
     if not out:
         raise InputError("no images (.png, .jpg, .pgm, .bmp) in the folder", path=str(folder))
     return out
 
 
-def build_ingest(stamps: np.ndarray, T: np.ndarray, kf_stamps: np.ndarray,
-                 loops: list[tuple[int, int, np.ndarray]], gap_ns: int) -> tuple[bytes, dict]:
+def build_ingest(
+    stamps: np.ndarray,
+    T: np.ndarray,
+    kf_stamps: np.ndarray,
+    loops: list[tuple[int, int, np.ndarray]],
+    gap_ns: int,
+) -> tuple[bytes, dict]:
     """Ingest records (docs/ingest.md) for one robot, in stamp order."""
     from dran_edge.comms import ingest
 
@@ -190,7 +217,9 @@ def build_ingest(stamps: np.ndarray, T: np.ndarray, kf_stamps: np.ndarray,
         if n > 0:
             prev = int(stamps[order[n - 1]])
             if s - prev > gap_ns or s <= prev:
-                recs.append((s, 0, ingest.encode_event(VioReset(s, "gap in vins_result_no_loop.csv"))))
+                recs.append(
+                    (s, 0, ingest.encode_event(VioReset(s, "gap in vins_result_no_loop.csv")))
+                )
                 resets += 1
         recs.append((s, 1, ingest.encode_event(OdometrySample(s, T[i]))))
     mono = np.all(np.diff(stamps) > 0)
@@ -224,8 +253,12 @@ def build_ingest(stamps: np.ndarray, T: np.ndarray, kf_stamps: np.ndarray,
             loops_used += 1
     if mono:
         recs.sort(key=lambda x: (x[0], x[1]))
-    return b"".join(r for _, _, r in recs), {"odometry": len(stamps), "keyframes": kf_used,
-                                             "loops": loops_used, "resets": resets}
+    return b"".join(r for _, _, r in recs), {
+        "odometry": len(stamps),
+        "keyframes": kf_used,
+        "loops": loops_used,
+        "resets": resets,
+    }
 
 
 def _copy_frames(args: argparse.Namespace, robot_dir: Path) -> int:
@@ -255,15 +288,23 @@ def _copy_calibration(args: argparse.Namespace, out: Path, frames: int) -> dict[
         return camera
     src = Path(args.calib)
     if not (src / "tags.yaml").exists() or not (src / "cameras" / f"{args.name}.yaml").exists():
-        raise InputError(f"expected tags.yaml and cameras/{args.name}.yaml in the calibration "
-                         "folder (docs/calibration.md)", path=str(src))
+        raise InputError(
+            f"expected tags.yaml and cameras/{args.name}.yaml in the calibration "
+            "folder (docs/calibration.md)",
+            path=str(src),
+        )
     (out / "calib" / "cameras").mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src / "tags.yaml", out / "calib" / "tags.yaml")
-    shutil.copyfile(src / "cameras" / f"{args.name}.yaml",
-                    out / "calib" / "cameras" / f"{args.name}.yaml")
+    shutil.copyfile(
+        src / "cameras" / f"{args.name}.yaml", out / "calib" / "cameras" / f"{args.name}.yaml"
+    )
     if frames:
-        camera = {"source": "recorded", "calib_dir": "../../calib",
-                  "tags_file": "../../calib/tags.yaml", "recording": "frames"}
+        camera = {
+            "source": "recorded",
+            "calib_dir": "../../calib",
+            "tags_file": "../../calib/tags.yaml",
+            "recording": "frames",
+        }
     return camera
 
 
@@ -285,8 +326,9 @@ def _update_mission(args: argparse.Namespace, out: Path, stamps: np.ndarray) -> 
         robots, start_ns, end_ns, edges = [], start, end, set()
         objects, fleet, mocap_file, mocap_start = (), args.fleet, None, None
     if any(r.id == args.id for r in robots):
-        raise InputError(f"robot id {args.id} is already used by another robot of the run",
-                         path=str(mpath))
+        raise InputError(
+            f"robot id {args.id} is already used by another robot of the run", path=str(mpath)
+        )
     robots.append(rd.RunRobot(args.id, args.name, args.mocap_body))
     ids = {r.id for r in robots}
     for n in args.neighbours:
@@ -297,29 +339,48 @@ def _update_mission(args: argparse.Namespace, out: Path, stamps: np.ndarray) -> 
     pending = {e for e in edges if not set(e) <= ids}
     edges = {e for e in edges if set(e) <= ids}
     for a, b in sorted(pending):
-        log.warning("link %d-%d names a robot not yet in the run; give --neighbours %d when "
-                    "converting it", a, b, args.id)
-    m = rd.Mission(fleet, start_ns, (end_ns - start_ns) / 1e9,
-                   tuple(sorted(robots, key=lambda r: r.id)), objects, tuple(sorted(edges)),
-                   mocap_file, mocap_start, "y", None)
+        log.warning(
+            "link %d-%d names a robot not yet in the run; give --neighbours %d when converting it",
+            a,
+            b,
+            args.id,
+        )
+    m = rd.Mission(
+        fleet,
+        start_ns,
+        (end_ns - start_ns) / 1e9,
+        tuple(sorted(robots, key=lambda r: r.id)),
+        objects,
+        tuple(sorted(edges)),
+        mocap_file,
+        mocap_start,
+        "y",
+        None,
+    )
     rd.write_mission(out, m)
     return m
 
 
-def _write_robot_config(args: argparse.Namespace, robot_dir: Path, m: rd.Mission,
-                        camera: dict[str, str]) -> None:
+def _write_robot_config(
+    args: argparse.Namespace, robot_dir: Path, m: rd.Mission, camera: dict[str, str]
+) -> None:
     """The robot's robot.yaml: its id, fleet, neighbours on loopback and camera section."""
     from dran_edge.config import config_from_dict, config_to_dict
 
     nb = sorted(b if a == args.id else a for a, b in m.comm_graph if args.id in (a, b))
-    cfg = config_from_dict({
-        "robot": {"id": args.id, "name": args.name, "fleet": m.fleet},
-        "neighbours": [{"id": n, "address": f"127.0.0.1:{47600 + n}"} for n in nb],
-        "comms": {"bind_address": "127.0.0.1", "port": 47600 + args.id},
-        "camera": camera,
-    })
-    rd.write_yaml(robot_dir / "robot.yaml", config_to_dict(cfg),
-                  header=f"{args.name}: generated by dran-edge import-vins (docs/config.md)")
+    cfg = config_from_dict(
+        {
+            "robot": {"id": args.id, "name": args.name, "fleet": m.fleet},
+            "neighbours": [{"id": n, "address": f"127.0.0.1:{47600 + n}"} for n in nb],
+            "comms": {"bind_address": "127.0.0.1", "port": 47600 + args.id},
+            "camera": camera,
+        }
+    )
+    rd.write_yaml(
+        robot_dir / "robot.yaml",
+        config_to_dict(cfg),
+        header=f"{args.name}: generated by dran-edge import-vins (docs/config.md)",
+    )
 
 
 def convert(args: argparse.Namespace) -> dict[str, Any]:
@@ -335,8 +396,10 @@ def convert(args: argparse.Namespace) -> dict[str, Any]:
     data, counts = build_ingest(stamps, T, kf_stamps, loops, int(args.gap_s * 1e9))
     robot_dir = out / "robots" / args.name
     if (robot_dir / "ingest.bin").exists() and not args.force:
-        raise InputError(f"robot {args.name} already exists in the run (use --force to replace)",
-                         path=str(robot_dir))
+        raise InputError(
+            f"robot {args.name} already exists in the run (use --force to replace)",
+            path=str(robot_dir),
+        )
     robot_dir.mkdir(parents=True, exist_ok=True)
     (robot_dir / "ingest.bin").write_bytes(data)
     frames = _copy_frames(args, robot_dir) if args.images else 0

@@ -35,9 +35,7 @@ def one_minus_cos_over_sq(theta_sq):
 def theta_minus_sin_over_cube(theta_sq):
     """(θ − sin θ) / θ³."""
     x, small, t = _split(theta_sq)
-    return np.where(
-        small, 1 / 6 - x / 120 + x**2 / 5040 - x**3 / 362880, (t - np.sin(t)) / t**3
-    )
+    return np.where(small, 1 / 6 - x / 120 + x**2 / 5040 - x**3 / 362880, (t - np.sin(t)) / t**3)
 
 
 def se3_q_c2(theta_sq):

@@ -63,7 +63,9 @@ def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
     d02, d20 = R[..., 0, 2], R[..., 2, 0]
     d10, d01 = R[..., 1, 0], R[..., 0, 1]
     cand_list = []
-    for k, diag in enumerate((1 + tr, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22)):
+    for k, diag in enumerate(
+        (1 + tr, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22)
+    ):
         big = 0.5 * np.sqrt(np.maximum(diag, 1e-300))
         f = 0.25 / big
         if k == 0:
@@ -105,8 +107,17 @@ def so3_log(R: np.ndarray) -> np.ndarray:
         # candidate alone, well conditioned there since w ≥ 0.22.
         w = 0.5 * np.sqrt(one_plus_tr)
         f = (0.25 / w)[..., None]
-        v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                      R[..., 1, 0] - R[..., 0, 1]], axis=-1) * f
+        v = (
+            np.stack(
+                [
+                    R[..., 2, 1] - R[..., 1, 2],
+                    R[..., 0, 2] - R[..., 2, 0],
+                    R[..., 1, 0] - R[..., 0, 1],
+                ],
+                axis=-1,
+            )
+            * f
+        )
         norm = np.sqrt(w * w + np.sum(v * v, axis=-1))
         w, v = w / norm, v / norm[..., None]
     else:

@@ -19,14 +19,21 @@ def clock_env(d: RobotDaemon) -> dict:
     """libfaketime for a robot whose wall clock the faults may step (docs/rehearsal.md)."""
     if not d.faketime_lib:
         return {}
-    return {"LD_PRELOAD": d.faketime_lib, "FAKETIME_TIMESTAMP_FILE": str(d.state_dir.parent / "faketime"),
-            "FAKETIME_CACHE_DURATION": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1",
-            "FAKETIME_FORCE_MONOTONIC_FIX": "1"}
+    return {
+        "LD_PRELOAD": d.faketime_lib,
+        "FAKETIME_TIMESTAMP_FILE": str(d.state_dir.parent / "faketime"),
+        "FAKETIME_CACHE_DURATION": "1",
+        "FAKETIME_DONT_FAKE_MONOTONIC": "1",
+        "FAKETIME_FORCE_MONOTONIC_FIX": "1",
+    }
 
 
-FAKETIME_PATHS = ("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1",
-                  "/usr/lib/aarch64-linux-gnu/faketime/libfaketime.so.1",
-                  "/usr/lib/faketime/libfaketime.so.1", "/usr/local/lib/faketime/libfaketime.so.1")
+FAKETIME_PATHS = (
+    "/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1",
+    "/usr/lib/aarch64-linux-gnu/faketime/libfaketime.so.1",
+    "/usr/lib/faketime/libfaketime.so.1",
+    "/usr/local/lib/faketime/libfaketime.so.1",
+)
 
 
 def find_faketime() -> str | None:
@@ -35,8 +42,11 @@ def find_faketime() -> str | None:
 
 def clock_step(d: RobotDaemon, step_s: float) -> dict:
     if not d.faketime_lib:
-        return {"by": "skipped", "reason": "libfaketime is not installed (a robot's wall clock "
-                                           "cannot be stepped alone without it)"}
+        return {
+            "by": "skipped",
+            "reason": "libfaketime is not installed (a robot's wall clock "
+            "cannot be stepped alone without it)",
+        }
     d.clock_offset_s += step_s
     write_faketime(d)
     return {"by": "libfaketime", "offset_s": d.clock_offset_s}

@@ -52,8 +52,9 @@ class Fault:
     def describe(self, names: dict[int, str]) -> str:
         who = ",".join(names.get(r, str(r)) for r in self.robots)
         if self.kind == "kill":
-            return (f"kill -9 {who} at {self.at_s:g} s" +
-                    (f", restart at {self.end_s:g} s" if self.end_s is not None else ""))
+            return f"kill -9 {who} at {self.at_s:g} s" + (
+                f", restart at {self.end_s:g} s" if self.end_s is not None else ""
+            )
         if self.kind == "loss":
             until = "the end" if self.end_s is None else f"{self.end_s:g} s"
             return f"loss {self.probability:g} on {who} from {self.at_s:g} s to {until}"
@@ -78,8 +79,7 @@ def _robot(value: Any, ids: dict[str, int], where: str) -> int:
         return ids[key]
     if key.isdigit() and int(key) in ids.values():
         return int(key)
-    raise InputError(f"{where}: no robot {value!r} in this run (robots: "
-                     f"{', '.join(sorted(ids))})")
+    raise InputError(f"{where}: no robot {value!r} in this run (robots: {', '.join(sorted(ids))})")
 
 
 def _number(value: Any, where: str) -> float:
@@ -91,21 +91,28 @@ def _number(value: Any, where: str) -> float:
 def fault_from_dict(d: Any, ids: dict[str, int], where: str, mission_s: float) -> Fault:
     """One entry of a fault file; InputError naming ``where`` and the key on any problem."""
     if not isinstance(d, dict) or d.get("kind") not in KINDS:
-        raise InputError(f"{where}: expected a mapping with kind one of {', '.join(KINDS)}, "
-                         f"got {d!r}")
+        raise InputError(
+            f"{where}: expected a mapping with kind one of {', '.join(KINDS)}, got {d!r}"
+        )
     kind = d["kind"]
     allowed, optional = _KEYS[kind]
     unknown = set(d) - allowed
     missing = allowed - optional - set(d)
     if unknown or missing:
-        raise InputError(f"{where}: {kind} takes {', '.join(sorted(allowed - {'kind'}))}"
-                         + (f"; unknown {sorted(unknown)}" if unknown else "")
-                         + (f"; missing {sorted(missing)}" if missing else ""))
+        raise InputError(
+            f"{where}: {kind} takes {', '.join(sorted(allowed - {'kind'}))}"
+            + (f"; unknown {sorted(unknown)}" if unknown else "")
+            + (f"; missing {sorted(missing)}" if missing else "")
+        )
     at = _number(d.get("at_s", 0.0), f"{where}.at_s")
     if kind == "kill":
         restart = d.get("restart_s")
-        f = Fault(kind, (_robot(d["robot"], ids, f"{where}.robot"),), at,
-                  None if restart is None else _number(restart, f"{where}.restart_s"))
+        f = Fault(
+            kind,
+            (_robot(d["robot"], ids, f"{where}.robot"),),
+            at,
+            None if restart is None else _number(restart, f"{where}.restart_s"),
+        )
     elif kind == "partition":
         group = d["robots"]
         if not isinstance(group, list) or not group:
@@ -115,8 +122,12 @@ def fault_from_dict(d: Any, ids: dict[str, int], where: str, mission_s: float) -
             raise InputError(f"{where}.robots: a partition needs robots on both sides")
         f = Fault(kind, robots, at, _number(d["end_s"], f"{where}.end_s"))
     elif kind == "silent":
-        f = Fault(kind, (_robot(d["robot"], ids, f"{where}.robot"),), at,
-                  _number(d["end_s"], f"{where}.end_s"))
+        f = Fault(
+            kind,
+            (_robot(d["robot"], ids, f"{where}.robot"),),
+            at,
+            _number(d["end_s"], f"{where}.end_s"),
+        )
     elif kind == "loss":
         link = d["link"]
         if not isinstance(link, list) or len(link) != 2:
@@ -130,8 +141,12 @@ def fault_from_dict(d: Any, ids: dict[str, int], where: str, mission_s: float) -
         end = d.get("end_s")
         f = Fault(kind, ends, at, None if end is None else _number(end, f"{where}.end_s"), p)
     else:
-        f = Fault(kind, (_robot(d["robot"], ids, f"{where}.robot"),), at,
-                  step_s=_number(d["step_s"], f"{where}.step_s"))
+        f = Fault(
+            kind,
+            (_robot(d["robot"], ids, f"{where}.robot"),),
+            at,
+            step_s=_number(d["step_s"], f"{where}.step_s"),
+        )
     if at < 0 or (f.end_s is not None and f.end_s <= at):
         raise InputError(f"{where}: expected 0 <= at_s < the end/restart time, got {d!r}")
     return f
@@ -148,13 +163,16 @@ def load_faults(path: str | Path, ids: dict[str, int], mission_s: float) -> list
         raise InputError(f"cannot read the fault file: {exc.strerror}", path=str(p)) from None
     except yaml.YAMLError as exc:
         raise InputError(f"not valid YAML: {exc}", path=str(p)) from None
-    if not isinstance(data, dict) or set(data) != {"faults"} or not isinstance(data["faults"],
-                                                                                list):
-        raise InputError("expected a mapping with one key, 'faults', holding a list",
-                         path=str(p))
+    if (
+        not isinstance(data, dict)
+        or set(data) != {"faults"}
+        or not isinstance(data["faults"], list)
+    ):
+        raise InputError("expected a mapping with one key, 'faults', holding a list", path=str(p))
     try:
-        return [fault_from_dict(d, ids, f"faults[{i}]", mission_s)
-                for i, d in enumerate(data["faults"])]
+        return [
+            fault_from_dict(d, ids, f"faults[{i}]", mission_s) for i, d in enumerate(data["faults"])
+        ]
     except InputError as exc:
         raise InputError(str(exc), path=str(p)) from None
 
@@ -166,8 +184,16 @@ def _split(text: str, flag: str, n: tuple[int, ...]) -> list[str]:
     return parts
 
 
-def faults_from_flags(*, kill=(), partition=(), silent=(), loss=(), clock_step=(),
-                      ids: dict[str, int], mission_s: float) -> list[Fault]:
+def faults_from_flags(
+    *,
+    kill=(),
+    partition=(),
+    silent=(),
+    loss=(),
+    clock_step=(),
+    ids: dict[str, int],
+    mission_s: float,
+) -> list[Fault]:
     """The faults of the command-line flags (formats in the module docstring)."""
     out = []
     for t in kill:
@@ -178,15 +204,34 @@ def faults_from_flags(*, kill=(), partition=(), silent=(), loss=(), clock_step=(
         out.append(fault_from_dict(d, ids, f"--kill {t}", mission_s))
     for t in partition:
         p = _split(t, "--partition", (3,))
-        out.append(fault_from_dict({"kind": "partition", "robots": p[0].split(","),
-                                    "at_s": _flt(p[1], "--partition"),
-                                    "end_s": _flt(p[2], "--partition")},
-                                   ids, f"--partition {t}", mission_s))
+        out.append(
+            fault_from_dict(
+                {
+                    "kind": "partition",
+                    "robots": p[0].split(","),
+                    "at_s": _flt(p[1], "--partition"),
+                    "end_s": _flt(p[2], "--partition"),
+                },
+                ids,
+                f"--partition {t}",
+                mission_s,
+            )
+        )
     for t in silent:
         p = _split(t, "--silent", (3,))
-        out.append(fault_from_dict({"kind": "silent", "robot": p[0], "at_s": _flt(p[1], "--silent"),
-                                    "end_s": _flt(p[2], "--silent")}, ids, f"--silent {t}",
-                                   mission_s))
+        out.append(
+            fault_from_dict(
+                {
+                    "kind": "silent",
+                    "robot": p[0],
+                    "at_s": _flt(p[1], "--silent"),
+                    "end_s": _flt(p[2], "--silent"),
+                },
+                ids,
+                f"--silent {t}",
+                mission_s,
+            )
+        )
     for t in loss:
         p = _split(t, "--loss", (2, 4))
         d = {"kind": "loss", "link": p[0].split("-"), "probability": _flt(p[1], "--loss")}
@@ -195,10 +240,19 @@ def faults_from_flags(*, kill=(), partition=(), silent=(), loss=(), clock_step=(
         out.append(fault_from_dict(d, ids, f"--loss {t}", mission_s))
     for t in clock_step:
         p = _split(t, "--clock-step", (3,))
-        out.append(fault_from_dict({"kind": "clock_step", "robot": p[0],
-                                    "at_s": _flt(p[1], "--clock-step"),
-                                    "step_s": _flt(p[2], "--clock-step")}, ids,
-                                   f"--clock-step {t}", mission_s))
+        out.append(
+            fault_from_dict(
+                {
+                    "kind": "clock_step",
+                    "robot": p[0],
+                    "at_s": _flt(p[1], "--clock-step"),
+                    "step_s": _flt(p[2], "--clock-step"),
+                },
+                ids,
+                f"--clock-step {t}",
+                mission_s,
+            )
+        )
     return out
 
 

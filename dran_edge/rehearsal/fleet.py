@@ -114,8 +114,10 @@ class Fleet:
         configs = {r.id: self.src.load_config(r.name) for r in infos}
         periods = {c.comms.period_s for c in configs.values()}
         if len(periods) != 1:
-            raise InputError(f"robots of one run must share comms.period_s, got "
-                             f"{sorted(periods)}", path=str(self.src.root))
+            raise InputError(
+                f"robots of one run must share comms.period_s, got {sorted(periods)}",
+                path=str(self.src.root),
+            )
         self.period_s = periods.pop()
         self.net, self.net_note = make_net(len(infos), opt.net)
         self._tmp = Path(tempfile.mkdtemp(prefix="dre-"))  # short paths for the sockets
@@ -129,28 +131,54 @@ class Fleet:
                 raws, release, rejected = ingest_records(self.src, info.name)
                 perceived = perceived_records(self.src, info.name)
                 if perceived:
-                    merged = sorted([(int(s), i, r) for i, (s, r) in enumerate(zip(release, raws))]
-                                    + [(s, len(raws) + i, r) for i, (s, r) in enumerate(perceived)])
+                    merged = sorted(
+                        [(int(s), i, r) for i, (s, r) in enumerate(zip(release, raws))]
+                        + [(s, len(raws) + i, r) for i, (s, r) in enumerate(perceived)]
+                    )
                     release = np.array([m[0] for m in merged], np.int64)
                     raws = [m[2] for m in merged]
-                d = RobotDaemon(info.id, info.name, k, base / "robot.yaml", base / "state",
-                            self._tmp / str(k), base / "record", base / "daemon.log",
-                            base / "drop.json", raws, release, rejected_in_file=rejected)
+                d = RobotDaemon(
+                    info.id,
+                    info.name,
+                    k,
+                    base / "robot.yaml",
+                    base / "state",
+                    self._tmp / str(k),
+                    base / "record",
+                    base / "daemon.log",
+                    base / "drop.json",
+                    raws,
+                    release,
+                    rejected_in_file=rejected,
+                )
                 self.daemons[info.id] = d
             for k, info in enumerate(infos):
                 d = self.daemons[info.id]
-                nbrs = [(j, self.names[j], self.net.endpoints[self.daemons[j].k])
-                        for j in self.mission.neighbours(info.id)]
-                cfg = daemon_config(self.src, info, self.net.endpoints[k], nbrs, key_file, d,
-                                   self.period_s / opt.speed)
+                nbrs = [
+                    (j, self.names[j], self.net.endpoints[self.daemons[j].k])
+                    for j in self.mission.neighbours(info.id)
+                ]
+                cfg = daemon_config(
+                    self.src,
+                    info,
+                    self.net.endpoints[k],
+                    nbrs,
+                    key_file,
+                    d,
+                    self.period_s / opt.speed,
+                )
                 d.config.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
                 load_config(d.config)  # what the daemon will load: fail here, not in it
                 write_rules(d.drop_file, {})
             # A daemon whose rehearsal died stops by itself: SIGTERM when the rehearsal's
             # process ends (_stop_with_parent), and at the latest after the rounds the whole
             # rehearsal could last.
-            wall_s = (opt.start_timeout_s + opt.drain_timeout_s + 120.0
-                      + (self.mission.duration_s + opt.settle_rounds * self.period_s) / opt.speed)
+            wall_s = (
+                opt.start_timeout_s
+                + opt.drain_timeout_s
+                + 120.0
+                + (self.mission.duration_s + opt.settle_rounds * self.period_s) / opt.speed
+            )
             self.max_rounds = int(math.ceil(wall_s / (self.period_s / opt.speed)))
             self.loss: dict[tuple[int, int], float] = {}
             self.silenced: set[int] = set()
@@ -163,28 +191,54 @@ class Fleet:
     # -------------------------------------------------------------------- clocks
     def mission_ns(self) -> int:
         assert self.t0_wall is not None
-        return self.mission.start_ns + int((time.monotonic() - self.t0_wall) * self.opt.speed
-                                           * 1e9)
+        return self.mission.start_ns + int((time.monotonic() - self.t0_wall) * self.opt.speed * 1e9)
 
     def mission_s(self) -> float:
         return (self.mission_ns() - self.mission.start_ns) * 1e-9
 
     # -------------------------------------------------------------------- processes
     def start(self, d: RobotDaemon) -> None:
-        env = {k: v for k, v in os.environ.items()
-               if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "STATE_DIRECTORY",
-                            "RUNTIME_DIRECTORY", "INVOCATION_ID", "JOURNAL_STREAM", "LISTEN_FDS")}
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if k
+            not in (
+                "NOTIFY_SOCKET",
+                "WATCHDOG_USEC",
+                "WATCHDOG_PID",
+                "STATE_DIRECTORY",
+                "RUNTIME_DIRECTORY",
+                "INVOCATION_ID",
+                "JOURNAL_STREAM",
+                "LISTEN_FDS",
+            )
+        }
         env["DRAN_EDGE_DROP_FILE"] = str(d.drop_file)
         env["OPENBLAS_NUM_THREADS"] = "1"
         env.update(clock_env(d))
-        argv = [sys.executable, "-m", "dran_edge.cli.app", "run", "--config", str(d.config),
-                "--record", str(d.record_dir), "--max-rounds", str(self.max_rounds)]
+        argv = [
+            sys.executable,
+            "-m",
+            "dran_edge.cli.app",
+            "run",
+            "--config",
+            str(d.config),
+            "--record",
+            str(d.record_dir),
+            "--max-rounds",
+            str(self.max_rounds),
+        ]
         with open(d.log_path, "ab") as logf:
             logf.write(f"--- start {d.starts + 1} ---\n".encode())
             logf.flush()
-            d.proc = subprocess.Popen(self.net.wrap(d.k, argv), env=env, stdout=logf,
-                                      stderr=subprocess.STDOUT, start_new_session=True,
-                                      preexec_fn=_stop_with_parent)
+            d.proc = subprocess.Popen(
+                self.net.wrap(d.k, argv),
+                env=env,
+                stdout=logf,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                preexec_fn=_stop_with_parent,
+            )
         d.starts += 1
         d.last_status = None
 
@@ -196,8 +250,10 @@ class Fleet:
         while waiting:
             for d in list(waiting):
                 if d.proc is not None and d.proc.poll() is not None:
-                    raise DranError(f"the daemon of {d.name} exited ({d.proc.returncode}) while "
-                                    f"starting; see {d.log_path}:\n{_tail(d.log_path)}")
+                    raise DranError(
+                        f"the daemon of {d.name} exited ({d.proc.returncode}) while "
+                        f"starting; see {d.log_path}:\n{_tail(d.log_path)}"
+                    )
                 try:
                     st = query_status(d.status_path, timeout_s=1.0)
                 except DranError:
@@ -206,8 +262,10 @@ class Fleet:
                 if st.get("state") == "running" and st.get("pid") == pid:
                     waiting.remove(d)
             if waiting and time.monotonic() > end:
-                raise DranError(f"daemons not up after {timeout_s:g} s: "
-                                f"{', '.join(d.name for d in waiting)} (logs in {self.out}/daemons)")
+                raise DranError(
+                    f"daemons not up after {timeout_s:g} s: "
+                    f"{', '.join(d.name for d in waiting)} (logs in {self.out}/daemons)"
+                )
             time.sleep(0.1)
 
     def kill(self, d: RobotDaemon) -> None:
@@ -292,8 +350,13 @@ class Fleet:
     def apply(self, a: fl.Action) -> None:
         f = a.fault
         d = {r: self.daemons[r] for r in f.robots}
-        entry = {"t_s": round(self.mission_s(), 3), "at_s": a.t_s, "action": a.what,
-                 "fault": f.describe(self.names), "index": a.index}
+        entry = {
+            "t_s": round(self.mission_s(), 3),
+            "at_s": a.t_s,
+            "action": a.what,
+            "fault": f.describe(self.names),
+            "index": a.index,
+        }
         if f.kind == "kill":
             (dm,) = d.values()
             if a.what == "start":
@@ -374,8 +437,9 @@ def _prepare_out(out: Path, src: rd.Run) -> None:
     """``out`` as a run directory: links to the run's inputs, room for out/ and eval/."""
     if out.exists() and any(out.iterdir()):
         if not (out / "rehearsal.json").exists() and not (out / "daemons").exists():
-            raise InputError("exists and is not a previous rehearsal; choose another --out",
-                             path=str(out))
+            raise InputError(
+                "exists and is not a previous rehearsal; choose another --out", path=str(out)
+            )
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
     parts = list(_RUN_PARTS)
@@ -397,8 +461,9 @@ def _tail(path: Path, n: int = 15) -> str:
 
 
 # ------------------------------------------------------------------------------ the run
-def rehearse(run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(),
-             progress=None) -> RehearsalResult:
+def rehearse(
+    run_dir: str | Path, opt: RehearsalOptions = RehearsalOptions(), progress=None
+) -> RehearsalResult:
     """Rehearse the run at ``run_dir`` (module docstring); writes ``OUT/rehearsal.json``."""
     wall0 = time.perf_counter()
     fleet = Fleet(run_dir, opt)
@@ -442,8 +507,11 @@ def _run(fleet: Fleet, opt: RehearsalOptions, wall0: float, progress) -> Rehears
             next_poll = time.monotonic() + opt.poll_s
             rows.append(round_row(len(rows), now, fleet.poll()))
             if progress:
-                progress("mission s", int((min(now, end_ns) - fleet.mission.start_ns) // 10**9),
-                         int(math.ceil((end_ns - fleet.mission.start_ns) / 1e9)))
+                progress(
+                    "mission s",
+                    int((min(now, end_ns) - fleet.mission.start_ns) // 10**9),
+                    int(math.ceil((end_ns - fleet.mission.start_ns) / 1e9)),
+                )
         if now >= end_ns:
             break
         time.sleep(step_s)
@@ -474,12 +542,14 @@ def _drain(fleet: Fleet, timeout_s: float) -> bool:
                 continue
             st = d.last_status or {}
             sent = len(d.connections[-1]["sent"]) if d.connections else 0
-            if d.queue or d.connections[-1]["accepted"] < sent or \
-                    (st.get("journal") or {}).get("pending", 1) != 0:
+            if (
+                d.queue
+                or d.connections[-1]["accepted"] < sent
+                or (st.get("journal") or {}).get("pending", 1) != 0
+            ):
                 done = False
         if done:
             return True
         time.sleep(0.2)
     log.warning("daemons did not apply everything they were sent within %g s", timeout_s)
     return False
-

@@ -171,8 +171,20 @@ class NamespaceNet:
                 ns = f"{self.prefix}r{k}"
                 self._add_ns(ns)
                 addr = f"{SUBNET}.{k + 1}"
-                _ip("-n", ns, "link", "add", "v0", "type", "veth", "peer", "name", f"p{k}",
-                    "netns", self.hub)
+                _ip(
+                    "-n",
+                    ns,
+                    "link",
+                    "add",
+                    "v0",
+                    "type",
+                    "veth",
+                    "peer",
+                    "name",
+                    f"p{k}",
+                    "netns",
+                    self.hub,
+                )
                 _ip("-n", self.hub, "link", "set", f"p{k}", "master", "br0")
                 _ip("-n", self.hub, "link", "set", f"p{k}", "up")
                 _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", "v0")

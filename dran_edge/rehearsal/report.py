@@ -37,14 +37,24 @@ def sample(t_s: float, st: dict) -> dict:
     r = st.get("rounds") or {}
     tr = st.get("transport") or {}
     heard = {str(k): v.get("last_heard_s_ago") for k, v in (st.get("neighbours") or {}).items()}
-    return {"t_s": round(t_s, 3), "pid": st.get("pid"), "boot_epoch": st.get("boot_epoch"),
-            "records": (st.get("ingest") or {}).get("records", 0),
-            "pending": (st.get("journal") or {}).get("pending", 0),
-            "ticks": r.get("ticks", 0), "late": r.get("late", 0), "missed": r.get("missed", 0),
-            "round": g.get("round"), "keyframes": g.get("keyframes"), "objects": g.get("objects"),
-            "cost": g.get("cost"), "consensus_error": g.get("consensus_error"),
-            "converged": g.get("converged"), "bytes_sent": tr.get("bytes_sent", 0),
-            "heard_s_ago": heard}
+    return {
+        "t_s": round(t_s, 3),
+        "pid": st.get("pid"),
+        "boot_epoch": st.get("boot_epoch"),
+        "records": (st.get("ingest") or {}).get("records", 0),
+        "pending": (st.get("journal") or {}).get("pending", 0),
+        "ticks": r.get("ticks", 0),
+        "late": r.get("late", 0),
+        "missed": r.get("missed", 0),
+        "round": g.get("round"),
+        "keyframes": g.get("keyframes"),
+        "objects": g.get("objects"),
+        "cost": g.get("cost"),
+        "consensus_error": g.get("consensus_error"),
+        "converged": g.get("converged"),
+        "bytes_sent": tr.get("bytes_sent", 0),
+        "heard_s_ago": heard,
+    }
 
 
 def round_row(k: int, stamp_ns: int, statuses: dict[int, dict]) -> dict:
@@ -58,10 +68,16 @@ def round_row(k: int, stamp_ns: int, statuses: dict[int, dict]) -> dict:
             cerr.append(g["consensus_error"])
         conv += bool(g.get("converged"))
         sent += int((st.get("transport") or {}).get("bytes_sent", 0))
-    return {"round": k, "stamp_ns": stamp_ns, "bytes_total": sent, "bytes_round": 0,
-            "cost": float(np.sum(costs)) if costs else math.nan,
-            "consensus_error": float(np.max(cerr)) if cerr else math.nan,
-            "converged_robots": conv, "datagrams_lost": 0}
+    return {
+        "round": k,
+        "stamp_ns": stamp_ns,
+        "bytes_total": sent,
+        "bytes_round": 0,
+        "cost": float(np.sum(costs)) if costs else math.nan,
+        "consensus_error": float(np.max(cerr)) if cerr else math.nan,
+        "converged_robots": conv,
+        "datagrams_lost": 0,
+    }
 
 
 def _record_counts(d: RobotDaemon) -> Counter:
@@ -72,8 +88,11 @@ def _record_counts(d: RobotDaemon) -> Counter:
     path = d.record_dir / "robots" / d.name / "ingest.bin"
     if not path.exists():
         return Counter()
-    return Counter(item.raw for item in iter_records(path.read_bytes())
-                   if not isinstance(item, IngestDecodeError))
+    return Counter(
+        item.raw
+        for item in iter_records(path.read_bytes())
+        if not isinstance(item, IngestDecodeError)
+    )
 
 
 def _accounting(d: RobotDaemon) -> dict:
@@ -90,15 +109,18 @@ def _accounting(d: RobotDaemon) -> dict:
         unconfirmed += len(c["sent"]) - acc
     fed = set(d.records[: d.next_record])
     never_applied = sum(1 for r in fed if r not in applied_set)
-    return {"records_in_run": len(d.records), "records_sent": sent_total,
-            "connections": len(d.connections),
-            "accepted_reported": sum(min(c["accepted"], len(c["sent"])) for c in d.connections),
-            "accepted_lost": accepted_lost,
-            "sent_unconfirmed_at_kill": unconfirmed,
-            "applied_distinct": len(applied_set & fed),
-            "applied_twice": sum(1 for n in applied.values() if n > 1),
-            "never_applied": never_applied,
-            "queued_unsent": len(d.queue)}
+    return {
+        "records_in_run": len(d.records),
+        "records_sent": sent_total,
+        "connections": len(d.connections),
+        "accepted_reported": sum(min(c["accepted"], len(c["sent"])) for c in d.connections),
+        "accepted_lost": accepted_lost,
+        "sent_unconfirmed_at_kill": unconfirmed,
+        "applied_distinct": len(applied_set & fed),
+        "applied_twice": sum(1 for n in applied.values() if n > 1),
+        "never_applied": never_applied,
+        "queued_unsent": len(d.queue),
+    }
 
 
 def _collect(fleet: Fleet) -> dict:
@@ -117,13 +139,19 @@ def _collect(fleet: Fleet) -> dict:
             continue
         core = cast("RobotCore", default_agent_factory(cfg, state))
         last = core.agent.current_estimate(fleet.mission.start_ns)
-        results[rid] = robot_result(rid, d.name, core, last,
-                                    health=dict(state.get("counters", {})))
+        results[rid] = robot_result(rid, d.name, core, last, health=dict(state.get("counters", {})))
     return results
 
 
-def finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
-            exit_codes: dict, wall0: float, phases: dict) -> RehearsalResult:
+def finish(
+    fleet: Fleet,
+    opt: RehearsalOptions,
+    rows: list[dict],
+    drained: bool,
+    exit_codes: dict,
+    wall0: float,
+    phases: dict,
+) -> RehearsalResult:
     from dran_edge.replay.outputs import evaluation_metrics, json_clean, write_outputs
 
     run = fleet.run
@@ -136,9 +164,14 @@ def finish(fleet: Fleet, opt: RehearsalOptions, rows: list[dict], drained: bool,
     for rid, d in fleet.daemons.items():
         last = d.samples[-1] if d.samples else {}
         robots[d.name] = {
-            "id": rid, "starts": d.starts, "exit_code": exit_codes.get(d.name),
-            "address": fleet.net.endpoints[d.k].dish, "netns": fleet.net.endpoints[d.k].netns,
-            "ticks": last.get("ticks"), "late": last.get("late"), "missed": last.get("missed"),
+            "id": rid,
+            "starts": d.starts,
+            "exit_code": exit_codes.get(d.name),
+            "address": fleet.net.endpoints[d.k].dish,
+            "netns": fleet.net.endpoints[d.k].netns,
+            "ticks": last.get("ticks"),
+            "late": last.get("late"),
+            "missed": last.get("missed"),
             "keyframes": len(results[rid].last.keyframe_stamps_ns) if rid in results else 0,
             "objects": len(results[rid].last.object_ids) if rid in results else 0,
             "ingest": _accounting(d),
@@ -181,8 +214,7 @@ def _rejoin(fleet: Fleet) -> list[dict]:
     for entry in fleet.fault_log:
         if entry["action"] != "end":
             continue
-        f = next(a.fault for a in fl.actions(list(fleet.opt.faults)) if a.index ==
-                 entry["index"])
+        f = next(a.fault for a in fl.actions(list(fleet.opt.faults)) if a.index == entry["index"])
         if f.kind not in ("kill", "partition", "silent"):
             continue
         t_end = entry["t_s"]
@@ -192,17 +224,26 @@ def _rejoin(fleet: Fleet) -> list[dict]:
                 nbrs = tuple(j for j in nbrs if j not in f.robots)
             heard_by = {}
             for j in nbrs:
-                heard_by[fleet.names[j]] = _first_heard(fleet.daemons[j].samples, rid, t_end,
-                                                        fleet.opt.speed)
-            hears = {fleet.names[j]: _first_heard(fleet.daemons[rid].samples, j, t_end,
-                                                  fleet.opt.speed) for j in nbrs}
-            out.append({"fault": entry["fault"], "robot": fleet.names[rid], "ended_s": t_end,
-                        "heard_by_s": heard_by, "hears_s": hears})
+                heard_by[fleet.names[j]] = _first_heard(
+                    fleet.daemons[j].samples, rid, t_end, fleet.opt.speed
+                )
+            hears = {
+                fleet.names[j]: _first_heard(fleet.daemons[rid].samples, j, t_end, fleet.opt.speed)
+                for j in nbrs
+            }
+            out.append(
+                {
+                    "fault": entry["fault"],
+                    "robot": fleet.names[rid],
+                    "ended_s": t_end,
+                    "heard_by_s": heard_by,
+                    "hears_s": hears,
+                }
+            )
     return out
 
 
-def _first_heard(samples: list[dict], peer: int, after_s: float, speed: float
-                 ) -> float | None:
+def _first_heard(samples: list[dict], peer: int, after_s: float, speed: float) -> float | None:
     """Mission seconds after ``after_s`` at which a status sample first shows ``peer`` heard
     since then (the daemons' ``last_heard_s_ago`` is wall time: times ``speed``)."""
     for s in samples:

@@ -88,8 +88,7 @@ def perceived_records(run: rd.Run, name: str) -> list[tuple[int, bytes]]:
     if cfg.camera.source != "recorded" or run.frames_dir(name) is None:
         return []
     calib = cfg.resolve(cfg.camera.calib_dir) or run.calib_dir
-    _, _, records, _ = perceive_window((str(run.config_path(name)), str(calib), name, 0,
-                                         2**63 - 1))
+    _, _, records, _ = perceive_window((str(run.config_path(name)), str(calib), name, 0, 2**63 - 1))
     out = []
     for raw in records:
         for item in iter_records(raw):
@@ -97,9 +96,15 @@ def perceived_records(run: rd.Run, name: str) -> list[tuple[int, bytes]]:
     return out
 
 
-def daemon_config(run: rd.Run, info: rd.RunRobot, ep: Any,
-                  neighbours: list[tuple[int, str, Any]], key_file: Path, d: RobotDaemon,
-                  period_s: float) -> dict[str, Any]:
+def daemon_config(
+    run: rd.Run,
+    info: rd.RunRobot,
+    ep: Any,
+    neighbours: list[tuple[int, str, Any]],
+    key_file: Path,
+    d: RobotDaemon,
+    period_s: float,
+) -> dict[str, Any]:
     """The robot's own config rewritten for its rehearsal daemon: UDP on its network
     endpoint, the fleet key, ingest on its socket, no camera, its state and runtime dirs."""
     from dran_edge.config import config_to_dict
@@ -109,12 +114,22 @@ def daemon_config(run: rd.Run, info: rd.RunRobot, ep: Any,
     if info.T_world_odom is not None:
         from dran_edge import geometry as geo
 
-        cfg["robot"]["T_world_odom"] = [round(float(v), 12) for v in
-                                        geo.se3_to_xyz_quat_xyzw(info.T_world_odom)]
-    cfg["comms"].update(transport="udp", bind_address=ep.address, port=ep.port,
-                        key_file=str(key_file), period_s=period_s)
+        cfg["robot"]["T_world_odom"] = [
+            round(float(v), 12) for v in geo.se3_to_xyz_quat_xyzw(info.T_world_odom)
+        ]
+    cfg["comms"].update(
+        transport="udp",
+        bind_address=ep.address,
+        port=ep.port,
+        key_file=str(key_file),
+        period_s=period_s,
+    )
     cfg["ingest"].update(enabled=True, socket_path=str(d.ingest_path))
     cfg["camera"].update(source="none", recording="", calib_dir="", tags_file="")
-    cfg["daemon"].update(state_dir=str(d.state_dir), runtime_dir=str(d.runtime_dir),
-                         checkpoint_period_s=max(0.5, 4 * period_s), status_period_s=5.0)
+    cfg["daemon"].update(
+        state_dir=str(d.state_dir),
+        runtime_dir=str(d.runtime_dir),
+        checkpoint_period_s=max(0.5, 4 * period_s),
+        status_period_s=5.0,
+    )
     return cfg

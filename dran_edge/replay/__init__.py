@@ -1,2 +1,1 @@
-"""Replay of recorded or simulated runs through the robot code, faster than real time.
-"""
+"""Replay of recorded or simulated runs through the robot code, faster than real time."""

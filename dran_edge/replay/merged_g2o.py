@@ -106,8 +106,11 @@ def _add_objects(m: _MergedGraph) -> None:
         v = OBJECT_VERTEX_BASE + oid
         m.vid.append(v)
         copies = np.stack(m.object_copies[oid])
-        m.poses.append(geo.se3_from_rt(geo.so3_project(copies[:, :3, :3].mean(axis=0)),
-                                       copies[:, :3, 3].mean(axis=0)))
+        m.poses.append(
+            geo.se3_from_rt(
+                geo.so3_project(copies[:, :3, :3].mean(axis=0)), copies[:, :3, 3].mean(axis=0)
+            )
+        )
         m.rows.append((v, "object", str(oid), 0))
 
 
@@ -120,8 +123,11 @@ def _to_g2o_graph(m: _MergedGraph) -> G2oGraph:
     info_arr = np.stack(m.info) if m.info else np.zeros((0, 6, 6))
     info_arr = 0.5 * (info_arr + np.swapaxes(info_arr, -1, -2))
     return G2oGraph(
-        dim=3, vertex_ids=vid_arr[order], poses=np.stack(m.poses)[order],
-        has_pose=np.ones(len(m.vid), bool), edges=e,
+        dim=3,
+        vertex_ids=vid_arr[order],
+        poses=np.stack(m.poses)[order],
+        has_pose=np.ones(len(m.vid), bool),
+        edges=e,
         measurements=np.stack(m.meas) if m.meas else np.zeros((0, 4, 4)),
         information=info_arr,
         fixed=np.isin(vid_arr[order], sorted(m.fixed_ids)),

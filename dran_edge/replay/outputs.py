@@ -43,8 +43,9 @@ def json_clean(x: Any) -> Any:
 
 def write_report(out_dir: Path, report: dict[str, Any]) -> None:
     """``out_dir/report.json`` (docs/run-format.md)."""
-    (out_dir / "report.json").write_text(json.dumps(json_clean(report), indent=2) + "\n",
-                                         encoding="utf-8")
+    (out_dir / "report.json").write_text(
+        json.dumps(json_clean(report), indent=2) + "\n", encoding="utf-8"
+    )
 
 
 def evaluation_metrics(run: rd.Run) -> dict[str, Any]:
@@ -61,6 +62,7 @@ def evaluation_metrics(run: rd.Run) -> dict[str, Any]:
 
 def pick_metrics(ev: dict[str, Any]) -> dict[str, Any]:
     """The headline numbers of an evaluation report (names of docs/run-format.md)."""
+
     def find(d: Any, *keys: str) -> Any:
         for key in keys:
             cur = d
@@ -77,8 +79,9 @@ def pick_metrics(ev: dict[str, Any]) -> dict[str, Any]:
         "sr_ate": find(ev, "sr_ate_pct", "summary.sr_ate_pct", "sr_ate"),
         "sr_cost": find(ev, "sr_cost_pct", "summary.sr_cost_pct", "cost.sr_cost_pct", "sr_cost"),
         "f_over_fstar": find(ev, "f_over_fstar", "summary.f_over_fstar", "cost.F_over_Fstar"),
-        "ate_over_atestar": find(ev, "ate_over_atestar", "summary.ate_over_atestar",
-                                 "overall.ate_over_atestar"),
+        "ate_over_atestar": find(
+            ev, "ate_over_atestar", "summary.ate_over_atestar", "overall.ate_over_atestar"
+        ),
         "ate_m": find(ev, "ate_m", "summary.ate_m", "ate.final.rmse_m", "ate_rmse_m"),
         "ce": find(ev, "ce", "summary.ce", "objects.ce"),
         "bias": find(ev, "bias", "summary.bias", "objects.bias"),
@@ -102,19 +105,31 @@ def _write_robot_files(d: Path, r: RobotResult) -> None:
     stamps = stamps[order]
     for name in ("trajectory.tum", "trajectory_init.tum"):  # the names of older replays
         (d / name).unlink(missing_ok=True)
-    write_tum(d / f"{r.name}.tum", stamps * 1e-9, np.asarray(u.T_world_body)[order],
-              header=f"{r.name}: final estimate (dran-edge replay)")
+    write_tum(
+        d / f"{r.name}.tum",
+        stamps * 1e-9,
+        np.asarray(u.T_world_body)[order],
+        header=f"{r.name}: final estimate (dran-edge replay)",
+    )
     if r.initial is not None and len(r.initial[0]):
         s0, T0 = r.initial
         what = "odometry alone, before any optimisation"
     else:
         s0 = stamps
-        T0 = np.stack([r.first_seen.get(int(s), u.T_world_body[i]) for s, i in
-                       zip(stamps.tolist(), order.tolist())])
+        T0 = np.stack(
+            [
+                r.first_seen.get(int(s), u.T_world_body[i])
+                for s, i in zip(stamps.tolist(), order.tolist())
+            ]
+        )
         what = "each keyframe's first estimate"
     o0 = np.argsort(s0, kind="stable")
-    write_tum(d / f"{r.name}_init.tum", s0[o0] * 1e-9, T0[o0],
-              header=f"{r.name}: initial estimate, {what} (dran-edge replay)")
+    write_tum(
+        d / f"{r.name}_init.tum",
+        s0[o0] * 1e-9,
+        T0[o0],
+        header=f"{r.name}: initial estimate, {what} (dran-edge replay)",
+    )
     with open(d / "objects.csv", "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(["object_id", "x", "y", "z", "qx", "qy", "qz", "qw"])
@@ -123,8 +138,16 @@ def _write_robot_files(d: Path, r: RobotResult) -> None:
 
 
 #: Columns of rounds.csv (docs/run-format.md).
-ROUNDS_COLUMNS = ("round", "stamp_ns", "bytes_total", "bytes_round", "cost", "consensus_error",
-                  "converged_robots", "datagrams_lost")
+ROUNDS_COLUMNS = (
+    "round",
+    "stamp_ns",
+    "bytes_total",
+    "bytes_round",
+    "cost",
+    "consensus_error",
+    "converged_robots",
+    "datagrams_lost",
+)
 
 
 def _write_rounds_csv(path: Path, rounds_rows: list[dict[str, Any]]) -> None:
@@ -133,13 +156,19 @@ def _write_rounds_csv(path: Path, rounds_rows: list[dict[str, Any]]) -> None:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(ROUNDS_COLUMNS)
         for row in rounds_rows:
-            w.writerow(["" if isinstance(row[c], float) and not math.isfinite(row[c])
-                        else (f"{row[c]:.9g}" if isinstance(row[c], float) else row[c])
-                        for c in ROUNDS_COLUMNS])
+            w.writerow(
+                [
+                    ""
+                    if isinstance(row[c], float) and not math.isfinite(row[c])
+                    else (f"{row[c]:.9g}" if isinstance(row[c], float) else row[c])
+                    for c in ROUNDS_COLUMNS
+                ]
+            )
 
 
-def write_outputs(run: rd.Run, results: dict[int, RobotResult],
-                  rounds_rows: list[dict[str, Any]]) -> None:
+def write_outputs(
+    run: rd.Run, results: dict[int, RobotResult], rounds_rows: list[dict[str, Any]]
+) -> None:
     """Per-robot TUM files and object maps, rounds.csv, merged.g2o (docs/run-format.md)."""
     out = run.out_dir
     for r in results.values():

@@ -39,8 +39,11 @@ def observation_sources(run: rd.Run, redetect: bool = False) -> dict[str, str]:
         events, _ = decode_ingest(run.read_ingest(info.name), str(run.ingest_path(info.name)))
         has_recorded = any(isinstance(ev, ObservationBatch) for ev in events)
         if redetect and has_recorded and not has_frames:
-            raise InputError(f"--redetect: robot {info.name} has recorded observations but no "
-                             "frames to detect them again from", path=str(run.robot_dir(info.name)))
+            raise InputError(
+                f"--redetect: robot {info.name} has recorded observations but no "
+                "frames to detect them again from",
+                path=str(run.robot_dir(info.name)),
+            )
         if has_frames and (redetect or not has_recorded):
             out[info.name] = "redetected"
         else:
@@ -65,8 +68,9 @@ class WindowedPerception:
     """Recorded frames through the pipeline in worker processes, window by window, ahead of
     the rounds; ``ready_until(t)`` hands over every window that starts at or before ``t``."""
 
-    def __init__(self, run: rd.Run, workers: int | None, start_ns: int, end_ns: int,
-                 sources: dict[str, str]):
+    def __init__(
+        self, run: rd.Run, workers: int | None, start_ns: int, end_ns: int, sources: dict[str, str]
+    ):
         self.jobs: list[tuple[str, str, str, int, int]] = []
         self.frames: dict[str, int] = {}
         step = int(PERCEPTION_WINDOW_S * 1e9)

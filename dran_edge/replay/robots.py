@@ -135,8 +135,12 @@ def _udp_transport(cfg, fleet: str) -> BufferedUdp:
     for n in cfg.neighbours:
         host, port = n.address.rsplit(":", 1)
         neighbours[n.id] = f"udp://{host.strip('[]')}:{port}"
-    params = RadioParams(group=fleet, bind=f"udp://{cfg.comms.bind_address}:{cfg.comms.port}",
-                         neighbours=neighbours, max_datagram_bytes=cfg.comms.datagram_max_bytes)
+    params = RadioParams(
+        group=fleet,
+        bind=f"udp://{cfg.comms.bind_address}:{cfg.comms.port}",
+        neighbours=neighbours,
+        max_datagram_bytes=cfg.comms.datagram_max_bytes,
+    )
     return BufferedUdp(RadioTransport(params))
 
 
@@ -167,9 +171,17 @@ class RobotResult:
     observations: int
 
 
-def robot_result(rid: int, name: str, core, last: EstimateUpdate | None, *,
-                 first_seen: dict | None = None, health: dict | None = None,
-                 rejected: Counter | None = None, observations: int = 0) -> RobotResult:
+def robot_result(
+    rid: int,
+    name: str,
+    core,
+    last: EstimateUpdate | None,
+    *,
+    first_seen: dict | None = None,
+    health: dict | None = None,
+    rejected: Counter | None = None,
+    observations: int = 0,
+) -> RobotResult:
     """What the replay's outputs need of one robot's core (its local graph and odometry-only
     estimate, when the core has them) and of its last estimate. ``dran-edge rehearse`` builds
     it from a daemon's checkpointed core."""
@@ -182,11 +194,24 @@ def robot_result(rid: int, name: str, core, last: EstimateUpdate | None, *,
             fa = g.factor_arrays(include_prior=False)
         except TypeError:
             fa = g.factor_arrays()
-        graph = {"keys": g.node_keys(), "stamps": g.node_stamps_ns(), "factors": fa,
-                 "obj_base": OBJ}
+        graph = {
+            "keys": g.node_keys(),
+            "stamps": g.node_stamps_ns(),
+            "factors": fa,
+            "obj_base": OBJ,
+        }
     initial = core.initial_estimate() if hasattr(core, "initial_estimate") else None
-    return RobotResult(rid, name, last, initial, dict(first_seen or {}), graph,
-                       dict(health or {}), Counter(rejected or {}), observations)
+    return RobotResult(
+        rid,
+        name,
+        last,
+        initial,
+        dict(first_seen or {}),
+        graph,
+        dict(health or {}),
+        Counter(rejected or {}),
+        observations,
+    )
 
 
 @dataclass
@@ -223,26 +248,45 @@ class RobotRunner:
             info = mission.robot(spec.name)
             cfg = run.load_config(info.name)
             core = make_core(cfg, info)
-            events, rejected = decode_ingest(run.read_ingest(info.name),
-                                             str(run.ingest_path(info.name)))
+            events, rejected = decode_ingest(
+                run.read_ingest(info.name), str(run.ingest_path(info.name))
+            )
             if spec.drop_recorded_observations:
                 events = [ev for ev in events if not isinstance(ev, ObservationBatch)]
             timeline, release = [], 0
             for order, ev in enumerate(events):
                 release = max(release, event_stamp(ev))
                 timeline.append((release, order, ev))
-            n_obs = sum(len(ev.observations) for _, _, ev in timeline
-                        if isinstance(ev, ObservationBatch))
+            n_obs = sum(
+                len(ev.observations) for _, _, ev in timeline if isinstance(ev, ObservationBatch)
+            )
             tr = Mailbox() if transport == "mailbox" else _udp_transport(cfg, mission.fleet)
-            policy = AuthPolicy(fleet_id=fleet_id(mission.fleet), self_id=info.id,
-                                fleet_robots=ids, neighbours=frozenset(mission.neighbours(info.id)),
-                                relay_from=frozenset(cfg.comms.allow_relay_from))
-            link = NeighbourLink(tr, key=REPLAY_KEY, policy=policy, boot_epoch=1,
-                                 max_datagram_bytes=cfg.comms.datagram_max_bytes,
-                                 delta_every=cfg.comms.delta_every)
-            self.robots[info.id] = _Robot(info, cfg, core, link, tr, timeline, rejected=rejected,
-                                          observations=n_obs,
-                                          next_order=len(timeline))
+            policy = AuthPolicy(
+                fleet_id=fleet_id(mission.fleet),
+                self_id=info.id,
+                fleet_robots=ids,
+                neighbours=frozenset(mission.neighbours(info.id)),
+                relay_from=frozenset(cfg.comms.allow_relay_from),
+            )
+            link = NeighbourLink(
+                tr,
+                key=REPLAY_KEY,
+                policy=policy,
+                boot_epoch=1,
+                max_datagram_bytes=cfg.comms.datagram_max_bytes,
+                delta_every=cfg.comms.delta_every,
+            )
+            self.robots[info.id] = _Robot(
+                info,
+                cfg,
+                core,
+                link,
+                tr,
+                timeline,
+                rejected=rejected,
+                observations=n_obs,
+                next_order=len(timeline),
+            )
 
     def last_stamp(self) -> int:
         return max([r.events[-1][0] for r in self.robots.values() if r.events], default=0)
@@ -273,9 +317,9 @@ class RobotRunner:
                 r.next_order += 1
                 if isinstance(ev, ObservationBatch):
                     r.observations += len(ev.observations)
-            rest = r.events[r.next_event:] + new
+            rest = r.events[r.next_event :] + new
             rest.sort(key=lambda x: (x[0], x[1]))
-            r.events[r.next_event:] = rest
+            r.events[r.next_event :] = rest
 
     def step(self, t_k: int, inboxes: dict[int, list[bytes]] | None) -> dict[int, dict]:
         """One round for every robot held; returns per robot its outbox and estimate summary."""
@@ -286,7 +330,7 @@ class RobotRunner:
                 r.transport.inbox = list(inboxes.get(rid, ()))
             outputs: list = []
             end = bisect.bisect_right(r.events, (t_k, math.inf), lo=r.next_event)
-            for _, _, ev in r.events[r.next_event:end]:
+            for _, _, ev in r.events[r.next_event : end]:
                 outputs.extend(r.core.handle(ev) or ())
             r.next_event = end
             for msg in r.link.poll(now_ns=t_k):
@@ -316,10 +360,19 @@ class RobotRunner:
         return {rid: r.transport.pull() for rid, r in self.robots.items()}
 
     def results(self) -> dict[int, RobotResult]:
-        return {rid: robot_result(rid, r.info.name, r.core, r.last, first_seen=r.first_seen,
-                                  health=r.health, rejected=r.rejected,
-                                  observations=r.observations)
-                for rid, r in self.robots.items()}
+        return {
+            rid: robot_result(
+                rid,
+                r.info.name,
+                r.core,
+                r.last,
+                first_seen=r.first_seen,
+                health=r.health,
+                rejected=r.rejected,
+                observations=r.observations,
+            )
+            for rid, r in self.robots.items()
+        }
 
     def close(self) -> None:
         for r in self.robots.values():
@@ -375,8 +428,9 @@ class WorkerPool:
         spans = [s for s in (_unwrap(c.recv()) for c in self._conns) if s is not None]
         self._span = (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
         self._last = self._span[1] if self._span is not None else 0
-        self._ids_of = [[ids[k] for k in range(len(specs)) if k % workers == w]
-                        for w in range(workers)]
+        self._ids_of = [
+            [ids[k] for k in range(len(specs)) if k % workers == w] for w in range(workers)
+        ]
 
     def last_stamp(self) -> int:
         return self._last

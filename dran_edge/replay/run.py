@@ -63,8 +63,14 @@ log = logging.getLogger(__name__)
 
 REPORT_FORMAT = "dran-edge-replay/1"
 #: Fields of report.json that depend on the machine's speed (golden comparisons ignore them).
-WALL_CLOCK_FIELDS = ("replay_wall_s", "realtime_factor", "perception_wall_s", "rounds_wall_s",
-                     "cpu_s", "perception_wait_s")
+WALL_CLOCK_FIELDS = (
+    "replay_wall_s",
+    "realtime_factor",
+    "perception_wall_s",
+    "rounds_wall_s",
+    "cpu_s",
+    "perception_wait_s",
+)
 
 
 @dataclass(frozen=True)
@@ -83,8 +89,9 @@ class PartitionSpec:
             robots = tuple(int(x) for x in ids.split(",") if x)
             spec = PartitionSpec(robots, float(start), float(end))
         except ValueError:
-            raise InputError(f"--partition: expected ROBOT[,ROBOT...]:START_S:END_S, got {text!r}"
-                             ) from None
+            raise InputError(
+                f"--partition: expected ROBOT[,ROBOT...]:START_S:END_S, got {text!r}"
+            ) from None
         if not robots or not 0 <= spec.start_s < spec.end_s:
             raise InputError(f"--partition: expected robots and 0 <= START_S < END_S, got {text!r}")
         return spec
@@ -129,8 +136,10 @@ class ReplayOptions:
         if self.latency_rounds < 0 or self.settle_rounds < 0 or self.speed < 0:
             raise InputError("latency, settle rounds and speed must be >= 0")
         if self.transport == "udp" and (self.loss or self.partitions or self.latency_rounds != 1):
-            raise InputError("--loss/--latency/--partition model the in-process bus; "
-                             "with --transport udp the network is the real loopback")
+            raise InputError(
+                "--loss/--latency/--partition model the in-process bus; "
+                "with --transport udp the network is the real loopback"
+            )
 
 
 # ---------------------------------------------------------------------------------- perception
@@ -141,8 +150,11 @@ class ReplayResult:
     out_dir: Path
 
 
-def replay_run(run_dir: str | Path, opt: ReplayOptions = ReplayOptions(),
-               progress: Callable[[str, int, int], None] | None = None) -> ReplayResult:
+def replay_run(
+    run_dir: str | Path,
+    opt: ReplayOptions = ReplayOptions(),
+    progress: Callable[[str, int, int], None] | None = None,
+) -> ReplayResult:
     """Replay the run at ``run_dir`` and write ``run_dir/out`` (see the module docstring)."""
     from dran_edge.blas import restore_blas_threads, set_blas_threads
 
@@ -195,40 +207,58 @@ def _round_period_s(run: rd.Run) -> float:
     """The robots' common comms.period_s (InputError if they differ)."""
     periods = {run.load_config(r.name).comms.period_s for r in run.mission.robots}
     if len(periods) != 1:
-        raise InputError(f"robots of one run must share comms.period_s, got {sorted(periods)}",
-                         path=str(run.root))
+        raise InputError(
+            f"robots of one run must share comms.period_s, got {sorted(periods)}",
+            path=str(run.root),
+        )
     return periods.pop()
 
 
-def _start_robots(run: rd.Run, ids: list[int], sources: dict[str, str], opt: ReplayOptions
-                  ) -> tuple[RobotRunner | WorkerPool, int]:
+def _start_robots(
+    run: rd.Run, ids: list[int], sources: dict[str, str], opt: ReplayOptions
+) -> tuple[RobotRunner | WorkerPool, int]:
     """(the robots, in this process or spread over worker processes; how many workers)."""
     from dran_edge.replay.robots import RobotRunner, RobotSpec, WorkerPool
 
     by_id = {r.id: r for r in run.mission.robots}
-    specs = [RobotSpec(str(run.root), by_id[i].name,
-                       drop_recorded_observations=sources[by_id[i].name] == "redetected")
-             for i in ids]
-    workers = 1 if opt.transport == "udp" else max(1, min(len(ids), opt.workers or
-                                                         os.cpu_count() or 1))
+    specs = [
+        RobotSpec(
+            str(run.root),
+            by_id[i].name,
+            drop_recorded_observations=sources[by_id[i].name] == "redetected",
+        )
+        for i in ids
+    ]
+    workers = (
+        1 if opt.transport == "udp" else max(1, min(len(ids), opt.workers or os.cpu_count() or 1))
+    )
     if workers > 1:
         return WorkerPool(specs, ids, workers), workers
     return RobotRunner(specs, "mailbox" if opt.transport == "bus" else "udp"), workers
 
 
-def _make_bus(ids: list[int], comm_graph: Any, opt: ReplayOptions, period_s: float
-              ) -> Bus | None:
+def _make_bus(ids: list[int], comm_graph: Any, opt: ReplayOptions, period_s: float) -> Bus | None:
     """The in-process bus with the options' loss, latency and partitions (None for udp)."""
     if opt.transport != "bus":
         return None
     from dran_edge.comms.bus import Bus, BusParams, Partition
 
-    parts = [Partition(frozenset(p.robots), int(math.floor(p.start_s / period_s)),
-                       int(math.ceil(p.end_s / period_s))) for p in opt.partitions]
-    return Bus(ids, graph=comm_graph,
-               params=BusParams(loss_probability=opt.loss, latency_rounds=opt.latency_rounds,
-                                seed=opt.seed),
-               partitions=parts)
+    parts = [
+        Partition(
+            frozenset(p.robots),
+            int(math.floor(p.start_s / period_s)),
+            int(math.ceil(p.end_s / period_s)),
+        )
+        for p in opt.partitions
+    ]
+    return Bus(
+        ids,
+        graph=comm_graph,
+        params=BusParams(
+            loss_probability=opt.loss, latency_rounds=opt.latency_rounds, seed=opt.seed
+        ),
+        partitions=parts,
+    )
 
 
 def _set_up(run: rd.Run, opt: ReplayOptions) -> _Setup:
@@ -240,8 +270,9 @@ def _set_up(run: rd.Run, opt: ReplayOptions) -> _Setup:
     robots, workers = _start_robots(run, ids, sources, opt)
     bus = _make_bus(ids, mission.comm_graph, opt, period_s)
     try:
-        clock_warnings = rd.check_mission_clock(mission, robots.stamp_span(), period_s,
-                                                str(run.root / "mission.yaml"))
+        clock_warnings = rd.check_mission_clock(
+            mission, robots.stamp_span(), period_s, str(run.root / "mission.yaml")
+        )
     except InputError:
         robots.close()
         raise
@@ -250,12 +281,23 @@ def _set_up(run: rd.Run, opt: ReplayOptions) -> _Setup:
     period_ns = int(round(period_s * 1e9))
     last_stamp = max(mission.start_ns + int(mission.duration_s * 1e9), robots.last_stamp())
     mission_rounds = max(1, int(math.ceil((last_stamp - mission.start_ns) / period_ns)))
-    return _Setup(run, ids, period_s, sources, robots, workers, bus, clock_warnings,
-                  mission_rounds, mission_rounds + opt.settle_rounds)
+    return _Setup(
+        run,
+        ids,
+        period_s,
+        sources,
+        robots,
+        workers,
+        bus,
+        clock_warnings,
+        mission_rounds,
+        mission_rounds + opt.settle_rounds,
+    )
 
 
-def _round(s: _Setup, t_k: int, expected: Counter[int], opt: ReplayOptions
-           ) -> tuple[dict[int, dict[str, Any]], Counter[int], int]:
+def _round(
+    s: _Setup, t_k: int, expected: Counter[int], opt: ReplayOptions
+) -> tuple[dict[int, dict[str, Any]], Counter[int], int]:
     """The round at ``t_k``: deliver, step every robot, send. Returns (the robots' outputs, the
     datagrams each robot should receive next round, bytes sent)."""
     bus = s.bus
@@ -279,13 +321,22 @@ def _round(s: _Setup, t_k: int, expected: Counter[int], opt: ReplayOptions
     return outs, sent, bytes_round
 
 
-def _round_row(k: int, t_k: int, outs: dict[int, dict[str, Any]], bytes_total: int,
-               bytes_round: int, bus: Bus | None) -> dict[str, Any]:
+def _round_row(
+    k: int,
+    t_k: int,
+    outs: dict[int, dict[str, Any]],
+    bytes_total: int,
+    bytes_round: int,
+    bus: Bus | None,
+) -> dict[str, Any]:
     """One row of rounds.csv."""
     costs = [o["cost"] for o in outs.values() if math.isfinite(o["cost"])]
     cerr = [o["consensus_error"] for o in outs.values() if math.isfinite(o["consensus_error"])]
     return {
-        "round": k, "stamp_ns": t_k, "bytes_total": bytes_total, "bytes_round": bytes_round,
+        "round": k,
+        "stamp_ns": t_k,
+        "bytes_total": bytes_total,
+        "bytes_round": bytes_round,
         "cost": float(np.sum(costs)) if costs else math.nan,
         "consensus_error": float(np.max(cerr)) if cerr else math.nan,
         "converged_robots": sum(1 for o in outs.values() if o["converged"]),
@@ -293,8 +344,12 @@ def _round_row(k: int, t_k: int, outs: dict[int, dict[str, Any]], bytes_total: i
     }
 
 
-def _run_rounds(s: _Setup, perception: WindowedPerception, opt: ReplayOptions,
-                progress: Callable[[str, int, int], None] | None) -> list[dict[str, Any]]:
+def _run_rounds(
+    s: _Setup,
+    perception: WindowedPerception,
+    opt: ReplayOptions,
+    progress: Callable[[str, int, int], None] | None,
+) -> list[dict[str, Any]]:
     """Every round, paced at ``opt.speed`` times real time when it is > 0; the rounds.csv rows."""
     start_ns = s.run.mission.start_ns
     name_of = {r.name: r.id for r in s.run.mission.robots}
@@ -319,9 +374,15 @@ def _run_rounds(s: _Setup, perception: WindowedPerception, opt: ReplayOptions,
     return rounds_rows
 
 
-def _report(s: _Setup, opt: ReplayOptions, results: dict[int, RobotResult],
-            rounds_rows: list[dict[str, Any]], perception: WindowedPerception,
-            wall_s: float, rounds_wall_s: float) -> dict[str, Any]:
+def _report(
+    s: _Setup,
+    opt: ReplayOptions,
+    results: dict[int, RobotResult],
+    rounds_rows: list[dict[str, Any]],
+    perception: WindowedPerception,
+    wall_s: float,
+    rounds_wall_s: float,
+) -> dict[str, Any]:
     """report.json of the replay (docs/run-format.md), without the metrics."""
     mission = s.run.mission
     res = [results[i] for i in s.ids]
@@ -358,14 +419,16 @@ def _report(s: _Setup, opt: ReplayOptions, results: dict[int, RobotResult],
     return report
 
 
-def _replay(run_dir: str | Path, opt: ReplayOptions,
-            progress: Callable[[str, int, int], None] | None) -> ReplayResult:
+def _replay(
+    run_dir: str | Path, opt: ReplayOptions, progress: Callable[[str, int, int], None] | None
+) -> ReplayResult:
     wall0 = time.perf_counter()
     run = rd.open_run(run_dir)
     s = _set_up(run, opt)
     start_ns = run.mission.start_ns
-    perception = WindowedPerception(run, opt.workers, start_ns,
-                                    start_ns + s.mission_rounds * s.period_ns, s.sources)
+    perception = WindowedPerception(
+        run, opt.workers, start_ns, start_ns + s.mission_rounds * s.period_ns, s.sources
+    )
     t_rounds = time.perf_counter()
     try:
         rounds_rows = _run_rounds(s, perception, opt, progress)
@@ -377,8 +440,15 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
     out_dir = run.out_dir
     out_dir.mkdir(exist_ok=True)
     write_outputs(run, results, rounds_rows)
-    report = _report(s, opt, results, rounds_rows, perception,
-                     wall_s=time.perf_counter() - wall0, rounds_wall_s=rounds_wall)
+    report = _report(
+        s,
+        opt,
+        results,
+        rounds_rows,
+        perception,
+        wall_s=time.perf_counter() - wall0,
+        rounds_wall_s=rounds_wall,
+    )
     write_report(out_dir, report)
     if opt.evaluate and run.mission.mocap_file:
         report.update(evaluation_metrics(run))
@@ -386,8 +456,7 @@ def _replay(run_dir: str | Path, opt: ReplayOptions,
     return ReplayResult(report, out_dir)
 
 
-def _udp_collect(robots: RobotRunner | WorkerPool, expected: Counter[int], wait_s: float
-                 ) -> None:
+def _udp_collect(robots: RobotRunner | WorkerPool, expected: Counter[int], wait_s: float) -> None:
     """Wait until each robot's DISH has the datagrams sent to it last round (or time out)."""
     from dran_edge.replay.robots import RobotRunner
 
@@ -407,11 +476,27 @@ def _udp_collect(robots: RobotRunner | WorkerPool, expected: Counter[int], wait_
 
 # ---------------------------------------------------------------------------------- golden
 #: Keys of report.json kept in a golden summary (wall-clock fields are never among them).
-GOLDEN_KEYS = ("robots", "mission_s", "rounds", "mission_rounds", "bytes_total",
-               "frames_processed", "observation_sources", "observations", "ingest_rejected",
-               "keyframes",
-               "objects_known", "converged_robots", "final_cost", "final_consensus_error",
-               "sr_ate", "sr_cost", "ate_m", "ce", "bias")
+GOLDEN_KEYS = (
+    "robots",
+    "mission_s",
+    "rounds",
+    "mission_rounds",
+    "bytes_total",
+    "frames_processed",
+    "observation_sources",
+    "observations",
+    "ingest_rejected",
+    "keyframes",
+    "objects_known",
+    "converged_robots",
+    "final_cost",
+    "final_consensus_error",
+    "sr_ate",
+    "sr_cost",
+    "ate_m",
+    "ce",
+    "bias",
+)
 
 
 def golden_summary(report: dict) -> dict:
@@ -425,8 +510,15 @@ def golden_summary(report: dict) -> dict:
 EXACT_KEYS = ("robots", "mission_s", "rounds", "mission_rounds", "frames_processed")
 
 
-def compare_summary(actual: Any, golden: Any, *, rtol: float = 1e-3, atol: float = 1e-6,
-                    count_rtol: float = 0.02, path: str = "") -> list[str]:
+def compare_summary(
+    actual: Any,
+    golden: Any,
+    *,
+    rtol: float = 1e-3,
+    atol: float = 1e-6,
+    count_rtol: float = 0.02,
+    path: str = "",
+) -> list[str]:
     """Differences between two summaries: floats within ``rtol``/``atol``, integer counts
     within ``count_rtol`` except ``EXACT_KEYS``, everything else exactly."""
     diffs: list[str] = []
@@ -436,10 +528,15 @@ def compare_summary(actual: Any, golden: Any, *, rtol: float = 1e-3, atol: float
             if k not in actual or k not in golden:
                 diffs.append(f"{p}: {'missing' if k not in actual else 'not in golden'}")
             else:
-                diffs += compare_summary(actual[k], golden[k], rtol=rtol, atol=atol,
-                                         count_rtol=count_rtol, path=p)
-    elif (isinstance(golden, int) and isinstance(actual, int) and not isinstance(golden, bool)
-          and path.split(".")[0] not in EXACT_KEYS):
+                diffs += compare_summary(
+                    actual[k], golden[k], rtol=rtol, atol=atol, count_rtol=count_rtol, path=p
+                )
+    elif (
+        isinstance(golden, int)
+        and isinstance(actual, int)
+        and not isinstance(golden, bool)
+        and path.split(".")[0] not in EXACT_KEYS
+    ):
         if not math.isclose(actual, golden, rel_tol=count_rtol, abs_tol=0):
             diffs.append(f"{path}: {actual!r} != golden {golden!r} (count rtol {count_rtol})")
     elif isinstance(golden, float) or isinstance(actual, float):

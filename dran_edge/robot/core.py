@@ -59,8 +59,9 @@ INGEST_EVENTS = (OdometrySample, Keyframe, LoopClosure, VioReset, ObservationBat
 STATE_FORMAT = 1
 
 
-def problem_from_graph(graph: KeyframeGraph, residual: str,
-                       T_world_graph: np.ndarray | None = None) -> LocalProblem:
+def problem_from_graph(
+    graph: KeyframeGraph, residual: str, T_world_graph: np.ndarray | None = None
+) -> LocalProblem:
     """The agent's :class:`LocalProblem` of ``graph``, mapped into the world by ``T_world_graph``.
 
     Odometry and loop factors between nodes become ``between`` (loops robust), node-object
@@ -87,15 +88,30 @@ def problem_from_graph(graph: KeyframeGraph, residual: str,
     z = np.zeros(0, np.int64)
     T0 = np.zeros((0, 4, 4))
     return LocalProblem(
-        dim=3, residual=residual, pose_ids=keys.astype(np.int64),
-        pose_stamps_ns=stamps.astype(np.int64), x0=x0,
+        dim=3,
+        residual=residual,
+        pose_ids=keys.astype(np.int64),
+        pose_stamps_ns=stamps.astype(np.int64),
+        x0=x0,
         between=np.stack([index(p[btw]), index(q[btw])], axis=1).reshape(-1, 2),
-        between_T=fa["Z"][btw], between_W=W[btw], between_robust=kind[btw] == KIND_LOOP,
-        inter_own=z, inter_owner=z, inter_anchor_id=z, inter_own_is_p=np.zeros(0, bool),
-        inter_T=T0, inter_W=W[:0], inter_robust=np.zeros(0, bool),
-        prior_own=index(q[pri]), prior_T=G @ fa["Z"][pri], prior_W=W[pri],
-        obs_own=index(p[obs]), obs_object=(q[obs] - OBJ).astype(np.int64),
-        obs_T=fa["Z"][obs], obs_W=W[obs], separators_for={},
+        between_T=fa["Z"][btw],
+        between_W=W[btw],
+        between_robust=kind[btw] == KIND_LOOP,
+        inter_own=z,
+        inter_owner=z,
+        inter_anchor_id=z,
+        inter_own_is_p=np.zeros(0, bool),
+        inter_T=T0,
+        inter_W=W[:0],
+        inter_robust=np.zeros(0, bool),
+        prior_own=index(q[pri]),
+        prior_T=G @ fa["Z"][pri],
+        prior_W=W[pri],
+        obs_own=index(p[obs]),
+        obs_object=(q[obs] - OBJ).astype(np.int64),
+        obs_T=fa["Z"][obs],
+        obs_W=W[obs],
+        separators_for={},
     )
 
 
@@ -185,14 +201,17 @@ class RobotCore:
         keys = [k for k in self.local_graph.node_keys().tolist() if k in self.dead_reckoning]
         if not keys:
             return np.zeros(0, np.int64), np.zeros((0, 4, 4))
-        return (np.array([self.dead_reckoning[k][0] for k in keys], np.int64),
-                np.stack([self.dead_reckoning[k][1] for k in keys]))
+        return (
+            np.array([self.dead_reckoning[k][0] for k in keys], np.int64),
+            np.stack([self.dead_reckoning[k][1] for k in keys]),
+        )
 
     def _rebuild(self) -> None:
         self._track_dead_reckoning()
         self.write_back()
-        self.agent.set_problem(problem_from_graph(self.local_graph, self.config.residual,
-                                                  self.T_world_odom))
+        self.agent.set_problem(
+            problem_from_graph(self.local_graph, self.config.residual, self.T_world_odom)
+        )
         self._dirty = False
         self.rebuilds += 1
 
@@ -214,12 +233,15 @@ class RobotCore:
                 "rebuilds": int(self.rebuilds),
                 "dr_keys": np.array(dr, np.int64),
                 "dr_stamps_ns": np.array([self.dead_reckoning[k][0] for k in dr], np.int64),
-                "dr_T_world_body": (np.stack([self.dead_reckoning[k][1] for k in dr]) if dr
-                                    else np.zeros((0, 4, 4))),
-                "dr_T_odom_body": (np.stack([self.dead_reckoning[k][2] for k in dr]) if dr
-                                   else np.zeros((0, 4, 4))),
-                "dr_last_of_segment": [[int(sg), int(k)]
-                                       for sg, k in self._dr_last_of_segment.items()],
+                "dr_T_world_body": (
+                    np.stack([self.dead_reckoning[k][1] for k in dr]) if dr else np.zeros((0, 4, 4))
+                ),
+                "dr_T_odom_body": (
+                    np.stack([self.dead_reckoning[k][2] for k in dr]) if dr else np.zeros((0, 4, 4))
+                ),
+                "dr_last_of_segment": [
+                    [int(sg), int(k)] for sg, k in self._dr_last_of_segment.items()
+                ],
                 "dr_last": None if self._dr_last is None else int(self._dr_last),
             },
         }
@@ -229,19 +251,24 @@ class RobotCore:
         """The core :meth:`to_state` saved (``config`` as when it was saved)."""
         on = state["online"]
         if on.get("format") != STATE_FORMAT:
-            raise ValueError(f"RobotCore.from_state: expected state format {STATE_FORMAT}, "
-                             f"got {on.get('format')!r}")
+            raise ValueError(
+                f"RobotCore.from_state: expected state format {STATE_FORMAT}, "
+                f"got {on.get('format')!r}"
+            )
         core = cls(config)
         core.T_world_odom = np.asarray(on["T_world_odom"], dtype=np.float64).copy()
         core.agent = Agent.from_state(config, state["agent"])
-        core.local_graph = KeyframeGraph.from_state(config, state["graph"],
-                                                 anchor_first=bool(on["anchor_first"]))
+        core.local_graph = KeyframeGraph.from_state(
+            config, state["graph"], anchor_first=bool(on["anchor_first"])
+        )
         core._dirty = bool(on["dirty"])
         core.rebuilds = int(on["rebuilds"])
         for i, k in enumerate(np.asarray(on["dr_keys"]).tolist()):
-            core.dead_reckoning[int(k)] = (int(on["dr_stamps_ns"][i]),
-                                           np.array(on["dr_T_world_body"][i], np.float64),
-                                           np.array(on["dr_T_odom_body"][i], np.float64))
+            core.dead_reckoning[int(k)] = (
+                int(on["dr_stamps_ns"][i]),
+                np.array(on["dr_T_world_body"][i], np.float64),
+                np.array(on["dr_T_odom_body"][i], np.float64),
+            )
         core._dr_last_of_segment = {int(sg): int(k) for sg, k in on["dr_last_of_segment"]}
         core._dr_last = None if on["dr_last"] is None else int(on["dr_last"])
         return core

@@ -25,8 +25,9 @@ def diag_covariance(noise: NoiseModel) -> np.ndarray:
     return np.diag([noise.sigma_translation_m**2] * 3 + [noise.sigma_rotation_rad**2] * 3)
 
 
-def compose_cov(Z_ab: np.ndarray, S_ab: np.ndarray, Z_bc: np.ndarray, S_bc: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
+def compose_cov(
+    Z_ab: np.ndarray, S_ab: np.ndarray, Z_bc: np.ndarray, S_bc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(Z_ac, Σ_ac) of two chained measurements (right noise; independent)."""
     Ad = geo.se3_adjoint(geo.se3_inverse(Z_bc))
     return Z_ab @ Z_bc, Ad @ S_ab @ Ad.T + S_bc
@@ -38,8 +39,9 @@ def invert_cov(Z_ab: np.ndarray, S_ab: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return geo.se3_inverse(Z_ab), Ad @ S_ab @ Ad.T
 
 
-def fuse(Z1: np.ndarray, S1: np.ndarray, Z2: np.ndarray, S2: np.ndarray
-         ) -> tuple[np.ndarray, np.ndarray]:
+def fuse(
+    Z1: np.ndarray, S1: np.ndarray, Z2: np.ndarray, S2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Information-weighted fusion of two measurements of the same relative pose."""
     O1, O2 = np.linalg.inv(S1), np.linalg.inv(S2)
     S = np.linalg.inv(O1 + O2)
@@ -70,12 +72,20 @@ def split_weights(a0: float, covariances: list[np.ndarray]) -> tuple[float, list
 def _arrays(items: list) -> dict:
     """Factor tuples (p, q, Z, Σ, kind) as arrays."""
     if not items:
-        return {"p": np.zeros(0, np.int64), "q": np.zeros(0, np.int64),
-                "Z": np.zeros((0, 4, 4)), "S": np.zeros((0, 6, 6)), "kind": np.zeros(0, np.int8)}
-    return {"p": np.array([f[0] for f in items], np.int64),
-            "q": np.array([f[1] for f in items], np.int64),
-            "Z": np.stack([f[2] for f in items]), "S": np.stack([f[3] for f in items]),
-            "kind": np.array([f[4] for f in items], np.int8)}
+        return {
+            "p": np.zeros(0, np.int64),
+            "q": np.zeros(0, np.int64),
+            "Z": np.zeros((0, 4, 4)),
+            "S": np.zeros((0, 6, 6)),
+            "kind": np.zeros(0, np.int8),
+        }
+    return {
+        "p": np.array([f[0] for f in items], np.int64),
+        "q": np.array([f[1] for f in items], np.int64),
+        "Z": np.stack([f[2] for f in items]),
+        "S": np.stack([f[3] for f in items]),
+        "kind": np.array([f[4] for f in items], np.int8),
+    }
 
 
 def _whitening(S: np.ndarray, residual: str) -> np.ndarray:

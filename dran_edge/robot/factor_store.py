@@ -86,8 +86,9 @@ def _blockdiag_bound(S: np.ndarray, block: int = 6) -> float:
     return float(min(max(np.linalg.eigvalsh(L @ S @ L)[-1], 1.0), k))
 
 
-def _dense_normal_equations(blocks: list, n_vars: int, poses: np.ndarray
-                            ) -> tuple[np.ndarray, np.ndarray]:
+def _dense_normal_equations(
+    blocks: list, n_vars: int, poses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Dense JᵀJ and Jᵀr (IRLS-weighted) of a few factor blocks over ``n_vars`` SE(3) variables."""
     H = np.zeros((6 * n_vars, 6 * n_vars))
     g = np.zeros(6 * n_vars)
@@ -207,8 +208,11 @@ class FactorStore:
     def remove_node(self, n: int) -> None:
         """Remove node ``n`` keeping its information (module docstring)."""
         slots = sorted(self.adj.get(n, ()))
-        chain = (len(slots) == 2 and all(self.factors[s][4] == KIND_ODOMETRY for s in slots)
-                 and not (self.prior is not None and n in self.prior["keys"]))
+        chain = (
+            len(slots) == 2
+            and all(self.factors[s][4] == KIND_ODOMETRY for s in slots)
+            and not (self.prior is not None and n in self.prior["keys"])
+        )
         if chain or not self.marginalize:
             self._compose_out(n, slots)
         else:
@@ -218,8 +222,13 @@ class FactorStore:
         if n in nodes:
             i = nodes.index(n)
             del stamps[i], nodes[i]
-        for table in (self.node_stamp, self.node_segment, self.node_odom, self.node_est,
-                      self.node_cum):
+        for table in (
+            self.node_stamp,
+            self.node_segment,
+            self.node_odom,
+            self.node_est,
+            self.node_cum,
+        ):
             table.pop(n, None)
         self.adj.pop(n, None)
         self.special.pop(n, None)
@@ -257,7 +266,7 @@ class FactorStore:
         a0 = sum(1.0 / float(np.trace(self.factors[s][3])) for s in rest if s != bridge)
         if self.prior is not None and n in self.prior["keys"]:
             i = int(np.flatnonzero(self.prior["keys"] == n)[0])
-            Wn = self.prior["W"][:, 6 * i:6 * i + 6]
+            Wn = self.prior["W"][:, 6 * i : 6 * i + 6]
             a0 += float(np.trace(Wn.T @ Wn)) / 36.0  # 1/tr(Σ) for Σ = σ²I ↔ tr(Ω)/36
         w0, ws = split_weights(a0, [S for _, _, S in moved])
         for (x, Z_xn, S_xn), w in zip(moved, ws):
@@ -315,8 +324,9 @@ class FactorStore:
     def _prior_block(self, keys_arr: np.ndarray) -> MarginalPrior:
         prior = self.prior
         assert prior is not None
-        return MarginalPrior(np.searchsorted(keys_arr, prior["keys"])[None], prior["T_lin"],
-                             prior["W"], prior["e"])
+        return MarginalPrior(
+            np.searchsorted(keys_arr, prior["keys"])[None], prior["T_lin"], prior["W"], prior["e"]
+        )
 
     def _blocks(self, fa: dict, keys: np.ndarray, residual: str) -> list:
         """Factor blocks (odometry, loop, observation, prior) over variables ``keys`` (sorted)."""
@@ -326,20 +336,30 @@ class FactorStore:
         qi = np.searchsorted(keys, fa["q"])
         W = _whitening(fa["S"], residual)
         cfg = self.config
-        kernels = {KIND_ODOMETRY: None,
-                   KIND_LOOP: make_kernel(cfg.robust_kernel, cfg.robust_threshold),
-                   KIND_OBSERVATION: make_kernel(cfg.robust_kernel, cfg.object_kernel_width)}
+        kernels = {
+            KIND_ODOMETRY: None,
+            KIND_LOOP: make_kernel(cfg.robust_kernel, cfg.robust_threshold),
+            KIND_OBSERVATION: make_kernel(cfg.robust_kernel, cfg.object_kernel_width),
+        }
         blocks: list = []
         for kind in (KIND_ODOMETRY, KIND_LOOP, KIND_OBSERVATION):
             sel = (fa["kind"] == kind) & (fa["p"] >= 0)
             if np.any(sel):
-                blocks.append(BetweenFactors(
-                    np.stack([pi[sel], qi[sel]], axis=1), fa["Z"][sel], W[sel], residual,
-                    kernels[kind], label=KIND_NAMES[kind]))
+                blocks.append(
+                    BetweenFactors(
+                        np.stack([pi[sel], qi[sel]], axis=1),
+                        fa["Z"][sel],
+                        W[sel],
+                        residual,
+                        kernels[kind],
+                        label=KIND_NAMES[kind],
+                    )
+                )
         sel = fa["p"] < 0
         if np.any(sel):
-            blocks.append(PriorFactors(qi[sel][:, None], fa["Z"][sel], W[sel], residual,
-                                       None, label="prior"))
+            blocks.append(
+                PriorFactors(qi[sel][:, None], fa["Z"][sel], W[sel], residual, None, label="prior")
+            )
         return blocks
 
     def _compose_out(self, n: int, slots: list[int]) -> None:
@@ -422,14 +442,17 @@ class FactorStore:
         S_rr_inv = np.linalg.pinv(S_rr, hermitian=True)
         T_r_inv = geo.se3_inverse(T_mean[r])
         others = [i for i in range(len(keys)) if i != r]
-        so = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in others]) if others else \
-            np.zeros(0, np.int64)
+        so = (
+            np.concatenate([np.arange(6 * i, 6 * i + 6) for i in others])
+            if others
+            else np.zeros(0, np.int64)
+        )
         S_c = Sigma[np.ix_(so, so)] - Sigma[so, sr] @ S_rr_inv @ Sigma[sr, so]
         S_c = 0.5 * (S_c + S_c.T) + 1e-12 * np.eye(len(so))
         c = _blockdiag_bound(S_c)
         for j, i in enumerate(others):
             k = int(keys[i])
-            S_cond = c * S_c[6 * j:6 * j + 6, 6 * j:6 * j + 6]
+            S_cond = c * S_c[6 * j : 6 * j + 6, 6 * j : 6 * j + 6]
             kind = KIND_OBSERVATION if k >= OBJ else KIND_ODOMETRY
             items.append((int(keys[r]), k, T_r_inv @ T_mean[i], S_cond, kind))
         return _arrays(items)

@@ -100,8 +100,7 @@ def gauge_anchor(config: AgentConfig) -> bool:
 class KeyframeGraph(FactorStore):
     """The bounded local graph of one robot (see module docstring)."""
 
-    def __init__(self, config: AgentConfig, *, anchor_first: bool = True,
-                 marginalize: bool = True):
+    def __init__(self, config: AgentConfig, *, anchor_first: bool = True, marginalize: bool = True):
         if config.dim != 3:
             raise ValueError("KeyframeGraph supports dim=3 only (VIO poses are SE(3))")
         self.config = config
@@ -131,12 +130,15 @@ class KeyframeGraph(FactorStore):
         self.kf_order: deque[int] = deque()
         self.pending_obs: deque[ObservationBatch] = deque(maxlen=PENDING_OBSERVATIONS)
         self.counters: dict[str, int] = {}
-        self._odo_cov_base = np.diag([config.odometry_noise.sigma_translation_m**2] * 3
-                                     + [config.odometry_noise.sigma_rotation_rad**2] * 3)
+        self._odo_cov_base = np.diag(
+            [config.odometry_noise.sigma_translation_m**2] * 3
+            + [config.odometry_noise.sigma_rotation_rad**2] * 3
+        )
 
     # ------------------------------------------------------------------ small helpers
-    def odometry_covariance(self, Z: np.ndarray, path_m: float | None = None,
-                            turn_rad: float | None = None) -> np.ndarray:
+    def odometry_covariance(
+        self, Z: np.ndarray, path_m: float | None = None, turn_rad: float | None = None
+    ) -> np.ndarray:
         """Σ of VIO relative motion Z (configured noise model), growing with the distance
         travelled ``path_m`` and angle turned ``turn_rad`` (default: those of Z itself)."""
         n = self.config.odometry_noise
@@ -186,8 +188,10 @@ class KeyframeGraph(FactorStore):
         prev_kf = self.kf_last.get(seg)
         if prev_kf is not None and ev.stamp_ns > prev_kf[0]:
             D = geo.se3_between(prev_kf[1], T)
-            cum = (prev_kf[2] + float(np.linalg.norm(D[:3, 3])),
-                   prev_kf[3] + float(geo.so3_angle(D[:3, :3])))
+            cum = (
+                prev_kf[2] + float(np.linalg.norm(D[:3, 3])),
+                prev_kf[3] + float(geo.so3_angle(D[:3, :3])),
+            )
         else:
             cum = (0.0, 0.0) if prev_kf is None else (prev_kf[2], prev_kf[3])
         if prev_kf is None or ev.stamp_ns > prev_kf[0]:
@@ -207,8 +211,11 @@ class KeyframeGraph(FactorStore):
             dist = float(np.linalg.norm(Z[:3, 3]))
             ang = float(geo.so3_angle(Z[:3, :3]))
             dt_s = (ev.stamp_ns - self.node_stamp[last]) * 1e-9
-            if (dist < b.keyframe_min_distance_m and ang < b.keyframe_min_angle_rad
-                    and dt_s < b.keyframe_max_interval_s):
+            if (
+                dist < b.keyframe_min_distance_m
+                and ang < b.keyframe_min_angle_rad
+                and dt_s < b.keyframe_max_interval_s
+            ):
                 self._count("keyframes_skipped")
                 return False
         node = self.next_node
@@ -221,17 +228,22 @@ class KeyframeGraph(FactorStore):
         if last is not None:
             Z = geo.se3_between(self.node_odom[last], T)
             self.node_est[node] = self.node_est[last] @ Z
-            S = self.odometry_covariance(Z, cum[0] - self.node_cum[last][0],
-                                         cum[1] - self.node_cum[last][1])
+            S = self.odometry_covariance(
+                Z, cum[0] - self.node_cum[last][0], cum[1] - self.node_cum[last][1]
+            )
             self._add_factor(last, node, Z, S, KIND_ODOMETRY)
         else:
             prev = max(self.node_est) if self.node_est else None
             # A new segment starts where the robot last was (VIO restarts near the origin).
             self.node_est[node] = T.copy() if prev is None else self.node_est[prev].copy()
             if prev is None and self.anchor_first:
-                self._add_factor(NONE, node, self.node_est[node].copy(),
-                                 np.diag([GAUGE_SIGMA[0] ** 2] * 3 + [GAUGE_SIGMA[1] ** 2] * 3),
-                                 KIND_PRIOR)
+                self._add_factor(
+                    NONE,
+                    node,
+                    self.node_est[node].copy(),
+                    np.diag([GAUGE_SIGMA[0] ** 2] * 3 + [GAUGE_SIGMA[1] ** 2] * 3),
+                    KIND_PRIOR,
+                )
         self.last_node_of_segment[seg] = node
         stamps, nodes = self.seg_nodes.setdefault(seg, ([], []))
         stamps.append(int(ev.stamp_ns))
@@ -240,9 +252,13 @@ class KeyframeGraph(FactorStore):
         self._enforce_bounds()
         return True
 
-    def _attach(self, stamp_ns: int, T_odom_body: np.ndarray | None, seg: int,
-                cum: tuple[float, float] | None = None
-                ) -> tuple[int, np.ndarray, np.ndarray] | None:
+    def _attach(
+        self,
+        stamp_ns: int,
+        T_odom_body: np.ndarray | None,
+        seg: int,
+        cum: tuple[float, float] | None = None,
+    ) -> tuple[int, np.ndarray, np.ndarray] | None:
         """(node, T_node_body, Σ) for a body pose at ``stamp_ns`` in segment ``seg``, via the
         nearest kept node of that segment and the VIO relative motion."""
         stamps, nodes = self.seg_nodes.get(seg, ([], []))
@@ -293,9 +309,11 @@ class KeyframeGraph(FactorStore):
         lo, hi = i - 1, i
         if self.odo_segments[lo] != self.odo_segments[hi] or stamps[hi] - stamps[lo] > max_dt:
             return None
-        T, _ = geo.se3_interpolate(stamps[lo:hi + 1], np.stack([self.odo_poses[lo],
-                                                                self.odo_poses[hi]]),
-                                   np.array([stamp_ns]))
+        T, _ = geo.se3_interpolate(
+            stamps[lo : hi + 1],
+            np.stack([self.odo_poses[lo], self.odo_poses[hi]]),
+            np.array([stamp_ns]),
+        )
         return self.odo_segments[lo], T[0]
 
     def _loop(self, ev: LoopClosure) -> bool:
@@ -391,10 +409,17 @@ class KeyframeGraph(FactorStore):
         nodes = self.node_keys()
         objs = self.object_ids()
         keys = np.concatenate([nodes, OBJ + objs])
-        poses = np.concatenate([self.T_world_body(), self.T_world_object()]) if len(keys) \
+        poses = (
+            np.concatenate([self.T_world_body(), self.T_world_object()])
+            if len(keys)
             else np.zeros((0, 4, 4))
-        kinds = np.concatenate([np.full(len(nodes), VariableKind.PRIVATE, np.int8),
-                                np.full(len(objs), VariableKind.PUBLIC, np.int8)])
+        )
+        kinds = np.concatenate(
+            [
+                np.full(len(nodes), VariableKind.PRIVATE, np.int8),
+                np.full(len(objs), VariableKind.PUBLIC, np.int8),
+            ]
+        )
         blocks = self._blocks(self.factor_arrays(include_prior=False), keys, residual)
         if self.prior is not None:
             blocks.append(self._prior_block(keys))
@@ -430,14 +455,18 @@ class KeyframeGraph(FactorStore):
             "nodes": nodes,
             "node_stamp": np.array([self.node_stamp[k] for k in nodes.tolist()], np.int64),
             "node_segment": np.array([self.node_segment[k] for k in nodes.tolist()], np.int64),
-            "node_odom": np.stack([self.node_odom[k] for k in nodes.tolist()]) if len(nodes)
+            "node_odom": np.stack([self.node_odom[k] for k in nodes.tolist()])
+            if len(nodes)
             else np.zeros((0, 4, 4)),
             "node_est": self.T_world_body(),
             "objects": self.object_ids(),
             "obj_est": self.T_world_object(),
             "protected": np.array(sorted(self.protected), np.int64),
-            "last_node_of_segment": [[int(s), int(n)] for s, n in
-                                     self.last_node_of_segment.items() if n in self.node_stamp],
+            "last_node_of_segment": [
+                [int(s), int(n)]
+                for s, n in self.last_node_of_segment.items()
+                if n in self.node_stamp
+            ],
             "factors": fa,
             "odo_stamps": np.array(self.odo_stamps, np.int64),
             "odo_poses": np.stack(self.odo_poses) if self.odo_poses else np.zeros((0, 4, 4)),
@@ -445,21 +474,27 @@ class KeyframeGraph(FactorStore):
             "kf_stamps": np.array(self.kf_order, np.int64),
             "kf_segments": np.array([self.kf_buffer[s][0] for s in self.kf_order], np.int64),
             "kf_poses": np.stack([self.kf_buffer[s][1] for s in self.kf_order])
-            if self.kf_order else np.zeros((0, 4, 4)),
-            "kf_cum": np.array([self.kf_buffer[s][2:] for s in self.kf_order], np.float64
-                               ).reshape(-1, 2),
-            "kf_last": [[int(sg), int(v[0]), v[1], float(v[2]), float(v[3])]
-                        for sg, v in self.kf_last.items()],
-            "node_cum": np.array([self.node_cum[k] for k in nodes.tolist()], np.float64
-                                 ).reshape(-1, 2),
+            if self.kf_order
+            else np.zeros((0, 4, 4)),
+            "kf_cum": np.array([self.kf_buffer[s][2:] for s in self.kf_order], np.float64).reshape(
+                -1, 2
+            ),
+            "kf_last": [
+                [int(sg), int(v[0]), v[1], float(v[2]), float(v[3])]
+                for sg, v in self.kf_last.items()
+            ],
+            "node_cum": np.array([self.node_cum[k] for k in nodes.tolist()], np.float64).reshape(
+                -1, 2
+            ),
             "segmenter": self.segmenter.to_state(),
             "counters": dict(self.counters),
             "prior": self.prior,
         }
 
     @classmethod
-    def from_state(cls, config: AgentConfig, state: dict, *, anchor_first: bool = True
-                   ) -> KeyframeGraph:
+    def from_state(
+        cls, config: AgentConfig, state: dict, *, anchor_first: bool = True
+    ) -> KeyframeGraph:
         g = cls(config, anchor_first=anchor_first)
         g.next_node = int(state["next_node"])
         for i, k in enumerate(np.asarray(state["nodes"]).tolist()):
@@ -481,23 +516,37 @@ class KeyframeGraph(FactorStore):
         g.last_node_of_segment = {int(s): int(n) for s, n in state["last_node_of_segment"]}
         fa = state["factors"]
         for i in range(len(fa["p"])):
-            g._add_factor(int(fa["p"][i]), int(fa["q"][i]), np.array(fa["Z"][i]),
-                          np.array(fa["S"][i]), int(fa["kind"][i]))
-        for s, T, sg in zip(np.asarray(state["odo_stamps"]).tolist(), state["odo_poses"],
-                            np.asarray(state["odo_segments"]).tolist()):
+            g._add_factor(
+                int(fa["p"][i]),
+                int(fa["q"][i]),
+                np.array(fa["Z"][i]),
+                np.array(fa["S"][i]),
+                int(fa["kind"][i]),
+            )
+        for s, T, sg in zip(
+            np.asarray(state["odo_stamps"]).tolist(),
+            state["odo_poses"],
+            np.asarray(state["odo_segments"]).tolist(),
+        ):
             g.odo_stamps.append(s)
             g.odo_poses.append(np.array(T))
             g.odo_segments.append(sg)
-        for s, sg, T, c in zip(np.asarray(state["kf_stamps"]).tolist(),
-                               np.asarray(state["kf_segments"]).tolist(), state["kf_poses"],
-                               np.asarray(state["kf_cum"]).tolist()):
+        for s, sg, T, c in zip(
+            np.asarray(state["kf_stamps"]).tolist(),
+            np.asarray(state["kf_segments"]).tolist(),
+            state["kf_poses"],
+            np.asarray(state["kf_cum"]).tolist(),
+        ):
             g.kf_buffer[s] = (sg, np.array(T), float(c[0]), float(c[1]))
             g.kf_order.append(s)
-        g.kf_last = {int(sg): (int(st), np.array(T), float(d), float(r))
-                     for sg, st, T, d, r in state["kf_last"]}
+        g.kf_last = {
+            int(sg): (int(st), np.array(T), float(d), float(r))
+            for sg, st, T, d, r in state["kf_last"]
+        }
         g.segmenter = Segmenter.from_state(config.graph, state["segmenter"])
         g.counters = {str(k): int(v) for k, v in state["counters"].items()}
         pr = state.get("prior")
-        g.prior = (None if pr is None
-                   else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")})
+        g.prior = (
+            None if pr is None else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")}
+        )
         return g

@@ -73,8 +73,9 @@ class Segmenter:
         """
         b = self.bounds
         reason = None
-        if ((self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns)
-                or (self.starts_ns and stamp_ns < self.starts_ns[-1])):
+        if (self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns) or (
+            self.starts_ns and stamp_ns < self.starts_ns[-1]
+        ):
             self.stale_samples += 1
             return self.current, None
         if not self.ids:

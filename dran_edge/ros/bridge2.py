@@ -51,8 +51,9 @@ DEFAULTS = {
 class BridgeCore:
     """Message handling without rclpy: ``send(record_bytes)`` receives every record."""
 
-    def __init__(self, send: Callable[[bytes], None], frame_hz: float = 5.0,
-                 with_depth: bool = False):
+    def __init__(
+        self, send: Callable[[bytes], None], frame_hz: float = 5.0, with_depth: bool = False
+    ):
         self.send = send
         self.last_odometry_ns = 0
         self.skipped: collections.Counter = collections.Counter()
@@ -79,6 +80,7 @@ class BridgeCore:
                 raise rm.MessageError("non_monotonic", "odometry stamp went backwards")
             self.last_odometry_ns = it.stamp_ns
             return it
+
         self._guard(f)
 
     def on_keyframe(self, msg: Any) -> None:
@@ -139,8 +141,12 @@ def estimate_from_status(status: dict) -> dict | None:
         return None
     kf = np.asarray(est["keyframes"], dtype=np.float64).reshape(-1, 8)
     objs = np.asarray(est.get("objects") or np.zeros((0, 8)), dtype=np.float64).reshape(-1, 8)
-    return {"stamps_ns": kf[:, 0].astype(np.int64), "poses": kf[:, 1:],
-            "object_ids": objs[:, 0].astype(np.int64), "object_poses": objs[:, 1:]}
+    return {
+        "stamps_ns": kf[:, 0].astype(np.int64),
+        "poses": kf[:, 1:],
+        "object_ids": objs[:, 0].astype(np.int64),
+        "object_poses": objs[:, 1:],
+    }
 
 
 def _subscribe(node, core: BridgeCore, p: dict) -> None:  # pragma: no cover - needs rclpy
@@ -148,7 +154,6 @@ def _subscribe(node, core: BridgeCore, p: dict) -> None:  # pragma: no cover - n
     from nav_msgs.msg import Odometry
     from rclpy.qos import qos_profile_sensor_data
     from std_msgs.msg import Bool
-
 
     node.create_subscription(Odometry, p["odometry"], core.on_odometry, 200)
     if p["keyframes"]:
@@ -165,16 +170,18 @@ def _subscribe(node, core: BridgeCore, p: dict) -> None:  # pragma: no cover - n
 
         node.create_subscription(Image, p["image"], core.on_image, qos_profile_sensor_data)
         if p["depth"]:
-            node.create_subscription(Image, p["depth"], lambda m: core.on_image(m, True),
-                                     qos_profile_sensor_data)
+            node.create_subscription(
+                Image, p["depth"], lambda m: core.on_image(m, True), qos_profile_sensor_data
+            )
 
 
 def _pose_msg(v):  # pragma: no cover - needs rclpy
     from geometry_msgs.msg import Point, Pose, Quaternion
 
-    return Pose(position=Point(x=float(v[0]), y=float(v[1]), z=float(v[2])),
-                orientation=Quaternion(x=float(v[3]), y=float(v[4]), z=float(v[5]),
-                                       w=float(v[6])))
+    return Pose(
+        position=Point(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+        orientation=Quaternion(x=float(v[3]), y=float(v[4]), z=float(v[5]), w=float(v[6])),
+    )
 
 
 def _publisher(node, p: dict) -> Callable[[], None]:  # pragma: no cover - needs rclpy
@@ -240,8 +247,7 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - needs rclp
     rclpy.init(args=argv)
     node = Node("dran_edge_bridge")
     p = {k: node.declare_parameter(k, v).value for k, v in DEFAULTS.items()}
-    client = IngestClient(p["socket"], int(p["max_queue"]),
-                          log=lambda m: node.get_logger().info(m))
+    client = IngestClient(p["socket"], int(p["max_queue"]), log=lambda m: node.get_logger().info(m))
     client.start()
     core = BridgeCore(client.put, float(p["frame_hz"]), bool(p["depth"]))
     _subscribe(node, core, p)

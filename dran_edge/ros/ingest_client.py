@@ -14,8 +14,13 @@ from collections.abc import Callable
 
 
 class IngestClient:
-    def __init__(self, path: str, max_queue: int = 20000,
-                 log: Callable[[str], None] | None = None, retry_s: float = 0.5):
+    def __init__(
+        self,
+        path: str,
+        max_queue: int = 20000,
+        log: Callable[[str], None] | None = None,
+        retry_s: float = 0.5,
+    ):
         self.path, self.max_queue, self.retry_s = str(path), max_queue, retry_s
         self.log = log or (lambda _m: None)
         self.queue: collections.deque[bytes] = collections.deque()

@@ -73,14 +73,20 @@ def pack_odometry(stamp_ns, xyz, quat_xyzw, covariance=None):
 
 
 def pack_keyframe(stamp_ns, xyz, quat_xyzw):
-    return _frame(KIND_KEYFRAME, _POSE.pack(int(stamp_ns), *(_floats(xyz, 3)
-                                                             + _floats(quat_xyzw, 4))))
+    return _frame(
+        KIND_KEYFRAME, _POSE.pack(int(stamp_ns), *(_floats(xyz, 3) + _floats(quat_xyzw, 4)))
+    )
 
 
 def pack_loop(stamp_old_ns, stamp_cur_ns, xyz, quat_xyzw, inliers):
-    return _frame(KIND_LOOP, _LOOP.pack(int(stamp_old_ns), int(stamp_cur_ns),
-                                        *(_floats(xyz, 3) + _floats(quat_xyzw, 4)
-                                          + [int(inliers)])))
+    return _frame(
+        KIND_LOOP,
+        _LOOP.pack(
+            int(stamp_old_ns),
+            int(stamp_cur_ns),
+            *(_floats(xyz, 3) + _floats(quat_xyzw, 4) + [int(inliers)]),
+        ),
+    )
 
 
 def pack_reset(stamp_ns, reason_code, reason=""):
@@ -101,8 +107,9 @@ def frame_bytes(stamp_ns, width, height, colour, depth=None, rgb=False, camera_i
         raise ValueError("depth: expected %d bytes, got %d" % (width * height * 2, len(depth)))
     flags = (1 if depth is not None else 0) | (2 if rgb else 0)
     depth = b"" if depth is None else bytes(depth)
-    header = FRAME_HEADER.pack(FRAME_MAGIC, 1, flags, 0, 0, int(stamp_ns), width, height,
-                               len(colour), len(depth), len(cam))
+    header = FRAME_HEADER.pack(
+        FRAME_MAGIC, 1, flags, 0, 0, int(stamp_ns), width, height, len(colour), len(depth), len(cam)
+    )
     return b"".join((header, cam, bytes(colour), depth))
 
 
@@ -134,8 +141,13 @@ def keyframe_record(msg):
 
 def loop_record(msg):
     xyz, q = _pose_parts(msg.pose.pose)
-    return pack_loop(seconds_to_ns(msg.twist.twist.linear.x), stamp_ns_of(msg.header), xyz, q,
-                     max(0, int(round(msg.twist.twist.angular.x))))
+    return pack_loop(
+        seconds_to_ns(msg.twist.twist.linear.x),
+        stamp_ns_of(msg.header),
+        xyz,
+        q,
+        max(0, int(round(msg.twist.twist.angular.x))),
+    )
 
 
 def _packed_rows(msg, bytes_per_px):
@@ -146,7 +158,7 @@ def _packed_rows(msg, bytes_per_px):
         return None
     if msg.step == row:
         return data[: row * msg.height]
-    return b"".join(data[r * msg.step:r * msg.step + row] for r in range(msg.height))
+    return b"".join(data[r * msg.step : r * msg.step + row] for r in range(msg.height))
 
 
 def frame_record(colour_msg, depth_msg=None):
@@ -156,16 +168,27 @@ def frame_record(colour_msg, depth_msg=None):
     colour = _packed_rows(colour_msg, 3)
     depth = None
     if depth_msg is not None:
-        if (depth_msg.encoding not in ("16UC1", "mono16")
-                or (depth_msg.width, depth_msg.height) != (colour_msg.width, colour_msg.height)):
+        if depth_msg.encoding not in ("16UC1", "mono16") or (depth_msg.width, depth_msg.height) != (
+            colour_msg.width,
+            colour_msg.height,
+        ):
             return None
         depth = _packed_rows(depth_msg, 2)
         if depth is None:
             return None
     stamp = stamp_ns_of(colour_msg.header)
-    return pack_frame(stamp, frame_bytes(stamp, colour_msg.width, colour_msg.height, colour,
-                                         depth, colour_msg.encoding == "rgb8",
-                                         colour_msg.header.frame_id))
+    return pack_frame(
+        stamp,
+        frame_bytes(
+            stamp,
+            colour_msg.width,
+            colour_msg.height,
+            colour,
+            depth,
+            colour_msg.encoding == "rgb8",
+            colour_msg.header.frame_id,
+        ),
+    )
 
 
 # --------------------------------------------------------------------------- socket client
@@ -260,8 +283,11 @@ def main():
     rospy.init_node("dran_edge_vins_bridge")
     path = rospy.get_param("~socket", "/run/dran-edge/ingest.sock")
     loop_topic = rospy.get_param("~loop_topic", "/pose_graph/loop_edge")
-    client = IngestClient(path, int(rospy.get_param("~max_queue", 20000)),
-                          log=lambda m: rospy.loginfo("vins_bridge: " + m))
+    client = IngestClient(
+        path,
+        int(rospy.get_param("~max_queue", 20000)),
+        log=lambda m: rospy.loginfo("vins_bridge: " + m),
+    )
     client.start()
     last = {"stamp_ns": 0}
 
@@ -312,16 +338,30 @@ def main():
                 sent_at["stamp_ns"] = stamp
                 client.put(rec)
 
-        rospy.Subscriber(image_topic, Image, lambda m: offer(stamp_ns_of(m.header), colour=m),
-                         queue_size=2, buff_size=2 ** 24)
+        rospy.Subscriber(
+            image_topic,
+            Image,
+            lambda m: offer(stamp_ns_of(m.header), colour=m),
+            queue_size=2,
+            buff_size=2**24,
+        )
         if depth_topic:
-            rospy.Subscriber(depth_topic, Image, lambda m: offer(stamp_ns_of(m.header), depth=m),
-                             queue_size=2, buff_size=2 ** 24)
+            rospy.Subscriber(
+                depth_topic,
+                Image,
+                lambda m: offer(stamp_ns_of(m.header), depth=m),
+                queue_size=2,
+                buff_size=2**24,
+            )
     rospy.loginfo("vins_bridge: forwarding VINS-Mono to %s (loops from %s)", path, loop_topic)
 
     def report(_event):
-        rospy.loginfo("vins_bridge: sent %d records, %d queued, %d dropped", client.sent,
-                      len(client.queue), client.dropped)
+        rospy.loginfo(
+            "vins_bridge: sent %d records, %d queued, %d dropped",
+            client.sent,
+            len(client.queue),
+            client.dropped,
+        )
 
     rospy.Timer(rospy.Duration(30.0), report)
     rospy.spin()

@@ -33,16 +33,23 @@ def grid_trajectory(dim: int, side: int, layers: int = 1, step_m: float = 1.0) -
     return geo.se3_from_rt(R, pts)
 
 
-def _generated_graph(dim: int, poses: np.ndarray, edges: np.ndarray, Z: np.ndarray,
-                     information: np.ndarray) -> G2oGraph:
+def _generated_graph(
+    dim: int, poses: np.ndarray, edges: np.ndarray, Z: np.ndarray, information: np.ndarray
+) -> G2oGraph:
     """A G2oGraph of generated data: vertex ids 0..n-1, every vertex posed, none fixed, one
     information matrix per edge (``(m, r, r)``; broadcast from ``(r, r)``)."""
     n, m, r = poses.shape[0], edges.shape[0], 3 if dim == 2 else 6
     return G2oGraph(
-        dim=dim, vertex_ids=np.arange(n, dtype=np.int64), poses=poses,
-        has_pose=np.ones(n, dtype=bool), edges=edges, measurements=Z,
+        dim=dim,
+        vertex_ids=np.arange(n, dtype=np.int64),
+        poses=poses,
+        has_pose=np.ones(n, dtype=bool),
+        edges=edges,
+        measurements=Z,
         information=np.broadcast_to(information, (m, r, r)).copy(),
-        fixed=np.zeros(n, dtype=bool), edge_lines=np.arange(1, m + 1, dtype=np.int64))
+        fixed=np.zeros(n, dtype=bool),
+        edge_lines=np.arange(1, m + 1, dtype=np.int64),
+    )
 
 
 def synthetic_graph(
@@ -125,8 +132,15 @@ def city_graph(
 # with sparse loops (car / long indoor), dense grid worlds, noisy and anisotropic variants.
 
 
-def road_trajectory(dim: int, num_poses: int, seed: int, step_m: float = 1.0,
-                    block_m: float = 20.0, blocks: int = 8, hills_m: float = 0.0) -> np.ndarray:
+def road_trajectory(
+    dim: int,
+    num_poses: int,
+    seed: int,
+    step_m: float = 1.0,
+    block_m: float = 20.0,
+    blocks: int = 8,
+    hills_m: float = 0.0,
+) -> np.ndarray:
     """(n, D, D) true poses of a vehicle driving a grid of streets: ``blocks`` × ``blocks``
     city blocks of ``block_m`` metres, one pose every ``step_m``; at each intersection it goes
     straight, left or right at random (never back, never off the map), so it revisits streets
@@ -142,8 +156,11 @@ def road_trajectory(dim: int, num_poses: int, seed: int, step_m: float = 1.0,
         cells.append(cell.copy())
         headings.append(h)
         if np.all(cell % per_block == 0):  # intersection: choose among allowed directions
-            options = [k for k in ((h + 1) % 4, h, (h + 3) % 4)
-                       if np.all((cell + heading[k] >= 0) & (cell + heading[k] <= size))]
+            options = [
+                k
+                for k in ((h + 1) % 4, h, (h + 3) % 4)
+                if np.all((cell + heading[k] >= 0) & (cell + heading[k] <= size))
+            ]
             h = int(rng.choice(options)) if options else (h + 2) % 4
         cell = cell + heading[h]
         headings[-1] = h  # the pose faces where it drives next
@@ -157,20 +174,28 @@ def road_trajectory(dim: int, num_poses: int, seed: int, step_m: float = 1.0,
     pitch = -np.arctan(dz)
     roll = rng.normal(scale=0.02, size=z.size)
     c, s = np.cos(yaw), np.sin(yaw)
-    Rz = np.stack([np.stack([c, -s, 0 * c], -1), np.stack([s, c, 0 * c], -1),
-                   np.stack([0 * c, 0 * c, 1 + 0 * c], -1)], 1)
+    Rz = np.stack(
+        [
+            np.stack([c, -s, 0 * c], -1),
+            np.stack([s, c, 0 * c], -1),
+            np.stack([0 * c, 0 * c, 1 + 0 * c], -1),
+        ],
+        1,
+    )
     R = Rz @ geo.so3_exp(np.column_stack([roll, pitch, np.zeros_like(roll)]))
     return geo.se3_from_rt(R, np.column_stack([xy, z]))
 
 
-def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
-                         turn_probability: float = 0.3) -> np.ndarray:
+def grid_walk_trajectory(
+    dim: int, num_poses: int, seed: int, side: int = 30, turn_probability: float = 0.3
+) -> np.ndarray:
     """(n, D, D) true poses of a random walk on a ``side`` × ``side`` unit grid (3D: also up
     and down between layers), turning with ``turn_probability`` at every node: the "city"
     worlds of M3500 / city10000 (Olson et al. 2006), dense with revisits."""
     rng = np.random.default_rng(seed)
-    dirs = [np.array(v) for v in ((1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0), (0, 0, 1),
-                                  (0, 0, -1))]
+    dirs = [
+        np.array(v) for v in ((1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
+    ]
     ndir = 6 if dim == 3 else 4
     layers = max(2, side // 6) if dim == 3 else 1
     lim = np.array([side - 1, side - 1, layers - 1])
@@ -180,8 +205,11 @@ def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
     for _ in range(num_poses):
         if rng.random() < turn_probability or np.any((p + dirs[h] < 0) | (p + dirs[h] > lim)):
             back = (h + 2) % 4 if h < 4 else 9 - h
-            ok = [k for k in range(ndir) if np.all((p + dirs[k] >= 0) & (p + dirs[k] <= lim))
-                  and k != back]
+            ok = [
+                k
+                for k in range(ndir)
+                if np.all((p + dirs[k] >= 0) & (p + dirs[k] <= lim)) and k != back
+            ]
             h = int(rng.choice(ok))
         p = p + dirs[h]
         pt_list.append(p.copy())
@@ -194,8 +222,9 @@ def grid_walk_trajectory(dim: int, num_poses: int, seed: int, side: int = 30,
     return geo.se3_from_rt(geo.so3_exp(np.column_stack([tilt, yaw])), pts)
 
 
-def loop_pairs(T: np.ndarray, radius_m: float, min_gap: int, count: int | None,
-               seed: int) -> np.ndarray:
+def loop_pairs(
+    T: np.ndarray, radius_m: float, min_gap: int, count: int | None, seed: int
+) -> np.ndarray:
     """(k, 2) loop closures i < j − ``min_gap`` between poses within ``radius_m``; ``count``
     of them drawn uniformly at random (spread over the trajectory), or all when None."""
     from scipy.spatial import cKDTree
@@ -213,8 +242,9 @@ def loop_pairs(T: np.ndarray, radius_m: float, min_gap: int, count: int | None,
     return pairs.astype(np.int64)
 
 
-def graph_from_trajectory(T: np.ndarray, loops: np.ndarray, sigma_t_m, sigma_r_rad,
-                          seed: int, anisotropy: float = 1.0) -> G2oGraph:
+def graph_from_trajectory(
+    T: np.ndarray, loops: np.ndarray, sigma_t_m, sigma_r_rad, seed: int, anisotropy: float = 1.0
+) -> G2oGraph:
     """A pose graph over true poses ``T``: odometry between consecutive poses plus ``loops``,
     measurements perturbed on the right by ``Exp(n)``, n ~ N(0, Σ). ``sigma_t_m`` /
     ``sigma_r_rad`` are scalars or per-axis arrays. ``anisotropy`` > 1 draws, per edge, a

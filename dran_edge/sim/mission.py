@@ -181,6 +181,8 @@ T_BODY_CAMERA = geo.se3_from_rt(
 )
 #: Mocap pivot of a robot: 0.3 m above the IMU (markers on a mast), same axes.
 T_BODY_MARKER = geo.se3_from_rt(np.eye(3), np.array([0.0, 0.0, 0.30]))
+
+
 #: Mocap pivot of a box: the centre of its top face.
 def _object_marker(box_size_m: float) -> np.ndarray:
     return geo.se3_from_rt(np.eye(3), np.array([0.0, 0.0, box_size_m / 2]))
@@ -261,10 +263,12 @@ class CirclePath:
 
     def _xy(self, t_s: np.ndarray) -> np.ndarray:
         theta = self.phase_rad + self.direction * self.speed_mps * t_s / self.radius_m
-        r = self.radius_m * (1 + self.wobble * np.sin(2 * np.pi * self.wobble_hz * t_s
-                                                     + self.wobble_phase_rad))
-        return np.stack([self.centre_xy[0] + r * np.cos(theta),
-                         self.centre_xy[1] + r * np.sin(theta)], axis=-1)
+        r = self.radius_m * (
+            1 + self.wobble * np.sin(2 * np.pi * self.wobble_hz * t_s + self.wobble_phase_rad)
+        )
+        return np.stack(
+            [self.centre_xy[0] + r * np.cos(theta), self.centre_xy[1] + r * np.sin(theta)], axis=-1
+        )
 
     def poses(self, t_s: np.ndarray) -> np.ndarray:
         """T_world_body at times ``t_s`` (seconds from the mission start), heading along the path."""
@@ -291,7 +295,9 @@ def _random_path(p: SimParams, rng: np.random.Generator) -> CirclePath:
 
 
 # --------------------------------------------------------------------------------- visibility
-def visible_tags(world: World, T_world_camera: np.ndarray, p: SimParams) -> tuple[np.ndarray, np.ndarray]:
+def visible_tags(
+    world: World, T_world_camera: np.ndarray, p: SimParams
+) -> tuple[np.ndarray, np.ndarray]:
     """Which tags each camera pose sees, and their poses in the camera.
 
     Returns ``(visible (m, n, 4) bool, T_camera_tag (m, n, 4, 4, 4))`` for ``m`` camera poses.
@@ -304,15 +310,18 @@ def visible_tags(world: World, T_world_camera: np.ndarray, p: SimParams) -> tupl
     # facing: the tag's z (into the tag) points away from the camera: cos = z . t / |t|
     cos_view = np.einsum("...i,...i->...", z_axis, t) / np.maximum(dist, 1e-9)
     half = p.tag_size_m / 2 * 1.25
-    corners = np.array([[-half, -half, 0, 1], [half, -half, 0, 1], [half, half, 0, 1],
-                        [-half, half, 0, 1.0]])
+    corners = np.array(
+        [[-half, -half, 0, 1], [half, -half, 0, 1], [half, half, 0, 1], [-half, half, 0, 1.0]]
+    )
     pc = np.einsum("...ij,kj->...ki", T_ct[..., :3, :], corners)  # (m, n, 4, 4 corners, 3)
     z = pc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = CAMERA_K[0, 0] * pc[..., 0] / z + CAMERA_K[0, 2]
         v = CAMERA_K[1, 1] * pc[..., 1] / z + CAMERA_K[1, 2]
-    inside = np.all((z > 0.1) & (u >= 2) & (u <= CAMERA_WIDTH - 3) & (v >= 2)
-                    & (v <= CAMERA_HEIGHT - 3), axis=-1)
+    inside = np.all(
+        (z > 0.1) & (u >= 2) & (u <= CAMERA_WIDTH - 3) & (v >= 2) & (v <= CAMERA_HEIGHT - 3),
+        axis=-1,
+    )
     vis = inside & (dist < p.max_range_m) & (cos_view > math.cos(p.max_view_angle_rad))
     # line of sight blocked by another box (circles of the box's half diagonal in the plane)
     cam_xy = T_world_camera[:, None, None, :2, 3]
@@ -376,8 +385,9 @@ class Mission:
     """(k,) Motive times from take start (= mission start)."""
 
 
-def comm_graph(n: int, edge_probability: float, rng: np.random.Generator
-               ) -> tuple[tuple[int, int], ...]:
+def comm_graph(
+    n: int, edge_probability: float, rng: np.random.Generator
+) -> tuple[tuple[int, int], ...]:
     """A random connected graph on 0..n-1: a random spanning tree plus extra edges."""
     order = rng.permutation(n)
     edges = set()
@@ -417,12 +427,16 @@ def generate_mission(p: SimParams) -> Mission:
         path = None
         for _ in range(500):
             cand = _random_path(p, path_rng)
-            if _path_ok(world, cand, p) and (p.objects < 2 or len(_seen_objects(world, cand, p)) >= 2):
+            if _path_ok(world, cand, p) and (
+                p.objects < 2 or len(_seen_objects(world, cand, p)) >= 2
+            ):
                 path = cand
                 break
         if path is None:
-            raise InputError(f"robot {i + 1}: no path among the {p.objects} boxes keeps "
-                             f"{p.clearance_m} m clearance and sees two boxes; use a larger arena")
+            raise InputError(
+                f"robot {i + 1}: no path among the {p.objects} boxes keeps "
+                f"{p.clearance_m} m clearance and sees two boxes; use a larger arena"
+            )
         robots.append(_robot(p, i + 1, path, vio_rng, loop_rng))
     graph = comm_graph(p.robots, p.comm_edge_probability, np.random.default_rng(graph_seq))
     edges = tuple((a + 1, b + 1) for a, b in graph)
@@ -435,19 +449,41 @@ def _robot(p: SimParams, robot_id: int, path: CirclePath, vio_rng, loop_rng) -> 
     t_s = (stamps - p.start_ns) / 1e9
     T_wb = path.poses(t_s)
     keep, T_ob, segment, T_wo = simulate_vio(p, T_wb, t_s, vio_rng)
-    stamps, T_wb, T_ob, segment, t_s = stamps[keep], T_wb[keep], T_ob[keep], segment[keep], t_s[keep]
+    stamps, T_wb, T_ob, segment, t_s = (
+        stamps[keep],
+        T_wb[keep],
+        T_ob[keep],
+        segment[keep],
+        t_s[keep],
+    )
     reset_stamps = stamps[np.flatnonzero(np.diff(segment)) + 1]
     kf = select_keyframes(p, T_ob, t_s, segment)
     pairs, meas, outl = simulate_loops(p, T_wb[kf], t_s[kf], loop_rng)
     if p.frame_rate_hz > 0:
         # frames start half a frame period in, so they are not synchronous with odometry
-        f_stamps = stamps_at_rate(p.start_ns, p.duration_s, p.frame_rate_hz, 0.5 / p.frame_rate_hz
-                           + 0.0137 * robot_id)
+        f_stamps = stamps_at_rate(
+            p.start_ns, p.duration_s, p.frame_rate_hz, 0.5 / p.frame_rate_hz + 0.0137 * robot_id
+        )
     else:
         f_stamps = np.zeros(0, np.int64)
     T_wb_f = path.poses((f_stamps - p.start_ns) / 1e9) if len(f_stamps) else np.zeros((0, 4, 4))
-    return RobotMission(robot_id, f"dingo{robot_id}", path, stamps, T_wb, T_ob, segment, T_wo,
-                        reset_stamps, kf, pairs, meas, outl, f_stamps, T_wb_f)
+    return RobotMission(
+        robot_id,
+        f"dingo{robot_id}",
+        path,
+        stamps,
+        T_wb,
+        T_ob,
+        segment,
+        T_wo,
+        reset_stamps,
+        kf,
+        pairs,
+        meas,
+        outl,
+        f_stamps,
+        T_wb_f,
+    )
 
 
 def mocap_poses(m: Mission, rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
@@ -469,8 +505,9 @@ def mocap_poses(m: Mission, rng: np.random.Generator | None = None) -> dict[str,
     return out
 
 
-def direct_observations(m: Mission, robot: RobotMission, rng: np.random.Generator
-                        ) -> list[tuple[int, list[tuple[int, np.ndarray, np.ndarray]]]]:
+def direct_observations(
+    m: Mission, robot: RobotMission, rng: np.random.Generator
+) -> list[tuple[int, list[tuple[int, np.ndarray, np.ndarray]]]]:
     """No-frames mode: per frame stamp, the objects seen as (object_id, T_body_object, cov).
 
     The noise grows with range (``obs_noise_m`` per metre); the covariance given is the one

@@ -33,15 +33,17 @@ def yaw_of(T: np.ndarray) -> np.ndarray:
     return np.arctan2(T[..., 1, 0], T[..., 0, 0])
 
 
-def stamps_at_rate(start_ns: int, duration_s: float, rate_hz: float, offset_s: float = 0.0
-                   ) -> np.ndarray:
+def stamps_at_rate(
+    start_ns: int, duration_s: float, rate_hz: float, offset_s: float = 0.0
+) -> np.ndarray:
     """Stamps (ns) every 1/rate_hz from ``start_ns + offset_s`` to the mission's end."""
     n = int(math.floor((duration_s - offset_s) * rate_hz)) + 1
     return start_ns + np.round((offset_s + np.arange(n) / rate_hz) * 1e9).astype(np.int64)
 
 
-def simulate_vio(p: SimParams, T_world_body: np.ndarray, t_s: np.ndarray,
-                  rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+def simulate_vio(
+    p: SimParams, T_world_body: np.ndarray, t_s: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, ...]:
     """VIO output with drift and resets.
 
     Returns (keep mask over samples, T_odom_body, segment, T_world_odom per segment).
@@ -94,7 +96,9 @@ def simulate_vio(p: SimParams, T_world_body: np.ndarray, t_s: np.ndarray,
     return keep, T_odom_body, segment, T_world_odom
 
 
-def select_keyframes(p: SimParams, T: np.ndarray, t_s: np.ndarray, segment: np.ndarray) -> np.ndarray:
+def select_keyframes(
+    p: SimParams, T: np.ndarray, t_s: np.ndarray, segment: np.ndarray
+) -> np.ndarray:
     """Indices of VIO keyframes (sequential by nature: each depends on the last one)."""
     out = [0]
     last = 0
@@ -105,15 +109,19 @@ def select_keyframes(p: SimParams, T: np.ndarray, t_s: np.ndarray, segment: np.n
             last = i
             continue
         dyaw = abs(math.remainder(yaw[i] - yaw[last], 2 * math.pi))
-        if (np.hypot(*(xy[i] - xy[last])) >= p.keyframe_distance_m
-                or dyaw >= p.keyframe_angle_rad or t_s[i] - t_s[last] >= p.keyframe_interval_s):
+        if (
+            np.hypot(*(xy[i] - xy[last])) >= p.keyframe_distance_m
+            or dyaw >= p.keyframe_angle_rad
+            or t_s[i] - t_s[last] >= p.keyframe_interval_s
+        ):
             out.append(i)
             last = i
     return np.asarray(out, dtype=np.int64)
 
 
-def simulate_loops(p: SimParams, T_true_kf: np.ndarray, t_kf: np.ndarray, rng: np.random.Generator
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def simulate_loops(
+    p: SimParams, T_true_kf: np.ndarray, t_kf: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(pairs (old, cur) of keyframe indices, measured T_old_cur, outlier flags) of the loops
     detected among the keyframes (module docstring of :mod:`dran_edge.sim.mission`)."""
     n = len(t_kf)
@@ -131,16 +139,19 @@ def simulate_loops(p: SimParams, T_true_kf: np.ndarray, t_kf: np.ndarray, rng: n
             continue
         if rng.random() < p.loop_outlier_fraction:
             o = int(rng.integers(0, cur - p.loop_min_age_kf + 1))
-            T = geo.se3_from_rt(geo.so3_exp(np.array([0, 0, rng.uniform(-0.5, 0.5)])),
-                                np.r_[rng.uniform(-1.4, 1.4, size=2), 0.0])
+            T = geo.se3_from_rt(
+                geo.so3_exp(np.array([0, 0, rng.uniform(-0.5, 0.5)])),
+                np.r_[rng.uniform(-1.4, 1.4, size=2), 0.0],
+            )
             pairs.append((o, cur))
             meas.append(T)
             outlier.append(True)
         else:
             o = int(cand[0])
             T_true = geo.se3_between(T_true_kf[o], T_true_kf[cur])
-            xi = np.r_[p.loop_noise_m * rng.standard_normal(3),
-                       p.loop_noise_rad * rng.standard_normal(3)]
+            xi = np.r_[
+                p.loop_noise_m * rng.standard_normal(3), p.loop_noise_rad * rng.standard_normal(3)
+            ]
             pairs.append((o, cur))
             meas.append(T_true @ geo.se3_exp(xi))
             outlier.append(False)

@@ -251,8 +251,18 @@ def damped_step(
             actual = cost - new_cost
             rho = actual / predicted if predicted > 0 else 0.0
             return DampedStep(
-                True, policy.decreased(state, rho), trials, failures, mu, rho, predicted,
-                u, v, step, candidate, new_cost,
+                True,
+                policy.decreased(state, rho),
+                trials,
+                failures,
+                mu,
+                rho,
+                predicted,
+                u,
+                v,
+                step,
+                candidate,
+                new_cost,
             )
         state = policy.grown(state)
     return DampedStep(False, state, trials, failures, mu, math.nan, predicted)

@@ -15,6 +15,7 @@ from dran_edge.solver.factors import Factor, factor_cost
 from dran_edge.solver.graph import PoseGraph
 from dran_edge.solver.plan import StructurePlan
 
+
 @dataclass(frozen=True, eq=False)
 class Linearization:
     """The undamped normal equations at one point: JᵀJ = [[A, C], [Cᵀ, B]], Jᵀr = [g_x; g_y]."""

@@ -218,7 +218,9 @@ def _damped_iteration(
         new_poses = retract(plan, poses, u, v)
         return evaluate_cost(graph, new_poses), new_poses
 
-    def model(lin: Linearization, require_pd: bool) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
+    def model(
+        lin: Linearization, require_pd: bool
+    ) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         return lambda mu: schur_step(
             lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, factorize, require_pd
         )
@@ -229,7 +231,12 @@ def _damped_iteration(
     if exact and trials_left > 0:
         state = damping.mu_gn if damping.shared else damping.mu_newton
         newton = damped_step(
-            damping.newton, state, model(lin, not damping.shared), evaluate, cost, g,
+            damping.newton,
+            state,
+            model(lin, not damping.shared),
+            evaluate,
+            cost,
+            g,
             label=label + " newton",
         )
         if damping.shared:
@@ -242,16 +249,20 @@ def _damped_iteration(
         # the Newton model failed (not convex at μ_N, or no decrease): Gauss–Newton takes over
         lin = linearize(graph, plan, poses, False)
     gn = damped_step(
-        damping.gauss_newton, damping.mu_gn, model(lin, False), evaluate, cost, g, trials_left,
+        damping.gauss_newton,
+        damping.mu_gn,
+        model(lin, False),
+        evaluate,
+        cost,
+        g,
+        trials_left,
         label=label + " gauss-newton",
     )
     damping.mu_gn = gn.state
     if newton is None:
         return _Iteration(gn, gn.trials, gn.solved > 0, gn.predicted)
     predicted = gn.predicted if gn.solved else newton.predicted
-    return _Iteration(
-        gn, gn.trials + newton.trials, gn.solved + newton.solved > 0, predicted
-    )
+    return _Iteration(gn, gn.trials + newton.trials, gn.solved + newton.solved > 0, predicted)
 
 
 def _factorizer(plan: StructurePlan, params: LMParams) -> Factorize | None:

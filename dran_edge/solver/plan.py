@@ -15,6 +15,7 @@ import numpy as np
 
 from dran_edge.solver.graph import PoseGraph, VariableKind
 
+
 @dataclass(frozen=True, eq=False)
 class StructurePlan:
     """Index maps and sparsity patterns of one graph topology (see :func:`build_plan`)."""

@@ -74,9 +74,7 @@ class LinearSolveError(ArithmeticError):
     """A damped system could not be factorised (singular or not positive definite)."""
 
 
-def superlu_factorize(
-    A_mu: sp.csc_matrix, require_positive_definite: bool = False
-) -> DampedFactor:
+def superlu_factorize(A_mu: sp.csc_matrix, require_positive_definite: bool = False) -> DampedFactor:
     """Sparse LU of a symmetric positive definite matrix, SuperLU in symmetric mode.
 
     SuperLU factorises an indefinite matrix without complaint; with ``require_positive_definite``

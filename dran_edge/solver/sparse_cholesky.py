@@ -226,8 +226,9 @@ def _postorder(parent: np.ndarray) -> np.ndarray:
     return np.asarray(post, dtype=np.int64)
 
 
-def _amalgamate(parent: np.ndarray, counts: np.ndarray, max_cols: int, relax_zeros: float,
-                small_cols: int) -> np.ndarray:
+def _amalgamate(
+    parent: np.ndarray, counts: np.ndarray, max_cols: int, relax_zeros: float, small_cols: int
+) -> np.ndarray:
     """Relaxed supernodes (amalgamation, Ashcraft & Grimes 1989): the column bounds of the
     supernodes. Column k joins the current supernode [a, k) when k is the parent of each of its
     roots (the columns whose parent lies outside it) and the explicit zeros stay few; leaf
@@ -290,8 +291,9 @@ class _Fronts:
     """Sorted keys s·nb + block row of every front's rows, for one search per lookup."""
 
 
-def _fronts(bounds: np.ndarray, s_rows: np.ndarray, s_ptr: np.ndarray, nb: int,
-            block: int) -> _Fronts:
+def _fronts(
+    bounds: np.ndarray, s_rows: np.ndarray, s_ptr: np.ndarray, nb: int, block: int
+) -> _Fronts:
     nsn = bounds.size - 1
     owner = np.repeat(np.arange(nsn), np.diff(bounds))
     rows_b = [s_rows[s_ptr[b - 1] : s_ptr[b]] for b in bounds[1:].tolist()]
@@ -300,12 +302,19 @@ def _fronts(bounds: np.ndarray, s_rows: np.ndarray, s_ptr: np.ndarray, nb: int,
     for s_, p_ in enumerate(parent.tolist()):
         if p_ >= 0:
             children[p_].append(s_)
-    fronts_b = [np.concatenate([np.arange(bounds[s], bounds[s + 1]), rows_b[s]])
-                for s in range(nsn)]
+    fronts_b = [
+        np.concatenate([np.arange(bounds[s], bounds[s + 1]), rows_b[s]]) for s in range(nsn)
+    ]
     sizes = np.array([fb.size for fb in fronts_b], dtype=np.int64)
     return _Fronts(
-        bounds=bounds, owner=owner, rows_b=rows_b, parent=parent, children=children, sizes=sizes,
-        ncols=np.diff(bounds) * block, is_leaf=np.array([not c for c in children], dtype=bool),
+        bounds=bounds,
+        owner=owner,
+        rows_b=rows_b,
+        parent=parent,
+        children=children,
+        sizes=sizes,
+        ncols=np.diff(bounds) * block,
+        is_leaf=np.array([not c for c in children], dtype=bool),
         start=np.concatenate([[0], np.cumsum(sizes)]),
         keys=np.repeat(np.arange(nsn), sizes) * nb + np.concatenate(fronts_b),
     )

@@ -28,18 +28,22 @@ class LiveView:
             import foxglove
             from foxglove.channels import PosesInFrameChannel, SceneUpdateChannel
         except ImportError:
-            raise DependencyError("daemon.foxglove is set but the foxglove-sdk package is not "
-                                  "installed (pip install 'dran-edge[viz]'); set "
-                                  "daemon.foxglove: \"\" to run without the live view") from None
+            raise DependencyError(
+                "daemon.foxglove is set but the foxglove-sdk package is not "
+                "installed (pip install 'dran-edge[viz]'); set "
+                'daemon.foxglove: "" to run without the live view'
+            ) from None
         self.robot = robot
         self.min_period_s = min_period_s
         self.ctx = foxglove.Context()
-        self.server = foxglove.start_server(name=f"dran-edge {robot}", host=host, port=port,
-                                            context=self.ctx)
+        self.server = foxglove.start_server(
+            name=f"dran-edge {robot}", host=host, port=port, context=self.ctx
+        )
         self.path = PosesInFrameChannel(f"/{robot}/path", context=self.ctx)
         self.objects = SceneUpdateChannel(f"/{robot}/objects", context=self.ctx)
-        self.stats = foxglove.Channel(f"/{robot}/stats", message_encoding="json",
-                                      schema=vm.STATS_SCHEMA, context=self.ctx)
+        self.stats = foxglove.Channel(
+            f"/{robot}/stats", message_encoding="json", schema=vm.STATS_SCHEMA, context=self.ctx
+        )
         self.published = 0
         self._last = float("-inf")
 
@@ -57,21 +61,28 @@ class LiveView:
         t = time.time_ns() if now_ns is None else int(now_ns)
         graph = status.get("graph") or {}
         stats = {
-            "round": graph.get("round"), "cost": graph.get("cost"),
+            "round": graph.get("round"),
+            "cost": graph.get("cost"),
             "consensus_error": graph.get("consensus_error"),
-            "converged": graph.get("converged"), "keyframes": graph.get("keyframes"),
+            "converged": graph.get("converged"),
+            "keyframes": graph.get("keyframes"),
             "objects": graph.get("objects"),
-            "neighbours": {str(k): {"last_heard_s_ago": v.get("last_heard_s_ago"),
-                                    "bytes_received": v.get("bytes_received")}
-                           for k, v in (status.get("neighbours") or {}).items()},
+            "neighbours": {
+                str(k): {
+                    "last_heard_s_ago": v.get("last_heard_s_ago"),
+                    "bytes_received": v.get("bytes_received"),
+                }
+                for k, v in (status.get("neighbours") or {}).items()
+            },
         }
         self.stats.log(json.dumps(stats, default=_plain).encode(), log_time=t)
         if estimate is not None and len(estimate.keyframe_stamps_ns):
             order = np.argsort(np.asarray(estimate.keyframe_stamps_ns), kind="stable")
-            self.path.log(vm.path_message(t, np.asarray(estimate.T_world_body)[order]),
-                          log_time=t)
-            self.objects.log(vm.objects_message(t, self.robot, 0, estimate.object_ids,
-                                                estimate.T_world_object), log_time=t)
+            self.path.log(vm.path_message(t, np.asarray(estimate.T_world_body)[order]), log_time=t)
+            self.objects.log(
+                vm.objects_message(t, self.robot, 0, estimate.object_ids, estimate.T_world_object),
+                log_time=t,
+            )
         self.published += 1
         return True
 

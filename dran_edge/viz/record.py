@@ -37,8 +37,9 @@ def _foxglove() -> Any:
     try:
         import foxglove
     except ImportError:
-        raise DependencyError("writing MCAP files needs the foxglove-sdk package "
-                              "(pip install 'dran-edge[viz]')") from None
+        raise DependencyError(
+            "writing MCAP files needs the foxglove-sdk package (pip install 'dran-edge[viz]')"
+        ) from None
     return foxglove
 
 
@@ -55,13 +56,11 @@ def _channels(foxglove: Any, ctx: Any, names: list[str], with_mocap: bool) -> di
     ch["/links"] = SceneUpdateChannel("/links", context=ctx)
     if with_mocap:
         ch["/mocap/objects"] = SceneUpdateChannel("/mocap/objects", context=ctx)
-    ch["/fleet/rounds"] = foxglove.Channel("/fleet/rounds", message_encoding="json",
-                                           context=ctx)
+    ch["/fleet/rounds"] = foxglove.Channel("/fleet/rounds", message_encoding="json", context=ctx)
     return ch
 
 
-def _mocap(run: rd.Run
-           ) -> tuple[dict[str, Track], dict[int, np.ndarray]] | None:
+def _mocap(run: rd.Run) -> tuple[dict[str, Track], dict[int, np.ndarray]] | None:
     """(robot paths {name: (stamps_ns, T_world_body)} in the robots' clock, object poses
     {id: T_world_object}) of the run's mocap, or None without one."""
     from dran_edge import geometry as geo
@@ -78,8 +77,10 @@ def _mocap(run: rd.Run
         b = take.bodies.get(body)
         if b is not None:  # as dran_edge.evaluation.score.body_ground_truth
             T = b.T_world_marker @ geo.se3_inverse(r.T_body_marker)
-            paths[r.name] = (start + np.round(np.asarray(take.time_s)[b.valid] * 1e9
-                                              ).astype(np.int64), np.asarray(T)[b.valid])
+            paths[r.name] = (
+                start + np.round(np.asarray(take.time_s)[b.valid] * 1e9).astype(np.int64),
+                np.asarray(T)[b.valid],
+            )
     objects = {}
     for o in m.objects:
         body = o.mocap_body or o.name
@@ -102,8 +103,9 @@ class _Log:
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
 
-def _read_outputs(run: rd.Run, robots: list[rd.RunRobot]
-                  ) -> tuple[dict[str, Track], dict[str, Track], dict[str, dict[int, np.ndarray]]]:
+def _read_outputs(
+    run: rd.Run, robots: list[rd.RunRobot]
+) -> tuple[dict[str, Track], dict[str, Track], dict[str, dict[int, np.ndarray]]]:
     """(final estimates, initial estimates, object maps) of the robots that have them."""
     from dran_edge.formats.run_outputs import read_objects_csv, trajectory_file
     from dran_edge.formats.tum import read_tum
@@ -123,9 +125,17 @@ def _read_outputs(run: rd.Run, robots: list[rd.RunRobot]
     return est, init, objs
 
 
-def _log_paths(log: _Log, names: list[str], est: dict[str, Track], init: dict[str, Track],
-               gt_paths: dict[str, Track] | None, edges: list[tuple[str, str]],
-               start_ns: int, end_ns: int, step_s: float) -> None:
+def _log_paths(
+    log: _Log,
+    names: list[str],
+    est: dict[str, Track],
+    init: dict[str, Track],
+    gt_paths: dict[str, Track] | None,
+    edges: list[tuple[str, str]],
+    start_ns: int,
+    end_ns: int,
+    step_s: float,
+) -> None:
     """Every ``step_s``: each robot's paths up to then, its mocap path and the links."""
     step = int(step_s * 1e9)
     for t_ns in range(start_ns + step, end_ns + step, step):
@@ -149,8 +159,14 @@ def _log_paths(log: _Log, names: list[str], est: dict[str, Track], init: dict[st
         log("/links", vm.links_message(t_ns, last, edges), t_ns)
 
 
-def _log_objects(log: _Log, names: list[str], objs: dict[str, dict[int, np.ndarray]],
-                 gt_objects: dict[int, np.ndarray] | None, start_ns: int, end_ns: int) -> None:
+def _log_objects(
+    log: _Log,
+    names: list[str],
+    objs: dict[str, dict[int, np.ndarray]],
+    gt_objects: dict[int, np.ndarray] | None,
+    start_ns: int,
+    end_ns: int,
+) -> None:
     """Each robot's object map and the mocap's objects, at the start and the end."""
     for k, n in enumerate(names):
         if n in objs and objs[n]:
@@ -162,8 +178,7 @@ def _log_objects(log: _Log, names: list[str], objs: dict[str, dict[int, np.ndarr
         ids = sorted(gt_objects)
         Ts = np.stack([gt_objects[i] for i in ids])
         for t_ns in (start_ns, end_ns):
-            log("/mocap/objects", vm.objects_message(t_ns, "mocap", 7, ids, Ts, alpha=0.3),
-                t_ns)
+            log("/mocap/objects", vm.objects_message(t_ns, "mocap", 7, ids, Ts, alpha=0.3), t_ns)
 
 
 def _log_rounds(log: _Log, run: rd.Run) -> None:
@@ -174,8 +189,10 @@ def _log_rounds(log: _Log, run: rd.Run) -> None:
         return
     rows = read_rounds_csv(run.out_dir / "rounds.csv")
     for i in range(len(rows["round"])):
-        row = {k: (None if isinstance(v[i], float) and math.isnan(v[i]) else float(v[i]))
-               for k, v in rows.items()}
+        row = {
+            k: (None if isinstance(v[i], float) and math.isnan(v[i]) else float(v[i]))
+            for k, v in rows.items()
+        }
         t_ns = int(row.get("stamp_ns") or run.mission.start_ns)
         log("/fleet/rounds", json.dumps(row).encode(), t_ns)
 
@@ -200,8 +217,17 @@ def write_run_mcap(run_dir: str | Path, path: str | Path, step_s: float = 1.0) -
                 end_ns = max(end_ns, int(t[-1]))
         name_of = {r.id: r.name for r in robots}
         edges = [(name_of[a], name_of[b]) for a, b in m.comm_graph]
-        _log_paths(log, names, est, init, gt[0] if gt is not None else None, edges,
-                   m.start_ns, end_ns, step_s)
+        _log_paths(
+            log,
+            names,
+            est,
+            init,
+            gt[0] if gt is not None else None,
+            edges,
+            m.start_ns,
+            end_ns,
+            step_s,
+        )
         _log_objects(log, names, objs, gt[1] if gt is not None else None, m.start_ns, end_ns)
         _log_rounds(log, run)
     finally:

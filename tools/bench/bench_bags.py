@@ -60,40 +60,84 @@ def write_bag(path: Path, fmt: str, size_bytes: int) -> dict:
             s = T0 + sec * 1_000_000_000 + j * 5_000_000
             th = (sec + j / 200) * 0.3
             v = (np.cos(th), np.sin(th), 0.0, 0.0, 0.0, np.sin(th / 2), np.cos(th / 2))
-            out.write("/vins_estimator/odometry", "nav_msgs/msg/Odometry", s + 2_000_000,
-                      msgs.odometry(s, v))
+            out.write(
+                "/vins_estimator/odometry",
+                "nav_msgs/msg/Odometry",
+                s + 2_000_000,
+                msgs.odometry(s, v),
+            )
             if j % 100 == 0:
-                out.write("/vins_estimator/keyframe_pose", "nav_msgs/msg/Odometry",
-                          s + 30_000_000, msgs.odometry(s, v))
+                out.write(
+                    "/vins_estimator/keyframe_pose",
+                    "nav_msgs/msg/Odometry",
+                    s + 30_000_000,
+                    msgs.odometry(s, v),
+                )
             if j % 5 < 3:  # 120 Hz
                 for body in ("dingo1", "box0"):
-                    out.write(f"/vrpn_client_node/{body}/pose", "geometry_msgs/msg/PoseStamped",
-                              s + 1_000_000, msgs.pose_stamped(s, v))
+                    out.write(
+                        f"/vrpn_client_node/{body}/pose",
+                        "geometry_msgs/msg/PoseStamped",
+                        s + 1_000_000,
+                        msgs.pose_stamped(s, v),
+                    )
         for f in range(15):
             s = T0 + sec * 1_000_000_000 + f * 66_666_666
             noise = rng.normal(0, 2.0, (480, 640)).astype(np.float32)
             colour = np.clip(base + noise + (k % 50), 0, 255).astype(np.uint8)
             depth = np.clip(depth_base + 3 * noise, 0, 65535).astype(np.uint16)
-            out.write("/camera/color/image_raw", "sensor_msgs/msg/Image", s + 20_000_000,
-                      msgs.image(s, colour, "mono8"))
-            out.write("/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image",
-                      s + 21_000_000, msgs.image(s, depth, "16UC1"))
+            out.write(
+                "/camera/color/image_raw",
+                "sensor_msgs/msg/Image",
+                s + 20_000_000,
+                msgs.image(s, colour, "mono8"),
+            )
+            out.write(
+                "/camera/aligned_depth_to_color/image_raw",
+                "sensor_msgs/msg/Image",
+                s + 21_000_000,
+                msgs.image(s, depth, "16UC1"),
+            )
             written += frame_bytes
             k += 1
         if sec == 0:
-            info = msgs.camera_info(T0, {"width": 640, "height": 480, "intrinsics": {
-                "fx": 615.0, "fy": 615.0, "cx": 320.0, "cy": 240.0}})
+            info = msgs.camera_info(
+                T0,
+                {
+                    "width": 640,
+                    "height": 480,
+                    "intrinsics": {"fx": 615.0, "fy": 615.0, "cx": 320.0, "cy": 240.0},
+                },
+            )
             out.write("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", T0, info)
     out.close()
-    return {"format": "dran-edge-bag-map/1", "fleet": "bench", "robots": [{
-        "id": 1, "name": "dingo1", "odometry": "/vins_estimator/odometry",
-        "keyframes": "/vins_estimator/keyframe_pose", "mocap_body": "dingo1",
-        "image": {"topic": "/camera/color/image_raw", "camera_info": "/camera/color/camera_info",
-                  "depth": "/camera/aligned_depth_to_color/image_raw", "max_rate_hz": 2.0,
-                  "encode": ENCODE,
-                  "T_body_camera": {"xyz": [0.1, 0, 0.1], "quat_xyzw": [-0.5, 0.5, -0.5, 0.5]}}}],
-        "mocap": {"bodies": {"dingo1": "/vrpn_client_node/dingo1/pose",
-                             "box0": "/vrpn_client_node/box0/pose"}}}
+    return {
+        "format": "dran-edge-bag-map/1",
+        "fleet": "bench",
+        "robots": [
+            {
+                "id": 1,
+                "name": "dingo1",
+                "odometry": "/vins_estimator/odometry",
+                "keyframes": "/vins_estimator/keyframe_pose",
+                "mocap_body": "dingo1",
+                "image": {
+                    "topic": "/camera/color/image_raw",
+                    "camera_info": "/camera/color/camera_info",
+                    "depth": "/camera/aligned_depth_to_color/image_raw",
+                    "max_rate_hz": 2.0,
+                    "encode": ENCODE,
+                    "T_body_camera": {"xyz": [0.1, 0, 0.1], "quat_xyzw": [-0.5, 0.5, -0.5, 0.5]},
+                },
+            }
+        ],
+        "mocap": {
+            "bodies": {
+                "dingo1": "/vrpn_client_node/dingo1/pose",
+                "box0": "/vrpn_client_node/box0/pose",
+            }
+        },
+    }
 
 
 BASELINE = """
@@ -120,8 +164,9 @@ print(time.perf_counter() - t, s["messages"])
 def _measure(code: str, *args: str) -> tuple[float, int, float]:
     """(seconds, messages, peak RSS MB) of ``code`` run in a fresh process."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    p = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
-                       cwd=ROOT, check=False)
+    p = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=ROOT, check=False
+    )
     if p.returncode:
         sys.exit(p.stderr)
     rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
@@ -135,8 +180,12 @@ def main(argv=None) -> int:
     ap.add_argument("--size-gb", type=float, default=2.0, help="bag size (default 2)")
     ap.add_argument("--format", choices=("ros1", "sqlite3", "mcap"), default="ros1")
     ap.add_argument("--dir", help="working folder (default: a temporary one, removed)")
-    ap.add_argument("--encode", choices=("pnm", "png"), default="pnm",
-                    help="how kept raw frames are stored (image.encode of the mapping)")
+    ap.add_argument(
+        "--encode",
+        choices=("pnm", "png"),
+        default="pnm",
+        help="how kept raw frames are stored (image.encode of the mapping)",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     size = int((0.2 if args.quick else args.size_gb) * 1e9)
@@ -152,28 +201,44 @@ def main(argv=None) -> int:
         import yaml
 
         (tmp / "map.yaml").write_text(yaml.safe_dump(mapping))
-        nbytes = bag.stat().st_size if bag.is_file() else sum(
-            f.stat().st_size for f in bag.iterdir())
+        nbytes = (
+            bag.stat().st_size if bag.is_file() else sum(f.stat().st_size for f in bag.iterdir())
+        )
         # RUSAGE_CHILDREN keeps the maximum over all children: baseline first, import second
         # (its RSS is only reported when larger than the baseline's).
         b_s, b_n, b_rss = _measure(BASELINE, str(bag))
         i_s, i_n, i_rss = _measure(IMPORT, str(bag), str(tmp / "map.yaml"), str(tmp / "run"))
         frames = json.loads((tmp / "run" / "import.json").read_text())["robots"]["dingo1"]
-        res = {"format": args.format, "bag_mb": nbytes / 1e6, "write_s": t_write,
-               "baseline_s": b_s, "baseline_mb_s": nbytes / 1e6 / b_s, "baseline_rss_mb": b_rss,
-               "import_s": i_s, "import_mb_s": nbytes / 1e6 / i_s, "import_rss_mb": i_rss,
-               "messages": i_n, "frames_written": frames["written"].get("frames", 0),
-               "time_ratio": i_s / b_s}
+        res = {
+            "format": args.format,
+            "bag_mb": nbytes / 1e6,
+            "write_s": t_write,
+            "baseline_s": b_s,
+            "baseline_mb_s": nbytes / 1e6 / b_s,
+            "baseline_rss_mb": b_rss,
+            "import_s": i_s,
+            "import_mb_s": nbytes / 1e6 / i_s,
+            "import_rss_mb": i_rss,
+            "messages": i_n,
+            "frames_written": frames["written"].get("frames", 0),
+            "time_ratio": i_s / b_s,
+        }
         if args.json:
             print(json.dumps(res, indent=2))
         else:
-            print(f"bag: {args.format}, {res['bag_mb']:.0f} MB, {i_n} messages, written in "
-                  f"{t_write:.0f} s; {res['frames_written']} frames kept (2 Hz, {args.encode})")
+            print(
+                f"bag: {args.format}, {res['bag_mb']:.0f} MB, {i_n} messages, written in "
+                f"{t_write:.0f} s; {res['frames_written']} frames kept (2 Hz, {args.encode})"
+            )
             print(f"{'':<26}{'seconds':>9}{'MB/s':>9}{'peak RSS MB':>13}")
-            print(f"{'rosbags iterate+deser.':<26}{b_s:>9.1f}{res['baseline_mb_s']:>9.0f}"
-                  f"{b_rss:>13.0f}")
-            print(f"{'dran-edge import-bag':<26}{i_s:>9.1f}{res['import_mb_s']:>9.0f}"
-                  f"{i_rss:>13.0f}   (x{res['time_ratio']:.2f} the baseline's time)")
+            print(
+                f"{'rosbags iterate+deser.':<26}{b_s:>9.1f}{res['baseline_mb_s']:>9.0f}"
+                f"{b_rss:>13.0f}"
+            )
+            print(
+                f"{'dran-edge import-bag':<26}{i_s:>9.1f}{res['import_mb_s']:>9.0f}"
+                f"{i_rss:>13.0f}   (x{res['time_ratio']:.2f} the baseline's time)"
+            )
     finally:
         if not args.dir:
             shutil.rmtree(tmp, ignore_errors=True)

@@ -64,14 +64,21 @@ def round_solve(g: KeyframeGraph, iterations: int) -> float:
     return time.perf_counter() - t
 
 
-def errors(g: KeyframeGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
-           ) -> tuple[float, float]:
+def errors(
+    g: KeyframeGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
+) -> tuple[float, float]:
     i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
-    ate = float(np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2,
-                                       axis=1))))
+    ate = float(
+        np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2, axis=1)))
+    )
     oid = g.object_ids()
-    obj = float(np.sqrt(np.mean(np.sum((objects[:, :3, 3]
-                                        - mission.T_world_object_true[oid, :3, 3]) ** 2, axis=1))))
+    obj = float(
+        np.sqrt(
+            np.mean(
+                np.sum((objects[:, :3, 3] - mission.T_world_object_true[oid, :3, 3]) ** 2, axis=1)
+            )
+        )
+    )
     return ate, obj
 
 
@@ -79,8 +86,7 @@ def solve_sparsified(g: KeyframeGraph) -> tuple[np.ndarray, np.ndarray]:
     """The bounded graph as the agent sees it: sparsified prior instead of the dense one."""
     graph, poses, keys = g.problem()
     blocks = g._blocks(g.factor_arrays(include_prior=True), keys, g.config.residual)
-    res = lm.solve(PoseGraph(3, graph.kinds, tuple(blocks)), poses,
-                   lm.LMParams(max_iterations=50))
+    res = lm.solve(PoseGraph(3, graph.kinds, tuple(blocks)), poses, lm.LMParams(max_iterations=50))
     n = g.num_nodes
     return res.poses[:n], res.poses[n:]
 
@@ -109,8 +115,12 @@ def write_mission(path: str, n: int, seed: int) -> None:
     with open(path, "wb") as f:
         for e in mission.events:
             f.write(encode_event(e))
-    np.savez(path + ".truth.npz", stamps=mission.keyframe_stamps_ns,
-             T=mission.T_world_body_true, objects=mission.T_world_object_true)
+    np.savez(
+        path + ".truth.npz",
+        stamps=mission.keyframe_stamps_ns,
+        T=mission.T_world_body_true,
+        objects=mission.T_world_object_true,
+    )
 
 
 class Truth:
@@ -144,12 +154,18 @@ def main(argv=None) -> int:
     ap.add_argument("--report-every", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
-    ap.add_argument("--checkpoints", default="",
-                    help="comma-separated keyframe counts at which a copy of each graph is "
-                    "solved to convergence and its ATE printed (e.g. 2000,5000)")
+    ap.add_argument(
+        "--checkpoints",
+        default="",
+        help="comma-separated keyframe counts at which a copy of each graph is "
+        "solved to convergence and its ATE printed (e.g. 2000,5000)",
+    )
     ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
-    ap.add_argument("--quick", action="store_true",
-                    help="100 keyframes, caps of 40 nodes / 160 edges: checks the script only")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="100 keyframes, caps of 40 nodes / 160 edges: checks the script only",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.keyframes, args.report_every = min(args.keyframes, 100), 50
@@ -165,21 +181,41 @@ def main(argv=None) -> int:
     if args.quick:  # no child process: the RSS figures do not matter here
         write_mission(path, n, args.seed)
     else:
-        subprocess.run([sys.executable, __file__, "--keyframes", str(n), "--seed", str(args.seed),
-                        "--write-mission", path], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--keyframes",
+                str(n),
+                "--seed",
+                str(args.seed),
+                "--write-mission",
+                path,
+            ],
+            check=True,
+        )
     mission = Truth(path)
     gen_s = time.perf_counter() - t0
-    print(f"mission: {n} keyframes, {os.path.getsize(path) / 1e6:.1f} MB of ingest records, "
-          f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB")
+    print(
+        f"mission: {n} keyframes, {os.path.getsize(path) / 1e6:.1f} MB of ingest records, "
+        f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB"
+    )
     checkpoints = {int(k) for k in args.checkpoints.split(",") if k.strip()}
     base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
     bounded = KeyframeGraph(base)
-    unbounded = None if args.no_baseline else KeyframeGraph(
-        AgentConfig(graph=GraphBounds(max_nodes=1_000_000, max_edges=10_000_000)))
+    unbounded = (
+        None
+        if args.no_baseline
+        else KeyframeGraph(
+            AgentConfig(graph=GraphBounds(max_nodes=1_000_000, max_edges=10_000_000))
+        )
+    )
 
-    print("\n| keyframes | bounded nodes / factors / prior vars | bounded round solve ms "
-          "(mean / max) | unbounded nodes / factors | unbounded round solve ms | ratio "
-          "unbounded / bounded | handle µs/event bounded | RSS MB |")
+    print(
+        "\n| keyframes | bounded nodes / factors / prior vars | bounded round solve ms "
+        "(mean / max) | unbounded nodes / factors | unbounded round solve ms | ratio "
+        "unbounded / bounded | handle µs/event bounded | RSS MB |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     kf = 0
     window: list[float] = []
@@ -210,19 +246,25 @@ def main(argv=None) -> int:
                 ub = f"{unbounded.num_nodes} / {unbounded.num_factors}"
             mean_ms = 1e3 * float(np.mean(window)) if window else float("nan")
             prior = 0 if bounded.prior is None else len(bounded.prior["keys"])
-            print(f"| {kf} | {bounded.num_nodes} / {bounded.num_factors} / {prior} | "
-                  f"{mean_ms:.1f} / {1e3 * max(window):.1f} | {ub} | {ub_ms:.0f} | "
-                  f"{ub_ms / mean_ms:.1f} | {1e6 * handle_s / max(handled, 1):.0f} | "
-                  f"{rss_mb():.0f} |", flush=True)
+            print(
+                f"| {kf} | {bounded.num_nodes} / {bounded.num_factors} / {prior} | "
+                f"{mean_ms:.1f} / {1e3 * max(window):.1f} | {ub} | {ub_ms:.0f} | "
+                f"{ub_ms / mean_ms:.1f} | {1e6 * handle_s / max(handled, 1):.0f} | "
+                f"{rss_mb():.0f} |",
+                flush=True,
+            )
             window, handle_s, handled = [], 0.0, 0
-    print(f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
-          f"{args.max_nodes} / {args.max_edges}); counters {bounded.counters}")
+    print(
+        f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
+        f"{args.max_nodes} / {args.max_edges}); counters {bounded.counters}"
+    )
 
     # final accuracy on the nodes the bounded graph holds
     bounded.solve(lm.LMParams(max_iterations=50))
     stamps = bounded.node_stamps_ns()
-    b_ate, b_obj = errors(bounded, mission, stamps, bounded.T_world_body(),
-                          bounded.T_world_object())
+    b_ate, b_obj = errors(
+        bounded, mission, stamps, bounded.T_world_body(), bounded.T_world_object()
+    )
     s_T, s_O = solve_sparsified(bounded)
     s_ate, s_obj = errors(bounded, mission, stamps, s_T, s_O)
     print("\n| graph | ATE on the bounded graph's nodes (m, RMSE) | object map error (m, RMSE) |")
@@ -232,17 +274,22 @@ def main(argv=None) -> int:
         unbounded.solve(lm.LMParams(max_iterations=50))
         u_s = time.perf_counter() - t
         idx = np.searchsorted(unbounded.node_stamps_ns(), stamps)
-        u_ate, u_obj = errors(unbounded, mission, stamps, unbounded.T_world_body()[idx],
-                              unbounded.T_world_object())
-        print(f"| unbounded ({unbounded.num_nodes} nodes, final solve {u_s:.1f} s) | "
-              f"{u_ate:.3f} | {u_obj:.3f} |")
+        u_ate, u_obj = errors(
+            unbounded, mission, stamps, unbounded.T_world_body()[idx], unbounded.T_world_object()
+        )
+        print(
+            f"| unbounded ({unbounded.num_nodes} nodes, final solve {u_s:.1f} s) | "
+            f"{u_ate:.3f} | {u_obj:.3f} |"
+        )
     print(f"| bounded, dense marginal prior | {b_ate:.3f} | {b_obj:.3f} |")
     print(f"| bounded, sparsified prior (agent view) | {s_ate:.3f} | {s_obj:.3f} |")
     os.remove(path)
     os.remove(path + ".truth.npz")
     os.rmdir(tmp)
-    print(f"\npeak RSS of the process (VmHWM): {rss_mb('VmHWM'):.0f} MB; total "
-          f"{time.perf_counter() - t0:.0f} s")
+    print(
+        f"\npeak RSS of the process (VmHWM): {rss_mb('VmHWM'):.0f} MB; total "
+        f"{time.perf_counter() - t0:.0f} s"
+    )
     return 0
 
 

@@ -156,8 +156,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("data_dir", nargs="?", default=_common.default_g2o_dir())
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--baseline", help="another sparse_cholesky.py to compare against (A/B)")
-    ap.add_argument("--quick", action="store_true",
-                    help="two small generated graphs, one run each: checks the script, not speed")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="two small generated graphs, one run each: checks the script, not speed",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         with tempfile.TemporaryDirectory() as tmp:
@@ -165,8 +168,9 @@ def main(argv: list[str] | None = None) -> int:
             return _run(args, tmp, files, ["quick-se3"], 1)
     if args.data_dir is None:
         ap.error("no DATA_DIR given and ../shared/data/g2o does not exist")
-    return _run(args, args.data_dir, FILES, ["parking-garage", "sphere2500", "torus3D"],
-                args.repeat)
+    return _run(
+        args, args.data_dir, FILES, ["parking-garage", "sphere2500", "torus3D"], args.repeat
+    )
 
 
 def _run(args, data_dir: str, files: dict[str, str], ab_names: list[str], repeat: int) -> int:

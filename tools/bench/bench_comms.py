@@ -162,8 +162,13 @@ def bench_auth(reps, degree=3):
     rng = np.random.default_rng(2)
     seeds = {r: bytes([r + 1]) * 32 for r in range(degree + 1)}
     public = {r: (public_key_of(sd),) for r, sd in seeds.items()}
-    policy = AuthPolicy(fleet_id=1, self_id=0, fleet_robots=frozenset(seeds),
-                        neighbours=frozenset(range(1, degree + 1)), replay_window=4096)
+    policy = AuthPolicy(
+        fleet_id=1,
+        self_id=0,
+        fleet_robots=frozenset(seeds),
+        neighbours=frozenset(range(1, degree + 1)),
+        replay_window=4096,
+    )
     out = {"degree": degree}
     for name, (n_sep, n_obj) in (("heavy", (50, 20)), ("light", (10, 5))):
         for pol in ("hmac", "ed25519", "pairwise"):
@@ -172,8 +177,9 @@ def bench_auth(reps, degree=3):
                 signers = {r: Ed25519Signer(sd) for r, sd in seeds.items()}
                 verifier = Verifier(RobotIdentity(seeds[0], public), policy)
             elif pairwise:  # pair keys agreed once at start (not timed: not per round)
-                pairs = {r: PairwiseKeys(PairwiseIdentity(sd, public), r, 1)
-                         for r, sd in seeds.items()}
+                pairs = {
+                    r: PairwiseKeys(PairwiseIdentity(sd, public), r, 1) for r, sd in seeds.items()
+                }
                 signers = {r: PairwiseSigner(k) for r, k in pairs.items()}
                 verifier = Verifier(pairs[0], policy)
             else:
@@ -183,16 +189,33 @@ def bench_auth(reps, degree=3):
             def sign(signer, g, to):  # the pairwise policy tags each receiver's copy
                 return signer.sign_for(g, to) if pairwise else signer.sign(g)
 
-            own = [g.data for g in codec.encode_datagrams(
-                round_message(rng, 0, n_sep, n_obj), fleet_id=1, boot_epoch=1,
-                first_sequence=0, signed=signed, pairwise=pairwise)]
-            theirs = {r: [sign(signers[r], g.data, 0) for g in codec.encode_datagrams(
-                round_message(rng, r, n_sep, n_obj), fleet_id=1, boot_epoch=1,
-                first_sequence=0, signed=signed, pairwise=pairwise)]
-                for r in range(1, degree + 1)}
+            own = [
+                g.data
+                for g in codec.encode_datagrams(
+                    round_message(rng, 0, n_sep, n_obj),
+                    fleet_id=1,
+                    boot_epoch=1,
+                    first_sequence=0,
+                    signed=signed,
+                    pairwise=pairwise,
+                )
+            ]
+            theirs = {
+                r: [
+                    sign(signers[r], g.data, 0)
+                    for g in codec.encode_datagrams(
+                        round_message(rng, r, n_sep, n_obj),
+                        fleet_id=1,
+                        boot_epoch=1,
+                        first_sequence=0,
+                        signed=signed,
+                        pairwise=pairwise,
+                    )
+                ]
+                for r in range(1, degree + 1)
+            }
 
-            def one_round(own=own, signer=signers[0], theirs=theirs, verifier=verifier,
-                          sign=sign):
+            def one_round(own=own, signer=signers[0], theirs=theirs, verifier=verifier, sign=sign):
                 for to in range(1, degree + 1):
                     for g in own:
                         sign(signer, g, to)
@@ -380,20 +403,30 @@ def bench_radio(rounds, rate_hz, saturate_s, plain_udp=False):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="seconds: few repetitions and rounds (checks the script, not speed)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="seconds: few repetitions and rounds (checks the script, not speed)",
+    )
     ap.add_argument("--json", action="store_true", help="print one JSON object")
-    ap.add_argument("--auth-only", action="store_true",
-                    help="only the authentication cost per round (section 1b)")
+    ap.add_argument(
+        "--auth-only",
+        action="store_true",
+        help="only the authentication cost per round (section 1b)",
+    )
     a = ap.parse_args(argv)
     if a.auth_only:
         res = bench_auth(100 if a.quick else 500)
         print(json.dumps(res, indent=2))
         return 0
-    reps, poses, rounds, rate_hz, saturate_s = (50, 2_000, 4, 10.0, 0.2) if a.quick else \
-        (2000, 20_000, 40, 2.0, 2.0)
-    res = {"codec": bench_codec(reps), "auth": bench_auth(20 if a.quick else 500),
-           "precision": bench_precision(poses)}
+    reps, poses, rounds, rate_hz, saturate_s = (
+        (50, 2_000, 4, 10.0, 0.2) if a.quick else (2000, 20_000, 40, 2.0, 2.0)
+    )
+    res = {
+        "codec": bench_codec(reps),
+        "auth": bench_auth(20 if a.quick else 500),
+        "precision": bench_precision(poses),
+    }
     try:
         res["radio"] = bench_radio(rounds, rate_hz, saturate_s)
         res["udp_baseline"] = bench_radio(rounds, rate_hz, saturate_s, plain_udp=True)
@@ -417,8 +450,10 @@ def main(argv=None) -> int:
     )
     print(f"  encode only   {c['encode_only_ms']:.3f} ms; bytes by kind {c['bytes_by_kind']}")
     au = res["auth"]
-    print(f"== authentication of one round: sign own round message for {au['degree']} "
-          f"neighbours + verify {au['degree']} neighbours' (trailer work only, median)")
+    print(
+        f"== authentication of one round: sign own round message for {au['degree']} "
+        f"neighbours + verify {au['degree']} neighbours' (trailer work only, median)"
+    )
     for name in ("heavy", "light"):
         h, e, pw = au[f"{name}_hmac"], au[f"{name}_ed25519"], au[f"{name}_pairwise"]
         print(

@@ -105,8 +105,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--quick", action="store_true",
-                    help="5 s of trajectory, one pass: checks the script, not speed")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="5 s of trajectory, one pass: checks the script, not speed",
+    )
     args = ap.parse_args()
     if args.quick:
         args.duration_s, args.repeats = min(args.duration_s, 5.0), 1
@@ -121,16 +124,24 @@ def main() -> None:
                 dt, out = _time(fn, ref, est)
                 best[name] = min(best[name], dt)
                 res[name] = out
-        print(f"trajectory: reference {int(args.duration_s * 120)} poses at 120 Hz, estimate "
-              f"{res['ours'][1]} poses at 20 Hz")
-        print(f"  evo : {best['evo'] * 1e3:8.1f} ms  ATE {res['evo'][0]:.6f} m  "
-              f"({res['evo'][1]} matched)")
-        print(f"  ours: {best['ours'] * 1e3:8.1f} ms  ATE {res['ours'][0]:.6f} m  "
-              f"({res['ours'][1]} matched)")
+        print(
+            f"trajectory: reference {int(args.duration_s * 120)} poses at 120 Hz, estimate "
+            f"{res['ours'][1]} poses at 20 Hz"
+        )
+        print(
+            f"  evo : {best['evo'] * 1e3:8.1f} ms  ATE {res['evo'][0]:.6f} m  "
+            f"({res['evo'][1]} matched)"
+        )
+        print(
+            f"  ours: {best['ours'] * 1e3:8.1f} ms  ATE {res['ours'][0]:.6f} m  "
+            f"({res['ours'][1]} matched)"
+        )
         print(f"  ratio evo/ours time: {best['evo'] / best['ours']:.2f}x")
         pe, po = evo_arm(ref, perfect)[0], our_arm(ref, perfect)[0]
-        print(f"perfect estimate (association error only): evo {pe * 1e3:.3f} mm, "
-              f"ours {po * 1e3:.6f} mm")
+        print(
+            f"perfect estimate (association error only): evo {pe * 1e3:.3f} mm, "
+            f"ours {po * 1e3:.6f} mm"
+        )
 
         # Motive CSV: 6 robots + 9 boxes at 120 Hz for the duration, quaternions, 1 % occluded.
         n = int(args.duration_s * 120)
@@ -148,9 +159,11 @@ def main() -> None:
         for _ in range(args.repeats):
             b_base = min(b_base, _time(csv_baseline, mpath)[0])
             b_ours = min(b_ours, _time(motive.read_motive_csv, mpath)[0])
-        print(f"Motive CSV {n} rows x 15 rigid bodies ({size_mb:.1f} MB): read_motive_csv "
-              f"{b_ours * 1e3:.0f} ms, csv+float baseline {b_base * 1e3:.0f} ms, ratio "
-              f"baseline/ours {b_base / b_ours:.2f}x")
+        print(
+            f"Motive CSV {n} rows x 15 rigid bodies ({size_mb:.1f} MB): read_motive_csv "
+            f"{b_ours * 1e3:.0f} ms, csv+float baseline {b_base * 1e3:.0f} ms, ratio "
+            f"baseline/ours {b_base / b_ours:.2f}x"
+        )
 
 
 if __name__ == "__main__":

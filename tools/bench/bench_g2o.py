@@ -98,8 +98,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="+", choices=list(DATASETS), help="a subset of the graphs")
     ap.add_argument("--repeat", type=int, default=3, help="timed runs per solver (best is kept)")
     ap.add_argument("--no-gtsam", action="store_true", help="skip GTSAM")
-    ap.add_argument("--quick", action="store_true",
-                    help="two small generated graphs, one run each: checks the script, not speed")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="two small generated graphs, one run each: checks the script, not speed",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         with tempfile.TemporaryDirectory() as tmp:
@@ -110,16 +113,16 @@ def main(argv: list[str] | None = None) -> int:
     return _run(args, args.data_dir, graphs, args.repeat, gtsam_required=True)
 
 
-def _run(args, data_dir: str, graphs: dict[str, tuple[str, float]], repeat: int,
-         gtsam_required: bool) -> int:
+def _run(
+    args, data_dir: str, graphs: dict[str, tuple[str, float]], repeat: int, gtsam_required: bool
+) -> int:
     gtsam = None
     if not args.no_gtsam:
         try:
             import gtsam
         except ImportError:
             if gtsam_required:
-                print("gtsam is not installed (pip install gtsam); use --no-gtsam",
-                      file=sys.stderr)
+                print("gtsam is not installed (pip install gtsam); use --no-gtsam", file=sys.stderr)
                 return 3
             print("# gtsam is not installed: its columns stay empty")
     print(f"# cpu: {os.cpu_count()} cores; numpy {np.__version__}; best of {repeat} runs")

@@ -27,10 +27,16 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from dran_edge.experiments import suite  # noqa: E402
 
-KEYS = [("F_init_over_F_chordal", ".4f"), ("init_bytes", ".0f"),
-        ("F_over_F_star_at_300", ".4f"), ("F_over_F_star_at_1000", ".4f"),
-        ("stop_F_over_F_star", ".4f"), ("dran_F_end_over_F_star", ".4f"),
-        ("bytes_at_1pct", ".0f"), ("dgs_F_end_over_F_star", ".4f")]
+KEYS = [
+    ("F_init_over_F_chordal", ".4f"),
+    ("init_bytes", ".0f"),
+    ("F_over_F_star_at_300", ".4f"),
+    ("F_over_F_star_at_1000", ".4f"),
+    ("stop_F_over_F_star", ".4f"),
+    ("dran_F_end_over_F_star", ".4f"),
+    ("bytes_at_1pct", ".0f"),
+    ("dgs_F_end_over_F_star", ".4f"),
+]
 
 
 def worst(rows: list, key: str):
@@ -46,15 +52,19 @@ def run(cases, rounds: int, init: str, dgs: bool, out: Path | None) -> list:
     for k, case in enumerate(cases):
         t0 = time.perf_counter()
         row = suite.run_case(case, rounds=rounds, init_direct=init, dgs=dgs)
-        print(f"[{init} {k + 1}/{len(cases)}] {case.name}: F_init/F_chord "
-              f"{row['F_init_over_F_chordal']:.4f}, end {row['dran_F_end_over_F_star']:.5f} F*, "
-              f"stop at {row['stop_round']}, {time.perf_counter() - t0:.0f} s", file=sys.stderr,
-              flush=True)
+        print(
+            f"[{init} {k + 1}/{len(cases)}] {case.name}: F_init/F_chord "
+            f"{row['F_init_over_F_chordal']:.4f}, end {row['dran_F_end_over_F_star']:.5f} F*, "
+            f"stop at {row['stop_round']}, {time.perf_counter() - t0:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         rows.append(row)
         if out is not None:  # after every case, so a long run leaves its partial results
             out.mkdir(parents=True, exist_ok=True)
-            (out / "suite.json").write_text(json.dumps({"rounds": rounds, "init": init,
-                                                        "rows": rows}, indent=1))
+            (out / "suite.json").write_text(
+                json.dumps({"rounds": rounds, "init": init, "rows": rows}, indent=1)
+            )
     if out is not None and rows:
         (out / "suite.md").write_text(suite.markdown_table(rows) + "\n")
         suite.plot(rows, out)
@@ -66,12 +76,21 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="the suite's two small graphs, 200 rounds")
     ap.add_argument("--families", nargs="+", choices=sorted(suite.FAMILIES))
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    ap.add_argument("--rounds", type=int, default=None,
-                    help="DRAN rounds (default 1000, quick 200)")
-    ap.add_argument("--baseline", choices=("never", "none"), default="never",
-                    help="baseline init: the block iterations only (never), or no baseline")
-    ap.add_argument("--baseline-rounds", type=int, default=None,
-                    help="DRAN rounds of the baseline (default: --rounds; 0: init only)")
+    ap.add_argument(
+        "--rounds", type=int, default=None, help="DRAN rounds (default 1000, quick 200)"
+    )
+    ap.add_argument(
+        "--baseline",
+        choices=("never", "none"),
+        default="never",
+        help="baseline init: the block iterations only (never), or no baseline",
+    )
+    ap.add_argument(
+        "--baseline-rounds",
+        type=int,
+        default=None,
+        help="DRAN rounds of the baseline (default: --rounds; 0: init only)",
+    )
     ap.add_argument("--no-dgs", action="store_true")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -85,8 +104,10 @@ def main(argv=None) -> int:
         b_rounds = rounds if args.baseline_rounds is None else max(args.baseline_rounds, 1)
         base = run(cases, b_rounds, args.baseline, False, args.out and args.out / "baseline")
     fams = sorted({r["family"] for r in cur})
-    print("worst case per family: current (direct=auto)"
-          + (" / baseline (direct=never)" if base else ""))
+    print(
+        "worst case per family: current (direct=auto)"
+        + (" / baseline (direct=never)" if base else "")
+    )
     print("| family | cases | " + " | ".join(k for k, _ in KEYS) + " |")
     print("|---|---|" + "---|" * len(KEYS))
     for fam in fams:
@@ -96,8 +117,12 @@ def main(argv=None) -> int:
         for key, spec in KEYS:
             a = worst(rc, key)
             s = "–" if a is None else format(a, spec)
-            if rb and not (key.startswith("dgs") or (args.baseline_rounds == 0 and key not in (
-                    "F_init_over_F_chordal", "init_bytes"))):
+            if rb and not (
+                key.startswith("dgs")
+                or (
+                    args.baseline_rounds == 0 and key not in ("F_init_over_F_chordal", "init_bytes")
+                )
+            ):
                 b = worst(rb, key)
                 s += " / " + ("–" if b is None else format(b, spec))
             cells.append(s)

@@ -58,9 +58,18 @@ def typical_frames(calib, n: int, seed: int = 0, clutter: bool = False) -> list[
                     poses.append(T_ct)
                     ids.append(int(tags.tag_id[k]))
                     sizes.append(float(tags.size_m[k]))
-        colour, depth = renderer.render(cam.K, cam.width, cam.height, poses, ids, sizes,
-                                        blur_sigma_px=0.5, noise_sigma=3.0 if clutter else 2.0,
-                                        rng=rng, clutter=clutter)
+        colour, depth = renderer.render(
+            cam.K,
+            cam.width,
+            cam.height,
+            poses,
+            ids,
+            sizes,
+            blur_sigma_px=0.5,
+            noise_sigma=3.0 if clutter else 2.0,
+            rng=rng,
+            clutter=clutter,
+        )
         frames.append(Frame(i * 33_333_333, colour, depth, "bench"))
     _ = T_camera_body
     return frames
@@ -70,8 +79,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--quick", action="store_true",
-                    help="4 frames per scene, one pass: checks the script, not speed")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="4 frames per scene, one pass: checks the script, not speed",
+    )
     args = ap.parse_args()
     if args.quick:
         args.frames, args.repeats = min(args.frames, 4), 1
@@ -83,8 +95,11 @@ def main() -> None:
         t = time.perf_counter()
         frames = typical_frames(calib, args.frames, clutter=clutter)
         render_ms = (time.perf_counter() - t) / args.frames * 1e3
-        scene = "cluttered indoor-like background, noise 3" if clutter else \
-            "smooth low-texture background, noise 2"
+        scene = (
+            "cluttered indoor-like background, noise 3"
+            if clutter
+            else "smooth low-texture background, noise 2"
+        )
         print(f"--- scene: {scene}")
         measure(frames, detector, pipeline, args.repeats, render_ms)
 
@@ -115,9 +130,11 @@ def measure(frames, detector, pipeline, repeats: int, render_ms: float) -> None:
     print(f"tags detected: {counts['bare']}  object observations: {counts['full']}")
     print(f"bare detector : {fps_bare:8.1f} frames/s  ({best['bare'] / n * 1e3:.2f} ms/frame)")
     print(f"full pipeline : {fps_full:8.1f} frames/s  ({best['full'] / n * 1e3:.2f} ms/frame)")
-    print(f"overhead      : {(best['full'] / best['bare'] - 1) * 100:8.1f} %  "
-          f"(ratio full/bare = {best['full'] / best['bare']:.3f}; "
-          f"{(best['full'] - best['bare']) / n * 1e6:.0f} us/frame)")
+    print(
+        f"overhead      : {(best['full'] / best['bare'] - 1) * 100:8.1f} %  "
+        f"(ratio full/bare = {best['full'] / best['bare']:.3f}; "
+        f"{(best['full'] - best['bare']) / n * 1e6:.0f} us/frame)"
+    )
 
 
 if __name__ == "__main__":

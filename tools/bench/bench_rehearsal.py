@@ -33,20 +33,30 @@ def _simulate(workdir: Path, robots: int, duration_s: float, seed: int) -> Path:
         return run
     if run.exists():
         shutil.rmtree(run)
-    arena = max(6.0, 3.0 * 9 ** 0.5)  # as `dran-edge demo`
-    write_run(generate_mission(SimParams(robots=robots, objects=9, duration_s=duration_s,
-                                         seed=seed, arena_m=arena)), run, frames="none")
+    arena = max(6.0, 3.0 * 9**0.5)  # as `dran-edge demo`
+    write_run(
+        generate_mission(
+            SimParams(robots=robots, objects=9, duration_s=duration_s, seed=seed, arena_m=arena)
+        ),
+        run,
+        frames="none",
+    )
     (run / ".complete").write_text("")
     return run
 
 
 def _row(name: str, r: dict) -> dict:
-    return {"arm": name, "sr_ate": r.get("sr_ate"), "sr_cost": r.get("sr_cost"),
-            "ate_m": r.get("ate_m"), "accepted_lost": r.get("accepted_lost", 0),
-            "wall_s": r.get("rehearsal_wall_s", r.get("replay_wall_s")),
-            "late": sum((p.get("late") or 0) for p in r.get("per_robot", {}).values()),
-            "missed": sum((p.get("missed") or 0) for p in r.get("per_robot", {}).values()),
-            "rejoin": r.get("rejoin", [])}
+    return {
+        "arm": name,
+        "sr_ate": r.get("sr_ate"),
+        "sr_cost": r.get("sr_cost"),
+        "ate_m": r.get("ate_m"),
+        "accepted_lost": r.get("accepted_lost", 0),
+        "wall_s": r.get("rehearsal_wall_s", r.get("replay_wall_s")),
+        "late": sum((p.get("late") or 0) for p in r.get("per_robot", {}).values()),
+        "missed": sum((p.get("missed") or 0) for p in r.get("per_robot", {}).values()),
+        "rejoin": r.get("rejoin", []),
+    }
 
 
 def main(argv=None) -> int:
@@ -74,40 +84,62 @@ def main(argv=None) -> int:
 
     ids = {r.name: r.id for r in rd.open_run(run).mission.robots}
     rows = [_row("replay", replay_run(run, ReplayOptions()).report)]
-    arms = {"rehearse": [],
-            "kill": fl.faults_from_flags(kill=[f"{kill}:{t_kill}:{t_back}"], ids=ids,
-                                         mission_s=duration),
-            "partition": fl.faults_from_flags(partition=[f"{cut}:{t_cut}:{t_heal}"], ids=ids,
-                                              mission_s=duration)}
+    arms = {
+        "rehearse": [],
+        "kill": fl.faults_from_flags(
+            kill=[f"{kill}:{t_kill}:{t_back}"], ids=ids, mission_s=duration
+        ),
+        "partition": fl.faults_from_flags(
+            partition=[f"{cut}:{t_cut}:{t_heal}"], ids=ids, mission_s=duration
+        ),
+    }
     for name, faults in arms.items():
         t = time.perf_counter()
-        r = rehearse(run, RehearsalOptions(speed=speed, net=args.net, faults=tuple(faults),
-                                           out_dir=str(work / f"{run.name}-{name}"))).report
+        r = rehearse(
+            run,
+            RehearsalOptions(
+                speed=speed,
+                net=args.net,
+                faults=tuple(faults),
+                out_dir=str(work / f"{run.name}-{name}"),
+            ),
+        ).report
         print(f"{name}: {time.perf_counter() - t:.0f} s wall", file=sys.stderr, flush=True)
         rows.append(_row(name, r))
     base, ref = rows[0], rows[1]
     ok = ref["sr_ate"] is not None and abs(ref["sr_ate"] - base["sr_ate"]) <= 5.0
     for row in rows[2:]:
-        ok &= row["accepted_lost"] == 0 and row["ate_m"] is not None and \
-            abs(row["ate_m"] / ref["ate_m"] - 1.0) <= 0.2
+        ok &= (
+            row["accepted_lost"] == 0
+            and row["ate_m"] is not None
+            and abs(row["ate_m"] / ref["ate_m"] - 1.0) <= 0.2
+        )
     if args.json:
         print(json.dumps({"rows": rows, "ok": ok}, indent=2))
         return 0 if ok else 1
     print(f"{robots} robots, {duration:g} s mission, rehearsal at {speed:g}x ({run})")
-    print(f"{'arm':<10} {'SR_ATE %':>9} {'dSR_ATE':>8} {'SR_cost %':>9} {'ATE m':>7} "
-          f"{'ATE/ATE0':>9} {'lost':>5} {'late':>5} {'missed':>6} {'wall s':>7}")
+    print(
+        f"{'arm':<10} {'SR_ATE %':>9} {'dSR_ATE':>8} {'SR_cost %':>9} {'ATE m':>7} "
+        f"{'ATE/ATE0':>9} {'lost':>5} {'late':>5} {'missed':>6} {'wall s':>7}"
+    )
     for row in rows:
         d = "" if row is base else f"{row['sr_ate'] - base['sr_ate']:+.1f}"
         ratio = "" if row["arm"] in ("replay", "rehearse") else f"{row['ate_m'] / ref['ate_m']:.3f}"
-        print(f"{row['arm']:<10} {row['sr_ate']:9.1f} {d:>8} {row['sr_cost']:9.1f} "
-              f"{row['ate_m']:7.3f} {ratio:>9} {row['accepted_lost']:5d} {row['late']:5d} "
-              f"{row['missed']:6d} {row['wall_s']:7.1f}")
+        print(
+            f"{row['arm']:<10} {row['sr_ate']:9.1f} {d:>8} {row['sr_cost']:9.1f} "
+            f"{row['ate_m']:7.3f} {ratio:>9} {row['accepted_lost']:5d} {row['late']:5d} "
+            f"{row['missed']:6d} {row['wall_s']:7.1f}"
+        )
     for row in rows[2:]:
         for j in row["rejoin"]:
-            print(f"  {row['arm']}: after '{j['fault']}', {j['robot']} heard by "
-                  f"{j['heard_by_s']} s, hears {j['hears_s']} s (mission time)")
-    print("targets (SR_ATE within 5 points of replay; faults: nothing accepted lost, ATE "
-          f"within 20 % of no fault): {'met' if ok else 'MISSED'}")
+            print(
+                f"  {row['arm']}: after '{j['fault']}', {j['robot']} heard by "
+                f"{j['heard_by_s']} s, hears {j['hears_s']} s (mission time)"
+            )
+    print(
+        "targets (SR_ATE within 5 points of replay; faults: nothing accepted lost, ATE "
+        f"within 20 % of no fault): {'met' if ok else 'MISSED'}"
+    )
     return 0 if ok else 1
 
 

@@ -36,8 +36,9 @@ def _simulate(workdir: Path, frames: str, args) -> Path:
         return run
     if run.exists():
         shutil.rmtree(run)
-    p = SimParams(robots=args.robots, objects=9, duration_s=args.duration_s, seed=args.seed,
-                  arena_m=9.0)
+    p = SimParams(
+        robots=args.robots, objects=9, duration_s=args.duration_s, seed=args.seed, arena_m=9.0
+    )
     write_run(generate_mission(p), run, frames=frames)
     (run / ".complete").write_text("")
     return run
@@ -76,7 +77,7 @@ def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
         for arm, runner in runners.items():
             r = next(iter(runner.robots.values()))
             end = bisect.bisect_right(r.events, (t_k, math.inf), lo=r.next_event)
-            for _, _, ev in r.events[r.next_event:end]:
+            for _, _, ev in r.events[r.next_event : end]:
                 r.core.handle(ev)
             r.next_event = end
             prev = set_blas_threads(1) if arm == "1 thread" else None
@@ -87,8 +88,10 @@ def _blas_ablation(run: Path, robot: str = "dingo1", last: int = 80) -> None:
                 restore_blas_threads(prev)
     n_default = sorted(set(default.values()))
     a, b = (1e3 * np.mean(cpu[k][-last:]) for k in ("default", "1 thread"))
-    print(f"{robot} alone, last {last} of {rounds} rounds, CPU per round: OpenBLAS threads "
-          f"{n_default} {a:.1f} ms vs 1 thread {b:.1f} ms (ratio {a / b:.2f})")
+    print(
+        f"{robot} alone, last {last} of {rounds} rounds, CPU per round: OpenBLAS threads "
+        f"{n_default} {a:.1f} ms vs 1 thread {b:.1f} ms (ratio {a / b:.2f})"
+    )
 
 
 def main(argv=None) -> int:
@@ -99,11 +102,17 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="perception processes")
     ap.add_argument("--workdir", default="/tmp/dran-edge-bench-replay")
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--blas-ablation", action="store_true",
-                    help="only time one robot's rounds with OpenBLAS's default threads vs 1")
-    ap.add_argument("--quick", action="store_true",
-                    help="2 robots, 2 s, 2 settle rounds, one perception process, a temporary "
-                         "--workdir: checks the script, not speed")
+    ap.add_argument(
+        "--blas-ablation",
+        action="store_true",
+        help="only time one robot's rounds with OpenBLAS's default threads vs 1",
+    )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="2 robots, 2 s, 2 settle rounds, one perception process, a temporary "
+        "--workdir: checks the script, not speed",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.robots, args.duration_s, args.workers = 2, min(args.duration_s, 2.0), 1
@@ -121,34 +130,62 @@ def _main(args) -> int:
     if args.blas_ablation:
         _blas_ablation(_simulate(workdir, "none", args))
         return 0
-    runs = {"full (frames -> perception -> agents)": _simulate(workdir, "render", args),
-            "back-end only (observations in ingest.bin)": _simulate(workdir, "none", args)}
+    runs = {
+        "full (frames -> perception -> agents)": _simulate(workdir, "render", args),
+        "back-end only (observations in ingest.bin)": _simulate(workdir, "none", args),
+    }
     settle = 2 if args.quick else ReplayOptions().settle_rounds
     results = {name: _replay(run, args.workers, settle) for name, run in runs.items()}
-    print(f"machine: {os.cpu_count()} cores; mission {args.robots} robots x "
-          f"{args.duration_s:g} s (seed {args.seed})")
+    print(
+        f"machine: {os.cpu_count()} cores; mission {args.robots} robots x "
+        f"{args.duration_s:g} s (seed {args.seed})"
+    )
     cores = os.cpu_count() or 1
-    print(f"load average before: {os.getloadavg()[0]:.1f} (a shared machine makes wall times "
-          f"longer; cpu s / {cores} cores is the wall time with the cores to ourselves)")
-    print(f"{'arm':<44} {'mission s':>9} {'wall s':>8} {'x real':>7} {'cpu s':>7} "
-          f"{'x real (cpu/cores)':>18} {'percep. s':>9} {'rounds s':>9} {'MB sent':>8}")
+    print(
+        f"load average before: {os.getloadavg()[0]:.1f} (a shared machine makes wall times "
+        f"longer; cpu s / {cores} cores is the wall time with the cores to ourselves)"
+    )
+    print(
+        f"{'arm':<44} {'mission s':>9} {'wall s':>8} {'x real':>7} {'cpu s':>7} "
+        f"{'x real (cpu/cores)':>18} {'percep. s':>9} {'rounds s':>9} {'MB sent':>8}"
+    )
     for name, r in results.items():
         wall = r["replay_wall_s"]
         ideal = max(r["cpu_s"] / cores, 1e-9)
-        print(f"{name:<44} {r['mission_s']:>9.1f} {wall:>8.2f} {r['mission_s'] / wall:>7.2f} "
-              f"{r['cpu_s']:>7.1f} {r['mission_s'] / ideal:>18.2f} "
-              f"{r['perception_wall_s']:>9.2f} {r['rounds_wall_s']:>9.2f} "
-              f"{r['bytes_total'] / 1e6:>8.3f}")
+        print(
+            f"{name:<44} {r['mission_s']:>9.1f} {wall:>8.2f} {r['mission_s'] / wall:>7.2f} "
+            f"{r['cpu_s']:>7.1f} {r['mission_s'] / ideal:>18.2f} "
+            f"{r['perception_wall_s']:>9.2f} {r['rounds_wall_s']:>9.2f} "
+            f"{r['bytes_total'] / 1e6:>8.3f}"
+        )
     full, back = results.values()
     ratio = full["replay_wall_s"] / back["replay_wall_s"] if back["replay_wall_s"] else math.nan
     print(f"ratio wall(full) / wall(back-end only): {ratio:.2f}")
-    print(f"target: full replay >= 5x real time -> "
-          f"{'met' if full['mission_s'] / full['replay_wall_s'] >= 5 else 'NOT met'}")
+    print(
+        f"target: full replay >= 5x real time -> "
+        f"{'met' if full['mission_s'] / full['replay_wall_s'] >= 5 else 'NOT met'}"
+    )
     if args.json:
-        print(json.dumps({n: {k: r[k] for k in ("mission_s", "replay_wall_s", "perception_wall_s",
-                                                 "rounds_wall_s", "rounds", "bytes_total",
-                                                 "cpu_s")}
-                          for n, r in results.items()}, indent=2))
+        print(
+            json.dumps(
+                {
+                    n: {
+                        k: r[k]
+                        for k in (
+                            "mission_s",
+                            "replay_wall_s",
+                            "perception_wall_s",
+                            "rounds_wall_s",
+                            "rounds",
+                            "bytes_total",
+                            "cpu_s",
+                        )
+                    }
+                    for n, r in results.items()
+                },
+                indent=2,
+            )
+        )
     return 0
 
 

@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[2]
 ROUND_S = 0.5
 CAMERA_FPS = 15.0
 
-ACC: dict = defaultdict(float)   # (robot, phase) -> CPU seconds this round
+ACC: dict = defaultdict(float)  # (robot, phase) -> CPU seconds this round
 CURRENT = [0]
 
 
@@ -60,6 +60,7 @@ def _timed(phase: str, fn):
             return fn(*args, **kwargs)
         finally:
             ACC[(CURRENT[0], phase)] += time.process_time() - t
+
     wrapper.__wrapped__ = fn
     return wrapper
 
@@ -91,8 +92,16 @@ def _wrap_robot(rid: int, r) -> None:
             return core_handle(ev)
         finally:
             dt = time.process_time() - t
-            ACC[(rid, "tick" if isinstance(ev, Tick) else "ingest" if not hasattr(ev, "message")
-                 else "neighbour")] += dt
+            ACC[
+                (
+                    rid,
+                    "tick"
+                    if isinstance(ev, Tick)
+                    else "ingest"
+                    if not hasattr(ev, "message")
+                    else "neighbour",
+                )
+            ] += dt
 
     def timed_send(*a, **k):
         CURRENT[0] = rid
@@ -149,8 +158,9 @@ def run_rounds(run_dir: Path, settle_rounds: int) -> list[dict]:
                 row[p] = ACC[(i, p)]
             # the tick's own total holds association/local step/acceptance/rebuild; a round is
             # ingest + neighbour data + tick + codec (send and poll are outside core.handle)
-            row["round"] = ACC[(i, "ingest")] + ACC[(i, "neighbour")] + ACC[(i, "tick")] + \
-                ACC[(i, "codec")]
+            row["round"] = (
+                ACC[(i, "ingest")] + ACC[(i, "neighbour")] + ACC[(i, "tick")] + ACC[(i, "codec")]
+            )
             row["k"] = k
             rows.append(row)
         bus.advance()
@@ -162,8 +172,9 @@ def perception_per_frame(n: int, repeats: int) -> np.ndarray:
     from dran_edge.perception.calib import load_calibration
     from dran_edge.perception.pipeline import ObservationPipeline
 
-    spec = importlib.util.spec_from_file_location("bench_perception",
-                                                  ROOT / "tools" / "bench" / "bench_perception.py")
+    spec = importlib.util.spec_from_file_location(
+        "bench_perception", ROOT / "tools" / "bench" / "bench_perception.py"
+    )
     bp = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bp)
     calib = load_calibration(ROOT / "calib", "dingo1")
@@ -185,8 +196,12 @@ def _ms(x: float) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 robots, 40 s, 20 frames")
-    ap.add_argument("--slowdown", type=float, default=2.5,
-                    help="how many times slower the robot's core is (default 2.5)")
+    ap.add_argument(
+        "--slowdown",
+        type=float,
+        default=2.5,
+        help="how many times slower the robot's core is (default 2.5)",
+    )
     ap.add_argument("--frames", type=int, default=None, help="perception frames (default 60)")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
@@ -195,8 +210,13 @@ def main(argv=None) -> int:
 
     robots, objects, duration = (3, 4, 40.0) if args.quick else (6, 9, 180.0)
     n_frames = args.frames or (20 if args.quick else 60)
-    params = SimParams(robots=robots, objects=objects, duration_s=duration, seed=0,
-                       arena_m=max(6.0, 3.0 * math.sqrt(objects)))
+    params = SimParams(
+        robots=robots,
+        objects=objects,
+        duration_s=duration,
+        seed=0,
+        arena_m=max(6.0, 3.0 * math.sqrt(objects)),
+    )
     s = args.slowdown
     with tempfile.TemporaryDirectory() as tmp:
         write_run(generate_mission(params), Path(tmp) / "run", frames="none", workers=1)
@@ -204,36 +224,50 @@ def main(argv=None) -> int:
         rows = run_rounds(Path(tmp) / "run", settle_rounds=20)
         wall = time.perf_counter() - t
     n_rounds = max(r["k"] for r in rows) + 1
-    print(f"mission: {robots} robots, {objects} boxes, {duration:g} s (demo's parameters"
-          f"{'; --quick' if args.quick else ''}), {n_rounds} rounds x {robots} robots, "
-          f"{wall:.1f} s wall in one process; robot core assumed {s:g}x slower than this one")
+    print(
+        f"mission: {robots} robots, {objects} boxes, {duration:g} s (demo's parameters"
+        f"{'; --quick' if args.quick else ''}), {n_rounds} rounds x {robots} robots, "
+        f"{wall:.1f} s wall in one process; robot core assumed {s:g}x slower than this one"
+    )
     big = max(rows, key=lambda r: (r["nodes"], r["round"]))
     worst = max(rows, key=lambda r: r["round"])
     totals = np.array([r["round"] for r in rows])
-    print(f"\nCPU per round (ms)         {'here':>7} {'robot':>7}   "
-          f"[largest graph: robot {big['robot']}, {big['nodes']} nodes, round {big['k']}]")
+    print(
+        f"\nCPU per round (ms)         {'here':>7} {'robot':>7}   "
+        f"[largest graph: robot {big['robot']}, {big['nodes']} nodes, round {big['k']}]"
+    )
     for p in PHASES + ("round",):
         print(f"  {p:<24} {_ms(big[p])} {_ms(s * big[p])}")
-    print(f"\nworst round over the mission: {_ms(worst['round'])} ms here "
-          f"(robot {worst['robot']}, round {worst['k']}, {worst['nodes']} nodes), 99th percentile "
-          f"{_ms(float(np.percentile(totals, 99)))} ms, median {_ms(float(np.median(totals)))} ms")
+    print(
+        f"\nworst round over the mission: {_ms(worst['round'])} ms here "
+        f"(robot {worst['robot']}, round {worst['k']}, {worst['nodes']} nodes), 99th percentile "
+        f"{_ms(float(np.percentile(totals, 99)))} ms, median {_ms(float(np.median(totals)))} ms"
+    )
     for name, r in (("largest graph", big), ("worst round", worst)):
         t = s * r["round"]
-        print(f"  {name:<14} on the robot: {t * 1e3:6.1f} ms of the {ROUND_S * 1e3:.0f} ms round "
-              f"-> headroom {(ROUND_S - t) * 1e3:6.1f} ms ({t / ROUND_S:.2f} of the budget)")
+        print(
+            f"  {name:<14} on the robot: {t * 1e3:6.1f} ms of the {ROUND_S * 1e3:.0f} ms round "
+            f"-> headroom {(ROUND_S - t) * 1e3:6.1f} ms ({t / ROUND_S:.2f} of the budget)"
+        )
     over = int(np.sum(s * totals > ROUND_S))
-    print(f"  rounds that would exceed {ROUND_S * 1e3:.0f} ms on the robot: {over} of {len(rows)}"
-          " (the daemon skips the missed periods and counts them: status 'missed')")
+    print(
+        f"  rounds that would exceed {ROUND_S * 1e3:.0f} ms on the robot: {over} of {len(rows)}"
+        " (the daemon skips the missed periods and counts them: status 'missed')"
+    )
     pf = perception_per_frame(n_frames, args.repeats)
     med, p95 = float(np.median(pf)), float(np.percentile(pf, 95))
-    print(f"\nperception per frame (ms, {n_frames} frames 640x480, 1-3 boxes, min of "
-          f"{args.repeats}): median {_ms(med)} here, {_ms(s * med)} on the robot; "
-          f"95th percentile {_ms(p95)} / {_ms(s * p95)}")
+    print(
+        f"\nperception per frame (ms, {n_frames} frames 640x480, 1-3 boxes, min of "
+        f"{args.repeats}): median {_ms(med)} here, {_ms(s * med)} on the robot; "
+        f"95th percentile {_ms(p95)} / {_ms(s * p95)}"
+    )
     rate = 1.0 / (s * med)
-    print(f"  on the robot one core runs the pipeline at {rate:.1f} frames/s "
-          f"({'keeps up with' if rate >= CAMERA_FPS else 'below'} the camera's "
-          f"{CAMERA_FPS:g} fps; excess frames are dropped oldest-first and counted: "
-          f"status obs_dropped/frames_dropped)")
+    print(
+        f"  on the robot one core runs the pipeline at {rate:.1f} frames/s "
+        f"({'keeps up with' if rate >= CAMERA_FPS else 'below'} the camera's "
+        f"{CAMERA_FPS:g} fps; excess frames are dropped oldest-first and counted: "
+        f"status obs_dropped/frames_dropped)"
+    )
     return 0
 
 

@@ -49,17 +49,34 @@ def _raw(seed: int = 0) -> dict:
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False) * 1.5
     xyz = np.column_stack([2.0 * np.cos(ang), 2.0 * np.sin(ang), np.zeros(n)])
     T_gt = geo.se3_from_rt(geo.so3_exp(np.column_stack([np.zeros((n, 2)), ang + np.pi / 2])), xyz)
-    obj = geo.se3_from_rt(geo.so3_exp(rng.normal(0, 1, (n_obj, 3))),
-                          np.column_stack([3.0 * np.cos(np.arange(n_obj)), 3.0 * np.sin(np.arange(n_obj)),
-                                           rng.normal(0, 0.2, n_obj)]))
+    obj = geo.se3_from_rt(
+        geo.so3_exp(rng.normal(0, 1, (n_obj, 3))),
+        np.column_stack(
+            [
+                3.0 * np.cos(np.arange(n_obj)),
+                3.0 * np.sin(np.arange(n_obj)),
+                rng.normal(0, 0.2, n_obj),
+            ]
+        ),
+    )
     noise = lambda m, s: geo.se3_exp(rng.normal(0, s, (m, 6)))
     odo = geo.se3_between(T_gt[:-1], T_gt[1:]) @ noise(n - 1, 0.01)
     pi = np.sort(rng.choice(n, n_obs, replace=False))
     oi = rng.integers(0, n_obj, n_obs)
     obs = geo.se3_between(T_gt[pi], obj[oi]) @ noise(n_obs, 0.01)
     nbr = obj[np.repeat(np.arange(n_obj), n_nbr)] @ noise(n_obj * n_nbr, 0.02)
-    return {"n": n, "n_obj": n_obj, "n_obs": n_obs, "n_nbr": n_nbr, "T_gt": T_gt, "odo": odo,
-            "pi": pi, "oi": oi, "obs": obs, "nbr": nbr}
+    return {
+        "n": n,
+        "n_obj": n_obj,
+        "n_obs": n_obs,
+        "n_nbr": n_nbr,
+        "T_gt": T_gt,
+        "odo": odo,
+        "pi": pi,
+        "oi": oi,
+        "obs": obs,
+        "nbr": nbr,
+    }
 
 
 def problem(seed: int = 0):
@@ -70,12 +87,21 @@ def problem(seed: int = 0):
     o_base, c_base = n, n + n_obj
     W = np.ones(6)
     blocks = (
-        BetweenFactors(np.column_stack([np.arange(n - 1), np.arange(1, n)]), odo, np.tile(W, (n - 1, 1))),
-        BetweenFactors(np.column_stack([pi, o_base + oi]), obs, np.tile(W, (n_obs, 1)), label="object"),
+        BetweenFactors(
+            np.column_stack([np.arange(n - 1), np.arange(1, n)]), odo, np.tile(W, (n - 1, 1))
+        ),
+        BetweenFactors(
+            np.column_stack([pi, o_base + oi]), obs, np.tile(W, (n_obs, 1)), label="object"
+        ),
         PriorFactors(np.array([[0]]), T_gt[:1], np.full((1, 6), 100.0)),
-        ConsensusFactors(np.column_stack([o_base + np.repeat(np.arange(n_obj), n_nbr),
-                                          c_base + np.arange(n_obj * n_nbr)]),
-                         np.full(n_obj * n_nbr, 1 / 3), np.zeros((n_obj * n_nbr, 6)), 1.0),
+        ConsensusFactors(
+            np.column_stack(
+                [o_base + np.repeat(np.arange(n_obj), n_nbr), c_base + np.arange(n_obj * n_nbr)]
+            ),
+            np.full(n_obj * n_nbr, 1 / 3),
+            np.zeros((n_obj * n_nbr, 6)),
+            1.0,
+        ),
     )
     x0 = [T_gt[0]]
     for Z in odo:
@@ -105,16 +131,36 @@ def agent_round_ms(seed: int, rounds: int) -> tuple[float, float]:
         x0.append(x0[-1] @ Z)
     W = np.ones(6)
     prob = LocalProblem(
-        dim=3, residual="geodesic", pose_ids=np.arange(n), pose_stamps_ns=np.arange(n), x0=np.stack(x0),
-        between=np.column_stack([np.arange(n - 1), np.arange(1, n)]), between_T=d["odo"],
-        between_W=np.tile(W, (n - 1, 1)), between_robust=np.zeros(n - 1, bool),
-        inter_own=z, inter_owner=z, inter_anchor_id=z, inter_own_is_p=np.zeros(0, bool),
-        inter_T=np.zeros((0, 4, 4)), inter_W=np.zeros((0, 6)), inter_robust=np.zeros(0, bool),
-        prior_own=np.array([0]), prior_T=d["T_gt"][:1], prior_W=np.full((1, 6), 100.0),
-        obs_own=d["pi"], obs_object=d["oi"], obs_T=d["obs"], obs_W=np.tile(W, (d["pi"].size, 1)))
+        dim=3,
+        residual="geodesic",
+        pose_ids=np.arange(n),
+        pose_stamps_ns=np.arange(n),
+        x0=np.stack(x0),
+        between=np.column_stack([np.arange(n - 1), np.arange(1, n)]),
+        between_T=d["odo"],
+        between_W=np.tile(W, (n - 1, 1)),
+        between_robust=np.zeros(n - 1, bool),
+        inter_own=z,
+        inter_owner=z,
+        inter_anchor_id=z,
+        inter_own_is_p=np.zeros(0, bool),
+        inter_T=np.zeros((0, 4, 4)),
+        inter_W=np.zeros((0, 6)),
+        inter_robust=np.zeros(0, bool),
+        prior_own=np.array([0]),
+        prior_T=d["T_gt"][:1],
+        prior_W=np.full((1, 6), 100.0),
+        obs_own=d["pi"],
+        obs_object=d["oi"],
+        obs_T=d["obs"],
+        obs_W=np.tile(W, (d["pi"].size, 1)),
+    )
     nbrs = tuple(range(1, n_nbr + 1))
-    agent = Agent(AgentConfig(robust_kernel="none", neighbours=nbrs, eps_u=0.0), prob,
-                  weights={q: 1 / 3 for q in nbrs})
+    agent = Agent(
+        AgentConfig(robust_kernel="none", neighbours=nbrs, eps_u=0.0),
+        prob,
+        weights={q: 1 / 3 for q in nbrs},
+    )
     times = []
     for k in range(1, rounds + 1):
         for j, q in enumerate(nbrs):
@@ -133,15 +179,18 @@ def full_dense_step(lin, mu):
     M = np.block([[A, C], [C.T, lin.B]]) + mu * np.eye(A.shape[0] + lin.B.shape[0])
     g = np.concatenate([lin.g_x, lin.g_y])
     xi = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(M), g)
-    return xi[: A.shape[0]], xi[A.shape[0]:]
+    return xi[: A.shape[0]], xi[A.shape[0] :]
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true",
-                    help="5 timed steps per variant, 10 to compare costs: checks the script only")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="5 timed steps per variant, 10 to compare costs: checks the script only",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.steps = min(args.steps, 5)
@@ -151,14 +200,18 @@ def main(argv=None) -> int:
     # both sparse variants factorise with the supernodal Cholesky the agent uses (analysed once)
     f_red, f_flat = cholesky_factorizer(p_red), cholesky_factorizer(p_flat)
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
-    print(f"problem: 112 poses, 9 objects, {sum(b.variables.shape[0] for b in g_red.factors[:2])} edges "
-          f"+ prior + {g_red.factors[3].variables.shape[0]} consensus terms")
+    print(
+        f"problem: 112 poses, 9 objects, {sum(b.variables.shape[0] for b in g_red.factors[:2])} edges "
+        f"+ prior + {g_red.factors[3].variables.shape[0]} consensus terms"
+    )
     mu = 1e-3
     # correctness: the reduced step equals the full dense step
     lin = linearize(g_red, p_red, poses)
     u, v = schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu)
     u2, v2 = full_dense_step(lin, mu)
-    print(f"max |reduced - full dense| step difference: {max(np.abs(u - u2).max(), np.abs(v - v2).max()):.2e}")
+    print(
+        f"max |reduced - full dense| step difference: {max(np.abs(u - u2).max(), np.abs(v - v2).max()):.2e}"
+    )
     times = {"schur": [], "full-dense": [], "full-sparse": []}
     chunk = min(25, args.steps)  # variants alternate in chunks: they share the load, not caches
     for _ in range(max(args.steps // chunk, 1)):
@@ -171,32 +224,47 @@ def main(argv=None) -> int:
                     new = retract(p_flat, poses, u, v)
                 else:
                     lin = linearize(g_red, p_red, poses)
-                    u, v = (schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, f_red) if name == "schur"
-                            else full_dense_step(lin, mu))
+                    u, v = (
+                        schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, f_red)
+                        if name == "schur"
+                        else full_dense_step(lin, mu)
+                    )
                     new = retract(p_red, poses, u, v)
                 times[name].append(1e3 * (time.perf_counter() - t0))
                 del new
     base = np.median(times["schur"])
     for name, ts in times.items():
-        print(f"{name:<12} local step median {np.median(ts):7.3f} ms  (p90 {np.percentile(ts, 90):7.3f})"
-              f"  ratio to schur {np.median(ts) / base:5.2f}")
+        print(
+            f"{name:<12} local step median {np.median(ts):7.3f} ms  (p90 {np.percentile(ts, 90):7.3f})"
+            f"  ratio to schur {np.median(ts) / base:5.2f}"
+        )
     ts = []
     for _ in range(args.steps):
         t0 = time.perf_counter()
         evaluate_cost(g_red, poses)
         ts.append(1e3 * (time.perf_counter() - t0))
-    print(f"{'acceptance':<12} the LM step's cost evaluation at the new poses: median "
-          f"{np.median(ts):7.3f} ms (add it to a local step)")
+    print(
+        f"{'acceptance':<12} the LM step's cost evaluation at the new poses: median "
+        f"{np.median(ts):7.3f} ms (add it to a local step)"
+    )
     med, p90 = agent_round_ms(args.seed, args.steps)
-    print(f"{'agent round':<12} one Tick of a real Agent (local step + acceptance + duals + outputs) "
-          f"median {med:7.3f} ms  (p90 {p90:7.3f})")
-    for name, graph, plan, fac in (("schur", g_red, p_red, f_red), ("full-dense", g_red, p_red, None),
-                                   ("full-sparse", g_flat, p_flat, f_flat)):
+    print(
+        f"{'agent round':<12} one Tick of a real Agent (local step + acceptance + duals + outputs) "
+        f"median {med:7.3f} ms  (p90 {p90:7.3f})"
+    )
+    for name, graph, plan, fac in (
+        ("schur", g_red, p_red, f_red),
+        ("full-dense", g_red, p_red, None),
+        ("full-sparse", g_flat, p_flat, f_flat),
+    ):
         P = poses.copy()
         for _ in range(conv_steps):
             lin = linearize(graph, plan, P)
-            u, v = (full_dense_step(lin, mu) if name == "full-dense"
-                    else schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, fac))
+            u, v = (
+                full_dense_step(lin, mu)
+                if name == "full-dense"
+                else schur_step(lin.A, lin.B, lin.C, lin.g_x, lin.g_y, mu, fac)
+            )
             P = retract(plan, P, u, v)
         print(f"{name:<12} local cost after {conv_steps} steps {evaluate_cost(graph, P):.10g}")
     return 0

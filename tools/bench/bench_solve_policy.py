@@ -58,8 +58,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="*", help="extra g2o files")
     ap.add_argument("--quick", action="store_true", help="5000-pose generated graphs")
-    ap.add_argument("--table1", nargs="?", const=str(default), metavar="DATA_DIR",
-                    help="also the paper's six graphs (default ../shared/data/g2o)")
+    ap.add_argument(
+        "--table1",
+        nargs="?",
+        const=str(default),
+        metavar="DATA_DIR",
+        help="also the paper's six graphs (default ../shared/data/g2o)",
+    )
     ap.add_argument("--no-generated", action="store_true", help="skip the generated graphs")
     ap.add_argument("--no-gtsam", action="store_true")
     args = ap.parse_args(argv)
@@ -77,8 +82,10 @@ def main(argv: list[str] | None = None) -> int:
         graphs += [(name, Path(args.table1) / f) for name, (f, _) in DATASETS.items()]
     graphs += [(Path(f).stem, Path(f)) for f in args.files]
     print(f"# cpu: {os.cpu_count()} cores; exact Hessian, cost_tol 1e-8, max 100 iterations")
-    print("| graph | n / m | F_init | before (shared μ): it / solves / s / F | after (separate "
-          "μ_N): it / solves / s / F | time after/before | GTSAM: it / s / F |")
+    print(
+        "| graph | n / m | F_init | before (shared μ): it / solves / s / F | after (separate "
+        "μ_N): it / solves / s / F | time after/before | GTSAM: it / s / F |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, g in graphs:
         if isinstance(g, Path):
@@ -102,8 +109,11 @@ def main(argv: list[str] | None = None) -> int:
             fg, values = _gtsam_problem(gtsam, g, T0, kappa, tau)
             dt_g, it_g, T_g = _gtsam_run(gtsam, fg, values, g)
             gt = f"{it_g} / {dt_g:.2f} / {F(T_g):.8g}"
-        print(f"| {name} | {g.num_vertices} / {g.num_edges} | {F(T0):.6g} | {cols[0]} | "
-              f"{cols[1]} | {times[1] / times[0]:.2f} | {gt} |", flush=True)
+        print(
+            f"| {name} | {g.num_vertices} / {g.num_edges} | {F(T0):.6g} | {cols[0]} | "
+            f"{cols[1]} | {times[1] / times[0]:.2f} | {gt} |",
+            flush=True,
+        )
     print("\n'*' = stopped at the 100-iteration cap. solves = damped factorisations (trials).")
     return 0
 

@@ -51,10 +51,17 @@ def _graph(dim, T, edges, sig, rng) -> G2oGraph:
     Z = geo.retract(Z, rng.normal(size=(edges.shape[0], dof)) * sig)
     info = np.diag(1.0 / sig**2)
     m, n = edges.shape[0], T.shape[0]
-    return G2oGraph(dim=dim, vertex_ids=np.arange(n, dtype=np.int64), poses=T.copy(),
-                    has_pose=np.ones(n, bool), edges=edges.astype(np.int64), measurements=Z,
-                    information=np.broadcast_to(info, (m, dof, dof)).copy(),
-                    fixed=np.zeros(n, bool), edge_lines=np.arange(1, m + 1, dtype=np.int64))
+    return G2oGraph(
+        dim=dim,
+        vertex_ids=np.arange(n, dtype=np.int64),
+        poses=T.copy(),
+        has_pose=np.ones(n, bool),
+        edges=edges.astype(np.int64),
+        measurements=Z,
+        information=np.broadcast_to(info, (m, dof, dof)).copy(),
+        fixed=np.zeros(n, bool),
+        edge_lines=np.arange(1, m + 1, dtype=np.int64),
+    )
 
 
 def chain_graph(dim: int, n: int, seed: int, laps: int = 4, loop_frac: float = 0.02) -> G2oGraph:
@@ -94,11 +101,25 @@ def chain_graph(dim: int, n: int, seed: int, laps: int = 4, loop_frac: float = 0
 
 def make_graph(family: str, seed: int, quick: bool) -> G2oGraph:
     if family == "grid2d":
-        return synthetic_graph(dim=2, side=16 if quick else 24, layers=1, loop_radius_m=1.1,
-                               sigma_t_m=0.05, sigma_r_rad=0.02, seed=seed)[0]
+        return synthetic_graph(
+            dim=2,
+            side=16 if quick else 24,
+            layers=1,
+            loop_radius_m=1.1,
+            sigma_t_m=0.05,
+            sigma_r_rad=0.02,
+            seed=seed,
+        )[0]
     if family == "grid3d":
-        return synthetic_graph(dim=3, side=6 if quick else 8, layers=3, loop_radius_m=1.1,
-                               sigma_t_m=0.05, sigma_r_rad=0.02, seed=seed)[0]
+        return synthetic_graph(
+            dim=3,
+            side=6 if quick else 8,
+            layers=3,
+            loop_radius_m=1.1,
+            sigma_t_m=0.05,
+            sigma_r_rad=0.02,
+            seed=seed,
+        )[0]
     if family in ("chain2d", "chain3d"):
         return chain_graph(2 if family == "chain2d" else 3, 600 if quick else 1500, seed)
     raise SystemExit(f"unknown family {family!r}")
@@ -124,11 +145,17 @@ def run_case(g: G2oGraph, F_star: float, rule: str, robots: int, max_rounds: int
     agents = state["agents"] or []
     stopped = res["rounds"] < max_rounds
     reasons = sorted({a.stop_reason for a in agents if a.stop_reason})
-    return {"rule": rule, "rounds": res["rounds"], "stopped": stopped,
-            "stopped_by": "+".join(reasons) if stopped else "-",
-            "F_over_Fstar": res["objective_final"] / F_star,
-            "F_init_over_Fstar": res["objective_init"] / F_star,
-            "at": at, "bytes": res["bytes_total"], "wall_s": time.perf_counter() - t0}
+    return {
+        "rule": rule,
+        "rounds": res["rounds"],
+        "stopped": stopped,
+        "stopped_by": "+".join(reasons) if stopped else "-",
+        "F_over_Fstar": res["objective_final"] / F_star,
+        "F_init_over_Fstar": res["objective_init"] / F_star,
+        "at": at,
+        "bytes": res["bytes_total"],
+        "wall_s": time.perf_counter() - t0,
+    }
 
 
 def _merged_F(g, fleet, kappa, tau) -> float:
@@ -160,8 +187,15 @@ def main(argv=None) -> int:
             F_star = solve_g2o(g).objective_final
             for rule in args.rules:
                 r = run_case(g, F_star, rule, args.robots, max_rounds)
-                r.update({"family": fam, "seed": seed, "poses": g.num_vertices,
-                          "edges": g.num_edges, "F_star": F_star})
+                r.update(
+                    {
+                        "family": fam,
+                        "seed": seed,
+                        "poses": g.num_vertices,
+                        "edges": g.num_edges,
+                        "F_star": F_star,
+                    }
+                )
                 if r["stopped"]:
                     worst[rule] = max(worst.get(rule, 0.0), r["F_over_Fstar"])
                 if args.json:
@@ -169,13 +203,19 @@ def main(argv=None) -> int:
                 else:
                     at = " ".join(f"@{k}:{v:.5f}" for k, v in sorted(r["at"].items()))
                     stop = f"{r['rounds']:>4} ({r['stopped_by']})" if r["stopped"] else "   - (cap)"
-                    print(f"{fam:>8} s{seed} n={g.num_vertices:<5} {rule:>5}: stop {stop} "
-                          f"F/F*={r['F_over_Fstar']:.5f} init {r['F_init_over_Fstar']:.3f} "
-                          f"bytes={r['bytes']} {at} [{r['wall_s']:.0f} s]", flush=True)
+                    print(
+                        f"{fam:>8} s{seed} n={g.num_vertices:<5} {rule:>5}: stop {stop} "
+                        f"F/F*={r['F_over_Fstar']:.5f} init {r['F_init_over_Fstar']:.3f} "
+                        f"bytes={r['bytes']} {at} [{r['wall_s']:.0f} s]",
+                        flush=True,
+                    )
     bad = {k: v for k, v in worst.items() if v > 1.01}
-    print("worst F/F* at a stop: " + ", ".join(f"{k} {v:.5f}" for k, v in sorted(worst.items()))
-          + ("; ABOVE 1.01: " + ", ".join(sorted(bad)) if bad else "; none above 1.01"),
-          file=sys.stderr if args.json else sys.stdout)
+    print(
+        "worst F/F* at a stop: "
+        + ", ".join(f"{k} {v:.5f}" for k, v in sorted(worst.items()))
+        + ("; ABOVE 1.01: " + ", ".join(sorted(bad)) if bad else "; none above 1.01"),
+        file=sys.stderr if args.json else sys.stdout,
+    )
     return 0
 
 

@@ -45,13 +45,26 @@ def main(argv=None) -> int:
     ap.add_argument("--robots", type=int, default=5)
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--json", help="append one JSON line per run to this file")
-    ap.add_argument("--max-rounds", type=int, default=None,
-                    help="cap on DRAN rounds (default: K_max = 500 local steps per robot)")
-    ap.add_argument("--plain", action="store_true", help="DRAN as Alg. 1 prints it (see module doc)")
-    ap.add_argument("--quick", action="store_true",
-                    help="a small generated graph, 3 robots, 20 DRAN rounds: checks the script only")
-    ap.add_argument("--init", choices=("auto", "always", "never"), default="auto",
-                    help="InitParams.direct of the distributed init (never: block iterations only)")
+    ap.add_argument(
+        "--max-rounds",
+        type=int,
+        default=None,
+        help="cap on DRAN rounds (default: K_max = 500 local steps per robot)",
+    )
+    ap.add_argument(
+        "--plain", action="store_true", help="DRAN as Alg. 1 prints it (see module doc)"
+    )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="a small generated graph, 3 robots, 20 DRAN rounds: checks the script only",
+    )
+    ap.add_argument(
+        "--init",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="InitParams.direct of the distributed init (never: block iterations only)",
+    )
     args = ap.parse_args(argv)
     if args.quick:  # the SE(2) graph only unless --only names the other: 1 s instead of 3
         args.robots, args.max_rounds = 3, args.max_rounds or 20
@@ -72,40 +85,57 @@ def _run(args, data_dir: str, graphs: dict[str, tuple[str, float]]) -> int:
         g = read_g2o(Path(data_dir) / fname)
         cfg, run_kw = table1_setup(g.dim, "chordal", plain=args.plain)
         init = InitParams(gauss_seidel=True, direct=args.init)
-        dran = run_g2o_dran(g, args.robots, cfg, max_rounds=args.max_rounds, init_params=init,
-                            **run_kw)
-        dgs = run_g2o_dgs(g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY,
-                          init_params=init)
+        dran = run_g2o_dran(
+            g, args.robots, cfg, max_rounds=args.max_rounds, init_params=init, **run_kw
+        )
+        dgs = run_g2o_dgs(
+            g, args.robots, delta_every=0 if args.plain else TABLE1_DELTA_EVERY, init_params=init
+        )
         row = {
-            "dataset": name, "init": args.init, "F_star": F_star,
-            "dran_F_init": dran["objective_init"], "dran_F": dran["objective_final"],
+            "dataset": name,
+            "init": args.init,
+            "F_star": F_star,
+            "dran_F_init": dran["objective_init"],
+            "dran_F": dran["objective_final"],
             "dran_gap_pct": 100 * (dran["objective_final"] / F_star - 1),
-            "dran_rounds": dran["rounds_total"], "dran_MB": dran["bytes_total"] / 1e6,
-            "dran_init_MB": dran["bytes_init"] / 1e6, "dran_step_ms": dran["local_step_ms_median"],
+            "dran_rounds": dran["rounds_total"],
+            "dran_MB": dran["bytes_total"] / 1e6,
+            "dran_init_MB": dran["bytes_init"] / 1e6,
+            "dran_step_ms": dran["local_step_ms_median"],
             "dran_wall_s": dran["wall_s"],
-            "dgs_F": dgs["objective_final"], "dgs_gap_pct": 100 * (dgs["objective_final"] / F_star - 1),
-            "dgs_rounds": dgs["rounds_total"], "dgs_MB": dgs["bytes_total"] / 1e6,
+            "dgs_F": dgs["objective_final"],
+            "dgs_gap_pct": 100 * (dgs["objective_final"] / F_star - 1),
+            "dgs_rounds": dgs["rounds_total"],
+            "dgs_MB": dgs["bytes_total"] / 1e6,
             "targets_met": {
                 "F_within_0.1pct": dran["objective_final"] <= 1.001 * F_star,
                 "MB_le_half_paper": dran["bytes_total"] / 1e6 <= 0.5 * dran_MB,
                 "beats_dgs_F": dran["objective_final"] < dgs["objective_final"],
-                "beats_dgs_MB": dran["bytes_total"] < dgs["bytes_total"]},
-            "paper_dran_F": dran_F, "paper_dgs_F": dgs_F, "paper_dran_MB": dran_MB, "paper_dgs_MB": dgs_MB,
+                "beats_dgs_MB": dran["bytes_total"] < dgs["bytes_total"],
+            },
+            "paper_dran_F": dran_F,
+            "paper_dgs_F": dgs_F,
+            "paper_dran_MB": dran_MB,
+            "paper_dgs_MB": dgs_MB,
         }
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
         if args.json:
             with open(args.json, "a") as fh:
                 fh.write(json.dumps(row) + "\n")
-    hdr = (f"{'dataset':<15}{'F*':>11}{'DRAN F0':>11}{'DRAN F':>11}{'gap %':>7}{'DGS F':>11}"
-           f"{'gap %':>7}{'DRAN MB':>8}{'≤50%':>6}{'DGS MB':>8}{'rounds':>7}  met")
+    hdr = (
+        f"{'dataset':<15}{'F*':>11}{'DRAN F0':>11}{'DRAN F':>11}{'gap %':>7}{'DGS F':>11}"
+        f"{'gap %':>7}{'DRAN MB':>8}{'≤50%':>6}{'DGS MB':>8}{'rounds':>7}  met"
+    )
     print(hdr)
     for r in rows:
         met = " ".join(k for k, v in r["targets_met"].items() if v) or "-"
-        print(f"{r['dataset']:<15}{r['F_star']:>11.6g}{r['dran_F_init']:>11.5g}{r['dran_F']:>11.6g}"
-              f"{r['dran_gap_pct']:>7.3f}{r['dgs_F']:>11.6g}{r['dgs_gap_pct']:>7.3f}"
-              f"{r['dran_MB']:>8.3f}{0.5 * r['paper_dran_MB']:>6.3g}{r['dgs_MB']:>8.3f}"
-              f"{r['dran_rounds']:>7}  {met}")
+        print(
+            f"{r['dataset']:<15}{r['F_star']:>11.6g}{r['dran_F_init']:>11.5g}{r['dran_F']:>11.6g}"
+            f"{r['dran_gap_pct']:>7.3f}{r['dgs_F']:>11.6g}{r['dgs_gap_pct']:>7.3f}"
+            f"{r['dran_MB']:>8.3f}{0.5 * r['paper_dran_MB']:>6.3g}{r['dgs_MB']:>8.3f}"
+            f"{r['dran_rounds']:>7}  {met}"
+        )
     return 0
 
 

@@ -32,13 +32,18 @@ CHI2_6_95 = 12.5916
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
-    yaw, pitch, roll = np.deg2rad([rng.uniform(-60, 60), rng.uniform(-30, 30),
-                                   rng.uniform(-180, 180)])
-    R = geo.so3_exp(np.array([0, yaw, 0])) @ geo.so3_exp(np.array([pitch, 0, 0])) \
+    yaw, pitch, roll = np.deg2rad(
+        [rng.uniform(-60, 60), rng.uniform(-30, 30), rng.uniform(-180, 180)]
+    )
+    R = (
+        geo.so3_exp(np.array([0, yaw, 0]))
+        @ geo.so3_exp(np.array([pitch, 0, 0]))
         @ geo.so3_exp(np.array([0, 0, roll]))
+    )
     z = rng.uniform(0.5, 3.0)
-    return geo.se3_from_rt(R, np.array([rng.uniform(-0.25, 0.25) * z,
-                                        rng.uniform(-0.15, 0.15) * z, z]))
+    return geo.se3_from_rt(
+        R, np.array([rng.uniform(-0.25, 0.25) * z, rng.uniform(-0.15, 0.15) * z, z])
+    )
 
 
 def sample(renderer, detector, rng, n, noise, blur):
@@ -46,8 +51,9 @@ def sample(renderer, detector, rng, n, noise, blur):
     out = []
     for _ in range(n):
         T = random_pose(rng)
-        colour, _ = renderer.render(K, 640, 480, [T], [11], SIZE_M, noise_sigma=noise,
-                                    blur_sigma_px=blur, rng=rng)
+        colour, _ = renderer.render(
+            K, 640, 480, [T], [11], SIZE_M, noise_sigma=noise, blur_sigma_px=blur, rng=rng
+        )
         det = detector.detect(to_gray(colour))
         if len(det) == 1:
             out.append((T, det))
@@ -65,8 +71,7 @@ def poses(samples, params):
 
 
 def residual_sigma(accepted, ref_edge_px: float) -> float:
-    sq = np.array([4 * tp.rms_px[0] ** 2 * tp.min_edge_px[0] / ref_edge_px
-                   for _, tp in accepted])
+    sq = np.array([4 * tp.rms_px[0] ** 2 * tp.min_edge_px[0] / ref_edge_px for _, tp in accepted])
     return corner_sigma_from_residuals(sq, np.full(sq.size, 4))
 
 
@@ -81,10 +86,16 @@ def nees(accepted) -> tuple[np.ndarray, np.ndarray]:
 
 
 def summary(e: np.ndarray, z: np.ndarray) -> dict:
-    bands = [(lo, hi, float(e[(z >= lo) & (z < hi)].mean())) for lo, hi in
-             ((0.5, 1.0), (1.0, 2.0), (2.0, 3.0))]
-    return {"mean": float(e.mean()), "median": float(np.median(e)),
-            "above_95": float(np.mean(e > CHI2_6_95)), "bands": bands}
+    bands = [
+        (lo, hi, float(e[(z >= lo) & (z < hi)].mean()))
+        for lo, hi in ((0.5, 1.0), (1.0, 2.0), (2.0, 3.0))
+    ]
+    return {
+        "mean": float(e.mean()),
+        "median": float(np.median(e)),
+        "above_95": float(np.mean(e > CHI2_6_95)),
+        "bands": bands,
+    }
 
 
 def run(frames: int, noise: float, blur: float, seed: int = 5) -> dict:
@@ -106,21 +117,28 @@ def run(frames: int, noise: float, blur: float, seed: int = 5) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--quick", action="store_true",
-                    help="12 frames per condition: checks the script; the statistics mean nothing")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="12 frames per condition: checks the script; the statistics mean nothing",
+    )
     args = ap.parse_args()
     if args.quick:
         args.frames = min(args.frames, 12)
     for noise, blur in ((2.0, 0.0), (3.0, 0.8), (8.0, 1.2)):
         r = run(args.frames, noise, blur)
-        print(f"noise {noise:g} blur {blur:g} px: test frames {r['n_test']}, sigma from residuals "
-              f"{r['sigma_residual']:.3f} px")
+        print(
+            f"noise {noise:g} blur {blur:g} px: test frames {r['n_test']}, sigma from residuals "
+            f"{r['sigma_residual']:.3f} px"
+        )
         for name in ("residual", "residual+birge"):
             x = r[name]
             bands = ", ".join(f"{lo:g}-{hi:g} m {m:.2f}" for lo, hi, m in x["bands"])
-            print(f"  {name:<15} NEES mean {x['mean']:.2f} median {x['median']:.2f}  "
-                  f">chi2_95 {x['above_95']:.3f}  "
-                  f"by range: {bands}")
+            print(
+                f"  {name:<15} NEES mean {x['mean']:.2f} median {x['median']:.2f}  "
+                f">chi2_95 {x['above_95']:.3f}  "
+                f"by range: {bands}"
+            )
 
 
 if __name__ == "__main__":

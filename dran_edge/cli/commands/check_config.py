@@ -29,15 +29,16 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=prog,
         description="Load FILE as 'dran-edge run' does: the file itself (strict: unknown keys, "
-                    "types, ranges) and what it names: the key file and its mode, the fleet's "
-                    "public keys (comms.auth ed25519 or pairwise), the camera calibration, the tag map, a "
-                    "recording, a writable state directory. Prints every problem (file, line, "
-                    "key path, reason) and exits 2, or a one-line summary and exits 0. The "
-                    "camera and the radio are not opened.",
+        "types, ranges) and what it names: the key file and its mode, the fleet's "
+        "public keys (comms.auth ed25519 or pairwise), the camera calibration, the tag map, a "
+        "recording, a writable state directory. Prints every problem (file, line, "
+        "key path, reason) and exits 2, or a one-line summary and exits 0. The "
+        "camera and the radio are not opened.",
     )
     p.add_argument("file", metavar="FILE", help="the robot's YAML config (docs/config.md)")
-    p.add_argument("--show", action="store_true",
-                   help="print the full config with every default filled in")
+    p.add_argument(
+        "--show", action="store_true", help="print the full config with every default filled in"
+    )
     return p
 
 
@@ -67,24 +68,36 @@ def _comms_errors(cfg) -> list[DranError]:
     public = _collect(errors, keys.fleet_public_keys, cfg)
     if public is None:
         return errors
-    missing = sorted(({n.id for n in cfg.neighbours} | set(cfg.comms.allow_relay_from))
-                     - set(public))
+    missing = sorted(
+        ({n.id for n in cfg.neighbours} | set(cfg.comms.allow_relay_from)) - set(public)
+    )
     if missing:
-        errors.append(ConfigError(
-            f"comms.auth {cfg.comms.auth}: no public key for robot(s) {missing} (add them to "
-            "comms.public_keys_file, or neighbours[].public_keys)", path=where))
+        errors.append(
+            ConfigError(
+                f"comms.auth {cfg.comms.auth}: no public key for robot(s) {missing} (add them to "
+                "comms.public_keys_file, or neighbours[].public_keys)",
+                path=where,
+            )
+        )
     if secret is not None:
         own = public.get(cfg.robot.id)
         mine = _collect(errors, keys.public_key_of, secret)
         if own is None:
-            errors.append(ConfigError(
-                f"comms.public_keys_file: no public key for this robot ({cfg.robot.id}); its "
-                "neighbours cannot verify it (export the fleet's keys again)", path=where))
+            errors.append(
+                ConfigError(
+                    f"comms.public_keys_file: no public key for this robot ({cfg.robot.id}); its "
+                    "neighbours cannot verify it (export the fleet's keys again)",
+                    path=where,
+                )
+            )
         elif mine is not None and mine not in own:
-            errors.append(ConfigError(
-                f"comms.key_file's public key is not robot {cfg.robot.id}'s in the fleet's "
-                "public keys (a key of another robot, or keys not exported again)",
-                path=str(key_path)))
+            errors.append(
+                ConfigError(
+                    f"comms.key_file's public key is not robot {cfg.robot.id}'s in the fleet's "
+                    "public keys (a key of another robot, or keys not exported again)",
+                    path=str(key_path),
+                )
+            )
     return errors
 
 
@@ -96,27 +109,43 @@ def _camera_errors(cfg) -> list[DranError]:
     if cam.source == "recorded":
         rec = cfg.resolve(cam.recording)
         if rec is None or not rec.exists():
-            errors.append(ConfigError(
-                f"camera.recording: expected a frames folder or a recording, got "
-                f"{str(rec) if rec else 'nothing'}", path=cfg.source_path or None))
+            errors.append(
+                ConfigError(
+                    f"camera.recording: expected a frames folder or a recording, got "
+                    f"{str(rec) if rec else 'nothing'}",
+                    path=cfg.source_path or None,
+                )
+            )
     try:
         from dran_edge.perception.calib import load_camera, load_tag_map
         from dran_edge.perception.pipeline import _camera_file
     except ImportError as exc:
-        return errors + [DranError(f"camera.source {cam.source!r}: the perception pipeline does "
-                                   f"not import ({exc})")]
+        return errors + [
+            DranError(
+                f"camera.source {cam.source!r}: the perception pipeline does not import ({exc})"
+            )
+        ]
     camera_path = _collect(errors, _camera_file, cfg)
     camera = _collect(errors, load_camera, camera_path) if camera_path else None
     if camera is not None and (camera.width, camera.height) != (cam.width, cam.height):
-        errors.append(ConfigError(
-            f"camera.width/height: {cam.width}x{cam.height}, but {camera_path} is calibrated "
-            f"for {camera.width}x{camera.height}", path=cfg.source_path or None))
+        errors.append(
+            ConfigError(
+                f"camera.width/height: {cam.width}x{cam.height}, but {camera_path} is calibrated "
+                f"for {camera.width}x{camera.height}",
+                path=cfg.source_path or None,
+            )
+        )
     tags = cfg.resolve(cam.tags_file)
     if tags is None and camera_path is not None:
         tags = camera_path.parent.parent / "tags.yaml"
     if tags is None:
-        errors.append(ConfigError("camera.tags_file: not set and no calibration directory to "
-                                  "look for tags.yaml next to", path=cfg.source_path or None))
+        errors.append(
+            ConfigError(
+                "camera.tags_file: not set and no calibration directory to "
+                "look for tags.yaml next to",
+                path=cfg.source_path or None,
+            )
+        )
     else:
         _collect(errors, load_tag_map, tags)
     return errors
@@ -135,8 +164,12 @@ def _state_errors(cfg) -> list[DranError]:
         with tempfile.TemporaryFile(dir=probe, prefix=".dran-edge-check-"):
             pass
     except OSError as exc:
-        return [ConfigError(f"daemon.state_dir: cannot write {what}: {exc.strerror}",
-                            path=cfg.source_path or None)]
+        return [
+            ConfigError(
+                f"daemon.state_dir: cannot write {what}: {exc.strerror}",
+                path=cfg.source_path or None,
+            )
+        ]
     return []
 
 
@@ -171,11 +204,13 @@ def run(args: argparse.Namespace) -> int:
     assert cfg is not None  # no config comes with the errors that say why
     g = cfg.agent.graph
     auth = f"{cfg.comms.auth} key" if cfg.comms.transport != "none" else "no key"
-    print(f"{args.file}: ok: robot {cfg.robot.name} (id {cfg.robot.id}) in fleet "
-          f"{cfg.robot.fleet}; {len(cfg.neighbours)} neighbours; transport "
-          f"{cfg.comms.transport} ({auth}); camera {cfg.camera.source}; ingest "
-          f"{'on' if cfg.ingest.enabled else 'off'}; graph <= {g.max_nodes} nodes / "
-          f"{g.max_edges} edges")
+    print(
+        f"{args.file}: ok: robot {cfg.robot.name} (id {cfg.robot.id}) in fleet "
+        f"{cfg.robot.fleet}; {len(cfg.neighbours)} neighbours; transport "
+        f"{cfg.comms.transport} ({auth}); camera {cfg.camera.source}; ingest "
+        f"{'on' if cfg.ingest.enabled else 'off'}; graph <= {g.max_nodes} nodes / "
+        f"{g.max_edges} edges"
+    )
     if args.show:
         import yaml
 

@@ -24,13 +24,13 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=prog,
         description="Load every robot config (*.yaml with a 'robot' section) in DIR and check "
-                    "that they form one fleet: the same fleet name; unique robot ids, names "
-                    "and addresses; every neighbour entry names a robot of DIR with its name, "
-                    "its address matching that robot's port, and the neighbour lists it back; "
-                    "one key policy (comms.auth); with hmac the same fleet key where the key "
-                    "files are readable; with ed25519 or pairwise each robot's public key (from its key "
-                    "file's .pub) in every neighbour's keys. Also the same agent.dim and "
-                    "comms.period_s. Prints every problem and exits 2, or a summary and 0.",
+        "that they form one fleet: the same fleet name; unique robot ids, names "
+        "and addresses; every neighbour entry names a robot of DIR with its name, "
+        "its address matching that robot's port, and the neighbour lists it back; "
+        "one key policy (comms.auth); with hmac the same fleet key where the key "
+        "files are readable; with ed25519 or pairwise each robot's public key (from its key "
+        "file's .pub) in every neighbour's keys. Also the same agent.dim and "
+        "comms.period_s. Prints every problem and exits 2, or a summary and 0.",
     )
     p.add_argument("dir", metavar="DIR", help="the directory of robot configs (e.g. calib/fleet)")
     return p
@@ -81,21 +81,27 @@ def _identity(cfgs: list, rep: FleetReport) -> None:
         ids[c.robot.id].append(Path(c.source_path).name)
         names[c.robot.name].append(Path(c.source_path).name)
     if len(fleets) > 1:
-        rep.error("robots disagree on the fleet name: " + "; ".join(
-            f"{f!r} in {', '.join(fs)}" for f, fs in sorted(fleets.items())))
+        rep.error(
+            "robots disagree on the fleet name: "
+            + "; ".join(f"{f!r} in {', '.join(fs)}" for f, fs in sorted(fleets.items()))
+        )
     for what, table in (("id", ids), ("name", names)):
         for value, fs in sorted(table.items(), key=lambda kv: str(kv[0])):
             if len(fs) > 1:
                 rep.error(f"robot {what} {value} is used by {len(fs)} configs: {', '.join(fs)}")
     rep.robots = {c.robot.id: c for c in cfgs}
-    for what, get in (("agent.dim", lambda c: c.agent.dim),
-                      ("comms.period_s", lambda c: c.comms.period_s)):
+    for what, get in (
+        ("agent.dim", lambda c: c.agent.dim),
+        ("comms.period_s", lambda c: c.comms.period_s),
+    ):
         values = defaultdict(list)
         for c in cfgs:
             values[get(c)].append(c.robot.name)
         if len(values) > 1:
-            rep.error(f"robots disagree on {what}: " + "; ".join(
-                f"{v} ({', '.join(n)})" for v, n in sorted(values.items())))
+            rep.error(
+                f"robots disagree on {what}: "
+                + "; ".join(f"{v} ({', '.join(n)})" for v, n in sorted(values.items()))
+            )
 
 
 def _neighbours(cfgs: list, rep: FleetReport) -> None:
@@ -108,31 +114,46 @@ def _neighbours(cfgs: list, rep: FleetReport) -> None:
         for n in c.neighbours:
             other = robots.get(n.id)
             if other is None:
-                rep.error(f"neighbour {n.id} ({n.name or 'no name'}) is not a robot of this "
-                          "directory", path=where)
+                rep.error(
+                    f"neighbour {n.id} ({n.name or 'no name'}) is not a robot of this directory",
+                    path=where,
+                )
                 continue
             if n.name and n.name != other.robot.name:
-                rep.error(f"neighbour {n.id} is named {n.name!r} here but {other.robot.name!r} "
-                          "in its own config", path=where)
+                rep.error(
+                    f"neighbour {n.id} is named {n.name!r} here but {other.robot.name!r} "
+                    "in its own config",
+                    path=where,
+                )
             if c.robot.id not in {m.id for m in other.neighbours}:
-                rep.error(f"lists {other.robot.name} (id {n.id}) as a neighbour, but "
-                          f"{Path(other.source_path).name} does not list {c.robot.name} "
-                          f"(id {c.robot.id}) back: {other.robot.name} drops its datagrams "
-                          "as not_neighbour", path=where)
+                rep.error(
+                    f"lists {other.robot.name} (id {n.id}) as a neighbour, but "
+                    f"{Path(other.source_path).name} does not list {c.robot.name} "
+                    f"(id {c.robot.id}) back: {other.robot.name} drops its datagrams "
+                    "as not_neighbour",
+                    path=where,
+                )
             host, port = parse_address(n.address, "address")
             listed_at[n.id].add((host, port))
             if port != other.comms.port:
-                rep.error(f"neighbour {other.robot.name}'s address {n.address} has port {port}, "
-                          f"but it binds port {other.comms.port}", path=where)
+                rep.error(
+                    f"neighbour {other.robot.name}'s address {n.address} has port {port}, "
+                    f"but it binds port {other.comms.port}",
+                    path=where,
+                )
             bind = other.comms.bind_address
             if bind not in ("0.0.0.0", "::") and bind != host:
-                rep.error(f"neighbour {other.robot.name}'s address {n.address}, but it binds "
-                          f"{bind}", path=where)
+                rep.error(
+                    f"neighbour {other.robot.name}'s address {n.address}, but it binds {bind}",
+                    path=where,
+                )
     owners = defaultdict(set)
     for rid, addrs in listed_at.items():
         if len(addrs) > 1:
-            rep.error(f"robot {robots[rid].robot.name} (id {rid}) is listed at different "
-                      f"addresses: {', '.join(f'{h}:{p}' for h, p in sorted(addrs))}")
+            rep.error(
+                f"robot {robots[rid].robot.name} (id {rid}) is listed at different "
+                f"addresses: {', '.join(f'{h}:{p}' for h, p in sorted(addrs))}"
+            )
         for a in addrs:
             owners[a].add(rid)
     for (host, port), rids in sorted(owners.items()):
@@ -165,8 +186,10 @@ def _keys(cfgs: list, rep: FleetReport) -> None:
     for c in radio:
         policies[c.comms.auth].append(c.robot.name)
     if len(policies) > 1:
-        rep.error("robots use different key policies (comms.auth): " + "; ".join(
-            f"{p} ({', '.join(n)})" for p, n in sorted(policies.items())))
+        rep.error(
+            "robots use different key policies (comms.auth): "
+            + "; ".join(f"{p} ({', '.join(n)})" for p, n in sorted(policies.items()))
+        )
         return
     if policies.get("hmac"):
         prints = defaultdict(list)
@@ -176,14 +199,18 @@ def _keys(cfgs: list, rep: FleetReport) -> None:
             except (DranError, TypeError):
                 rep.notes.append(f"{c.robot.name}: fleet key not readable here, not compared")
         if len(prints) > 1:
-            rep.error("robots hold different fleet keys: " + "; ".join(
-                f"key {i + 1} ({', '.join(n)})" for i, n in enumerate(prints.values())))
+            rep.error(
+                "robots hold different fleet keys: "
+                + "; ".join(f"key {i + 1} ({', '.join(n)})" for i, n in enumerate(prints.values()))
+            )
         return
     for c in radio:
         own = _own_public_key(c)
         if own is None:
-            rep.notes.append(f"{c.robot.name}: own public key not found (no readable "
-                             f"{c.comms.key_file}.pub), only presence in neighbours checked")
+            rep.notes.append(
+                f"{c.robot.name}: own public key not found (no readable "
+                f"{c.comms.key_file}.pub), only presence in neighbours checked"
+            )
         for n in c.neighbours:
             other = rep.robots.get(n.id)
             if other is None or other.comms.transport == "none":
@@ -194,12 +221,17 @@ def _keys(cfgs: list, rep: FleetReport) -> None:
                 rep.errors.append(exc)
                 continue
             if not held:
-                rep.error(f"has no public key for {c.robot.name} (id {c.robot.id}), its "
-                          "neighbour: it drops all of its datagrams", path=other.source_path)
+                rep.error(
+                    f"has no public key for {c.robot.name} (id {c.robot.id}), its "
+                    "neighbour: it drops all of its datagrams",
+                    path=other.source_path,
+                )
             elif own is not None and own not in held:
-                rep.error(f"holds a public key for {c.robot.name} (id {c.robot.id}) that is not "
-                          f"{c.robot.name}'s own (export the fleet's keys again)",
-                          path=other.source_path)
+                rep.error(
+                    f"holds a public key for {c.robot.name} (id {c.robot.id}) that is not "
+                    f"{c.robot.name}'s own (export the fleet's keys again)",
+                    path=other.source_path,
+                )
 
 
 def check_fleet(directory: str | Path) -> FleetReport:
@@ -224,12 +256,15 @@ def run(args: argparse.Namespace) -> int:
     for e in rep.errors:
         print(f"dran-edge check-fleet: error: {e}", file=sys.stderr)
     if rep.errors:
-        print(f"{args.dir}: {len(rep.errors)} problem{'s' * (len(rep.errors) != 1)}",
-              file=sys.stderr)
+        print(
+            f"{args.dir}: {len(rep.errors)} problem{'s' * (len(rep.errors) != 1)}", file=sys.stderr
+        )
         return 2
     cfgs = list(rep.robots.values())
     links = sum(len(c.neighbours) for c in cfgs) // 2
     policy = sorted({c.comms.auth for c in cfgs if c.comms.transport != "none"}) or ["no radio"]
-    print(f"{args.dir}: ok: fleet {cfgs[0].robot.fleet}, {len(cfgs)} robots, {links} links, "
-          f"key policy {policy[0]}")
+    print(
+        f"{args.dir}: ok: fleet {cfgs[0].robot.fleet}, {len(cfgs)} robots, {links} links, "
+        f"key policy {policy[0]}"
+    )
     return 0

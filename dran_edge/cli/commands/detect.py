@@ -28,25 +28,36 @@ noise estimate for calibrating corner_sigma_px) goes to stderr at the end.
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description=DESCRIPTION,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("source", metavar="SOURCE", help="image, folder, recording, realsense[:SERIAL] "
-                   "or oak")
+    p = argparse.ArgumentParser(
+        prog=prog, description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "source", metavar="SOURCE", help="image, folder, recording, realsense[:SERIAL] or oak"
+    )
     p.add_argument("--calib", metavar="DIR", help="calibration folder (tags.yaml, cameras/)")
-    p.add_argument("--robot", default="dingo1", help="camera file cameras/ROBOT.yaml "
-                   "(default: dingo1)")
-    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="pinhole intrinsics in pixels "
-                   "(instead of --calib)")
-    p.add_argument("--tag-size", type=float, metavar="M", help="tag size (black square edge, "
-                   "metres) for tags not in the tag map")
+    p.add_argument(
+        "--robot", default="dingo1", help="camera file cameras/ROBOT.yaml (default: dingo1)"
+    )
+    p.add_argument(
+        "--intrinsics",
+        metavar="FX,FY,CX,CY",
+        help="pinhole intrinsics in pixels (instead of --calib)",
+    )
+    p.add_argument(
+        "--tag-size",
+        type=float,
+        metavar="M",
+        help="tag size (black square edge, metres) for tags not in the tag map",
+    )
     p.add_argument("--family", default="tag36h11", help="tag family (exactly one)")
     p.add_argument("--decimate", type=float, default=2.0, help="quad decimation (default 2)")
     p.add_argument("--threads", type=int, default=1, help="detector threads (default 1)")
     p.add_argument("--no-depth", action="store_true", help="ignore depth images")
     p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
     p.add_argument("--json", action="store_true", help="JSON lines (default: readable lines)")
-    p.add_argument("--show-fps", action="store_true", help="print the frame rate to stderr "
-                   "every second")
+    p.add_argument(
+        "--show-fps", action="store_true", help="print the frame rate to stderr every second"
+    )
     return p
 
 
@@ -60,10 +71,22 @@ def _calibration(args, width: int, height: int):
         fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
     except ValueError:
         raise InputError(f"--intrinsics: expected FX,FY,CX,CY, got {args.intrinsics!r}") from None
-    cam = CameraCalib("cli", width, height, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
-                      np.zeros(5), np.eye(4))
-    empty = TagMap(args.family, np.zeros(0, np.int64), np.zeros(0, np.int64),
-                   np.zeros((0, 4, 4)), np.zeros(0), {})
+    cam = CameraCalib(
+        "cli",
+        width,
+        height,
+        np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
+        np.zeros(5),
+        np.eye(4),
+    )
+    empty = TagMap(
+        args.family,
+        np.zeros(0, np.int64),
+        np.zeros(0, np.int64),
+        np.zeros((0, 4, 4)),
+        np.zeros(0),
+        {},
+    )
     return Calibration(cam, empty)
 
 
@@ -104,11 +127,13 @@ def run(args: argparse.Namespace) -> int:
     from dran_edge.perception.pipeline import ObservationPipeline, PipelineParams
     from dran_edge.perception.sources import open_source
 
-    det_params = DetectorParams(family=args.family, nthreads=args.threads,
-                                quad_decimate=args.decimate)
+    det_params = DetectorParams(
+        family=args.family, nthreads=args.threads, quad_decimate=args.decimate
+    )
     with_pose = bool(args.calib or args.intrinsics)
-    params = PipelineParams(detector=det_params, use_depth=not args.no_depth,
-                            default_tag_size_m=args.tag_size)
+    params = PipelineParams(
+        detector=det_params, use_depth=not args.no_depth, default_tag_size_m=args.tag_size
+    )
     pipeline = None
     detector = TagDetector(det_params) if not with_pose else None
     n_frames = n_det = 0
@@ -148,8 +173,10 @@ def run(args: argparse.Namespace) -> int:
                         extra += f" t_camera_tag=[{t[0]:.3f} {t[1]:.3f} {t[2]:.3f}] m"
                     if rec.get("reject"):
                         extra += f" rejected={rec['reject']}"
-                    out.write(f"frame {index} tag {rec['tag_id']} hamming={rec['hamming']} "
-                              f"margin={rec['decision_margin']:.1f}{extra}\n")
+                    out.write(
+                        f"frame {index} tag {rec['tag_id']} hamming={rec['hamming']} "
+                        f"margin={rec['decision_margin']:.1f}{extra}\n"
+                    )
                 n_det += 1
             n_frames += 1
             frames_since += 1
@@ -160,10 +187,14 @@ def run(args: argparse.Namespace) -> int:
     finally:
         source.close()
     wall = time.perf_counter() - t0
-    summary = {"frames": n_frames, "detections": n_det,
-               "fps": round(n_frames / wall, 2) if wall > 0 else None}
+    summary = {
+        "frames": n_frames,
+        "detections": n_det,
+        "fps": round(n_frames / wall, 2) if wall > 0 else None,
+    }
     if n_pts:
-        summary["corner_sigma_px"] = round(corner_sigma_from_residuals(np.array(sq_sum),
-                                                                       np.array(n_pts)), 4)
+        summary["corner_sigma_px"] = round(
+            corner_sigma_from_residuals(np.array(sq_sum), np.array(n_pts)), 4
+        )
     print("summary " + json.dumps(summary), file=sys.stderr)
     return 0

@@ -45,50 +45,109 @@ turning), then 0 if the clocks overlap. The output says which. Metrics: docs/eva
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, usage=_USAGE, description=_DESCRIPTION,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog=prog,
+        usage=_USAGE,
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("target", metavar="RUN_DIR|traj", help="a run directory, or 'traj'")
     p.add_argument("est", nargs="?", metavar="EST", help="(traj) the estimated trajectory")
-    p.add_argument("--ref", metavar="REF", help="(traj) reference trajectory file instead of "
-                   "--mocap (TUM, EuRoC/ASL CSV, KITTI)")
-    p.add_argument("--format", default="auto", choices=("auto", "tum", "euroc", "kitti"),
-                   help="(traj) format of EST (default: detected)")
-    p.add_argument("--ref-format", default="auto", choices=("auto", "tum", "euroc", "kitti"),
-                   help="(traj) format of REF (default: detected)")
-    p.add_argument("--quat-order", choices=("xyzw", "wxyz"),
-                   help="(traj) quaternion order of EST when the format does not say")
-    p.add_argument("--ref-quat-order", choices=("xyzw", "wxyz"),
-                   help="(traj) quaternion order of REF when the format does not say")
-    p.add_argument("--topic", metavar="TOPIC",
-                   help="(traj) EST is a ROS 1/2 bag: read this pose topic (Odometry, "
-                        "PoseStamped, PoseWithCovarianceStamped)")
-    p.add_argument("--ref-topic", metavar="TOPIC",
-                   help="(traj) REF is a bag: read this pose topic")
-    p.add_argument("--kitti-rate-hz", type=float, default=10.0,
-                   help="(traj) pose rate of KITTI files, which have no stamps (default 10)")
+    p.add_argument(
+        "--ref",
+        metavar="REF",
+        help="(traj) reference trajectory file instead of --mocap (TUM, EuRoC/ASL CSV, KITTI)",
+    )
+    p.add_argument(
+        "--format",
+        default="auto",
+        choices=("auto", "tum", "euroc", "kitti"),
+        help="(traj) format of EST (default: detected)",
+    )
+    p.add_argument(
+        "--ref-format",
+        default="auto",
+        choices=("auto", "tum", "euroc", "kitti"),
+        help="(traj) format of REF (default: detected)",
+    )
+    p.add_argument(
+        "--quat-order",
+        choices=("xyzw", "wxyz"),
+        help="(traj) quaternion order of EST when the format does not say",
+    )
+    p.add_argument(
+        "--ref-quat-order",
+        choices=("xyzw", "wxyz"),
+        help="(traj) quaternion order of REF when the format does not say",
+    )
+    p.add_argument(
+        "--topic",
+        metavar="TOPIC",
+        help="(traj) EST is a ROS 1/2 bag: read this pose topic (Odometry, "
+        "PoseStamped, PoseWithCovarianceStamped)",
+    )
+    p.add_argument("--ref-topic", metavar="TOPIC", help="(traj) REF is a bag: read this pose topic")
+    p.add_argument(
+        "--kitti-rate-hz",
+        type=float,
+        default=10.0,
+        help="(traj) pose rate of KITTI files, which have no stamps (default 10)",
+    )
     p.add_argument("--plot", metavar="FILE.png", help="(traj) write a top view + error plot")
-    p.add_argument("--save-results", metavar="FILE.zip",
-                   help="(traj) write an evo results file (evo_res reads it)")
+    p.add_argument(
+        "--save-results",
+        metavar="FILE.zip",
+        help="(traj) write an evo results file (evo_res reads it)",
+    )
     p.add_argument("--mocap", metavar="FILE.csv", help="Motive CSV export (default: the run's)")
     p.add_argument("--body", metavar="NAME", help="(traj) Motive rigid body to compare with")
-    p.add_argument("--align", choices=("paper", "se3", "sim3", "yaw", "none"),
-                   help="alignment (default: paper for a run, se3 for traj)")
-    p.add_argument("--time-offset", type=float, metavar="S",
-                   help="t_mocap - t_est in seconds (default: mission.yaml or estimated)")
-    p.add_argument("--T-body-marker", type=float, nargs=7, default=None,
-                   metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
-                   help="(traj) the rigid body's pivot in the estimate's body frame "
-                        "(default identity; for a run it comes from mission.yaml)")
-    p.add_argument("--up-axis", choices=("y", "z"), default=None,
-                   help="(traj) vertical axis of the Motive export (default y, Motive's)")
-    p.add_argument("--max-gap", type=float, default=0.1, metavar="S",
-                   help="longest mocap occlusion interpolated across (default 0.1 s)")
-    p.add_argument("--rpe-delta", type=float, default=1.0, metavar="S",
-                   help="pose spacing of the relative pose error (default 1 s)")
+    p.add_argument(
+        "--align",
+        choices=("paper", "se3", "sim3", "yaw", "none"),
+        help="alignment (default: paper for a run, se3 for traj)",
+    )
+    p.add_argument(
+        "--time-offset",
+        type=float,
+        metavar="S",
+        help="t_mocap - t_est in seconds (default: mission.yaml or estimated)",
+    )
+    p.add_argument(
+        "--T-body-marker",
+        type=float,
+        nargs=7,
+        default=None,
+        metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+        help="(traj) the rigid body's pivot in the estimate's body frame "
+        "(default identity; for a run it comes from mission.yaml)",
+    )
+    p.add_argument(
+        "--up-axis",
+        choices=("y", "z"),
+        default=None,
+        help="(traj) vertical axis of the Motive export (default y, Motive's)",
+    )
+    p.add_argument(
+        "--max-gap",
+        type=float,
+        default=0.1,
+        metavar="S",
+        help="longest mocap occlusion interpolated across (default 0.1 s)",
+    )
+    p.add_argument(
+        "--rpe-delta",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="pose spacing of the relative pose error (default 1 s)",
+    )
     p.add_argument("-o", "--out", metavar="DIR", help="(run) where to write (default RUN_DIR/eval)")
     p.add_argument("--no-plots", action="store_true", help="(run) skip the PNG plots")
-    p.add_argument("--no-centralized", action="store_true",
-                   help="(run) do not solve merged.g2o centrally (no SR_ATE / SR_cost)")
+    p.add_argument(
+        "--no-centralized",
+        action="store_true",
+        help="(run) do not solve merged.g2o centrally (no SR_ATE / SR_cost)",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     return p
 
@@ -115,8 +174,9 @@ def _T_body_marker(args):
 
     v = np.array(args.T_body_marker)
     if abs(np.linalg.norm(v[3:]) - 1.0) > 1e-3:
-        raise InputError(f"--T-body-marker: expected a unit quaternion, got norm "
-                         f"{np.linalg.norm(v[3:]):.6f}")
+        raise InputError(
+            f"--T-body-marker: expected a unit quaternion, got norm {np.linalg.norm(v[3:]):.6f}"
+        )
     return geo.se3_from_xyz_quat_xyzw(v)
 
 
@@ -132,8 +192,9 @@ def _run_traj(args: argparse.Namespace) -> int:
 
         est = read_bag_trajectory(args.est, args.topic)
     else:
-        est = read_trajectory(args.est, args.format, quat_order=args.quat_order,
-                              kitti_rate_hz=args.kitti_rate_hz)
+        est = read_trajectory(
+            args.est, args.format, quat_order=args.quat_order, kitti_rate_hz=args.kitti_rate_hz
+        )
     found = _run_of(Path(args.est))
     mocap, body, up = args.mocap, args.body, args.up_axis
     T_bm = _T_body_marker(args) if args.T_body_marker is not None else None
@@ -144,8 +205,11 @@ def _run_traj(args: argparse.Namespace) -> int:
         body = body or robot.mocap_body
         up = up or run.mission.mocap_up_axis
         T_bm = T_bm if T_bm is not None else robot.T_body_marker
-        own = (mocap is not None and run.mocap_path is not None
-               and Path(mocap).resolve() == run.mocap_path.resolve())
+        own = (
+            mocap is not None
+            and run.mocap_path is not None
+            and Path(mocap).resolve() == run.mocap_path.resolve()
+        )
         if offset is None and run.mission.mocap_start_ns is not None and own:
             offset = -run.mission.mocap_start_ns * 1e-9
             offset_src = "mission.yaml mocap.start_ns"
@@ -158,23 +222,40 @@ def _run_traj(args: argparse.Namespace) -> int:
 
             r = read_bag_trajectory(args.ref, args.ref_topic)
         else:
-            r = read_trajectory(args.ref, args.ref_format, quat_order=args.ref_quat_order,
-                                kitti_rate_hz=args.kitti_rate_hz)
+            r = read_trajectory(
+                args.ref,
+                args.ref_format,
+                quat_order=args.ref_quat_order,
+                kitti_rate_hz=args.kitti_rate_hz,
+            )
         ref = (r.stamps_s, r.T)
         ref_name, ref_how = Path(args.ref).stem, f"{r.format} ({r.how})"
     else:
         if not mocap or not body:
-            raise InputError("eval traj: expected --mocap FILE.csv and --body NAME, or --ref "
-                             "REF (or a trajectory inside a run: RUN/out/<robot>/<robot>.tum)")
+            raise InputError(
+                "eval traj: expected --mocap FILE.csv and --body NAME, or --ref "
+                "REF (or a trajectory inside a run: RUN/out/<robot>/<robot>.tum)"
+            )
         if est.format == "kitti" and not est.has_stamps:
-            raise InputError("eval traj: KITTI poses have no stamps; compare them with --ref "
-                             "(also KITTI) or convert them with stamps first")
+            raise InputError(
+                "eval traj: KITTI poses have no stamps; compare them with --ref "
+                "(also KITTI) or convert them with stamps first"
+            )
         take = motive.read_motive_csv(mocap, up_axis=up or "y")
         ref_name, ref_how = body, f"Motive CSV {mocap}"
     traj = evaluate_trajectory(
-        est.stamps_s, est.T, take, body, T_body_marker=T_bm, align_kind=args.align or "se3",
-        time_offset_s=offset, time_offset_source=offset_src, max_gap_s=args.max_gap,
-        rpe_delta_s=args.rpe_delta, reference=ref)
+        est.stamps_s,
+        est.T,
+        take,
+        body,
+        T_body_marker=T_bm,
+        align_kind=args.align or "se3",
+        time_offset_s=offset,
+        time_offset_source=offset_src,
+        max_gap_s=args.max_gap,
+        rpe_delta_s=args.rpe_delta,
+        reference=ref,
+    )
     est_name = Path(args.est).stem
     written = []
     if args.save_results:
@@ -188,8 +269,12 @@ def _run_traj(args: argparse.Namespace) -> int:
     from dran_edge.evaluation.report import json_safe
 
     res = json_safe(dict(traj.result))
-    res["estimate"] = {"path": args.est, "format": est.format, "quat_order": est.quat_order,
-                       "how": est.how}
+    res["estimate"] = {
+        "path": args.est,
+        "format": est.format,
+        "quat_order": est.quat_order,
+        "how": est.how,
+    }
     res["reference"] = ref_how
     _print_traj(args, est, ref_how, res, written)
     return 0
@@ -203,16 +288,27 @@ def _print_traj(args, est, ref_how: str, res: dict, written: list) -> None:
     print(f"{'reference':<20}{ref_how}")
     if res["positions_only"]:
         print(f"{'note':<20}the estimate has no orientations (all identity): positions only")
-    keys = ("ate_rmse_m", "ate_max_m", "ate_mean_m", "ate_median_m", "ate_rot_rmse_deg",
-            "ate_log_rmse", "matched_poses", "estimated_poses", "time_offset_s",
-            "time_offset_source")
+    keys = (
+        "ate_rmse_m",
+        "ate_max_m",
+        "ate_mean_m",
+        "ate_median_m",
+        "ate_rot_rmse_deg",
+        "ate_log_rmse",
+        "matched_poses",
+        "estimated_poses",
+        "time_offset_s",
+        "time_offset_source",
+    )
     for k in keys:
         v = res[k]
         print(f"{k:<20}{v:.6f}" if isinstance(v, float) else f"{k:<20}{v}")
     print(f"{'align':<20}{res['align']['kind']} (scale {res['align']['scale']:.6f})")
     rpe = res["rpe"]
-    print(f"{'rpe_trans_rmse_m':<20}{rpe['trans_rmse_m']:.6f}  (delta {rpe['delta_s']} s, "
-          f"{rpe['pairs']} pairs)")
+    print(
+        f"{'rpe_trans_rmse_m':<20}{rpe['trans_rmse_m']:.6f}  (delta {rpe['delta_s']} s, "
+        f"{rpe['pairs']} pairs)"
+    )
     for p in written:
         print(f"{'wrote':<20}{p}")
 
@@ -221,12 +317,19 @@ def _run_dir(args: argparse.Namespace) -> int:
     from dran_edge.evaluation import score as evaluate
 
     if args.est:
-        raise InputError(f"eval RUN_DIR takes no second argument, got {args.est!r} (did you "
-                         "mean 'eval traj EST'?)")
+        raise InputError(
+            f"eval RUN_DIR takes no second argument, got {args.est!r} (did you "
+            "mean 'eval traj EST'?)"
+        )
     opt = evaluate.EvalOptions(
-        align=args.align or "paper", mocap_path=args.mocap, time_offset_s=args.time_offset,
-        max_gap_s=args.max_gap, rpe_delta_s=args.rpe_delta, centralized=not args.no_centralized,
-        plots=not args.no_plots)
+        align=args.align or "paper",
+        mocap_path=args.mocap,
+        time_offset_s=args.time_offset,
+        max_gap_s=args.max_gap,
+        rpe_delta_s=args.rpe_delta,
+        centralized=not args.no_centralized,
+        plots=not args.no_plots,
+    )
     print(f"evaluating {args.target} ...", file=sys.stderr)
     evaluation = evaluate.evaluate_run(args.target, opt)
     out = Path(args.out) if args.out else Path(args.target) / "eval"

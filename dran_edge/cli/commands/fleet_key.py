@@ -46,13 +46,24 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     chk.add_argument("path", metavar="PATH", help="the key file")
     pair = sub.add_parser("pair", help="write a robot's Ed25519 key pair (PATH, PATH.pub)")
     pair.add_argument("path", metavar="PATH", help="the secret key file to create")
-    pair.add_argument("--robot-id", type=int, required=True, metavar="N",
-                      help="the robot's id (robot.id of its config)")
+    pair.add_argument(
+        "--robot-id",
+        type=int,
+        required=True,
+        metavar="N",
+        help="the robot's id (robot.id of its config)",
+    )
     exp = sub.add_parser("export", help="write the fleet's public-key file from .pub files")
     exp.add_argument("out", metavar="OUT", help="the fleet public-key file to write")
-    exp.add_argument("--fleet", required=True, metavar="NAME", help="the fleet's name (robot.fleet)")
-    exp.add_argument("inputs", nargs="+", metavar="PUB_OR_DIR",
-                     help="robots' .pub files, or directories holding them")
+    exp.add_argument(
+        "--fleet", required=True, metavar="NAME", help="the fleet's name (robot.fleet)"
+    )
+    exp.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="PUB_OR_DIR",
+        help="robots' .pub files, or directories holding them",
+    )
     return parser
 
 
@@ -70,8 +81,9 @@ def _check(path: str) -> str:
         raise ConfigError(f"cannot read the key file: {exc.strerror}", path=path) from None
     if "public_keys:" in text:
         fleet, table = keys.load_fleet_public_keys(path)
-        rows = ", ".join(f"{rid}: {len(ks)} key{'s' * (len(ks) > 1)}"
-                         for rid, ks in sorted(table.items()))
+        rows = ", ".join(
+            f"{rid}: {len(ks)} key{'s' * (len(ks) > 1)}" for rid, ks in sorted(table.items())
+        )
         return f"ok {path}: fleet {fleet!r} public keys of {len(table)} robots ({rows})"
     if "public_key:" in text:
         rid, public = keys.load_public_key_file(path)
@@ -109,8 +121,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.path}: {len(key)}-byte key, fingerprint {_fingerprint(key)}")
     elif args.action == "pair":
         public = keys.write_robot_key(args.path, args.robot_id)
-        print(f"wrote {args.path} (secret, mode 0600) and {keys.public_key_path(args.path)}: "
-              f"robot {args.robot_id}'s public key {public.hex()}")
+        print(
+            f"wrote {args.path} (secret, mode 0600) and {keys.public_key_path(args.path)}: "
+            f"robot {args.robot_id}'s public key {public.hex()}"
+        )
     elif args.action == "export":
         print(_export(args.out, args.fleet, args.inputs))
     else:

@@ -22,33 +22,73 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (docs/run-format.md)")
-    p.add_argument("--transport", choices=("bus", "udp"), default="bus",
-                   help="in-process bus with a network model (default) or loopback UDP")
-    p.add_argument("--loss", type=float, default=0.0,
-                   help="bus: probability that a datagram is lost (default 0)")
-    p.add_argument("--latency", type=int, default=1, metavar="ROUNDS",
-                   help="bus: rounds between send and delivery (default 1)")
-    p.add_argument("--partition", action="append", default=[], metavar="IDS:START_S:END_S",
-                   help="bus: cut robots IDS (comma-separated) off from the others between two "
-                        "mission times, e.g. 3,4:30:60 (repeatable)")
-    p.add_argument("--speed", type=float, default=0.0, metavar="X",
-                   help="pace the replay at X times real time (default: as fast as possible)")
-    p.add_argument("--settle-rounds", type=int, default=20,
-                   help="extra rounds after the recorded data ends (default 20)")
-    p.add_argument("--workers", type=int, default=None,
-                   help="perception worker processes (default: one per core)")
-    p.add_argument("--redetect", action="store_true",
-                   help="ignore the tag observations recorded in ingest.bin and run perception "
-                        "on the recorded frames again (results may differ slightly across CPU "
-                        "architectures; the recorded ones are the same everywhere)")
-    p.add_argument("--loss-seed", type=int, default=0,
-                   help="seed of the bus loss model (default 0); --seed is the simulation's "
-                        "seed in 'simulate' and 'demo'")
-    p.add_argument("--no-eval", action="store_true",
-                   help="do not score against the run's mocap")
-    p.add_argument("--mcap", metavar="FILE",
-                   help="also write the outputs and the mocap ground truth as an MCAP file for "
-                        "Foxglove (docs/viz.md; needs foxglove-sdk)")
+    p.add_argument(
+        "--transport",
+        choices=("bus", "udp"),
+        default="bus",
+        help="in-process bus with a network model (default) or loopback UDP",
+    )
+    p.add_argument(
+        "--loss",
+        type=float,
+        default=0.0,
+        help="bus: probability that a datagram is lost (default 0)",
+    )
+    p.add_argument(
+        "--latency",
+        type=int,
+        default=1,
+        metavar="ROUNDS",
+        help="bus: rounds between send and delivery (default 1)",
+    )
+    p.add_argument(
+        "--partition",
+        action="append",
+        default=[],
+        metavar="IDS:START_S:END_S",
+        help="bus: cut robots IDS (comma-separated) off from the others between two "
+        "mission times, e.g. 3,4:30:60 (repeatable)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=0.0,
+        metavar="X",
+        help="pace the replay at X times real time (default: as fast as possible)",
+    )
+    p.add_argument(
+        "--settle-rounds",
+        type=int,
+        default=20,
+        help="extra rounds after the recorded data ends (default 20)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="perception worker processes (default: one per core)",
+    )
+    p.add_argument(
+        "--redetect",
+        action="store_true",
+        help="ignore the tag observations recorded in ingest.bin and run perception "
+        "on the recorded frames again (results may differ slightly across CPU "
+        "architectures; the recorded ones are the same everywhere)",
+    )
+    p.add_argument(
+        "--loss-seed",
+        type=int,
+        default=0,
+        help="seed of the bus loss model (default 0); --seed is the simulation's "
+        "seed in 'simulate' and 'demo'",
+    )
+    p.add_argument("--no-eval", action="store_true", help="do not score against the run's mocap")
+    p.add_argument(
+        "--mcap",
+        metavar="FILE",
+        help="also write the outputs and the mocap ground truth as an MCAP file for "
+        "Foxglove (docs/viz.md; needs foxglove-sdk)",
+    )
     p.add_argument("--json", action="store_true", help="print report.json instead of a summary")
     return p
 
@@ -71,10 +111,17 @@ def run(args: argparse.Namespace) -> int:
     from dran_edge.replay.run import PartitionSpec, ReplayOptions, replay_run
 
     opt = ReplayOptions(
-        transport=args.transport, loss=args.loss, latency_rounds=args.latency,
-        partitions=tuple(PartitionSpec.parse(p) for p in args.partition), speed=args.speed,
-        settle_rounds=args.settle_rounds, workers=args.workers, seed=args.loss_seed,
-        evaluate=not args.no_eval, redetect=args.redetect)
+        transport=args.transport,
+        loss=args.loss,
+        latency_rounds=args.latency,
+        partitions=tuple(PartitionSpec.parse(p) for p in args.partition),
+        speed=args.speed,
+        settle_rounds=args.settle_rounds,
+        workers=args.workers,
+        seed=args.loss_seed,
+        evaluate=not args.no_eval,
+        redetect=args.redetect,
+    )
     from dran_edge.cli.progress import ProgressBar, note
 
     res = replay_run(args.run_dir, opt, progress=ProgressBar())
@@ -87,17 +134,21 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
-    print(f"replayed {r['robots']} robots, {r['mission_s']:g} s mission in "
-          f"{r['replay_wall_s']:.1f} s ({_fmt(r.get('realtime_factor'), '.1f')}x real time) over "
-          f"{r['transport']}: {r['rounds']} rounds, {r['bytes_total'] / 1e6:.3f} MB sent, "
-          f"{r['frames_processed']} frames, {r['observations']} tag observations "
-          f"({_sources(r.get('observation_sources', {}))})")
+    print(
+        f"replayed {r['robots']} robots, {r['mission_s']:g} s mission in "
+        f"{r['replay_wall_s']:.1f} s ({_fmt(r.get('realtime_factor'), '.1f')}x real time) over "
+        f"{r['transport']}: {r['rounds']} rounds, {r['bytes_total'] / 1e6:.3f} MB sent, "
+        f"{r['frames_processed']} frames, {r['observations']} tag observations "
+        f"({_sources(r.get('observation_sources', {}))})"
+    )
     if "sr_ate" in r:
-        print(f"SR_ATE {_fmt(r.get('sr_ate'), '.1f')} %   SR_cost {_fmt(r.get('sr_cost'), '.1f')} %"
-              f"   ATE/ATE* {_fmt(r.get('ate_over_atestar'), '.3f')}"
-              f"   F/F* {_fmt(r.get('f_over_fstar'), '.4f')}"
-              f"   ATE {_fmt(r.get('ate_m'), '.3f')} m   CE {_fmt(r.get('ce'), '.4f')}"
-              f"   Bias {_fmt(r.get('bias'), '.4f')}")
+        print(
+            f"SR_ATE {_fmt(r.get('sr_ate'), '.1f')} %   SR_cost {_fmt(r.get('sr_cost'), '.1f')} %"
+            f"   ATE/ATE* {_fmt(r.get('ate_over_atestar'), '.3f')}"
+            f"   F/F* {_fmt(r.get('f_over_fstar'), '.4f')}"
+            f"   ATE {_fmt(r.get('ate_m'), '.3f')} m   CE {_fmt(r.get('ce'), '.4f')}"
+            f"   Bias {_fmt(r.get('bias'), '.4f')}"
+        )
     elif "evaluation_error" in r:
         print(f"evaluation: {r['evaluation_error']}")
     if r.get("ingest_rejected"):

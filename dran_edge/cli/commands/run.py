@@ -20,14 +20,22 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
             "keeps its checkpoint in $STATE_DIRECTORY. Stop it with SIGTERM or Ctrl-C."
         ),
     )
-    p.add_argument("--config", required=True, metavar="ROBOT.yaml",
-                   help="the robot's config file (docs/config.md)")
-    p.add_argument("--record", metavar="DIR",
-                   help="also write the consumed inputs as a recorded run into DIR "
-                        "(robots/<name>/robot.yaml + ingest.bin, and mission.yaml at exit; "
-                        "docs/run-format.md)")
-    p.add_argument("--max-rounds", type=int, default=None, metavar="N",
-                   help="stop after N rounds (testing)")
+    p.add_argument(
+        "--config",
+        required=True,
+        metavar="ROBOT.yaml",
+        help="the robot's config file (docs/config.md)",
+    )
+    p.add_argument(
+        "--record",
+        metavar="DIR",
+        help="also write the consumed inputs as a recorded run into DIR "
+        "(robots/<name>/robot.yaml + ingest.bin, and mission.yaml at exit; "
+        "docs/run-format.md)",
+    )
+    p.add_argument(
+        "--max-rounds", type=int, default=None, metavar="N", help="stop after N rounds (testing)"
+    )
     return p
 
 
@@ -47,8 +55,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(args.config)
     except ConfigError as exc:
-        raise ConfigError(f"{exc} (every problem at once: dran-edge check-config "
-                          f"{args.config})") from None
+        raise ConfigError(
+            f"{exc} (every problem at once: dran-edge check-config {args.config})"
+        ) from None
     level = logging.getLogger().level or logging.INFO
     where = setup_logging(min(level, logging.INFO))
     logging.getLogger(__name__).info("logging to %s", where)

@@ -24,7 +24,8 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     )
     parser.add_argument("input", metavar="IN.g2o", help="the pose graph to optimise")
     parser.add_argument(
-        "-o", "--out",
+        "-o",
+        "--out",
         metavar="OUT.g2o",
         required=True,
         help="where to write the optimised graph (same format as the input)",

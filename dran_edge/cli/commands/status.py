@@ -15,7 +15,7 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=prog,
         description="Connect to the daemon's status socket and print its health. The socket is "
-                    "<runtime dir>/status.sock (/run/dran-edge/status.sock under systemd).",
+        "<runtime dir>/status.sock (/run/dran-edge/status.sock under systemd).",
     )
     p.add_argument("--config", metavar="ROBOT.yaml", help="find the socket from this config")
     p.add_argument("--socket", metavar="PATH", help="the status socket path")
@@ -52,25 +52,32 @@ def format_status(st: dict) -> str:
         for peer, n in nbrs.items():
             lines.append(_neighbour_line(peer, n))
     else:
-        lines.append("neighbours none configured" if st.get("transport")
-                     else "neighbours none (no radio: comms.transport none)")
+        lines.append(
+            "neighbours none configured"
+            if st.get("transport")
+            else "neighbours none (no radio: comms.transport none)"
+        )
     t = st.get("transport") or {}
     if t:
-        lines.append("transport  " + "  ".join(f"{k} {v}" for k, v in t.items()
-                                                 if k != "neighbours"))
+        lines.append(
+            "transport  " + "  ".join(f"{k} {v}" for k, v in t.items() if k != "neighbours")
+        )
     ing = st.get("ingest")
     if ing:
         rej = ing.get("rejected_by_reason") or {}
-        lines.append(f"ingest     records {ing.get('records', 0)}  bytes {ing.get('bytes', 0)}"
-                     f"  frames {ing.get('frames', 0)}  rejected {ing.get('rejected', 0)}"
-                     + (" (" + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())) + ")"
-                        if rej else ""))
+        lines.append(
+            f"ingest     records {ing.get('records', 0)}  bytes {ing.get('bytes', 0)}"
+            f"  frames {ing.get('frames', 0)}  rejected {ing.get('rejected', 0)}"
+            + (" (" + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())) + ")" if rej else "")
+        )
     else:
         lines.append("ingest     off")
     q = st.get("queues", {})
-    lines.append(f"queues     observations dropped {q.get('observations_dropped', 0)}"
-                 f"  frames dropped {q.get('frames_dropped', 0)}"
-                 f"  journal pending {st.get('journal', {}).get('pending', 0)}")
+    lines.append(
+        f"queues     observations dropped {q.get('observations_dropped', 0)}"
+        f"  frames dropped {q.get('frames_dropped', 0)}"
+        f"  journal pending {st.get('journal', {}).get('pending', 0)}"
+    )
     lines.append(f"systemd    {st.get('systemd')}")
     return "\n".join(lines)
 
