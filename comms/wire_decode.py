@@ -65,6 +65,7 @@ class _Ids:
 
 def _walk_ids(data: bytes, h: Header) -> _Ids:
     """Parse the id section and check the value block's length against the counts."""
+    # Long: the id section of docs/wire-format.md, one entry kind after the other.
     end = len(data) - h.trailer_bytes
     pos = h.body_offset
     P = pose_bytes(h.dim)

@@ -213,6 +213,7 @@ def estimate_tag_poses(
     """Poses of the detections ``det``; ``tag_size_m (n,)`` per detection, NaN for tags without a
     known size (rejected as ``unknown_tag``). ``image_size`` is ``(width, height)``; ``depth_mm``
     an aligned uint16 depth image in millimetres, or None."""
+    # Long: the per-tag pipeline (PnP, ambiguity, depth, covariance) in the order of docs/perception.md.
     p = params or TagPoseParams()
     n = len(det)
     size = np.asarray(tag_size_m, dtype=np.float64).reshape(n)

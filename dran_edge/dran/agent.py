@@ -43,6 +43,9 @@ association check, hop counts and provenance) is :mod:`dran_edge.dran.associatio
 (``Agent.objects``); the local pose graph of L̂_i is assembled by
 :mod:`dran_edge.dran.local_structure`; what the agent counts is an
 :class:`~dran_edge.dran.counters.AgentCounters`.
+
+Size: over ~500 lines because Algorithm 1 and its stopping tests (association, the local
+structure and the problem are in their own modules); over 500 only by ruff format's layout.
 """
 
 from __future__ import annotations

@@ -291,6 +291,8 @@ def refine_shares(
     the results is 2 Σ f_r), over ``tree`` (default: the BFS tree of the partition's robot
     graph); ``gauge`` < 0: no gauge vertex (priors fix it). A loop over gather → decide →
     scatter → retract, one pass per iteration, hence its length."""
+    # Long: one loop of the refinement protocol (gather, root decision, scatter, retract) whose
+    # steps share the per-robot state; each step is a few lines and commented.
     if params.mode not in ("auto", "always", "never"):
         raise ValueError(f"RefineParams.mode must be auto, always or never, got {params.mode!r}")
     poses = np.asarray(poses, np.float64)

@@ -53,6 +53,7 @@ def dgs_pose_stage(
     g, partition, poses: np.ndarray, kappa, tau, exchange, params: DGSParams, gauge: int = 0
 ) -> tuple[np.ndarray, int]:
     """Step 2 of the module docstring; returns (poses, sweeps)."""
+    # Long: one Gauss-Seidel sweep of the DGS baseline as its paper writes it.
     from dran_edge.solver.graph import PoseGraph, kinds_array
     from dran_edge.solver.lm import build_plan, linearize
     from dran_edge.solver.objective import edge_factors

@@ -118,6 +118,7 @@ def _look_along(direction: np.ndarray) -> np.ndarray:
 
 
 def make_scenario(params: SimParams = SimParams(), residual: str = "geodesic") -> Scenario:
+    # Long: the scenario generator as the paper's Sec. 6.2 describes it, step by step.
     rng = np.random.default_rng(params.seed)
     # Outliers draw from their own stream, so a scenario with outliers has exactly the
     # trajectories, odometry and observation noise of the same seed without them (the

@@ -241,6 +241,7 @@ def run_case(
     curve has a point where the root learnt F at each accepted point of the refinement, one at
     its end, then one per DRAN round, cut at ``rounds``), so the checkpoints and the 1 % / 0.1 %
     rounds and bytes compare like for like."""
+    # Long: one suite case's numbers gathered into one record (module docstring).
     from dran_edge.experiments.dgs import run_g2o_dgs
     from dran_edge.dran.dist_init import InitParams
     from dran_edge.experiments.fleet import TABLE1_DELTA_EVERY, run_g2o_dran, table1_setup

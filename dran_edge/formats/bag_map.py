@@ -215,6 +215,7 @@ def _robot(n: rd._Node, path: str, lines: dict) -> RobotMap:
 
 def read_mapping(path: str | Path) -> BagMapping:
     """Load and validate a bag mapping file (docs/bags.md)."""
+    # Long: the strict reader of one file format, one key check after the other (docs/bags.md).
     path = Path(path)
     data, lines = rd._yaml_with_lines(path)
     top = rd._Node(data if data is not None else {}, "", str(path), lines)

@@ -276,6 +276,8 @@ class IngestClient:
 
 # --------------------------------------------------------------------------- the node
 def main():
+    # Long: a standalone ROS 1 node (Python 3.8, no dran_edge imports) whose main wires the
+    # subscribers; kept flat so it reads as the launch it is.
     import rospy
     from nav_msgs.msg import Odometry
     from std_msgs.msg import Bool

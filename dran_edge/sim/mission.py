@@ -34,6 +34,9 @@ A mission is generated from :class:`SimParams` and one seed, deterministically:
 This module is pure numpy; the VIO, keyframe and loop models are in :mod:`dran_edge.sim.sensors`;
 :mod:`dran_edge.sim.writer` turns a :class:`Mission` into a run
 directory (frames rendered by the perception renderer, ingest records, Motive CSV).
+
+Size: over ~500 lines because the world and path generation (sensor models are in
+sim/sensors.py); over 500 only by ruff format's layout.
 """
 
 from __future__ import annotations

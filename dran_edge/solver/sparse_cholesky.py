@@ -29,6 +29,9 @@ flops than the minimum degree order on sphere2500 and torus3D; COLAMD and MMD on
 twice the flops.
 
 Python loops run over supernodes (hundreds), never over entries or poses.
+
+Size: over ~500 lines because one algorithm (symbolic analysis, supernode assembly and the
+numeric factorisation share their private layout), kept in one file on purpose.
 """
 
 from __future__ import annotations

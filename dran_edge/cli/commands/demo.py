@@ -46,6 +46,7 @@ def _is_demo_run(path: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Long: the demo's three stages with their printed summary, in the order a user reads them.
     import math
 
     from dran_edge.cli.progress import ProgressBar

@@ -45,6 +45,7 @@ turning), then 0 if the clocks overlap. The output says which. Metrics: docs/eva
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
+    # Long but flat: one add_argument per flag (the parser is the command's documentation).
     p = argparse.ArgumentParser(
         prog=prog,
         usage=_USAGE,
@@ -181,6 +182,7 @@ def _T_body_marker(args):
 
 
 def _run_traj(args: argparse.Namespace) -> int:
+    # Long: `eval traj`'s options -> readers -> alignment -> report, flat on purpose.
     from dran_edge.evaluation.traj_score import evaluate_trajectory
     from dran_edge.formats import motive
     from dran_edge.formats.trajectory import read_trajectory

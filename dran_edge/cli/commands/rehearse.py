@@ -9,6 +9,7 @@ HELP = "run a recorded mission through real daemons, one per robot, with faults"
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
+    # Long but flat: one add_argument per flag (the parser is the command's documentation).
     p = argparse.ArgumentParser(
         prog=prog,
         description=(

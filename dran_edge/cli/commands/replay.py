@@ -8,6 +8,7 @@ HELP = "replay a recorded run through the robot code"
 
 
 def build_parser(prog: str) -> argparse.ArgumentParser:
+    # Long but flat: one add_argument per flag (the parser is the command's documentation).
     p = argparse.ArgumentParser(
         prog=prog,
         description=(
