@@ -28,7 +28,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from dran_edge import geometry as geo
-from dran_edge.dran.dist_init import distributed_chordal_init
 from dran_edge.dran.linear_stage import greedy_colouring
 from dran_edge.messages import InitEntry, InitStage
 
@@ -159,39 +158,13 @@ def run_g2o_dgs(
     see ``Fleet``; ``initial_poses`` (diagnostics): run the pose stage from these instead of
     the distributed init, no init rounds or bytes; ``partition``: this split instead of the
     contiguous one)."""
-    from dran_edge.comms.bus import Bus, BusParams
-    from dran_edge.experiments.fleet import Fleet, default_init_params
-    from dran_edge.solver.objective import sesync_objective, sesync_weights
-    from dran_edge.dran.partition import partition_contiguous
+    from dran_edge.experiments.fleet import split_and_init
+    from dran_edge.solver.objective import sesync_objective
 
     t0 = time.perf_counter()
-    kappa, tau = sesync_weights(g.dim, g.information)
-    part = (
-        partition
-        if partition is not None
-        else partition_contiguous(g.edges, g.num_vertices, num_robots)
+    kappa, tau, part, fleet, start = split_and_init(
+        g, num_robots, partition, links, partitions, delta_every, initial_poses, init_params
     )
-    bus = Bus(
-        range(num_robots),
-        graph=part.neighbour_pairs(),
-        params=links or BusParams(),
-        partitions=partitions,
-    )
-    fleet = Fleet([], bus, delta_every=delta_every)
-    if initial_poses is not None:
-        start = np.asarray(initial_poses, np.float64).copy()
-    else:
-        start = distributed_chordal_init(
-            g.dim,
-            g.num_vertices,
-            g.edges,
-            g.measurements,
-            kappa,
-            tau,
-            part,
-            fleet.init_exchange,
-            init_params or default_init_params(links, partitions),
-        ).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     poses, sweeps = dgs_pose_stage(g, part, start, kappa, tau, fleet.init_exchange, params)
 

@@ -395,6 +395,53 @@ def _table1_agents(
     return agents
 
 
+def split_and_init(
+    g: G2oGraph,
+    num_robots: int,
+    partition: Partition | None,
+    links: BusParams | None,
+    partitions: Any,
+    delta_every: int,
+    initial_poses: np.ndarray | None,
+    init_params: Any,
+) -> tuple[np.ndarray, np.ndarray, Partition, Fleet, np.ndarray]:
+    """The set-up the g2o drivers share (DRAN here, DGS in ``experiments.dgs``): SE-Sync weights
+    (κ, τ), the split (``partition`` or the contiguous one), a fleet on the split's neighbour
+    graph, and the distributed chordal init over it (or ``initial_poses``, without init rounds
+    or bytes). Returns (kappa, tau, partition, fleet, initial poses)."""
+    from dran_edge.dran.dist_init import distributed_chordal_init
+    from dran_edge.dran.partition import partition_contiguous
+    from dran_edge.solver.objective import sesync_weights
+
+    kappa, tau = sesync_weights(g.dim, g.information)
+    part = (
+        partition
+        if partition is not None
+        else partition_contiguous(g.edges, g.num_vertices, num_robots)
+    )
+    bus = Bus(
+        range(num_robots),
+        graph=part.neighbour_pairs(),
+        params=links or BusParams(),
+        partitions=partitions,
+    )
+    fleet = Fleet([], bus, delta_every=delta_every)
+    if initial_poses is not None:
+        return kappa, tau, part, fleet, np.asarray(initial_poses, np.float64).copy()
+    init = distributed_chordal_init(
+        g.dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        kappa,
+        tau,
+        part,
+        fleet.init_exchange,
+        init_params or default_init_params(links, partitions),
+    )
+    return kappa, tau, part, fleet, init.poses
+
+
 def run_g2o_dran(
     g,
     num_robots: int,
@@ -429,40 +476,15 @@ def run_g2o_dran(
     test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
     (``stopped_by`` "refine")."""
     # Long: the Table 1 protocol in order (split, init, refinement, agents, rounds, record).
-    from dran_edge.dran.dist_init import distributed_chordal_init
     from dran_edge.dran.linear_stage import greedy_colouring
-    from dran_edge.solver.objective import sesync_objective, sesync_weights
-    from dran_edge.dran.partition import partition_contiguous
+    from dran_edge.solver.objective import sesync_objective
 
     t_start = time.perf_counter()
-    kappa, tau = sesync_weights(g.dim, g.information)
-    part = (
-        partition
-        if partition is not None
-        else partition_contiguous(g.edges, g.num_vertices, num_robots)
+    kappa, tau, part, fleet, init_poses = split_and_init(
+        g, num_robots, partition, links, partitions, delta_every, initial_poses, init_params
     )
-    bus = Bus(
-        range(num_robots),
-        graph=part.neighbour_pairs(),
-        params=links or BusParams(),
-        partitions=partitions,
-    )
+    bus = fleet.bus
     W = neighbour_weights(bus)
-    fleet = Fleet([], bus, delta_every=delta_every)
-    if initial_poses is not None:
-        init_poses = np.asarray(initial_poses, np.float64).copy()
-    else:
-        init_poses = distributed_chordal_init(
-            g.dim,
-            g.num_vertices,
-            g.edges,
-            g.measurements,
-            kappa,
-            tau,
-            part,
-            fleet.init_exchange,
-            init_params or default_init_params(links, partitions),
-        ).poses
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init_poses)
