@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
@@ -12,6 +11,7 @@ from pathlib import Path
 
 import yaml
 
+from dran_edge.daemon.notify import environ_without_systemd
 from dran_edge.daemon.status import query_status
 
 
@@ -80,20 +80,7 @@ class NotifyListener:
 
 
 def start_daemon(config: Path, env_extra: dict, cwd: Path | None = None) -> subprocess.Popen:
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if k
-        not in (
-            "NOTIFY_SOCKET",
-            "WATCHDOG_USEC",
-            "WATCHDOG_PID",
-            "STATE_DIRECTORY",
-            "RUNTIME_DIRECTORY",
-            "INVOCATION_ID",
-            "JOURNAL_STREAM",
-        )
-    }
+    env = environ_without_systemd()
     env.update(env_extra)
     return subprocess.Popen(
         [sys.executable, "-m", "dran_edge.cli.app", "-v", "run", "--config", str(config)],

@@ -22,6 +22,28 @@ from collections.abc import Mapping
 log = logging.getLogger(__name__)
 
 
+#: What systemd hands one service process (notify socket, watchdog, directories, socket
+#: activation, journal): a daemon started by another process (rehearsal, tests) must not inherit
+#: them from its parent.
+SYSTEMD_SERVICE_ENV = (
+    "NOTIFY_SOCKET",
+    "WATCHDOG_USEC",
+    "WATCHDOG_PID",
+    "STATE_DIRECTORY",
+    "RUNTIME_DIRECTORY",
+    "INVOCATION_ID",
+    "JOURNAL_STREAM",
+    "LISTEN_FDS",
+)
+
+
+def environ_without_systemd(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``environ`` (default: this process's) without :data:`SYSTEMD_SERVICE_ENV`: the
+    environment for a ``dran-edge run`` child that is not itself a systemd service."""
+    source = os.environ if environ is None else environ
+    return {k: v for k, v in source.items() if k not in SYSTEMD_SERVICE_ENV}
+
+
 def _own_notify(message: str, path: str) -> bool:
     addr = "\0" + path[1:] if path.startswith("@") else path
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)

@@ -52,6 +52,7 @@ from dran_edge.formats import run_dir as rd
 from dran_edge.errors import DranError, InputError
 from dran_edge.rehearsal import faults as fl
 from dran_edge.comms.drop_hook import write_rules
+from dran_edge.daemon.notify import environ_without_systemd
 from dran_edge.rehearsal.clock import clock_env, clock_step, find_faketime, write_faketime
 from dran_edge.rehearsal.netns import make_net
 from dran_edge.rehearsal.report import RehearsalResult, finish, round_row, sample
@@ -203,21 +204,7 @@ class Fleet:
 
     # -------------------------------------------------------------------- processes
     def start(self, d: RobotDaemon) -> None:
-        env = {
-            k: v
-            for k, v in os.environ.items()
-            if k
-            not in (
-                "NOTIFY_SOCKET",
-                "WATCHDOG_USEC",
-                "WATCHDOG_PID",
-                "STATE_DIRECTORY",
-                "RUNTIME_DIRECTORY",
-                "INVOCATION_ID",
-                "JOURNAL_STREAM",
-                "LISTEN_FDS",
-            )
-        }
+        env = environ_without_systemd()
         env["DRAN_EDGE_DROP_FILE"] = str(d.drop_file)
         env["OPENBLAS_NUM_THREADS"] = "1"
         env.update(clock_env(d))
