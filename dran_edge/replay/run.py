@@ -26,14 +26,17 @@
    loopback replay without loss gives the bus's numbers.
 4. **Outputs** in ``RUN/out/`` (docs/run-format.md): per-robot TUM trajectories (final and
    initial), object maps, ``merged.g2o`` + ``merged_vertices.csv``, ``rounds.csv`` and
-   ``report.json``; with mocap, the metrics of :mod:`dran_edge.evaluation.score`.
+   ``report.json``; with mocap, the metrics of :mod:`dran_edge.evaluation.score`. Every
+   ``cost_every`` rounds and at the last, the costs of the merged graph as it stands (SR_cost
+   per round, :mod:`dran_edge.replay.round_costs`).
 
 Nothing here reads a clock except to report the wall time and, with ``speed > 0``, to pace
 rounds (``speed`` = times real time). Same run, same options -> same numbers.
 
 This module holds the options, the round loop, the report and the golden-summary comparison;
 perception in :mod:`dran_edge.replay.perception`, the robots in :mod:`dran_edge.replay.robots`,
-the files of ``out/`` in :mod:`dran_edge.replay.outputs` and :mod:`dran_edge.replay.merged_g2o`.
+the files of ``out/`` in :mod:`dran_edge.replay.outputs` and :mod:`dran_edge.replay.merged_g2o`,
+the per-round costs in :mod:`dran_edge.replay.round_costs`.
 
 Size: over ~500 lines because the replay loop and its options (perception, outputs and
 merged.g2o are in their own modules); over 500 only by ruff format's layout.
