@@ -148,7 +148,10 @@ def _cost_report(cost: dict[str, Any], replay_report: dict[str, Any]) -> dict[st
         and not isinstance(replay_report.get(k_rep), bool)
     }
     if not cost and replay_cost:
-        cost = {"source": "out/report.json (cost_init / cost_final / cost_centralized)", **replay_cost}
+        cost = {
+            "source": "out/report.json (cost_init / cost_final / cost_centralized)",
+            **replay_cost,
+        }
     if all(cost.get(k) is not None for k in ("F_init", "F_k", "F_star")):
         cost["sr_cost_pct"] = metrics.sr_cost(cost["F_init"], cost["F_k"], cost["F_star"])
     if cost.get("F_k") is not None and cost.get("F_star") is not None:
@@ -156,7 +159,7 @@ def _cost_report(cost: dict[str, Any], replay_report: dict[str, Any]) -> dict[st
     return cost
 
 
-def _round_costs(replay_report: dict[str, Any]) -> dict[str, np.ndarray] | None:
+def _round_costs(replay_report: dict[str, Any], path: Path) -> dict[str, np.ndarray] | None:
     """report.json's ``round_costs`` as float arrays (None -> NaN), SR_cost and F/F* computed
     from its F_init, F_k and F_star; None when the replay sampled none."""
     rc = replay_report.get("round_costs")
@@ -170,10 +173,10 @@ def _round_costs(replay_report: dict[str, Any]) -> dict[str, np.ndarray] | None:
     except (KeyError, TypeError, ValueError):
         raise InputError(
             "round_costs: expected lists round, F_init, F_k, F_star of numbers",
-            path="out/report.json",
+            path=str(path),
         ) from None
     if len({len(v) for v in out.values()}) != 1:
-        raise InputError("round_costs: lists of different lengths", path="out/report.json")
+        raise InputError("round_costs: lists of different lengths", path=str(path))
     out["sr_cost_pct"] = np.asarray(metrics.sr_cost(out["F_init"], out["F_k"], out["F_star"]))
     out["f_over_fstar"] = np.asarray(metrics.cost_ratio(out["F_k"], out["F_star"]))
     return out
@@ -413,7 +416,7 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     cost = _centralized(run_dir, robots, opt, notes)
     replay_report = read_replay_report(out_dir)
     cost = _cost_report(cost, replay_report)
-    round_costs = _round_costs(replay_report)
+    round_costs = _round_costs(replay_report, out_dir / "report.json")
     rounds = read_rounds_csv(out_dir / "rounds.csv") if (out_dir / "rounds.csv").exists() else None
     mocap_path, take = read_ground_truth(run_dir, mission, robots, opt.mocap_path, notes)
 
