@@ -183,6 +183,36 @@ def test_eval_run_with_paper_alignment(tmp_path):
     assert "| dingo1 |" in md and "SR_ATE" in md
 
 
+def test_eval_reads_the_replays_round_costs(tmp_path):
+    """report.json's round_costs (the merged graph as of sampled rounds) give SR_cost and F/F*
+    per round; without them a note says rounds.csv's raw cost is plotted; malformed ones are
+    an error naming the file."""
+    make_run(tmp_path / "run")
+    rep_path = tmp_path / "run" / "out" / "report.json"
+    report = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    assert report.plot_data.round_costs is None
+    assert any("no round_costs" in n for n in report.report["notes"])
+    rep = json.loads(rep_path.read_text())
+    rep["round_costs"] = {
+        "round": [9, 19],
+        "F_init": [10.0, 20.0],
+        "F_k": [4.0, 2.0],
+        "F_star": [2.0, None],
+    }
+    rep_path.write_text(json.dumps(rep))
+    report = evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    rc = report.plot_data.round_costs
+    assert rc is not None and np.array_equal(rc["round"], [9, 19])
+    assert rc["sr_cost_pct"][0] == pytest.approx(75.0) and np.isnan(rc["sr_cost_pct"][1])
+    assert rc["f_over_fstar"][0] == pytest.approx(2.0)
+    assert report.report["rounds"]["cost_samples"] == 2
+    rep["round_costs"]["F_k"] = [4.0]
+    rep_path.write_text(json.dumps(rep))
+    with pytest.raises(InputError, match="round_costs") as exc:
+        evaluate.evaluate_run(tmp_path / "run", evaluate.EvalOptions(plots=False))
+    assert "report.json" in str(exc.value)
+
+
 def test_eval_run_estimates_the_clock_offset(tmp_path):
     make_run(tmp_path / "run", with_start_ns=False)
     report = evaluate.evaluate_run(

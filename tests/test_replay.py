@@ -81,6 +81,8 @@ def test_same_run_same_numbers(tiny, tmp_path):
         )
         == []
     )
+    # the sampled costs too (the pool's workers send their robots' state between rounds)
+    assert report2["round_costs"] == report["round_costs"]
     a = (run / "out" / "rounds.csv").read_text()
     b = (again / "out" / "rounds.csv").read_text()
     assert a == b

@@ -68,8 +68,9 @@ def initial_objective(g: G2oGraph, vmap: VertexMap, inits: dict[str, Track]) -> 
     return float(sesync_objective(P0, g.edges, g.measurements, kappa, tau))
 
 
-def _solve_centrally(g: G2oGraph, notes: list[str]) -> tuple[SolveReport, bool]:
-    """(report, started from the chordal initialisation) of the centralized solve."""
+def solve_centrally(g: G2oGraph, notes: list[str]) -> tuple[SolveReport, bool]:
+    """(report, started from the chordal initialisation) of the centralized solve: from the
+    chordal initialisation, else (a disconnected graph) from the graph's values."""
     from dran_edge.solver.centralized import solve_g2o
 
     try:
@@ -152,7 +153,7 @@ def centralized_from_g2o(
         raise InputError(
             f"expected SE(3) vertices in merged.g2o, got SE({g.dim})", path=str(g2o_path)
         )
-    rep, chordal = _solve_centrally(g, notes)
+    rep, chordal = solve_centrally(g, notes)
     cost = _cost_of(rep, chordal)
     vmap_path = run_dir / "out" / "merged_vertices.csv"
     if not vmap_path.exists():

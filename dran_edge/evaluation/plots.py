@@ -4,7 +4,8 @@ matplotlib is imported lazily (the ``eval`` extra), with the Agg backend:
 
 - trajectories.png: top view of every robot's estimate (initial, final) against mocap ground
   truth, with the objects: ground truth and each robot's copy (the paper's Fig. 1b/c);
-- rounds.png: SR_cost, consensus error and bytes over the DRAN rounds (rounds.csv);
+- rounds.png: SR_cost and F/F* at the replay's sampled rounds (report.json's ``round_costs``),
+  consensus residual and bytes over the DRAN rounds (rounds.csv);
 - errors.png: ATE per robot (initial / final / centralized), translation error over time.
 """
 
@@ -16,7 +17,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dran_edge.errors import DependencyError
-from dran_edge.evaluation import metrics
 
 if TYPE_CHECKING:
     from dran_edge.evaluation.score import RunEvaluation, RunPlotData
@@ -117,24 +117,47 @@ def _trajectories(
     return p
 
 
-def round_panels(
-    rounds: dict[str, np.ndarray], ref: dict[str, float] | None, n_robots: int, n_links: int
-) -> list[tuple[str, str, np.ndarray]]:
-    """(title, y label, values) of rounds.png's panels, each saying what it plots.
+Panel = tuple[str, str, np.ndarray, np.ndarray]
+"""(title, y label, rounds, values) of one rounds.png panel; values (n,) or (2, n) (per robot,
+per link)."""
 
-    The consensus panel is rounds.csv's ``consensus_error``: per round, the largest of the
-    robots' own consensus residuals — not the paper's CE of the summary (docs/eval.md). The
-    cost is SR_cost when report.json gives ``cost_init`` and ``cost_centralized``, else the
-    raw sum of the robots' local costs (which grows with the graphs). Bytes per round are
-    shown per robot and per communication link, besides the cumulative total.
+
+def round_panels(
+    rounds: dict[str, np.ndarray],
+    round_costs: dict[str, np.ndarray] | None,
+    n_robots: int,
+    n_links: int,
+) -> list[Panel]:
+    """The panels of rounds.png, each saying what it plots.
+
+    With ``round_costs`` (report.json's, sampled by the replay on the merged graph as of each
+    sampled round k): SR_cost_k = (F_init,k − F_k)/(F_init,k − F*_k) (paper Sec. 6.2) and
+    F_k/F*_k, both against the centralized optimum of the graph as of round k. Without them, the
+    raw sum of the robots' local costs of rounds.csv (which grows with the graphs). The
+    consensus panel is rounds.csv's ``consensus_error``: per round, the largest of the robots'
+    own consensus residuals — not the paper's CE of the summary (docs/eval.md). Bytes per round
+    are shown per robot and per communication link, besides the cumulative total.
     """
-    panels = []
-    if "cost" in rounds and ref is not None:
+    panels: list[Panel] = []
+    r = np.asarray(rounds["round"], dtype=np.float64)
+    if round_costs is not None:
+        rk = round_costs["round"]
         panels.append(
             (
-                "SR_cost per round (paper Sec. 6.2)",
+                "SR_cost_k = (F_init,k − F_k)/(F_init,k − F*_k), paper Sec. 6.2: SE-Sync costs "
+                "of the merged graph as of round k",
                 "SR_cost (%)",
-                metrics.sr_cost(ref["F_init"], rounds["cost"], ref["F_star"]),
+                rk,
+                round_costs["sr_cost_pct"],
+            )
+        )
+        panels.append(
+            (
+                "F_k / F*_k: the robots' estimate's SE-Sync cost over the centralized optimum "
+                "of the merged graph as of round k",
+                "F / F* (1 = optimum)",
+                rk,
+                round_costs["f_over_fstar"],
             )
         )
     elif "cost" in rounds:
@@ -142,6 +165,7 @@ def round_panels(
             (
                 "sum of the robots' local costs (grows as the graphs grow; not F/F*)",
                 "cost (SE-Sync objective units)",
+                r,
                 rounds["cost"],
             )
         )
@@ -150,23 +174,26 @@ def round_panels(
             (
                 "largest robot's own consensus residual per round (not the summary's CE)",
                 "max_i residual_i",
+                r,
                 rounds["consensus_error"],
             )
         )
-    if "bias" in rounds:
-        panels.append(("Bias per round", "Bias", rounds["bias"]))
+    if "bias" in rounds:  # a rounds.csv from elsewhere may carry the paper's Bias per round
+        panels.append(("Bias per round (paper Sec. 6.2)", "Bias", r, rounds["bias"]))
     if "bytes_round" in rounds:
         b = np.asarray(rounds["bytes_round"], dtype=np.float64)
         panels.append(
             (
-                "bytes sent per round: per robot (mean) and per link (mean)",
+                f"bytes sent per round: per robot (mean of {n_robots}) and per link "
+                f"(mean of {n_links})",
                 "bytes / round",
+                r,
                 np.stack([b / max(n_robots, 1), b / max(n_links, 1)]),
             )
         )
     if "bytes_total" in rounds:
         panels.append(
-            ("bytes sent by all robots, cumulative", "bytes (total)", rounds["bytes_total"])
+            ("bytes sent by all robots, cumulative", "bytes (total)", r, rounds["bytes_total"])
         )
     return panels
 
@@ -175,27 +202,27 @@ def _rounds(plt: Any, report: dict[str, Any], data: RunPlotData, eval_dir: Path)
     rounds = data.rounds
     if rounds is None or len(rounds.get("round", [])) == 0:
         return None
-    r = rounds["round"]
-    n_links = len(data.comm_graph or ()) or 1
     panels = round_panels(
-        rounds, data.round_cost_ref, len(report.get("robots") or {}) or 1, n_links
+        rounds, data.round_costs, data.robot_count, len(data.comm_graph or ()) or 1
     )
     if not panels:
         return None
     fig, axes = plt.subplots(
         len(panels), 1, figsize=(7.5, 2.5 * len(panels)), sharex=True, squeeze=False
     )
-    for ax, (title, label, y) in zip(axes[:, 0], panels):
+    for ax, (title, label, x, y) in zip(axes[:, 0], panels):
         if np.ndim(y) == 2:
-            ax.plot(r, y[0], lw=1.4, label="per robot")
-            ax.plot(r, y[1], lw=1.0, ls="--", label="per link")
+            ax.plot(x, y[0], lw=1.4, label="per robot")
+            ax.plot(x, y[1], lw=1.0, ls="--", label="per link")
             ax.legend(fontsize=7, loc="best")
+        elif len(x) < len(rounds["round"]):  # sampled rounds: mark the samples
+            ax.plot(x, y, lw=1.4, marker="o", ms=3)
         else:
-            ax.plot(r, y, lw=1.4)
+            ax.plot(x, y, lw=1.4)
         ax.set_title(title, fontsize=8)
         ax.set_ylabel(label, fontsize=8)
         ax.grid(alpha=0.3)
-        if title.startswith("largest") and np.nanmin(y) > 0:
+        if (title.startswith("largest") or title.startswith("F_k")) and np.nanmin(y) > 0:
             ax.set_yscale("log")
     axes[-1, 0].set_xlabel("round")
     p = eval_dir / "rounds.png"

@@ -18,8 +18,9 @@ centralized estimates and the robot's object copies).
 SR_ATE needs the centralized solution: ``out/centralized/<robot>/<robot>.tum`` if present;
 otherwise merged.g2o solved centrally (:mod:`dran_edge.evaluation.centralized`, which also gives
 SR_cost's SE-Sync costs F_init, F_k and F*); without merged.g2o, ``cost_init / cost_final /
-cost_centralized`` of out/report.json. Per round, SR_cost needs the latter (the convention of
-rounds.csv's cost column). One trajectory alone is scored by
+cost_centralized`` of out/report.json (the same objective on the same graph, computed by the
+replay). Per round, SR_cost and F/F* come from report.json's ``round_costs`` (the merged graph
+as of sampled rounds, :mod:`dran_edge.replay.round_costs`). One trajectory alone is scored by
 :mod:`dran_edge.evaluation.traj_score`; the multi-robot metrics are in
 :mod:`dran_edge.evaluation.fleet_metrics`, the plots in :mod:`dran_edge.evaluation.plots`.
 """
@@ -89,9 +90,13 @@ class RunPlotData:
     """Robot -> estimate kind -> aligned matched poses."""
     rounds: dict[str, np.ndarray] | None
     objects: ObjectPlotData | None
-    round_cost_ref: dict[str, float] | None
+    round_costs: dict[str, np.ndarray] | None
+    """report.json's ``round_costs`` as arrays (``round``, ``F_init``, ``F_k``, ``F_star``,
+    ``sr_cost_pct``, ``f_over_fstar``; None where missing), None without them."""
     comm_graph: list[tuple[int, int]]
     """Undirected communication links (robot id pairs): the per-link bytes of rounds.png."""
+    robot_count: int
+    """Robots of the mission (all of them send): the per-robot bytes of rounds.png."""
 
 
 @dataclass(frozen=True)
@@ -126,15 +131,11 @@ def _centralized(
     return cost
 
 
-def _cost_report(
-    cost: dict[str, Any], replay_report: dict[str, Any]
-) -> tuple[dict[str, Any], dict[str, float] | None]:
-    """(the report's cost section with SR_cost and F/F*, the per-round cost reference).
+def _cost_report(cost: dict[str, Any], replay_report: dict[str, Any]) -> dict[str, Any]:
+    """The report's cost section with SR_cost and F/F*.
 
-    Costs given by the replay (cost_init / cost_final / cost_centralized) are in the
-    convention of rounds.csv's cost column; merged.g2o's are SE-Sync objectives. Never mix:
-    the replay's are used only without merged.g2o's, and per-round SR_cost needs F_init and
-    F* in rounds.csv's convention (None without them).
+    The replay's costs (cost_init / cost_final / cost_centralized: the merged graph's SE-Sync
+    objectives at the last round) are used only without merged.g2o's own, never mixed.
     """
     replay_cost = {
         k_cost: float(replay_report[k_rep])
@@ -147,13 +148,38 @@ def _cost_report(
         and not isinstance(replay_report.get(k_rep), bool)
     }
     if not cost and replay_cost:
-        cost = {"source": "out/report.json (the convention of rounds.csv)", **replay_cost}
+        cost = {
+            "source": "out/report.json (cost_init / cost_final / cost_centralized)",
+            **replay_cost,
+        }
     if all(cost.get(k) is not None for k in ("F_init", "F_k", "F_star")):
         cost["sr_cost_pct"] = metrics.sr_cost(cost["F_init"], cost["F_k"], cost["F_star"])
     if cost.get("F_k") is not None and cost.get("F_star") is not None:
         cost["F_over_Fstar"] = metrics.cost_ratio(cost["F_k"], cost["F_star"])
-    round_cost_ref = replay_cost if {"F_init", "F_star"} <= replay_cost.keys() else None
-    return cost, round_cost_ref
+    return cost
+
+
+def _round_costs(replay_report: dict[str, Any], path: Path) -> dict[str, np.ndarray] | None:
+    """report.json's ``round_costs`` as float arrays (None -> NaN), SR_cost and F/F* computed
+    from its F_init, F_k and F_star; None when the replay sampled none."""
+    rc = replay_report.get("round_costs")
+    if not isinstance(rc, dict) or not rc.get("round"):
+        return None
+    try:
+        out = {
+            c: np.array([np.nan if v is None else float(v) for v in rc[c]])
+            for c in ("round", "F_init", "F_k", "F_star")
+        }
+    except (KeyError, TypeError, ValueError):
+        raise InputError(
+            "round_costs: expected lists round, F_init, F_k, F_star of numbers",
+            path=str(path),
+        ) from None
+    if len({len(v) for v in out.values()}) != 1:
+        raise InputError("round_costs: lists of different lengths", path=str(path))
+    out["sr_cost_pct"] = np.asarray(metrics.sr_cost(out["F_init"], out["F_k"], out["F_star"]))
+    out["f_over_fstar"] = np.asarray(metrics.cost_ratio(out["F_k"], out["F_star"]))
+    return out
 
 
 def _estimated_offset(
@@ -326,28 +352,26 @@ def _success_rates(
 
 def _rounds_report(
     rounds: dict[str, np.ndarray] | None,
-    round_cost_ref: dict[str, float] | None,
+    round_costs: dict[str, np.ndarray] | None,
     replay_report: dict[str, Any],
     notes: list[str],
 ) -> dict[str, Any]:
-    """The report's ``rounds`` section: rounds.csv's count, bytes and last SR_cost, and the
-    replay's own totals."""
+    """The report's ``rounds`` section: rounds.csv's count and bytes, the sampled costs' count
+    and last SR_cost and F/F*, and the replay's own totals."""
     rounds_rep: dict[str, Any] = {}
     if rounds is not None:
         rounds_rep["count"] = int(len(rounds["round"]))
         if "bytes_total" in rounds:
             rounds_rep["bytes_total"] = float(np.nanmax(rounds["bytes_total"]))
-        if "cost" in rounds and round_cost_ref is not None:
-            rounds_rep["sr_cost_pct_last"] = float(
-                metrics.sr_cost(
-                    round_cost_ref["F_init"], rounds["cost"][-1], round_cost_ref["F_star"]
-                )
-            )
-        elif "cost" in rounds:
-            notes.append(
-                "rounds: no cost_init / cost_centralized in out/report.json, so "
-                "rounds.csv's cost is plotted as is, not as SR_cost"
-            )
+    if round_costs is not None:
+        rounds_rep["cost_samples"] = int(len(round_costs["round"]))
+        rounds_rep["sr_cost_pct_last"] = float(round_costs["sr_cost_pct"][-1])
+        rounds_rep["f_over_fstar_last"] = float(round_costs["f_over_fstar"][-1])
+    elif rounds is not None and "cost" in rounds:
+        notes.append(
+            "rounds: no round_costs in out/report.json (replay --cost-every 0, or an older "
+            "replay), so rounds.png shows rounds.csv's sum of local costs, not SR_cost"
+        )
     for key in ("bytes_total", "rounds", "mission_s", "replay_wall_s"):
         if key in replay_report:
             rounds_rep.setdefault(
@@ -391,7 +415,8 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
     robots = read_estimates(mission, out_dir, notes)
     cost = _centralized(run_dir, robots, opt, notes)
     replay_report = read_replay_report(out_dir)
-    cost, round_cost_ref = _cost_report(cost, replay_report)
+    cost = _cost_report(cost, replay_report)
+    round_costs = _round_costs(replay_report, out_dir / "report.json")
     rounds = read_rounds_csv(out_dir / "rounds.csv") if (out_dir / "rounds.csv").exists() else None
     mocap_path, take = read_ground_truth(run_dir, mission, robots, opt.mocap_path, notes)
 
@@ -412,7 +437,7 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
         opt.max_gap_s,
     )
     objects_rep, obj_plot = object_maps(mission, robots, take, alignments.get("final", {}), notes)
-    rounds_rep = _rounds_report(rounds, round_cost_ref, replay_report, notes)
+    rounds_rep = _rounds_report(rounds, round_costs, replay_report, notes)
 
     report = {
         "format": EVAL_FORMAT,
@@ -434,8 +459,9 @@ def evaluate_run(run_dir: str | Path, opt: EvalOptions = EvalOptions()) -> RunEv
         aligned=aligned,
         rounds=rounds,
         objects=obj_plot,
-        round_cost_ref=round_cost_ref,
+        round_costs=round_costs,
         comm_graph=list(mission.comm_graph),
+        robot_count=len(mission.robots),
     )
     return RunEvaluation(json_safe(report), plot_data)
 

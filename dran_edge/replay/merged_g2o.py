@@ -143,9 +143,21 @@ def _write_vertex_map(path: Path, rows: list[tuple[int, str, str, int]]) -> None
             w.writerow(row)
 
 
-def write_merged_g2o(run: rd.Run, results: dict[int, RobotResult]) -> bool:
-    """``merged.g2o`` + ``merged_vertices.csv`` from every robot's local graph (if it has one);
-    False (and neither file) when no robot exposes its graph. See the module docstring."""
+@dataclass(frozen=True)
+class MergedGraph:
+    """The merged graph of every robot's local graph, as written to merged.g2o."""
+
+    graph: G2oGraph
+    """Vertices sorted by id, values the robots' current estimates (see the module docstring)."""
+    vertex_map: dict[int, tuple[str, str, int]]
+    """merged_vertices.csv: vertex id -> (kind "pose" / "object", robot or object name,
+    stamp_ns); the form :func:`dran_edge.formats.run_outputs.read_vertex_map` reads back."""
+
+
+def merged_graph(results: dict[int, RobotResult]) -> MergedGraph | None:
+    """Every robot's local graph (if it has one) as one graph, with the robots' estimates as
+    values (the module docstring); None when no robot exposes its graph. The replay builds it
+    at the end (merged.g2o) and at the rounds whose costs it samples (round_costs.py)."""
     m = _MergedGraph()
     for rid in sorted(results):
         r = results[rid]
@@ -154,11 +166,22 @@ def write_merged_g2o(run: rd.Run, results: dict[int, RobotResult]) -> bool:
         key_vid = _add_robot_poses(m, rid, r)
         _add_robot_factors(m, r, key_vid)
     if not m.vid:
+        return None
+    _add_objects(m)
+    return MergedGraph(_to_g2o_graph(m), {v: (kind, name, st) for v, kind, name, st in m.rows})
+
+
+def write_merged_g2o(run: rd.Run, results: dict[int, RobotResult]) -> bool:
+    """``merged.g2o`` + ``merged_vertices.csv`` from every robot's local graph (if it has one);
+    False (and neither file) when no robot exposes its graph. See the module docstring."""
+    merged = merged_graph(results)
+    if merged is None:
         log.warning("no robot exposes its local graph: merged.g2o not written")
         for f in ("merged.g2o", "merged_vertices.csv"):
             (run.out_dir / f).unlink(missing_ok=True)
         return False
-    _add_objects(m)
-    write_g2o(run.out_dir / "merged.g2o", _to_g2o_graph(m))
-    _write_vertex_map(run.out_dir / "merged_vertices.csv", m.rows)
+    write_g2o(run.out_dir / "merged.g2o", merged.graph)
+    _write_vertex_map(
+        run.out_dir / "merged_vertices.csv", [(v, *row) for v, row in merged.vertex_map.items()]
+    )
     return True

@@ -88,6 +88,25 @@ def pick_metrics(ev: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def initial_track(r: RobotResult) -> tuple[np.ndarray, np.ndarray, str]:
+    """(stamps_ns, T_world_body, what it is) of a robot's initial estimate — ``<robot>_init.tum``
+    and the F_init of SR_cost: odometry alone when the core gives it, else each keyframe's
+    first estimate. Needs ``r.last`` (the robot's estimate)."""
+    u = r.last
+    assert u is not None
+    if r.initial is not None and len(r.initial[0]):
+        return r.initial[0], r.initial[1], "odometry alone, before any optimisation"
+    stamps = np.asarray(u.keyframe_stamps_ns, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    T0 = np.stack(
+        [
+            r.first_seen.get(int(s), u.T_world_body[i])
+            for s, i in zip(stamps[order].tolist(), order.tolist())
+        ]
+    )
+    return stamps[order], T0, "each keyframe's first estimate"
+
+
 def _write_robot_files(d: Path, r: RobotResult) -> None:
     """``<robot>.tum`` (final), ``<robot>_init.tum`` (initial) and ``objects.csv`` of a robot;
     a robot without an estimate has none of them."""
@@ -111,18 +130,7 @@ def _write_robot_files(d: Path, r: RobotResult) -> None:
         np.asarray(u.T_world_body)[order],
         header=f"{r.name}: final estimate (dran-edge replay)",
     )
-    if r.initial is not None and len(r.initial[0]):
-        s0, T0 = r.initial
-        what = "odometry alone, before any optimisation"
-    else:
-        s0 = stamps
-        T0 = np.stack(
-            [
-                r.first_seen.get(int(s), u.T_world_body[i])
-                for s, i in zip(stamps.tolist(), order.tolist())
-            ]
-        )
-        what = "each keyframe's first estimate"
+    s0, T0, what = initial_track(r)
     o0 = np.argsort(s0, kind="stable")
     write_tum(
         d / f"{r.name}_init.tum",

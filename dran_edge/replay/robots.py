@@ -356,10 +356,16 @@ class RobotRunner:
             }
         return out
 
+    def snapshot(self) -> dict[int, RobotResult]:
+        """:meth:`results` between rounds (the same, in this process)."""
+        return self.results()
+
     def pull_udp(self) -> dict[int, int]:
         return {rid: r.transport.pull() for rid, r in self.robots.items()}
 
     def results(self) -> dict[int, RobotResult]:
+        """What the replay's outputs need of every robot held, as it is now (also between
+        rounds: the per-round costs sample it)."""
         return {
             rid: robot_result(
                 rid,
@@ -391,6 +397,8 @@ def _worker_main(conn, specs: list[RobotSpec]) -> None:
                 conn.send(("ok", runner.step(*arg)))
             elif cmd == "add":
                 runner.add_records(arg)
+            elif cmd == "snapshot":
+                conn.send(("ok", runner.results()))
             elif cmd == "finish":
                 conn.send(("ok", runner.results()))
                 return
@@ -453,8 +461,15 @@ class WorkerPool:
         return self._gather()
 
     def results(self) -> dict[int, RobotResult]:
+        """Every robot's result; the workers then exit."""
         for conn in self._conns:
             conn.send(("finish", None))
+        return self._gather()
+
+    def snapshot(self) -> dict[int, RobotResult]:
+        """Every robot's result between rounds; the workers go on."""
+        for conn in self._conns:
+            conn.send(("snapshot", None))
         return self._gather()
 
     def _gather(self) -> dict:

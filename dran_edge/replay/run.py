@@ -26,14 +26,17 @@
    loopback replay without loss gives the bus's numbers.
 4. **Outputs** in ``RUN/out/`` (docs/run-format.md): per-robot TUM trajectories (final and
    initial), object maps, ``merged.g2o`` + ``merged_vertices.csv``, ``rounds.csv`` and
-   ``report.json``; with mocap, the metrics of :mod:`dran_edge.evaluation.score`.
+   ``report.json``; with mocap, the metrics of :mod:`dran_edge.evaluation.score`. Every
+   ``cost_every`` rounds and at the last, the costs of the merged graph as it stands (SR_cost
+   per round, :mod:`dran_edge.replay.round_costs`).
 
 Nothing here reads a clock except to report the wall time and, with ``speed > 0``, to pace
 rounds (``speed`` = times real time). Same run, same options -> same numbers.
 
 This module holds the options, the round loop, the report and the golden-summary comparison;
 perception in :mod:`dran_edge.replay.perception`, the robots in :mod:`dran_edge.replay.robots`,
-the files of ``out/`` in :mod:`dran_edge.replay.outputs` and :mod:`dran_edge.replay.merged_g2o`.
+the files of ``out/`` in :mod:`dran_edge.replay.outputs` and :mod:`dran_edge.replay.merged_g2o`,
+the per-round costs in :mod:`dran_edge.replay.round_costs`.
 
 Size: over ~500 lines because the replay loop and its options (perception, outputs and
 merged.g2o are in their own modules); over 500 only by ruff format's layout.
@@ -57,6 +60,7 @@ from dran_edge.errors import InputError
 from dran_edge.formats import run_dir as rd
 from dran_edge.replay.outputs import evaluation_metrics, json_clean, write_outputs, write_report
 from dran_edge.replay.perception import WindowedPerception, observation_sources
+from dran_edge.replay.round_costs import COST_EVERY_DEFAULT, RoundCosts
 
 if TYPE_CHECKING:
     from dran_edge.comms.bus import Bus
@@ -73,6 +77,7 @@ WALL_CLOCK_FIELDS = (
     "rounds_wall_s",
     "cpu_s",
     "perception_wait_s",
+    "round_costs_wall_s",
 )
 
 
@@ -130,6 +135,9 @@ class ReplayOptions:
     ends as soon as every one has arrived, so only a datagram really lost costs the whole wait.
     With 0.5 s the UDP-equals-bus test failed once on a loaded machine (a late datagram is the
     likely cause: the round goes ahead without it); with 5 s it passed 4 of 4 under load."""
+    cost_every: int = COST_EVERY_DEFAULT
+    """Sample the merged graph's costs (F_init, F_k, F*: SR_cost per round) every this many
+    rounds and at the last round (:mod:`dran_edge.replay.round_costs`); 0: never."""
 
     def __post_init__(self) -> None:
         if self.transport not in ("bus", "udp"):
@@ -138,6 +146,8 @@ class ReplayOptions:
             raise InputError(f"loss: expected a probability in [0, 1], got {self.loss}")
         if self.latency_rounds < 0 or self.settle_rounds < 0 or self.speed < 0:
             raise InputError("latency, settle rounds and speed must be >= 0")
+        if self.cost_every < 0:
+            raise InputError(f"cost_every: expected rounds >= 0 (0: never), got {self.cost_every}")
         if self.transport == "udp" and (self.loss or self.partitions or self.latency_rounds != 1):
             raise InputError(
                 "--loss/--latency/--partition model the in-process bus; "
@@ -352,8 +362,10 @@ def _run_rounds(
     perception: WindowedPerception,
     opt: ReplayOptions,
     progress: Callable[[str, int, int], None] | None,
+    costs: RoundCosts,
 ) -> list[dict[str, Any]]:
-    """Every round, paced at ``opt.speed`` times real time when it is > 0; the rounds.csv rows."""
+    """Every round, paced at ``opt.speed`` times real time when it is > 0; the rounds.csv rows.
+    ``costs`` samples the merged graph after the rounds it is due."""
     start_ns = s.run.mission.start_ns
     name_of = {r.name: r.id for r in s.run.mission.robots}
     rounds_rows = []
@@ -372,6 +384,8 @@ def _run_rounds(
         outs, expected, bytes_round = _round(s, t_k, expected, opt)
         bytes_total += bytes_round
         rounds_rows.append(_round_row(k, t_k, outs, bytes_total, bytes_round, s.bus))
+        if costs.due(k):
+            costs.sample(k, t_k, s.robots.snapshot())
         if progress:
             progress("rounds", k + 1, s.total_rounds)
     return rounds_rows
@@ -383,6 +397,7 @@ def _report(
     results: dict[int, RobotResult],
     rounds_rows: list[dict[str, Any]],
     perception: WindowedPerception,
+    costs: RoundCosts,
     wall_s: float,
     rounds_wall_s: float,
 ) -> dict[str, Any]:
@@ -398,6 +413,7 @@ def _report(
         "perception_wall_s": round(perception.done_s, 3),
         "perception_wait_s": round(perception.wait_s, 3),
         "rounds_wall_s": round(rounds_wall_s, 3),
+        "round_costs_wall_s": round(costs.wall_s, 3),
         "realtime_factor": round(mission.duration_s / wall_s, 3) if wall_s > 0 else None,
         "round_workers": s.workers,
         "rounds": s.total_rounds,
@@ -414,6 +430,7 @@ def _report(
         "objects_known": {r.name: len(r.last.object_ids) if r.last else 0 for r in res},
         "final_cost": rounds_rows[-1]["cost"] if rounds_rows else None,
         "final_consensus_error": rounds_rows[-1]["consensus_error"] if rounds_rows else None,
+        **costs.report(),
     }
     if s.clock_warnings:
         report["warnings"] = s.clock_warnings
@@ -432,9 +449,10 @@ def _replay(
     perception = WindowedPerception(
         run, opt.workers, start_ns, start_ns + s.mission_rounds * s.period_ns, s.sources
     )
+    costs = RoundCosts(opt.cost_every, s.total_rounds)
     t_rounds = time.perf_counter()
     try:
-        rounds_rows = _run_rounds(s, perception, opt, progress)
+        rounds_rows = _run_rounds(s, perception, opt, progress, costs)
         results = s.robots.results()
     finally:
         s.robots.close()
@@ -449,6 +467,7 @@ def _replay(
         results,
         rounds_rows,
         perception,
+        costs,
         wall_s=time.perf_counter() - wall0,
         rounds_wall_s=rounds_wall,
     )

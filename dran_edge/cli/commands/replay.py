@@ -83,6 +83,14 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         help="seed of the bus loss model (default 0); --seed is the simulation's "
         "seed in 'simulate' and 'demo'",
     )
+    p.add_argument(
+        "--cost-every",
+        type=int,
+        default=None,
+        metavar="N",
+        help="every N rounds and at the last, solve the merged graph as it stands for SR_cost "
+        "and F/F* per round (report.json round_costs; default 20, 0: never)",
+    )
     p.add_argument("--no-eval", action="store_true", help="do not score against the run's mocap")
     p.add_argument(
         "--mcap",
@@ -122,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.loss_seed,
         evaluate=not args.no_eval,
         redetect=args.redetect,
+        **({} if args.cost_every is None else {"cost_every": args.cost_every}),
     )
     from dran_edge.cli.progress import ProgressBar, note
 
