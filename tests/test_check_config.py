@@ -215,3 +215,15 @@ def test_check_fleet_keys(tmp_path, capsys):
     assert text.count("that is not r3's own") == 2, text  # both of r3's neighbours
     assert main(["check-fleet", str(d)]) == 2
     assert "2 problems" in capsys.readouterr().err
+
+
+def test_no_keys_checks_everything_but_the_key_files(tmp_path, capsys):
+    """install.sh's case: the fleet key is not there yet; the rest is still checked."""
+    path = _config(tmp_path, camera={"source": "none"})
+    rc, _, errors = _check(path, capsys)
+    assert rc == 2 and any("fleet.key" in e for e in errors)
+    rc = main(["check-config", "--no-keys", str(path)])
+    out = capsys.readouterr()
+    assert rc == 0 and "not opened: --no-keys" in out.out
+    bad = _config(tmp_path, "bad.yaml", camera={"source": "none"}, daemon={"state_dir": 5})
+    assert main(["check-config", "--no-keys", str(bad)]) == 2

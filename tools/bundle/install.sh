@@ -119,16 +119,19 @@ else
 fi
 
 # ------------------------------------------------------------------ check the config
+key=$(sed -n 's/^ *key_file: *\([^ #]*\).*/\1/p' "$ETC/robot.yaml" 2>/dev/null | sed -n 1p)
+key=${key:-$ETC/fleet.key}
+# before the fleet's keys are copied in, check everything but them (they are left to do below)
+NOKEYS=(); [ -f "$key" ] || NOKEYS=(--no-keys)
 if [ -e "$ETC/robot.yaml" ]; then
-    "$VENV/bin/dran-edge" check-config "$ETC/robot.yaml" || die "$ETC/robot.yaml does not load (above)"
+    "$VENV/bin/dran-edge" check-config "${NOKEYS[@]}" "$ETC/robot.yaml" \
+        || die "$ETC/robot.yaml does not load (above)"
 else
-    for f in "$ETC"/fleet/*.yaml; do "$VENV/bin/dran-edge" check-config "$f" >/dev/null \
+    for f in "$ETC"/fleet/*.yaml; do "$VENV/bin/dran-edge" check-config --no-keys "$f" >/dev/null \
         || die "$f does not load"; done
     say "skeleton configs load ($ETC/fleet/*.yaml)"
     TODO+=("choose this robot's config: ln -s fleet/<robot>.yaml $ETC/robot.yaml (or install.sh --robot <robot>); edit its neighbours' addresses")
 fi
-key=$(sed -n 's/^ *key_file: *\([^ #]*\).*/\1/p' "$ETC/robot.yaml" 2>/dev/null | sed -n 1p)
-key=${key:-$ETC/fleet.key}
 [ -f "$key" ] || TODO+=("fleet key: on ONE machine '$VENV/bin/dran-edge fleet-key new fleet.key', then on every robot: install -m 0600 -o dran -g dran fleet.key $key")
 TODO+=("calibration: measure this robot's camera and the tag map into $ETC/cameras/<robot>/ and $ETC/tags.yaml (docs/calibration.md); the skeleton holds the example fleet's values")
 

@@ -39,6 +39,12 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument(
         "--show", action="store_true", help="print the full config with every default filled in"
     )
+    p.add_argument(
+        "--no-keys",
+        action="store_true",
+        help="do not open the key files (comms.key_file, the fleet's public keys): for an "
+        "install before the fleet's keys are copied in; everything else is checked",
+    )
     return p
 
 
@@ -51,7 +57,7 @@ def _collect(errors: list[DranError], check: Callable[..., _T], *args: Any) -> _
         return None
 
 
-def _comms_errors(cfg) -> list[DranError]:
+def _comms_errors(cfg, open_keys: bool = True) -> list[DranError]:
     from dran_edge.comms import keys
 
     errors: list[DranError] = []
@@ -61,6 +67,8 @@ def _comms_errors(cfg) -> list[DranError]:
     where = cfg.source_path or None
     if key_path is None:
         return [ConfigError("comms.key_file: not set, but comms.transport is 'udp'", path=where)]
+    if not open_keys:
+        return errors
     if cfg.comms.auth == "hmac":
         _collect(errors, keys.load_fleet_key, key_path)
         return errors
@@ -173,9 +181,11 @@ def _state_errors(cfg) -> list[DranError]:
     return []
 
 
-def check_config_file(path: str | Path) -> tuple[RobotConfig | None, list[DranError]]:
+def check_config_file(
+    path: str | Path, open_keys: bool = True
+) -> tuple[RobotConfig | None, list[DranError]]:
     """(config or None, every problem found): the file's own problems, then those of what it
-    names, for each section that loaded cleanly."""
+    names, for each section that loaded cleanly (the key files only with ``open_keys``)."""
     from dran_edge.config import load_config_report
 
     cfg, errors = load_config_report(path)
@@ -184,7 +194,7 @@ def check_config_file(path: str | Path) -> tuple[RobotConfig | None, list[DranEr
     bad = {getattr(e, "section", "") for e in errors}
     found: list[DranError] = list(errors)
     if not bad & {"comms", "neighbours", "robot"}:
-        found += _comms_errors(cfg)
+        found += _comms_errors(cfg, open_keys)
     if not bad & {"camera", "robot"}:
         found += _camera_errors(cfg)
     if "daemon" not in bad:
@@ -195,7 +205,7 @@ def check_config_file(path: str | Path) -> tuple[RobotConfig | None, list[DranEr
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    cfg, errors = check_config_file(args.file)
+    cfg, errors = check_config_file(args.file, open_keys=not args.no_keys)
     if errors:
         for e in errors:
             print(f"dran-edge check-config: error: {e}", file=sys.stderr)
@@ -204,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
     assert cfg is not None  # no config comes with the errors that say why
     g = cfg.agent.graph
     auth = f"{cfg.comms.auth} key" if cfg.comms.transport != "none" else "no key"
+    if args.no_keys and cfg.comms.transport != "none":
+        auth += ", not opened: --no-keys"
     print(
         f"{args.file}: ok: robot {cfg.robot.name} (id {cfg.robot.id}) in fleet "
         f"{cfg.robot.fleet}; {len(cfg.neighbours)} neighbours; transport "
