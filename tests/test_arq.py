@@ -10,7 +10,6 @@ import pytest
 from dran_edge.comms import arq, codec
 from dran_edge.comms.bus import Bus, BusParams
 from dran_edge.dran import exact_gn
-from dran_edge.dran.dist_init import direct_exchange
 from dran_edge.experiments.fleet import Fleet, run_g2o_dran, table1_setup
 from dran_edge.experiments.suite import Case, make_graph, make_partition
 from dran_edge.messages import InitEntry, InitStage, NeighbourMessage
@@ -67,6 +66,7 @@ def _outgoing(rng: np.random.Generator) -> dict:
 
 
 def _received(incoming: dict) -> dict:
+    """Per robot, what it received (decoded float32 values: compare over the bus)."""
     return {
         q: sorted((int(e.owner_robot), int(e.keyframe_id), e.value.tobytes()) for e in entries)
         for q, entries in incoming.items()
@@ -78,8 +78,7 @@ def test_reliable_exchange_delivers_every_entry_over_a_lossy_bus():
     outgoing = _outgoing(np.random.default_rng(0))
     lossy = Fleet([], Bus(range(4), graph=graph, params=BusParams(loss_probability=0.3, seed=1)))
     got = lossy.reliable_exchange(InitStage.REFINE_SCHUR, 0, outgoing)
-    sent = {q: [(e.owner_robot, e.keyframe_id, e.value) for e in v] for q, v in got.items()}
-    assert sent  # (decoded float32 values: compare with a lossless exchange over the bus)
+    assert set(got) == {0, 1, 2, 3}
     plain = Fleet([], Bus(range(4), graph=graph))
     assert _received(got) == _received(plain.init_exchange(InitStage.REFINE_SCHUR, 0, outgoing))
     assert lossy.round > 1 and lossy.traffic.dropped > 0

@@ -234,28 +234,29 @@ class Fleet:
         ``arq_params.max_rounds`` rounds (the outstanding datagrams are dropped)."""
         if self.arq is None:
             self.arq = [arq.Arq(r, self.arq_params) for r in self.ids]
+        arqs = self.arq
         start = self.bus.round + 1  # the round every datagram of the exchange carries
         for r, sends in outgoing.items():
             for q, entries in sends:
                 msg = NeighbourMessage(r, start, start * ROUND_PERIOD_NS, init=tuple(entries))
                 for g in self._encode(r, msg):
-                    self.arq[r].offer(self.ids[q], g.sequence, g.data)
+                    arqs[r].offer(self.ids[q], g.sequence, g.data)
         incoming: dict[int, list] = defaultdict(list)
-        while any(a.pending for a in self.arq):
+        while any(a.pending for a in arqs):
             self.bus.advance()
             rnd = self.bus.round
             try:
-                due = [a.due() for a in self.arq]
+                due = [a.due() for a in arqs]
             except arq.LinkDown:
-                for a in self.arq:
+                for a in arqs:
                     a.abandon()
                 raise
             for r, sends in enumerate(due):
                 for to, data in sends:  # as ``send``: not over a link that is down
                     if self.bus.link_up(self.ids[r], to):
                         self.endpoints[r].send(to, data, 0)
-            self._arq_receive(incoming)
-            for q, a in enumerate(self.arq):
+            self._arq_receive(arqs, incoming)
+            for q, a in enumerate(arqs):
                 for peer, acked in a.acks().items():
                     ack = NeighbourMessage(
                         q, rnd, rnd * ROUND_PERIOD_NS, init=arq.ack_entries(acked)
@@ -264,7 +265,7 @@ class Fleet:
                         for _ in range(self.arq_params.ack_copies):
                             self.endpoints[q].send(peer, g.data, 0)
                             self.ack_bytes += len(g.data)
-            self._arq_receive(incoming)
+            self._arq_receive(arqs, incoming)
         return incoming
 
     def _encode(
@@ -282,7 +283,7 @@ class Fleet:
         self.sequence[sender] += len(grams)
         return grams
 
-    def _arq_receive(self, incoming: dict) -> None:
+    def _arq_receive(self, arqs: list[arq.Arq], incoming: dict) -> None:
         """Everything due: acks to their sender's ARQ state, new data into ``incoming``."""
         for i, ep in enumerate(self.endpoints):
             for sender, data in ep.receive():
@@ -293,8 +294,8 @@ class Fleet:
                     continue
                 acked = arq.ack_runs(msg.init)
                 if acked:
-                    self.arq[i].acknowledged(sender, acked)
-                elif self.arq[i].received(sender, msg.sequence):
+                    arqs[i].acknowledged(sender, acked)
+                elif arqs[i].received(sender, int(msg.sequence or 0)):
                     incoming[i].extend(msg.init)
 
     def run(self, max_rounds: int, min_rounds: int = 1, patience: int = 3, callback=None) -> int:
@@ -344,11 +345,11 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, reliable: bool, skip: str = 
     do not run, for this reason. Returns ``poses_refined`` and the ``refine_*`` numbers,
     rounds and datagram bytes counted on the bus (``refine_curve``: (rounds, bytes since the
     start, F as the root summed it) at every accepted point; ``refine_arq``: the ARQ's
-    transmissions, retransmissions, duplicates and ack bytes, when ``reliable``)."""
+    transmissions, retransmissions, duplicates and ack bytes in it, when ``reliable``)."""
     from dran_edge.dran import exact_gn
 
     r0, b0 = fleet.round, fleet.traffic.bytes_total
-    ack0 = fleet.ack_bytes
+    arq0 = arq_totals(fleet)
     sent, at = [b0], [r0]  # bytes and bus round after each exchange
     over = fleet.reliable_exchange if reliable else fleet.init_exchange
 
@@ -367,7 +368,7 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, reliable: bool, skip: str = 
             res = exact_gn.RefineResult(
                 np.zeros(0), False, reason=f"{exc}: not refined, plain DRAN from the start"
             )
-    out = {
+    out: dict[str, Any] = {
         "poses_refined": res.poses if res.poses.size else None,
         "refine_mode": mode,
         "refine_used": res.used,
@@ -383,8 +384,8 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, reliable: bool, skip: str = 
         ],
         "refine_step_over_round_floats": res.ratio_floats,
     }
-    if reliable and fleet.arq is not None:
-        out["refine_arq"] = arq_totals(fleet) | {"ack_bytes": fleet.ack_bytes - ack0}
+    if reliable:
+        out["refine_arq"] = {k: v - arq0[k] for k, v in arq_totals(fleet).items()}
     return out
 
 
