@@ -86,6 +86,19 @@ def test_reliable_exchange_delivers_every_entry_over_a_lossy_bus():
     assert sum(a.retransmissions for a in lossy.arq or ()) > 0
 
 
+def test_reliable_exchange_waits_out_a_short_partition():
+    from dran_edge.comms.bus import Partition
+
+    graph = [(0, 1), (0, 2), (0, 3)]
+    outgoing = _outgoing(np.random.default_rng(2))
+    cut = Partition(frozenset({2}), start_round=1, end_round=6)
+    fleet = Fleet([], Bus(range(4), graph=graph, partitions=[cut]))
+    plain = Fleet([], Bus(range(4), graph=graph))
+    got = fleet.reliable_exchange(InitStage.REFINE_SCHUR, 0, outgoing)
+    assert _received(got) == _received(plain.init_exchange(InitStage.REFINE_SCHUR, 0, outgoing))
+    assert fleet.round == 6  # robot 2's link is back in round 6
+
+
 def test_nothing_lost_costs_one_round_and_the_acks_only():
     graph = [(0, 1), (0, 2), (0, 3)]
     outgoing = _outgoing(np.random.default_rng(1))

@@ -226,9 +226,10 @@ class Fleet:
         (``dran_edge.comms.arq``) over as many bus rounds as it takes. Each round every robot
         (re)sends its unacknowledged datagrams (latency 0), the receivers decode what arrived
         and acknowledge it with an ``ARQ_ACK`` datagram per sender heard, sent
-        ``ArqParams.ack_copies`` times (latency 0, lossy too), and the senders take the acks in; the exchange ends in the round in which the
-        last datagram is acknowledged (every robot knows its own sends are done and has what
-        it was sent). Every datagram, retransmission and ack crosses the bus and is counted.
+        ``ArqParams.ack_copies`` times (latency 0, lossy too), and the senders take the acks
+        in; the exchange ends in the round in which the last datagram is acknowledged (every
+        robot knows its own sends are done and has what it was sent). As ``send``, nothing
+        goes over a link that is down in the round. Every datagram, retransmission and ack crosses the bus and is counted.
         Messages are encoded absolute (no delta layout: a retransmission must decode alone).
         Raises ``arq.LinkDown`` when a datagram stays unacknowledged for
         ``arq_params.max_rounds`` rounds (the outstanding datagrams are dropped)."""
@@ -242,7 +243,7 @@ class Fleet:
                 for g in self._encode(r, msg):
                     arqs[r].offer(self.ids[q], g.sequence, g.data)
         incoming: dict[int, list] = defaultdict(list)
-        while any(a.pending for a in arqs):
+        while True:  # at least one round, as ``init_exchange``
             self.bus.advance()
             rnd = self.bus.round
             try:
@@ -252,7 +253,7 @@ class Fleet:
                     a.abandon()
                 raise
             for r, sends in enumerate(due):
-                for to, data in sends:  # as ``send``: not over a link that is down
+                for to, data in sends:
                     if self.bus.link_up(self.ids[r], to):
                         self.endpoints[r].send(to, data, 0)
             self._arq_receive(arqs, incoming)
@@ -261,12 +262,15 @@ class Fleet:
                     ack = NeighbourMessage(
                         q, rnd, rnd * ROUND_PERIOD_NS, init=arq.ack_entries(acked)
                     )
+                    if not self.bus.link_up(self.ids[q], peer):
+                        continue
                     for g in self._encode(q, ack):
                         for _ in range(self.arq_params.ack_copies):
                             self.endpoints[q].send(peer, g.data, 0)
                             self.ack_bytes += len(g.data)
             self._arq_receive(arqs, incoming)
-        return incoming
+            if not any(a.pending for a in arqs):
+                return incoming
 
     def _encode(
         self, sender: int, message: NeighbourMessage, delta: DeltaEncoder | None = None
