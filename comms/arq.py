@@ -24,8 +24,14 @@ side at a time:
   so far, and a lost ack costs nothing once a later one arrives.
 - **on the wire**: an ack is a ``NeighbourMessage`` of ``InitStage.ARQ_ACK`` entries
   (``ack_entries`` / ``ack_runs``), encoded by the codec like every other datagram: about 4
-  bytes per run after a 29-byte header and tag, one ack datagram per link and round in which
-  data arrived.
+  bytes per run after a 29-byte header and tag, one ack per link and round in which data
+  arrived (sent ``ack_copies`` times).
+
+Over a real radio (not done: the daemon does not run the tree protocols) the replay window
+of ``comms.auth`` drops a datagram whose sequence it has already accepted before the ARQ sees
+it; a retransmission whose original arrived is then acknowledged by the cumulative part of the
+next ack instead, which needs the receiver to hear some other datagram of the sender in that
+round (or an ack sent every round while an exchange is open).
 
 The harness that drives it over the in-process bus is ``dran_edge.experiments.fleet``
 (``Fleet.reliable_exchange``).
