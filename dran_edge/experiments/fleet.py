@@ -18,8 +18,10 @@ still applies. Everything random is the bus's (seeded per directed link by
 This module is a shell around the pure core (it imports the codec and the bus); the agents stay
 pure.
 
-Size: over ~500 lines because the in-process fleet and its Table 1 driver; over 500 only by ruff
-format's layout.
+Size: over ~500 lines because the in-process fleet (its rounds, plain and reliable exchanges:
+the ARQ driver, ``Fleet.reliable_exchange``, shares the fleet's encoder, endpoints and
+counters) and its Table 1 driver; the driver (``run_g2o_dran`` and its helpers) could move to
+a module of its own.
 """
 
 from __future__ import annotations
