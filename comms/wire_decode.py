@@ -127,7 +127,10 @@ def _walk_ids(data: bytes, h: Header) -> _Ids:
         init_ids.append((InitStage(stage), owner, kf))
         base, pos = _read_base_round(data, pos, end, h, is_delta)
         init_base.append(base)
-        if base is not None:
+        if stage.valueless:
+            if base is not None:
+                raise DecodeError(f"init stage {stage.name} cannot be a delta")
+        elif base is not None:
             init_bytes += dl.value_bytes(h.dim * h.dim if stage.matrix_valued else geo.dof(h.dim))
         else:
             init_bytes += _rotation_value_bytes(h.dim) if stage.matrix_valued else P
@@ -218,6 +221,8 @@ class _ValueReader:
 
     def init_value(self, stage: InitStage, owner: int, kf: int, base: int | None):
         """One init entry's value: a rotation (``stage.matrix_valued``) or a pose."""
+        if stage.valueless:
+            return np.zeros(0)
         key = ("i", int(stage), owner, kf)
         dim = self.h.dim
         rotation = stage.matrix_valued

@@ -163,6 +163,13 @@ class _EntryRecords:
     def init(self, e) -> None:
         dim = self.dim
         stage = InitStage(e.stage)
+        if stage.valueless:  # the id fields are the whole entry (never a delta)
+            self.kinds.append(KIND_INIT)
+            self.ids.append(
+                bytes([int(stage)]) + _varint(int(e.owner_robot)) + _varint(int(e.keyframe_id))
+            )
+            self.values.append(b"")
+            return
         v = np.asarray(e.value, dtype=np.float64)
         rotation = stage.matrix_valued
         if rotation:
@@ -216,6 +223,8 @@ def _message_dim(message: NeighbourMessage) -> int:
     dim = message.dim
     if dim is None:
         for e in message.init:
+            if InitStage(e.stage).valueless:
+                continue
             v = np.asarray(e.value)
             return v.shape[-1] if InitStage(e.stage).matrix_valued else v.shape[-1] - 1
         return 3

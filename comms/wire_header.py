@@ -146,10 +146,11 @@ def decode_header(data: bytes) -> Header:
         if done_count > DONE_COUNT_MAX:
             raise DecodeError(f"done count {done_count} exceeds {DONE_COUNT_MAX}")
     dim = 3 if flags & _FLAG_DIM3 else 2
-    # Every entry takes at least 2 id bytes and a pose (a delta value in the delta layout);
-    # counts beyond that are lies.
+    # Every separator or object entry takes at least 2 id bytes and a pose (a delta value in
+    # the delta layout), every init entry at least 3 id bytes (a valueless ARQ_ACK nothing
+    # more); counts beyond that are lies.
     least = dl.value_bytes(geo.dof(dim)) if flags & _FLAG_DELTA else pose_bytes(dim)
-    if (n_sep + n_obj + n_init) * (2 + least) > end - pos:
+    if (n_sep + n_obj) * (2 + least) + 3 * n_init > end - pos:
         raise DecodeError(
             f"entry counts {n_sep}/{n_obj}/{n_init} do not fit in the {end - pos} bytes left"
         )

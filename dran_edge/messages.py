@@ -47,11 +47,20 @@ class InitStage(enum.IntEnum):
     REFINE_SCHUR = 7
     REFINE_STEP = 8
     REFINE_CONTROL = 9
+    #: Selective-repeat acknowledgement (``dran_edge.comms.arq``): no value; ``keyframe_id``
+    #: is the first sequence number of a run of the recipient's datagrams the sender of the
+    #: ack received, ``owner_robot`` the run's length (≥ 1).
+    ARQ_ACK = 10
+
+    @property
+    def valueless(self) -> bool:
+        """True when the entry carries no value on the wire (its id fields say it all)."""
+        return self is InitStage.ARQ_ACK
 
     @property
     def matrix_valued(self) -> bool:
         """True when the value is a d x d matrix (else a pose)."""
-        return (
+        return not self.valueless and (
             self
             in (
                 InitStage.ROTATION,
@@ -66,7 +75,12 @@ class InitStage(enum.IntEnum):
     def delta_allowed(self) -> bool:
         """False for the refinement stages: their values always travel absolute (float32),
         never as quantised deltas (a condensed system needs every digit float32 keeps)."""
-        return self not in (InitStage.REFINE_SCHUR, InitStage.REFINE_STEP, InitStage.REFINE_CONTROL)
+        return self not in (
+            InitStage.REFINE_SCHUR,
+            InitStage.REFINE_STEP,
+            InitStage.REFINE_CONTROL,
+            InitStage.ARQ_ACK,
+        )
 
 
 @dataclass(frozen=True, eq=False)

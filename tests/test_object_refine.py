@@ -46,6 +46,23 @@ def test_refined_run_reaches_the_centralized_optimum_and_counts_its_traffic():
     assert np.isclose(F_curve[-1], out["F"], rtol=1e-6)
 
 
+def test_over_30_percent_loss_the_arq_gives_the_lossless_refinement():
+    from dran_edge.comms.bus import BusParams
+
+    sc, params = _scenario(), RefineParams(mode="always", rel_tol=1e-9)
+    runs = [
+        run_objects(sc, bench_config(False), static_graph(PATH), links, max_rounds=5, refine=params)
+        for links in (None, BusParams(loss_probability=0.3))
+    ]
+    clean, lossy = runs
+    assert lossy["refine_used"] and lossy["stopped_by"] == "refine"
+    assert lossy["refine_F_history"] == clean["refine_F_history"]
+    assert lossy["F"] == clean["F"] and lossy["ATE"] == clean["ATE"]
+    assert lossy["dropped"] > 0 and lossy["refine_arq"]["retransmissions"] > 0
+    assert lossy["round"] > clean["round"] and lossy["bytes"] > clean["bytes"]
+    assert "refine_arq" not in clean
+
+
 def test_an_unfinished_refinement_hands_over_to_dran():
     sc = _scenario()
     out = run_objects(

@@ -265,6 +265,8 @@ class _Setting:
     edges: np.ndarray
     partition: Partition
     exchange: Exchange
+    tree_exchange: Exchange
+    """The substructured stages' exchange (they need every message)."""
     params: InitParams
     gauge: int
     colour: np.ndarray | None
@@ -290,8 +292,11 @@ def distributed_chordal_init(
     exchange: Exchange,
     params: InitParams = InitParams(),
     gauge: int = 0,
+    tree_exchange: Exchange | None = None,
 ) -> InitResult:
-    """Two-stage distributed chordal initialisation; every value crosses ``exchange``."""
+    """Two-stage distributed chordal initialisation; every value crosses ``exchange``, or
+    for the substructured (direct) stages, which need every message, ``tree_exchange`` when
+    given (a reliable one over lossy links, ``experiments.fleet.Fleet.reliable_exchange``)."""
     d, D = dim, dim + 1
     colour = greedy_colouring(partition) if params.gauss_seidel else None
     tree = substructure.robot_tree(partition) if partition.num_robots > 1 else None
@@ -301,6 +306,7 @@ def distributed_chordal_init(
         edges,
         partition,
         exchange,
+        tree_exchange or exchange,
         params,
         gauge,
         colour,
@@ -349,7 +355,7 @@ def _rotation_stage(
             kappa,
             s.gauge,
             I_d,
-            s.exchange,
+            s.tree_exchange,
             InitStage.ROTATION_SCHUR,
             InitStage.ROTATION,
             lambda v, X: rot_entry(int(owner[v]), v, X),
@@ -442,7 +448,7 @@ def _translation_stage(
             tau,
             s.gauge,
             np.zeros((1, d)),
-            s.exchange,
+            s.tree_exchange,
             InitStage.TRANSLATION_SCHUR,
             InitStage.TRANSLATION,
             value_entry,

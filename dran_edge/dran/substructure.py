@@ -340,7 +340,8 @@ def _unpack(
 def missing(what: str) -> None:
     raise RuntimeError(
         f"substructured solve: {what} (a lost datagram?); it needs every "
-        "message delivered: over lossy links use InitParams(direct='never')"
+        "message delivered: over lossy links send it through a reliable exchange "
+        "(selective-repeat ARQ) or use InitParams(direct='never')"
     )
 
 

@@ -18,12 +18,15 @@ still applies. Everything random is the bus's (seeded per directed link by
 This module is a shell around the pure core (it imports the codec and the bus); the agents stay
 pure.
 
-Size: over ~500 lines because the in-process fleet and its Table 1 driver; over 500 only by ruff
-format's layout.
+Size: over ~500 lines because the in-process fleet (its rounds, plain and reliable exchanges:
+the ARQ driver, ``Fleet.reliable_exchange``, shares the fleet's encoder, endpoints and
+counters) and its Table 1 driver; the driver (``run_g2o_dran`` and its helpers) could move to
+a module of its own.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import defaultdict
@@ -33,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dran_edge.dran.agent import Agent
-from dran_edge.comms import codec
+from dran_edge.comms import arq, codec
 from dran_edge.comms.bus import Bus, BusParams
 from dran_edge.comms.delta import DeltaDecoder, DeltaEncoder
 from dran_edge.dran.consensus import metropolis_hastings_matrix
@@ -108,6 +111,7 @@ class Fleet:
         max_datagram_bytes: int = codec.DEFAULT_MAX_DATAGRAM_BYTES,
         fleet_id: int = 1,
         delta_every: int = 0,
+        arq_params: arq.ArqParams = arq.ArqParams(),
     ):
         """``delta_every > 0``: delta layout on every link (``dran_edge.comms.delta``), each key
         sent absolute again after that many rounds; 0: absolute values only."""
@@ -124,6 +128,12 @@ class Fleet:
         self.delta_every = int(delta_every)
         self._enc: dict = {}  # (sender index, receiver index) -> DeltaEncoder
         self._dec: dict = {}  # (receiver index, sender id) -> DeltaDecoder
+        self.arq: list[arq.Arq] | None = None  # per robot, from the first reliable exchange
+        self.arq_params = arq_params
+        self.ack_bytes = 0
+        """Bytes of the ARQ's ack datagrams (in ``traffic`` too)."""
+        self.init_fallback = ""
+        """Why the init fell back to block iterations (``split_and_init``), else empty."""
 
     @property
     def round(self) -> int:
@@ -148,26 +158,14 @@ class Fleet:
         every recipient in ``to`` whose link is up this round (agent indices)."""
         up = set(self.bus.neighbours(self.ids[sender]))
         ep = self.endpoints[sender]
-
-        def encode(enc=None):
-            grams = codec.encode_datagrams(
-                message,
-                fleet_id=self.fleet_id,
-                boot_epoch=1,
-                first_sequence=self.sequence[sender],
-                max_datagram_bytes=self.max_datagram_bytes,
-                delta=enc,
-            )
-            self.sequence[sender] += len(grams)
-            return grams
-
         # with deltas, one encoding per link below
-        grams: list[Any] = [] if self.delta_every else encode()
+        grams: list[Any] = [] if self.delta_every else self._encode(sender, message)
         for q in to:
             if self.ids[q] not in up:
                 continue
             if self.delta_every:  # one encoding per link: each link has its own delta state
-                grams = encode(self._enc.setdefault((sender, q), DeltaEncoder(self.delta_every)))
+                enc = self._enc.setdefault((sender, q), DeltaEncoder(self.delta_every))
+                grams = self._encode(sender, message, enc)
             for g in grams:
                 ep.send(self.ids[q], g.data, latency_rounds)
 
@@ -224,6 +222,88 @@ class Fleet:
                 incoming[q].extend(m.init)
         return incoming
 
+    # ----------------------------------------------------------------- reliable exchanges
+    def reliable_exchange(self, stage: InitStage, iteration: int, outgoing: dict) -> dict:
+        """``init_exchange`` with every message delivered: selective-repeat ARQ
+        (``dran_edge.comms.arq``) over as many bus rounds as it takes. Each round every robot
+        (re)sends its unacknowledged datagrams (latency 0), the receivers decode what arrived
+        and acknowledge it with an ``ARQ_ACK`` datagram per sender heard, sent
+        ``ArqParams.ack_copies`` times (latency 0, lossy too), and the senders take the acks
+        in; the exchange ends in the round in which the last datagram is acknowledged (every
+        robot knows its own sends are done and has what it was sent). As ``send``, nothing
+        goes over a link that is down in the round. Every datagram, retransmission and ack crosses the bus and is counted.
+        Messages are encoded absolute (no delta layout: a retransmission must decode alone).
+        Raises ``arq.LinkDown`` when a datagram stays unacknowledged for
+        ``arq_params.max_rounds`` rounds (the outstanding datagrams are dropped)."""
+        if self.arq is None:
+            self.arq = [arq.Arq(r, self.arq_params) for r in self.ids]
+        arqs = self.arq
+        start = self.bus.round + 1  # the round every datagram of the exchange carries
+        for r, sends in outgoing.items():
+            for q, entries in sends:
+                msg = NeighbourMessage(r, start, start * ROUND_PERIOD_NS, init=tuple(entries))
+                for g in self._encode(r, msg):
+                    arqs[r].offer(self.ids[q], g.sequence, g.data)
+        incoming: dict[int, list] = defaultdict(list)
+        while True:  # at least one round, as ``init_exchange``
+            self.bus.advance()
+            rnd = self.bus.round
+            try:
+                due = [a.due() for a in arqs]
+            except arq.LinkDown:
+                for a in arqs:
+                    a.abandon()
+                raise
+            for r, sends in enumerate(due):
+                for to, data in sends:
+                    if self.bus.link_up(self.ids[r], to):
+                        self.endpoints[r].send(to, data, 0)
+            self._arq_receive(arqs, incoming)
+            for q, a in enumerate(arqs):
+                for peer, acked in a.acks().items():
+                    ack = NeighbourMessage(
+                        q, rnd, rnd * ROUND_PERIOD_NS, init=arq.ack_entries(acked)
+                    )
+                    if not self.bus.link_up(self.ids[q], peer):
+                        continue
+                    for g in self._encode(q, ack):
+                        for _ in range(self.arq_params.ack_copies):
+                            self.endpoints[q].send(peer, g.data, 0)
+                            self.ack_bytes += len(g.data)
+            self._arq_receive(arqs, incoming)
+            if not any(a.pending for a in arqs):
+                return incoming
+
+    def _encode(
+        self, sender: int, message: NeighbourMessage, delta: DeltaEncoder | None = None
+    ) -> list:
+        """The sender's next datagrams of ``message`` (its sequence numbers advance)."""
+        grams = codec.encode_datagrams(
+            message,
+            fleet_id=self.fleet_id,
+            boot_epoch=1,
+            first_sequence=self.sequence[sender],
+            max_datagram_bytes=self.max_datagram_bytes,
+            delta=delta,
+        )
+        self.sequence[sender] += len(grams)
+        return grams
+
+    def _arq_receive(self, arqs: list[arq.Arq], incoming: dict) -> None:
+        """Everything due: acks to their sender's ARQ state, new data into ``incoming``."""
+        for i, ep in enumerate(self.endpoints):
+            for sender, data in ep.receive():
+                try:
+                    msg = codec.decode_datagram(data)
+                except DecodeError:
+                    self.decode_errors += 1
+                    continue
+                acked = arq.ack_runs(msg.init)
+                if acked:
+                    arqs[i].acknowledged(sender, acked)
+                elif arqs[i].received(sender, int(msg.sequence or 0)):
+                    incoming[i].extend(msg.init)
+
     def run(self, max_rounds: int, min_rounds: int = 1, patience: int = 3, callback=None) -> int:
         """Rounds until every agent has reported convergence ``patience`` rounds in a row."""
         streak = 0
@@ -246,43 +326,55 @@ TABLE1_EPS_COST_REL = 1e-4
 TABLE1_DELTA_EVERY = 20
 
 
-def default_init_params(links: BusParams | None = None, partitions=()):
+def default_init_params():
     """The init of the g2o runs: Gauss–Seidel block iterations, and the substructured exact
-    stages where cheap (``InitParams.direct="auto"``) unless ``links`` or ``partitions`` lose
-    datagrams (that protocol needs every message; the block iterations tolerate losses)."""
+    stages where cheap (``InitParams.direct="auto"``; over lossy links through
+    ``Fleet.reliable_exchange``, ``split_and_init``)."""
     from dran_edge.dran.dist_init import InitParams
 
-    lossy = bool(partitions) or lossy_links(links)
-    return InitParams(gauss_seidel=True, direct="never" if lossy else "auto")
+    return InitParams(gauss_seidel=True, direct="auto")
 
 
 def lossy_links(links: BusParams | None) -> bool:
-    """Whether ``links`` lose datagrams (the tree protocols need every message)."""
+    """Whether ``links`` lose datagrams (the tree protocols then go through the ARQ)."""
     return links is not None and (
         links.loss_probability > 0 or any(p > 0 for p in links.link_loss.values())
     )
 
 
-def refine_over_fleet(fleet: Fleet, mode: str, run, lossy: bool) -> dict:
+def refine_over_fleet(fleet: Fleet, mode: str, run, reliable: bool, skip: str = "") -> dict:
     """An exact refinement over the fleet's bus: ``run(exchange) -> exact_gn.RefineResult``
-    with ``exchange`` a ``dist_init.Exchange`` of one bus round per call (not over lossy
-    links, which the tree protocol cannot take). Returns ``poses_refined`` and the
-    ``refine_*`` numbers, rounds and datagram bytes counted on the bus (``refine_curve``:
-    (rounds, bytes since the start, F as the root summed it) at every accepted point)."""
+    with ``exchange`` a ``dist_init.Exchange``: one bus round per call, or with ``reliable``
+    (lossy links, partitions) ``Fleet.reliable_exchange``, as many rounds as the ARQ takes. A
+    link down for longer than the ARQ allows (``arq.LinkDown``) ends it: no refined poses,
+    ``refine_reason`` says which link (the caller runs plain DRAN from its start). ``skip``:
+    do not run, for this reason. Returns ``poses_refined`` and the ``refine_*`` numbers,
+    rounds and datagram bytes counted on the bus (``refine_curve``: (rounds, bytes since the
+    start, F as the root summed it) at every accepted point; ``refine_arq``: the ARQ's
+    transmissions, retransmissions, duplicates and ack bytes in it, when ``reliable``)."""
     from dran_edge.dran import exact_gn
 
     r0, b0 = fleet.round, fleet.traffic.bytes_total
-    sent = [b0]  # bytes after each exchange
+    arq0 = arq_totals(fleet)
+    sent, at = [b0], [r0]  # bytes and bus round after each exchange
+    over = fleet.reliable_exchange if reliable else fleet.init_exchange
 
     def exchange(stage, iteration: int, outgoing: dict) -> dict:
-        incoming = fleet.init_exchange(stage, iteration, outgoing)
+        incoming = over(stage, iteration, outgoing)
         sent.append(fleet.traffic.bytes_total)
+        at.append(fleet.round)
         return incoming
 
-    res = (
-        exact_gn.RefineResult(np.zeros(0), False, reason="lossy links") if lossy else run(exchange)
-    )
-    return {
+    if skip:
+        res = exact_gn.RefineResult(np.zeros(0), False, reason=skip)
+    else:
+        try:
+            res = run(exchange)
+        except arq.LinkDown as exc:
+            res = exact_gn.RefineResult(
+                np.zeros(0), False, reason=f"{exc}: not refined, plain DRAN from the start"
+            )
+    out: dict[str, Any] = {
         "poses_refined": res.poses if res.poses.size else None,
         "refine_mode": mode,
         "refine_used": res.used,
@@ -293,12 +385,28 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, lossy: bool) -> dict:
         "refine_trials": res.trials,
         "refine_F_history": res.F_history,
         "refine_converged": res.converged,
-        "refine_curve": [(k, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)],
+        "refine_curve": [
+            (at[k] - r0, sent[k] - b0, F) for k, F in zip(res.F_rounds, res.F_history)
+        ],
         "refine_step_over_round_floats": res.ratio_floats,
+    }
+    if reliable:
+        out["refine_arq"] = {k: v - arq0[k] for k, v in arq_totals(fleet).items()}
+    return out
+
+
+def arq_totals(fleet: Fleet) -> dict:
+    """The fleet's ARQ counters summed over robots (since the fleet started)."""
+    arqs = fleet.arq or []
+    return {
+        "transmissions": sum(a.transmissions for a in arqs),
+        "retransmissions": sum(a.retransmissions for a in arqs),
+        "duplicates": sum(a.duplicates for a in arqs),
+        "ack_bytes": fleet.ack_bytes,
     }
 
 
-def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> dict:
+def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, reliable: bool) -> dict:
     """``run_g2o_dran``'s refinement (``exact_gn.refine`` over the fleet's bus): {} when
     ``params`` is None, else the ``refine_*`` numbers and ``poses_refined``."""
     from dran_edge.dran import exact_gn
@@ -320,7 +428,7 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, lossy: bool) -> di
             exchange,
             params,
         ),
-        lossy,
+        reliable,
     )
     if out["poses_refined"] is None:
         out["poses_refined"] = poses.copy()
@@ -428,18 +536,29 @@ def split_and_init(
     fleet = Fleet([], bus, delta_every=delta_every)
     if initial_poses is not None:
         return kappa, tau, part, fleet, np.asarray(initial_poses, np.float64).copy()
-    init = distributed_chordal_init(
-        g.dim,
-        g.num_vertices,
-        g.edges,
-        g.measurements,
-        kappa,
-        tau,
-        part,
-        fleet.init_exchange,
-        init_params or default_init_params(links, partitions),
-    )
-    return kappa, tau, part, fleet, init.poses
+    params = init_params or default_init_params()
+    reliable = bool(partitions) or lossy_links(links)
+
+    def init(params, tree_exchange):
+        return distributed_chordal_init(
+            g.dim,
+            g.num_vertices,
+            g.edges,
+            g.measurements,
+            kappa,
+            tau,
+            part,
+            fleet.init_exchange,
+            params,
+            tree_exchange=tree_exchange,
+        )
+
+    try:  # the substructured stages need every message: over lossy links through the ARQ
+        res = init(params, fleet.reliable_exchange if reliable else None)
+    except arq.LinkDown as exc:  # a link down too long: the block iterations alone, again
+        fleet.init_fallback = f"{exc}: init by block iterations only"
+        res = init(dataclasses.replace(params, direct="never"), None)
+    return kappa, tau, part, fleet, res.poses
 
 
 def run_g2o_dran(
@@ -469,8 +588,8 @@ def run_g2o_dran(
     all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
     record where it fired, via ``callback``). The result also holds ``poses_init``.
     ``refine`` (an ``exact_gn.RefineParams``): after the init, exact distributed LM steps over
-    the same bus (``dran_edge.dran.exact_gn``; not over lossy links, which its tree protocol
-    cannot take); the result then also holds ``refine_*`` numbers (``refine_curve``: (rounds,
+    the same bus (``dran_edge.dran.exact_gn``; over lossy links and partitions through the
+    ARQ, ``Fleet.reliable_exchange``); the result then also holds ``refine_*`` numbers (``refine_curve``: (rounds,
     bytes since the init, F as the root summed it) at every accepted point), ``objective_refined``
     and ``poses_refined``, where DRAN starts. A refinement that stopped on its relative-decrease
     test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
@@ -498,7 +617,7 @@ def run_g2o_dran(
             tau,
             fleet,
             refine,
-            lossy=bool(partitions) or lossy_links(links),
+            reliable=bool(partitions) or lossy_links(links),
         ),
     )
     if refined:
@@ -536,4 +655,6 @@ def run_g2o_dran(
         "colours": int(colour.max()) + 1,
         "delta_every": delta_every,
         "wall_s": time.perf_counter() - t_start,
-    }
+    } | ({"init_fallback": fleet.init_fallback} if fleet.init_fallback else {}) | (
+        {"arq": arq_totals(fleet)} if fleet.arq is not None else {}
+    )

@@ -378,17 +378,15 @@ def _refine(
         return {}
     adjacency = [fleet.bus.neighbours(r) for r in fleet.ids]
     kernels = any(b.kernel is not None for b in graph.factors) or sc.params.outlier_ratio > 0
-    out = refine_over_fleet(
+    return refine_over_fleet(
         fleet,
         params.mode,
         lambda exchange: object_refine.refine_objects(
             graph, off, init, adjacency, exchange, params
         ),
-        lossy=lossy_links(links) or kernels,
+        reliable=lossy_links(links),
+        skip="robust kernels or outliers: least squares only" if kernels else "",
     )
-    if kernels:
-        out["refine_reason"] = "robust kernels or outliers: least squares only"
-    return out
 
 
 def run_objects(
@@ -415,7 +413,8 @@ def run_objects(
 
     ``refine`` (an ``exact_gn.RefineParams``): before the first round, exact distributed LM
     steps on the centralized objective over the same bus (``experiments.object_refine``;
-    least squares and lossless links only, else not run, ``refine_reason`` says why); the
+    over lossy links through the ARQ, ``Fleet.reliable_exchange``; least squares only, else
+    not run; a link down too long ends it; ``refine_reason`` says why); the
     agents start from the refined trajectories and object copies. A refinement that stopped
     on its relative-decrease test ends the run there when ``stop`` (``stopped_by``
     "refine"). ``round`` and ``bytes`` count the refinement's exchanges too; ``rounds`` the

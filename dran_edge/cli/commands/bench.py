@@ -104,6 +104,14 @@ def _add_g2o_parser(sub: Any) -> None:
         "or block Gauss-Seidel iterations only (never; docs/dran.md)",
     )
     _add_refine_options(g)
+    g.add_argument(
+        "--loss",
+        type=float,
+        default=0.0,
+        help="datagram loss probability on every link (default 0); the substructured init "
+        "and the refinement then go through the selective-repeat ARQ (docs/dran.md, "
+        "'Over lossy links')",
+    )
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -327,6 +335,7 @@ def run_g2o(args) -> int:
     from pathlib import Path
 
     from dran_edge.experiments.dgs import run_g2o_dgs
+    from dran_edge.comms.bus import BusParams
     from dran_edge.dran.dist_init import InitParams
     from dran_edge.errors import InputError
     from dran_edge.formats.g2o import read_g2o, write_g2o
@@ -357,6 +366,7 @@ def run_g2o(args) -> int:
             callback=cb,
             init_params=init_params,
             refine=_refine_params(args),
+            links=BusParams(loss_probability=args.loss) if args.loss > 0 else None,
             **run_kw,
         )
     else:
@@ -365,6 +375,7 @@ def run_g2o(args) -> int:
             args.robots,
             delta_every=0 if args.plain else TABLE1_DELTA_EVERY,
             init_params=init_params,
+            links=BusParams(loss_probability=args.loss) if args.loss > 0 else None,
         )
     if args.out:
         write_g2o(args.out, g, res["poses"])
@@ -376,6 +387,8 @@ def run_g2o(args) -> int:
     }
     if args.refine != "off":
         report["refine"] = args.refine
+    if args.loss > 0:
+        report["loss"] = args.loss
     report.update(
         {k: v for k, v in res.items() if k not in ("poses", "poses_init", "poses_refined")}
     )
