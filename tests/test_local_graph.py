@@ -178,7 +178,8 @@ def test_marginalisation_is_exact_for_a_linearised_graph():
         g.solve()
     full = dict(zip(g.node_keys().tolist(), g.T_world_body()))
     objects = g.T_world_object().copy()
-    g.bounds = dataclasses.replace(g.bounds, max_nodes=60, max_edges=240)
+    # without the skeleton: composing onto it is conservative, not exact (its own tests below)
+    g.bounds = dataclasses.replace(g.bounds, max_nodes=60, max_edges=240, skeleton_fraction=0.0)
     g._enforce_bounds()
     assert g.num_nodes == 60
     for _ in range(3):
@@ -332,3 +333,94 @@ def test_blockdiag_bound_makes_dropped_correlations_conservative():
         assert 1.0 <= c <= k
         assert np.linalg.eigvalsh(c * D - S).min() >= -1e-9 * np.abs(S).max()
         assert np.linalg.eigvalsh(0.95 * c * D - S).min() < 0  # the smallest such c
+
+
+# --------------------------------------------------------------------------- skeleton
+@pytest.mark.parametrize("loops", [0, 1, 3])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_composition_onto_the_skeleton_counts_no_information_twice(loops, seed):
+    """A node next to a skeleton node is composed onto it (all its factors through the bridge,
+    the bridge's information split among them): the kept information is ⪯ the exact marginal."""
+    g, _, T = _star_graph(loops, seed)
+    g.skeleton.add(0)  # node 0 is kept as a skeleton node: the bridge goes to it
+    every = list(range(3 + loops))
+    H = _information(g, every, T)
+    kept = [k for k in every if k != 1]
+    sn, sk = np.arange(6, 12), np.array([6 * k + i for k in kept for i in range(6)])
+    exact = H[np.ix_(sk, sk)] - H[np.ix_(sk, sn)] @ np.linalg.solve(
+        H[np.ix_(sn, sn)], H[np.ix_(sn, sk)]
+    )
+    g.remove_node(1)
+    fa = g.factor_arrays(include_prior=False)
+    assert g.prior is None  # nothing went into the dense prior
+    assert set(fa["p"].tolist()) == {0}  # every factor now hangs on the skeleton node
+    approx = _information(g, kept, T)
+    scale = float(np.max(np.abs(exact)))
+    gap = np.linalg.eigvalsh(0.5 * ((exact - approx) + (exact - approx).T))
+    assert gap.min() >= -1e-9 * scale, gap.min() / scale
+    # the chain 0 – 2 through the removed node keeps most of its information
+    assert np.trace(approx[6:12, 6:12]) > 0.3 * np.trace(exact[6:12, 6:12])
+
+
+def test_skeleton_stays_bounded_and_spans_the_mission():
+    m = vio_mission(900, seed=11, reset_at=(450,))
+    c = cfg(max_nodes=60, max_edges=240)
+    g = KeyframeGraph(c)
+    cap = int(c.graph.skeleton_fraction * 60)
+    peak_skeleton = peak_prior = 0
+    for e in m.events:
+        g.handle(e)
+        peak_skeleton = max(peak_skeleton, len(g.skeleton))
+        peak_prior = max(peak_prior, 0 if g.prior is None else len(g.prior["keys"]))
+        assert g.num_nodes <= 60 and g.num_factors <= 240
+    assert peak_skeleton <= cap
+    assert g.counters["skeleton_evicted"] > 0 and g.skeleton.stride >= 16
+    keys = sorted(g.skeleton.nodes)
+    assert len(keys) >= cap // 2 - 1  # thinned by halves, never emptied
+    # evenly spread over the whole mission: from its start to the recent window
+    assert keys[0] < 2 * g.skeleton.stride and keys[-1] > g.next_node - 60 - 2 * g.skeleton.stride
+    assert max(np.diff(keys)) <= 2 * g.skeleton.stride
+    assert peak_prior <= 9 + 4  # the dense prior does not grow with the skeleton
+
+
+def _loop_attachment(skeleton_fraction: float):
+    """Run a mission with small caps, then a loop from the newest keyframe to a long removed
+    one: (the old end's node, whether it is a skeleton node, the loop's translation σ)."""
+    m = vio_mission(700, seed=12)
+    g = KeyframeGraph(
+        AgentConfig(
+            graph=GraphBounds(max_nodes=60, max_edges=240, skeleton_fraction=skeleton_fraction)
+        )
+    )
+    feed(g, m.events)
+    kept = set(g.node_stamps_ns().tolist())
+    # a keyframe that left the window long ago and is not kept
+    old = next(i for i in range(150, 300) if int(m.keyframe_stamps_ns[i]) not in kept)
+    cur = len(m.keyframe_stamps_ns) - 1
+    rel = geo.se3_between(m.T_world_body_true[old], m.T_world_body_true[cur])
+    before = g.factor_arrays(include_prior=False)
+    stamp_old, stamp_cur = int(m.keyframe_stamps_ns[old]), int(m.keyframe_stamps_ns[cur])
+    assert g.handle(LoopClosure(stamp_old, stamp_cur, rel, 60))
+    after = g.factor_arrays(include_prior=False)
+    new = [
+        i
+        for i in range(len(after["p"]))
+        if after["kind"][i] == KIND_LOOP
+        and not any(
+            before["p"][j] == after["p"][i]
+            and before["q"][j] == after["q"][i]
+            and before["kind"][j] == KIND_LOOP
+            for j in range(len(before["p"]))
+        )
+    ]
+    assert len(new) == 1
+    node = int(after["p"][new[0]])
+    sigma_m = float(np.sqrt(np.trace(after["S"][new[0]][:3, :3]) / 3))
+    return node, node in g.skeleton, sigma_m
+
+
+def test_loop_into_an_old_place_attaches_to_a_skeleton_node():
+    node, on_skeleton, sigma_m = _loop_attachment(0.4)
+    node0, on_skeleton0, sigma0_m = _loop_attachment(0.0)
+    assert on_skeleton and not on_skeleton0
+    assert sigma_m < 0.5 and sigma_m < 0.2 * sigma0_m  # short range instead of the window's edge

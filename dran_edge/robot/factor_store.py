@@ -32,6 +32,7 @@ from dran_edge.robot.factor_algebra import (
     invert_cov,
     split_weights,
 )
+from dran_edge.robot.skeleton import Skeleton
 from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
 
 #: a factor: (p, q, Z, Σ, kind)
@@ -123,6 +124,7 @@ class FactorStore:
     obj_est: dict[int, np.ndarray]
     last_node_of_segment: dict[int, int]
     seg_nodes: dict[int, tuple[list[int], list[int]]]
+    skeleton: Skeleton
 
     def _init_factors(self) -> None:
         # factors: slot -> (p, q, Z, S, kind); adjacency: key -> set of slots
@@ -191,29 +193,75 @@ class FactorStore:
             tier = 2 if node in self.protected else (1 if self.special.get(node, 0) else 0)
             return (tier, node)
 
-        return sorted((n for n in self.node_stamp if n not in newest), key=rank)
+        skeleton = self.skeleton
+        return sorted(
+            (n for n in self.node_stamp if n not in newest and n not in skeleton), key=rank
+        )
+
+    def _in_prior(self, n: int) -> bool:
+        return self.prior is not None and n in self.prior["keys"]
 
     def _enforce_bounds(self) -> None:
         b = self.bounds
         if self.num_nodes <= b.max_nodes and self.num_factors <= b.max_edges:
             return
-        order = self._removal_order()
-        for node in order:
+        skeleton = self.skeleton
+        skeleton.capacity = int(b.skeleton_fraction * b.max_nodes)
+        if self.num_factors > b.max_edges and len(skeleton) > 1:
+            # the skeleton's factors get their share of max_edges too: halve it when over
+            incident = sum(len(self.adj.get(k, ())) for k in skeleton.nodes)
+            if incident > b.skeleton_fraction * b.max_edges:
+                self._evict(skeleton.thin(len(skeleton) - 1))
+        for node in self._removal_order():
             if self.num_nodes <= b.max_nodes and self.num_factors <= b.max_edges:
                 break
+            if node not in self.node_stamp:  # evicted from the skeleton meanwhile
+                continue
+            if skeleton.admits(node) and not self._in_prior(node):
+                self._evict(skeleton.add(node))  # kept (module skeleton); maybe others go
+                continue
             self.remove_node(node)
         if self.num_factors > b.max_edges:  # only newest nodes left with dense factors
             self._count("bound_exceeded")
 
+    def _evict(self, nodes: list[int]) -> None:
+        """Remove nodes that left the skeleton (oldest first)."""
+        for k in nodes:
+            if k in self.node_stamp:
+                self.remove_node(k)
+                self._count("skeleton_evicted")
+
+    def _skeleton_bridge(self, n: int, slots: list[int]) -> int | None:
+        """The most certain factor from ``n`` to a skeleton node (None: no such factor)."""
+        onto = [
+            s
+            for s in slots
+            if self.factors[s][0] != NONE
+            and (self.factors[s][1] if self.factors[s][0] == n else self.factors[s][0])
+            in self.skeleton
+        ]
+        return min(onto, key=lambda s: float(np.trace(self.factors[s][3])), default=None)
+
     def remove_node(self, n: int) -> None:
-        """Remove node ``n`` keeping its information (module docstring)."""
+        """Remove node ``n`` keeping its information (module docstring).
+
+        Next to the skeleton, everything composes onto the skeleton node, and a part of the
+        prior on ``n`` is marginalised within the prior alone: the skeleton never enters the
+        dense prior, which so stays small (docs/notes/solve-and-bounded-graph.md, section 4)."""
         slots = sorted(self.adj.get(n, ()))
+        self.skeleton.discard(n)
         chain = (
             len(slots) == 2
             and all(self.factors[s][4] == KIND_ODOMETRY for s in slots)
-            and not (self.prior is not None and n in self.prior["keys"])
+            and not self._in_prior(n)
         )
-        if chain or not self.marginalize:
+        onto = self._skeleton_bridge(n, slots)
+        if onto is not None:
+            self._compose_out(n, slots, onto)
+            self._count("nodes_composed_onto_skeleton")
+            if self._in_prior(n):  # n alone out of the prior (it gets no share of the bridge)
+                self._marginalize_out(n, [])
+        elif chain or not self.marginalize:
             self._compose_out(n, slots)
         else:
             self._marginalize_out(n, self._reanchor_loops(n, slots))
@@ -362,11 +410,11 @@ class FactorStore:
             )
         return blocks
 
-    def _compose_out(self, n: int, slots: list[int]) -> None:
-        """Move ``n``'s factors onto a neighbour through the most certain factor."""
+    def _compose_out(self, n: int, slots: list[int], bridge: int | None = None) -> None:
+        """Move ``n``'s factors onto a neighbour through ``bridge`` (default: the most certain
+        factor)."""
         binary = [s for s in slots if self.factors[s][0] != NONE]
-        bridge = None
-        if binary:
+        if bridge is None and binary:
             # the most certain binary factor to another node (objects are never removed, so a
             # bridge to an object is fine too, but prefer nodes: odometry keeps the chain)
             def certainty(s: int) -> tuple[int, float]:

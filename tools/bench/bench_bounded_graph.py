@@ -19,6 +19,7 @@ for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=
     .venv/bin/python tools/bench/bench_bounded_graph.py --no-baseline   # RSS of the bounded graph
     .venv/bin/python tools/bench/bench_bounded_graph.py --quick   # 100 keyframes, caps 40 / 160
     .venv/bin/python tools/bench/bench_bounded_graph.py --checkpoints 2000,5000  # ATE on the way
+    .venv/bin/python tools/bench/bench_bounded_graph.py --stop-after 2000 --seed 1  # its start
 
 The mission is generated in a child process and written as ingest records (docs/ingest.md);
 this process streams it back through the ingest decoder in 1 MiB chunks, as the daemon would,
@@ -155,12 +156,25 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
     ap.add_argument(
+        "--stop-after",
+        type=int,
+        default=0,
+        help="stop streaming after this many keyframes of the --keyframes mission (its resets "
+        "stay at 1/3 and 2/3 of --keyframes): a shorter run of the same mission",
+    )
+    ap.add_argument(
         "--checkpoints",
         default="",
         help="comma-separated keyframe counts at which a copy of each graph is "
         "solved to convergence and its ATE printed (e.g. 2000,5000)",
     )
     ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--mission",
+        metavar="PATH",
+        help="keep the generated mission's ingest records at PATH (and PATH.truth.npz) and "
+        "reuse them when they exist (same --keyframes and --seed only)",
+    )
     ap.add_argument(
         "--quick",
         action="store_true",
@@ -176,9 +190,11 @@ def main(argv=None) -> int:
         return 0
 
     t0 = time.perf_counter()
-    tmp = tempfile.mkdtemp(prefix="bench_bounded_")
-    path = os.path.join(tmp, "ingest.bin")
-    if args.quick:  # no child process: the RSS figures do not matter here
+    tmp = None if args.mission else tempfile.mkdtemp(prefix="bench_bounded_")
+    path = args.mission or os.path.join(tmp, "ingest.bin")
+    if args.mission and os.path.exists(path + ".truth.npz"):
+        pass  # reuse the kept mission
+    elif args.quick:  # no child process: the RSS figures do not matter here
         write_mission(path, n, args.seed)
     else:
         subprocess.run(
@@ -238,7 +254,7 @@ def main(argv=None) -> int:
             window.append(round_solve(bounded, args.iterations))
         if kf in checkpoints:
             checkpoint(bounded, unbounded, mission, kf)
-        if kf % args.report_every == 0:
+        if kf % args.report_every == 0 or kf == args.stop_after:
             ub = "—"
             ub_ms = float("nan")
             if unbounded is not None:
@@ -248,12 +264,14 @@ def main(argv=None) -> int:
             prior = 0 if bounded.prior is None else len(bounded.prior["keys"])
             print(
                 f"| {kf} | {bounded.num_nodes} / {bounded.num_factors} / {prior} | "
-                f"{mean_ms:.1f} / {1e3 * max(window):.1f} | {ub} | {ub_ms:.0f} | "
+                f"{mean_ms:.1f} / {1e3 * max(window, default=float('nan')):.1f} | {ub} | {ub_ms:.0f} | "
                 f"{ub_ms / mean_ms:.1f} | {1e6 * handle_s / max(handled, 1):.0f} | "
                 f"{rss_mb():.0f} |",
                 flush=True,
             )
             window, handle_s, handled = [], 0.0, 0
+        if kf == args.stop_after:
+            break
     print(
         f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
         f"{args.max_nodes} / {args.max_edges}); counters {bounded.counters}"
@@ -283,9 +301,10 @@ def main(argv=None) -> int:
         )
     print(f"| bounded, dense marginal prior | {b_ate:.3f} | {b_obj:.3f} |")
     print(f"| bounded, sparsified prior (agent view) | {s_ate:.3f} | {s_obj:.3f} |")
-    os.remove(path)
-    os.remove(path + ".truth.npz")
-    os.rmdir(tmp)
+    if tmp is not None:
+        os.remove(path)
+        os.remove(path + ".truth.npz")
+        os.rmdir(tmp)
     print(
         f"\npeak RSS of the process (VmHWM): {rss_mb('VmHWM'):.0f} MB; total "
         f"{time.perf_counter() - t0:.0f} s"
