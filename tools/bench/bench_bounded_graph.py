@@ -65,13 +65,18 @@ def round_solve(g: KeyframeGraph, iterations: int) -> float:
     return time.perf_counter() - t
 
 
+def ate_m(mission, stamps: np.ndarray, T: np.ndarray) -> float:
+    """Position RMSE (m) of poses ``T`` at keyframe ``stamps`` against the ground truth."""
+    i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
+    return float(
+        np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2, axis=1)))
+    )
+
+
 def errors(
     g: KeyframeGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
 ) -> tuple[float, float]:
-    i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
-    ate = float(
-        np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2, axis=1)))
-    )
+    ate = ate_m(mission, stamps, T)
     oid = g.object_ids()
     obj = float(
         np.sqrt(
@@ -100,13 +105,23 @@ def checkpoint(bounded: KeyframeGraph, unbounded: KeyframeGraph | None, mission,
     b_ate, _ = errors(b, mission, stamps, b.T_world_body(), b.T_world_object())
     s_T, s_O = solve_sparsified(b)
     s_ate, _ = errors(b, mission, stamps, s_T, s_O)
-    line = f"checkpoint {kf} keyframes: ATE bounded dense {b_ate:.4f} m, sparsified {s_ate:.4f} m"
+    # the recent window alone (the nodes that are not skeleton nodes)
+    win = np.array([k not in b.skeleton for k in b.node_keys().tolist()], dtype=bool)
+    w_ate = ate_m(mission, stamps[win], b.T_world_body()[win])
+    line = (
+        f"checkpoint {kf} keyframes: ATE bounded dense {b_ate:.4f} m, sparsified {s_ate:.4f} m "
+        f"({len(b.skeleton)} skeleton nodes; window alone {w_ate:.4f} m)"
+    )
     if unbounded is not None:
         u = copy.deepcopy(unbounded)
         u.solve(lm.LMParams(max_iterations=50))
         idx = np.searchsorted(u.node_stamps_ns(), stamps)
         u_ate, _ = errors(u, mission, stamps, u.T_world_body()[idx], u.T_world_object())
-        line += f", unbounded {u_ate:.4f} m (bounded dense / unbounded {b_ate / u_ate:.2f})"
+        uw_ate = ate_m(mission, stamps[win], u.T_world_body()[idx][win])
+        line += (
+            f", unbounded {u_ate:.4f} m (bounded dense / unbounded {b_ate / u_ate:.2f}; "
+            f"window alone {uw_ate:.4f} m, ratio {w_ate / uw_ate:.2f})"
+        )
     print(line + f"; RSS {rss_mb():.0f} MB", flush=True)
 
 
@@ -274,7 +289,8 @@ def main(argv=None) -> int:
             break
     print(
         f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
-        f"{args.max_nodes} / {args.max_edges}); counters {bounded.counters}"
+        f"{args.max_nodes} / {args.max_edges}); skeleton {len(bounded.skeleton)} nodes, stride "
+        f"{bounded.skeleton.stride}; counters {bounded.counters}"
     )
 
     # final accuracy on the nodes the bounded graph holds
