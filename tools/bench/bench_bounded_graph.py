@@ -165,6 +165,12 @@ def main(argv=None) -> int:
     ap.add_argument("--keyframes", type=int, default=10_000)
     ap.add_argument("--max-nodes", type=int, default=400)
     ap.add_argument("--max-edges", type=int, default=1600)
+    ap.add_argument(
+        "--skeleton-fraction",
+        type=float,
+        default=GraphBounds().skeleton_fraction,
+        help="graph.skeleton_fraction of the bounded graph (docs/config.md)",
+    )
     ap.add_argument("--round-every", type=int, default=10, help="keyframes per round")
     ap.add_argument("--iterations", type=int, default=3, help="LM iterations per round")
     ap.add_argument("--report-every", type=int, default=1000)
@@ -232,7 +238,13 @@ def main(argv=None) -> int:
         f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB"
     )
     checkpoints = {int(k) for k in args.checkpoints.split(",") if k.strip()}
-    base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
+    base = AgentConfig(
+        graph=GraphBounds(
+            max_nodes=args.max_nodes,
+            max_edges=args.max_edges,
+            skeleton_fraction=args.skeleton_fraction,
+        )
+    )
     bounded = KeyframeGraph(base)
     unbounded = (
         None
