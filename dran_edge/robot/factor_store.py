@@ -225,30 +225,14 @@ class FactorStore:
             self._count("bound_exceeded")
 
     def _evict(self, nodes: list[int]) -> None:
-        """Remove nodes that left the skeleton (oldest first): composed onto the nearest kept
-        skeleton node when they have a factor to one and are not in the prior, so that an old
-        node's removal stays local (marginalising it would bring its skeleton neighbours and its
-        loops' partners into the dense prior); else like any node."""
+        """Remove nodes that left the skeleton (oldest first)."""
         for k in nodes:
             if k in self.node_stamp:
-                self.remove_node(k, onto_skeleton=True)
+                self.remove_node(k)
                 self._count("skeleton_evicted")
 
-    def _skeleton_bridge(self, n: int, slots: list[int]) -> int | None:
-        """The factor from ``n`` to the nearest skeleton node (None: no such factor)."""
-        best = None
-        for s in slots:
-            p, q = self.factors[s][0], self.factors[s][1]
-            other = q if p == n else p
-            if p != NONE and other in self.skeleton:
-                key = (abs(other - n), float(np.trace(self.factors[s][3])))
-                if best is None or key < best[0]:
-                    best = (key, s)
-        return None if best is None else best[1]
-
-    def remove_node(self, n: int, onto_skeleton: bool = False) -> None:
-        """Remove node ``n`` keeping its information (module docstring); ``onto_skeleton``:
-        compose it onto the nearest skeleton node where it has a factor to one (:meth:`_evict`)."""
+    def remove_node(self, n: int) -> None:
+        """Remove node ``n`` keeping its information (module docstring)."""
         slots = sorted(self.adj.get(n, ()))
         self.skeleton.discard(n)
         chain = (
@@ -256,11 +240,8 @@ class FactorStore:
             and all(self.factors[s][4] == KIND_ODOMETRY for s in slots)
             and not self._in_prior(n)
         )
-        onto = (
-            self._skeleton_bridge(n, slots) if onto_skeleton and not self._in_prior(n) else None
-        )
-        if onto is not None or chain or not self.marginalize:
-            self._compose_out(n, slots, onto)
+        if chain or not self.marginalize:
+            self._compose_out(n, slots)
         else:
             self._marginalize_out(n, self._reanchor_loops(n, slots))
         seg = self.node_segment.get(n)
@@ -453,11 +434,11 @@ class FactorStore:
             )
         return blocks
 
-    def _compose_out(self, n: int, slots: list[int], bridge: int | None = None) -> None:
-        """Move ``n``'s factors onto a neighbour through ``bridge`` (default: the most certain
-        factor)."""
+    def _compose_out(self, n: int, slots: list[int]) -> None:
+        """Move ``n``'s factors onto a neighbour through the most certain factor."""
         binary = [s for s in slots if self.factors[s][0] != NONE]
-        if bridge is None and binary:
+        bridge = None
+        if binary:
             # the most certain binary factor to another node (objects are never removed, so a
             # bridge to an object is fine too, but prefer nodes: odometry keeps the chain)
             def certainty(s: int) -> tuple[int, float]:
