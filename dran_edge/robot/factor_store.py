@@ -7,6 +7,9 @@ for chain nodes, loop re-anchoring plus a Schur complement into the dense prior 
 (:class:`MarginalPrior`), and the prior's sparsified form for consumers without a dense-prior
 factor. :class:`~dran_edge.robot.keyframe_graph.KeyframeGraph` is the subclass that owns the
 node tables and turns events into factors. Pure: numpy only.
+
+Size: over ~500 lines because node removal, the dense prior it feeds and the prior's sparsified
+forms (for the agent, and a skeleton node leaving it) are one piece of algebra on one state.
 """
 
 from __future__ import annotations
