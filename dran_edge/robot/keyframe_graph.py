@@ -38,6 +38,8 @@ counted once in total, and conservative — the kept graph's information never e
 marginal's (docs/notes/solve-and-bounded-graph.md). Factors that end up parallel (same
 endpoints) are fused, ``Ω = Ω₁ + Ω₂``, ``Z = Z₁ Exp(Ω⁻¹ Ω₂ Log(Z₁⁻¹ Z₂))``, which is what keeps
 the edge count bounded. Memory is O(max_nodes + max_edges + buffers) whatever the mission length.
+Optionally (``skeleton_fraction``, off by default) a share of the nodes is kept as a skeleton
+spread over the whole mission (:mod:`dran_edge.robot.skeleton`).
 
 Where the code is: this module turns events into nodes and factors and hands the graph to the
 solver; :mod:`dran_edge.robot.factor_store` holds the factors and removes nodes

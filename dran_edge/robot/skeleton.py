@@ -3,13 +3,13 @@
 A node that leaves the recent window (it is next in the removal order) stays as a *skeleton*
 node when its key is a multiple of the current ``stride``; the skeleton holds at most
 ``capacity`` nodes. When it is full the stride doubles and the skeleton nodes whose key is no
-longer a multiple of it are evicted (removed from the graph like any node, their information
-composed onto a neighbouring skeleton node). So the skeleton always covers the whole mission with
+longer a multiple of it are evicted (removed from the graph like any node). So the skeleton always covers the whole mission with
 between ``capacity / 2`` and ``capacity`` nodes, evenly spaced in node count (a dyadic thinning),
 whatever the mission's length: memory stays flat. A loop or observation that refers to a long
 removed keyframe attaches to the kept node nearest in time through VIO odometry; with the
 skeleton that node is at most ``stride / 2`` nodes away instead of at the window's edge
-(docs/notes/solve-and-bounded-graph.md, section 4). Pure: no numpy, no clock.
+(docs/notes/solve-and-bounded-graph.md, section 4, which also says why it is off by default:
+the evictions cost more accuracy than the short attachments gain). Pure: no numpy, no clock.
 """
 
 from __future__ import annotations
