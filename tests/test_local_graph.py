@@ -178,7 +178,8 @@ def test_marginalisation_is_exact_for_a_linearised_graph():
         g.solve()
     full = dict(zip(g.node_keys().tolist(), g.T_world_body()))
     objects = g.T_world_object().copy()
-    g.bounds = dataclasses.replace(g.bounds, max_nodes=60, max_edges=240)
+    # without the skeleton (its release from the prior is approximate: its own tests below)
+    g.bounds = dataclasses.replace(g.bounds, max_nodes=60, max_edges=240, skeleton_fraction=0.0)
     g._enforce_bounds()
     assert g.num_nodes == 60
     for _ in range(3):
@@ -225,7 +226,10 @@ def test_problem_and_sparsified_prior():
     assert "marginal" in labels and "odometry" in labels
     dense = g.factor_arrays(include_prior=False)
     sparse = g.factor_arrays()
-    assert len(sparse["p"]) == len(dense["p"]) + len(g.prior["keys"])  # unary + root edges
+    # root edges, and a unary factor when the prior holds the gauge (node 0 marginalised; with
+    # the skeleton node 0 stays and keeps its own gauge factor)
+    gauge_in_prior = int(0 not in g.node_keys().tolist())
+    assert len(sparse["p"]) == len(dense["p"]) + len(g.prior["keys"]) - 1 + gauge_in_prior
     res = g.solve()
     assert res is not None and np.isfinite(res.cost)
 
@@ -332,3 +336,143 @@ def test_blockdiag_bound_makes_dropped_correlations_conservative():
         assert 1.0 <= c <= k
         assert np.linalg.eigvalsh(c * D - S).min() >= -1e-9 * np.abs(S).max()
         assert np.linalg.eigvalsh(0.95 * c * D - S).min() < 0  # the smallest such c
+
+
+# --------------------------------------------------------------------------- skeleton
+def _schur(H: np.ndarray, keep: list[int], n_vars: int) -> np.ndarray:
+    """Marginal information on variables ``keep`` (indices) of an information matrix."""
+    k = np.array([6 * v + i for v in keep for i in range(6)])
+    o = np.setdiff1d(np.arange(6 * n_vars), k)
+    return H[np.ix_(k, k)] - H[np.ix_(k, o)] @ np.linalg.solve(H[np.ix_(o, o)], H[np.ix_(o, k)])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_skeleton_node_leaves_the_prior_with_its_exact_pair_marginal(seed):
+    """Chain 0 – 1 – 2 – 3 with node 1 seeing an object; 0 and 2 are skeleton nodes. Removing 1
+    puts 0, 2 and the object into the dense prior; 0 is then taken out of it as one relative
+    factor (0, 2) (the prior's conditional of 0 given 2), the prior keeping its exact marginal
+    on the rest. So the marginals on (0, 2) and on (2, 3, object) stay exact — nothing counted
+    twice there — and the prior holds one skeleton node. (Only the prior is sparsified: with
+    another path from the object to 2, the pair (0, 2) would lose that path's share.)"""
+    rng = np.random.default_rng(seed)
+    c = AgentConfig(
+        graph=GraphBounds(skeleton_fraction=0.4), residual="geodesic", robust_kernel="none"
+    )
+    g = KeyframeGraph(c, anchor_first=False)
+    T = geo.se3_exp(rng.normal(scale=[0.5] * 3 + [0.3] * 3, size=(5, 6)))
+    for key in range(4):
+        g.node_stamp[key], g.node_segment[key], g.node_est[key] = key, 0, T[key]
+        g.adj[key] = set()
+    g.obj_est[0] = T[4]
+    g.adj[OBJ] = set()
+
+    def cov(scale):
+        A = rng.normal(size=(6, 6)) * 0.3 + np.eye(6)
+        return scale**2 * (A @ A.T)
+
+    for p, q, sig, kind in [
+        (0, 1, 0.01, KIND_ODOMETRY),
+        (1, 2, 0.02, KIND_ODOMETRY),
+        (2, 3, 0.01, KIND_ODOMETRY),
+        (1, OBJ, 0.03, KIND_OBSERVATION),
+    ]:
+        Tq = T[4] if q == OBJ else T[q]
+        g._add_factor(p, q, geo.se3_between(T[p], Tq), cov(sig), kind)
+    g.skeleton.add(0)
+    g.skeleton.add(2)
+    class ByKey(dict):  # poses indexed by an array of keys, as _information indexes them
+        def __getitem__(self, keys):
+            return np.stack([dict.__getitem__(self, int(k)) for k in keys])
+
+    poses = ByKey({0: T[0], 1: T[1], 2: T[2], 3: T[3], OBJ: T[4]})
+    H = _information(g, [0, 1, 2, 3, OBJ], poses)
+    exact = _schur(H, [0, 2, 3, 4], 5)  # node 1 marginalised: variables 0, 2, 3, object
+    g.remove_node(1)
+    assert g.counters["skeleton_released_from_prior"] == 1
+    assert [k for k in g.prior["keys"].tolist() if k in g.skeleton] == [2]
+    kept = [0, 2, 3, OBJ]
+    after = _information(g, kept, poses)
+    for pair in ([0, 1], [1, 2, 3]):  # (0, 2) and (2, 3, object) in the kept order
+        a, b = _schur(exact, pair, 4), _schur(after, pair, 4)
+        np.testing.assert_allclose(b, a, atol=1e-6 * float(np.abs(a).max()))
+
+
+def test_skeleton_stays_bounded_and_spans_the_mission():
+    m = vio_mission(900, seed=11, reset_at=(450,))
+    c = AgentConfig(graph=GraphBounds(max_nodes=60, max_edges=240, skeleton_fraction=0.4))
+    g = KeyframeGraph(c)
+    cap = int(c.graph.skeleton_fraction * 60)
+    peak_skeleton = peak_prior = 0
+    for e in m.events:
+        g.handle(e)
+        peak_skeleton = max(peak_skeleton, len(g.skeleton))
+        peak_prior = max(peak_prior, 0 if g.prior is None else len(g.prior["keys"]))
+        if g.prior is not None:  # the dense prior holds one skeleton node at most
+            assert sum(k in g.skeleton for k in g.prior["keys"].tolist()) <= 1
+        assert g.num_nodes <= 60 and g.num_factors <= 240
+    assert peak_skeleton <= cap
+    assert g.counters["skeleton_evicted"] > 0 and g.skeleton.stride >= 16
+    keys = sorted(g.skeleton.nodes)
+    assert len(keys) >= cap // 2 - 1  # thinned by halves, never emptied
+    # evenly spread over the whole mission: from its start to the recent window
+    assert keys[0] < 2 * g.skeleton.stride and keys[-1] > g.next_node - 60 - 2 * g.skeleton.stride
+    assert max(np.diff(keys)) <= 2 * g.skeleton.stride
+    assert peak_prior <= 9 + 9  # objects and a few nodes: it does not grow with the skeleton
+    assert g.counters.get("skeleton_released_from_prior", 0) > 0
+
+
+def _loop_attachment(skeleton_fraction: float):
+    """Run a mission with small caps, then a loop from the newest keyframe to a long removed
+    one: (the old end's node, whether it is a skeleton node, the loop's translation σ)."""
+    m = vio_mission(700, seed=12)
+    g = KeyframeGraph(
+        AgentConfig(
+            graph=GraphBounds(max_nodes=60, max_edges=240, skeleton_fraction=skeleton_fraction)
+        )
+    )
+    feed(g, m.events)
+    kept = set(g.node_stamps_ns().tolist())
+    # a keyframe that left the window long ago and is not kept
+    old = next(i for i in range(150, 300) if int(m.keyframe_stamps_ns[i]) not in kept)
+    cur = len(m.keyframe_stamps_ns) - 1
+    rel = geo.se3_between(m.T_world_body_true[old], m.T_world_body_true[cur])
+    before = g.factor_arrays(include_prior=False)
+    stamp_old, stamp_cur = int(m.keyframe_stamps_ns[old]), int(m.keyframe_stamps_ns[cur])
+    assert g.handle(LoopClosure(stamp_old, stamp_cur, rel, 60))
+    after = g.factor_arrays(include_prior=False)
+    new = [
+        i
+        for i in range(len(after["p"]))
+        if after["kind"][i] == KIND_LOOP
+        and not any(
+            before["p"][j] == after["p"][i]
+            and before["q"][j] == after["q"][i]
+            and before["kind"][j] == KIND_LOOP
+            for j in range(len(before["p"]))
+        )
+    ]
+    assert len(new) == 1
+    node = int(after["p"][new[0]])
+    sigma_m = float(np.sqrt(np.trace(after["S"][new[0]][:3, :3]) / 3))
+    return node, node in g.skeleton, sigma_m
+
+
+def test_loop_into_an_old_place_attaches_to_a_skeleton_node():
+    node, on_skeleton, sigma_m = _loop_attachment(0.4)
+    node0, on_skeleton0, sigma0_m = _loop_attachment(0.0)
+    assert on_skeleton and not on_skeleton0
+    assert sigma_m < 0.5 and sigma_m < 0.2 * sigma0_m  # short range instead of the window's edge
+
+
+def test_sparsified_prior_of_a_gauge_free_prior_pins_nothing():
+    """A prior of relative information only (no gauge in it) is singular: its sparsified form
+    is relative factors only — no unary factor pinning the root at the linearisation point."""
+    m = vio_mission(300, seed=10)
+    g = KeyframeGraph(cfg(max_nodes=60, max_edges=240), anchor_first=False)
+    feed(g, m.events)
+    assert g.prior is not None and np.any(g.prior["keys"] < OBJ)
+    dense = g.factor_arrays(include_prior=False)
+    sparse = g.factor_arrays()
+    assert not np.any(dense["p"] < 0) and not np.any(sparse["p"] < 0)
+    assert len(sparse["p"]) == len(dense["p"]) + len(g.prior["keys"]) - 1  # root edges only
+    assert np.all(np.isfinite(sparse["S"]))

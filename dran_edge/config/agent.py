@@ -52,6 +52,11 @@ class GraphBounds(_Checked):
     """Hard cap on trajectory nodes; over it the oldest removable nodes are marginalised."""
     max_edges: int = _f(1600, lo=8, hi=10_000_000)
     """Hard cap on factors (odometry, loop, object, prior) in the local graph."""
+    skeleton_fraction: float = _f(0.0, lo=0.0, hi=0.9)
+    """Share of ``max_nodes`` (and of ``max_edges`` for their factors) kept as a skeleton of old
+    nodes spread evenly over the whole mission, so that loops into the distant past attach at
+    short range (docs/notes/solve-and-bounded-graph.md, section 4); 0 (the default): only the
+    recent window — the skeleton made ATE worse where it was measured."""
     segment_gap_s: float = _f(1.0, lo=0.0, lo_open=True)
     """An odometry stamp gap longer than this starts a new segment, seconds (VINS restarts on 1 s)."""
     segment_jump_m: float = _f(1.0, lo=0.0, lo_open=True)

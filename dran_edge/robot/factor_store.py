@@ -7,6 +7,9 @@ for chain nodes, loop re-anchoring plus a Schur complement into the dense prior 
 (:class:`MarginalPrior`), and the prior's sparsified form for consumers without a dense-prior
 factor. :class:`~dran_edge.robot.keyframe_graph.KeyframeGraph` is the subclass that owns the
 node tables and turns events into factors. Pure: numpy only.
+
+Size: over ~500 lines because node removal, the dense prior it feeds and the prior's sparsified
+forms (for the agent, and a skeleton node leaving it) are one piece of algebra on one state.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from dran_edge.robot.factor_algebra import (
     invert_cov,
     split_weights,
 )
+from dran_edge.robot.skeleton import Skeleton
 from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
 
 #: a factor: (p, q, Z, Σ, kind)
@@ -123,6 +127,7 @@ class FactorStore:
     obj_est: dict[int, np.ndarray]
     last_node_of_segment: dict[int, int]
     seg_nodes: dict[int, tuple[list[int], list[int]]]
+    skeleton: Skeleton
 
     def _init_factors(self) -> None:
         # factors: slot -> (p, q, Z, S, kind); adjacency: key -> set of slots
@@ -191,27 +196,52 @@ class FactorStore:
             tier = 2 if node in self.protected else (1 if self.special.get(node, 0) else 0)
             return (tier, node)
 
-        return sorted((n for n in self.node_stamp if n not in newest), key=rank)
+        skeleton = self.skeleton
+        return sorted(
+            (n for n in self.node_stamp if n not in newest and n not in skeleton), key=rank
+        )
+
+    def _in_prior(self, n: int) -> bool:
+        return self.prior is not None and n in self.prior["keys"]
 
     def _enforce_bounds(self) -> None:
         b = self.bounds
         if self.num_nodes <= b.max_nodes and self.num_factors <= b.max_edges:
             return
-        order = self._removal_order()
-        for node in order:
+        skeleton = self.skeleton
+        skeleton.capacity = int(b.skeleton_fraction * b.max_nodes)
+        if self.num_factors > b.max_edges and len(skeleton) > 1:
+            # the skeleton's factors get their share of max_edges too: halve it when over
+            incident = sum(len(self.adj.get(k, ())) for k in skeleton.nodes)
+            if incident > b.skeleton_fraction * b.max_edges:
+                self._evict(skeleton.thin(len(skeleton) - 1))
+        for node in self._removal_order():
             if self.num_nodes <= b.max_nodes and self.num_factors <= b.max_edges:
                 break
+            if node not in self.node_stamp:  # evicted from the skeleton meanwhile
+                continue
+            if skeleton.admits(node):
+                self._evict(skeleton.add(node))  # kept (module skeleton); maybe others go
+                continue
             self.remove_node(node)
         if self.num_factors > b.max_edges:  # only newest nodes left with dense factors
             self._count("bound_exceeded")
 
+    def _evict(self, nodes: list[int]) -> None:
+        """Remove nodes that left the skeleton (oldest first)."""
+        for k in nodes:
+            if k in self.node_stamp:
+                self.remove_node(k)
+                self._count("skeleton_evicted")
+
     def remove_node(self, n: int) -> None:
         """Remove node ``n`` keeping its information (module docstring)."""
         slots = sorted(self.adj.get(n, ()))
+        self.skeleton.discard(n)
         chain = (
             len(slots) == 2
             and all(self.factors[s][4] == KIND_ODOMETRY for s in slots)
-            and not (self.prior is not None and n in self.prior["keys"])
+            and not self._in_prior(n)
         )
         if chain or not self.marginalize:
             self._compose_out(n, slots)
@@ -303,20 +333,65 @@ class FactorStore:
         K = np.linalg.solve(Hnn, Hbn.T).T  # H_bn H_nn⁻¹
         Hp = H[np.ix_(sb, sb)] - K @ Hbn.T
         gp = g[sb] - K @ g[sn]
-        lam, V = np.linalg.eigh(0.5 * (Hp + Hp.T))
+        rest = np.delete(keys_arr, i)
+        if not self._set_prior(rest, np.delete(poses, i, axis=0), Hp, gp):
+            return
+        self._count("nodes_marginalised")
+        in_prior = sorted(k for k in rest.tolist() if k in self.skeleton)
+        for older, newer in zip(in_prior, in_prior[1:]):  # keep the newest skeleton node only
+            if self.prior is not None:
+                self._release_from_prior(older, newer)
+
+    def _release_from_prior(self, s: int, t: int) -> None:
+        """Take skeleton node ``s`` out of the dense prior: the prior becomes its exact marginal
+        on the other variables, times one relative factor ``(s, t)`` with the conditional of
+        ``s`` given ``t`` in the prior's marginal on ``(s, t)`` — the Kullback–Leibler-optimal
+        factorisation in which ``s`` depends on the prior's other variables only through ``t``
+        (a Chow–Liu edge). So the dense prior never holds more than one skeleton node and stays
+        small, while the chain between consecutive skeleton nodes keeps the information the
+        prior had on it (docs/notes/solve-and-bounded-graph.md, section 4)."""
+        prior = self.prior
+        assert prior is not None
+        keys = prior["keys"]
+        W, e, T_lin = prior["W"], prior["e"], prior["T_lin"]
+        H, g = W.T @ W, W.T @ e
+        i, j = int(np.searchsorted(keys, s)), int(np.searchsorted(keys, t))
+        si, sj = np.arange(6 * i, 6 * i + 6), np.arange(6 * j, 6 * j + 6)
+        so = np.setdiff1d(np.arange(H.shape[0]), np.concatenate([si, sj]))
+        # the prior's mode (min-norm where it has no gauge) for the relative measurement
+        delta = -(np.linalg.pinv(H, rcond=1e-12, hermitian=True) @ g).reshape(-1, 6)
+        T_mode = T_lin @ geo.se3_exp(delta)
+        # conditional information of s given t in the marginal on (s, t)
+        Hoo_inv_os = np.linalg.lstsq(H[np.ix_(so, so)], H[np.ix_(so, si)], rcond=None)[0]
+        info_s = H[np.ix_(si, si)] - H[np.ix_(si, so)] @ Hoo_inv_os
+        lam_s = np.linalg.eigvalsh(0.5 * (info_s + info_s.T))
+        if lam_s[0] > 1e-9 * max(float(lam_s[-1]), 1e-300):
+            Z = geo.se3_between(T_mode[i], T_mode[j])  # T_s⁻¹ T_t
+            Ad = geo.se3_adjoint(geo.se3_inverse(Z))  # ε_t = -Ad(Z⁻¹) δ_s for t fixed
+            self._add_factor(s, t, Z, Ad @ np.linalg.inv(info_s) @ Ad.T, KIND_ODOMETRY)
+            self._count("skeleton_released_from_prior")
+        # the prior's exact marginal without s (Schur complement)
+        sr = np.setdiff1d(np.arange(H.shape[0]), si)
+        K = np.linalg.solve(H[np.ix_(si, si)] + 1e-9 * np.eye(6), H[np.ix_(si, sr)]).T
+        Hp = H[np.ix_(sr, sr)] - K @ H[np.ix_(si, sr)]
+        self._set_prior(np.delete(keys, i), np.delete(T_lin, i, axis=0), Hp, g[sr] - K @ g[si])
+
+    def _set_prior(self, keys: np.ndarray, T_lin: np.ndarray, H: np.ndarray, g: np.ndarray) -> bool:
+        """The dense prior ``½‖W δ + e‖²`` with ``WᵀW = H``, ``Wᵀe = g`` (its null space
+        dropped); None when ``H`` is zero. Returns whether a prior is left."""
+        lam, V = np.linalg.eigh(0.5 * (H + H.T))
         keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
         lam, V = lam[keep], V[:, keep]
-        rest = np.delete(keys_arr, i)
         if not len(lam):
             self.prior = None
-            return
+            return False
         self.prior = {
-            "keys": rest,
-            "T_lin": np.delete(poses, i, axis=0),
+            "keys": keys,
+            "T_lin": T_lin,
             "W": np.sqrt(lam)[:, None] * V.T,
-            "e": (V.T @ gp) / np.sqrt(lam),
+            "e": (V.T @ g) / np.sqrt(lam),
         }
-        self._count("nodes_marginalised")
+        return True
 
     def _estimate(self, key: int) -> np.ndarray:
         return self.obj_est[key - OBJ] if key >= OBJ else self.node_est[key]
@@ -436,8 +511,13 @@ class FactorStore:
         r = nodes_in[0]
         sr = slice(6 * r, 6 * r + 6)
         S_rr = 0.5 * (Sigma[sr, sr] + Sigma[sr, sr].T)
+        lam = np.linalg.eigvalsh(0.5 * (H + H.T))
+        # a prior of relative factors only (its gauge fixed elsewhere, e.g. on a skeleton node)
+        # is singular: pinv's Σ is then no covariance — no unary factor, and the conditional
+        # covariance from the conditional information H_oo instead
+        full_rank = lam[0] > 1e-12 * max(float(lam[-1]), 1e-300)
         items = []
-        if np.all(np.diag(S_rr) < 1e6):
+        if full_rank and np.all(np.diag(S_rr) < 1e6):
             items.append((NONE, int(keys[r]), T_mean[r], S_rr + 1e-12 * np.eye(6), KIND_PRIOR))
         S_rr_inv = np.linalg.pinv(S_rr, hermitian=True)
         T_r_inv = geo.se3_inverse(T_mean[r])
@@ -447,7 +527,10 @@ class FactorStore:
             if others
             else np.zeros(0, np.int64)
         )
-        S_c = Sigma[np.ix_(so, so)] - Sigma[so, sr] @ S_rr_inv @ Sigma[sr, so]
+        if full_rank:
+            S_c = Sigma[np.ix_(so, so)] - Sigma[so, sr] @ S_rr_inv @ Sigma[sr, so]
+        else:
+            S_c = np.linalg.pinv(H[np.ix_(so, so)], rcond=1e-12, hermitian=True)
         S_c = 0.5 * (S_c + S_c.T) + 1e-12 * np.eye(len(so))
         c = _blockdiag_bound(S_c)
         for j, i in enumerate(others):

@@ -38,6 +38,8 @@ counted once in total, and conservative — the kept graph's information never e
 marginal's (docs/notes/solve-and-bounded-graph.md). Factors that end up parallel (same
 endpoints) are fused, ``Ω = Ω₁ + Ω₂``, ``Z = Z₁ Exp(Ω⁻¹ Ω₂ Log(Z₁⁻¹ Z₂))``, which is what keeps
 the edge count bounded. Memory is O(max_nodes + max_edges + buffers) whatever the mission length.
+Optionally (``skeleton_fraction``, off by default) a share of the nodes is kept as a skeleton
+spread over the whole mission (:mod:`dran_edge.robot.skeleton`).
 
 Where the code is: this module turns events into nodes and factors and hands the graph to the
 solver; :mod:`dran_edge.robot.factor_store` holds the factors and removes nodes
@@ -84,6 +86,7 @@ from dran_edge.robot.factor_store import (  # noqa: F401
     _dense_normal_equations,
 )
 from dran_edge.robot.segments import Segmenter
+from dran_edge.robot.skeleton import Skeleton
 from dran_edge.solver.graph import PoseGraph, VariableKind
 
 GAUGE_SIGMA = (1e-4, 1e-4)  # metres, radians: the first node's prior (local gauge)
@@ -124,6 +127,7 @@ class KeyframeGraph(FactorStore):
         self.last_node_of_segment: dict[int, int] = {}
         self.seg_nodes: dict[int, tuple[list[int], list[int]]] = {}  # seg -> (stamps, nodes)
         self._init_factors()
+        self.skeleton = Skeleton(int(self.bounds.skeleton_fraction * self.bounds.max_nodes))
         # buffers
         self.odo_stamps: deque[int] = deque(maxlen=ODOMETRY_BUFFER)
         self.odo_poses: deque[np.ndarray] = deque(maxlen=ODOMETRY_BUFFER)
@@ -492,6 +496,7 @@ class KeyframeGraph(FactorStore):
             "segmenter": self.segmenter.to_state(),
             "counters": dict(self.counters),
             "prior": self.prior,
+            "skeleton": self.skeleton.to_state(),
         }
 
     @classmethod
@@ -548,6 +553,7 @@ class KeyframeGraph(FactorStore):
         }
         g.segmenter = Segmenter.from_state(config.graph, state["segmenter"])
         g.counters = {str(k): int(v) for k, v in state["counters"].items()}
+        g.skeleton = Skeleton.from_state(g.skeleton.capacity, state.get("skeleton"))
         pr = state.get("prior")
         g.prior = (
             None if pr is None else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")}

@@ -19,6 +19,7 @@ for the sparsified prior the DRAN agent receives (``factor_arrays(include_prior=
     .venv/bin/python tools/bench/bench_bounded_graph.py --no-baseline   # RSS of the bounded graph
     .venv/bin/python tools/bench/bench_bounded_graph.py --quick   # 100 keyframes, caps 40 / 160
     .venv/bin/python tools/bench/bench_bounded_graph.py --checkpoints 2000,5000  # ATE on the way
+    .venv/bin/python tools/bench/bench_bounded_graph.py --stop-after 2000 --seed 1  # its start
 
 The mission is generated in a child process and written as ingest records (docs/ingest.md);
 this process streams it back through the ingest decoder in 1 MiB chunks, as the daemon would,
@@ -64,13 +65,18 @@ def round_solve(g: KeyframeGraph, iterations: int) -> float:
     return time.perf_counter() - t
 
 
+def ate_m(mission, stamps: np.ndarray, T: np.ndarray) -> float:
+    """Position RMSE (m) of poses ``T`` at keyframe ``stamps`` against the ground truth."""
+    i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
+    return float(
+        np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2, axis=1)))
+    )
+
+
 def errors(
     g: KeyframeGraph, mission, stamps: np.ndarray, T: np.ndarray, objects: np.ndarray
 ) -> tuple[float, float]:
-    i = np.searchsorted(mission.keyframe_stamps_ns, stamps)
-    ate = float(
-        np.sqrt(np.mean(np.sum((T[:, :3, 3] - mission.T_world_body_true[i, :3, 3]) ** 2, axis=1)))
-    )
+    ate = ate_m(mission, stamps, T)
     oid = g.object_ids()
     obj = float(
         np.sqrt(
@@ -99,13 +105,23 @@ def checkpoint(bounded: KeyframeGraph, unbounded: KeyframeGraph | None, mission,
     b_ate, _ = errors(b, mission, stamps, b.T_world_body(), b.T_world_object())
     s_T, s_O = solve_sparsified(b)
     s_ate, _ = errors(b, mission, stamps, s_T, s_O)
-    line = f"checkpoint {kf} keyframes: ATE bounded dense {b_ate:.4f} m, sparsified {s_ate:.4f} m"
+    # the recent window alone (the nodes that are not skeleton nodes)
+    win = np.array([k not in b.skeleton for k in b.node_keys().tolist()], dtype=bool)
+    w_ate = ate_m(mission, stamps[win], b.T_world_body()[win])
+    line = (
+        f"checkpoint {kf} keyframes: ATE bounded dense {b_ate:.4f} m, sparsified {s_ate:.4f} m "
+        f"({len(b.skeleton)} skeleton nodes; window alone {w_ate:.4f} m)"
+    )
     if unbounded is not None:
         u = copy.deepcopy(unbounded)
         u.solve(lm.LMParams(max_iterations=50))
         idx = np.searchsorted(u.node_stamps_ns(), stamps)
         u_ate, _ = errors(u, mission, stamps, u.T_world_body()[idx], u.T_world_object())
-        line += f", unbounded {u_ate:.4f} m (bounded dense / unbounded {b_ate / u_ate:.2f})"
+        uw_ate = ate_m(mission, stamps[win], u.T_world_body()[idx][win])
+        line += (
+            f", unbounded {u_ate:.4f} m (bounded dense / unbounded {b_ate / u_ate:.2f}; "
+            f"window alone {uw_ate:.4f} m, ratio {w_ate / uw_ate:.2f})"
+        )
     print(line + f"; RSS {rss_mb():.0f} MB", flush=True)
 
 
@@ -149,11 +165,24 @@ def main(argv=None) -> int:
     ap.add_argument("--keyframes", type=int, default=10_000)
     ap.add_argument("--max-nodes", type=int, default=400)
     ap.add_argument("--max-edges", type=int, default=1600)
+    ap.add_argument(
+        "--skeleton-fraction",
+        type=float,
+        default=GraphBounds().skeleton_fraction,
+        help="graph.skeleton_fraction of the bounded graph (docs/config.md)",
+    )
     ap.add_argument("--round-every", type=int, default=10, help="keyframes per round")
     ap.add_argument("--iterations", type=int, default=3, help="LM iterations per round")
     ap.add_argument("--report-every", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true", help="skip the unbounded graph")
+    ap.add_argument(
+        "--stop-after",
+        type=int,
+        default=0,
+        help="stop streaming after this many keyframes of the --keyframes mission (its resets "
+        "stay at 1/3 and 2/3 of --keyframes): a shorter run of the same mission",
+    )
     ap.add_argument(
         "--checkpoints",
         default="",
@@ -161,6 +190,12 @@ def main(argv=None) -> int:
         "solved to convergence and its ATE printed (e.g. 2000,5000)",
     )
     ap.add_argument("--write-mission", metavar="PATH", help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--mission",
+        metavar="PATH",
+        help="keep the generated mission's ingest records at PATH (and PATH.truth.npz) and "
+        "reuse them when they exist (same --keyframes and --seed only)",
+    )
     ap.add_argument(
         "--quick",
         action="store_true",
@@ -176,9 +211,11 @@ def main(argv=None) -> int:
         return 0
 
     t0 = time.perf_counter()
-    tmp = tempfile.mkdtemp(prefix="bench_bounded_")
-    path = os.path.join(tmp, "ingest.bin")
-    if args.quick:  # no child process: the RSS figures do not matter here
+    tmp = None if args.mission else tempfile.mkdtemp(prefix="bench_bounded_")
+    path = args.mission or os.path.join(tmp, "ingest.bin")
+    if args.mission and os.path.exists(path + ".truth.npz"):
+        pass  # reuse the kept mission
+    elif args.quick:  # no child process: the RSS figures do not matter here
         write_mission(path, n, args.seed)
     else:
         subprocess.run(
@@ -201,7 +238,13 @@ def main(argv=None) -> int:
         f"generated in {gen_s:.1f} s (child process); RSS here {rss_mb():.0f} MB"
     )
     checkpoints = {int(k) for k in args.checkpoints.split(",") if k.strip()}
-    base = AgentConfig(graph=GraphBounds(max_nodes=args.max_nodes, max_edges=args.max_edges))
+    base = AgentConfig(
+        graph=GraphBounds(
+            max_nodes=args.max_nodes,
+            max_edges=args.max_edges,
+            skeleton_fraction=args.skeleton_fraction,
+        )
+    )
     bounded = KeyframeGraph(base)
     unbounded = (
         None
@@ -238,7 +281,7 @@ def main(argv=None) -> int:
             window.append(round_solve(bounded, args.iterations))
         if kf in checkpoints:
             checkpoint(bounded, unbounded, mission, kf)
-        if kf % args.report_every == 0:
+        if kf % args.report_every == 0 or kf == args.stop_after:
             ub = "—"
             ub_ms = float("nan")
             if unbounded is not None:
@@ -248,15 +291,18 @@ def main(argv=None) -> int:
             prior = 0 if bounded.prior is None else len(bounded.prior["keys"])
             print(
                 f"| {kf} | {bounded.num_nodes} / {bounded.num_factors} / {prior} | "
-                f"{mean_ms:.1f} / {1e3 * max(window):.1f} | {ub} | {ub_ms:.0f} | "
+                f"{mean_ms:.1f} / {1e3 * max(window, default=float('nan')):.1f} | {ub} | {ub_ms:.0f} | "
                 f"{ub_ms / mean_ms:.1f} | {1e6 * handle_s / max(handled, 1):.0f} | "
                 f"{rss_mb():.0f} |",
                 flush=True,
             )
             window, handle_s, handled = [], 0.0, 0
+        if kf == args.stop_after:
+            break
     print(
         f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
-        f"{args.max_nodes} / {args.max_edges}); counters {bounded.counters}"
+        f"{args.max_nodes} / {args.max_edges}); skeleton {len(bounded.skeleton)} nodes, stride "
+        f"{bounded.skeleton.stride}; counters {bounded.counters}"
     )
 
     # final accuracy on the nodes the bounded graph holds
@@ -283,9 +329,10 @@ def main(argv=None) -> int:
         )
     print(f"| bounded, dense marginal prior | {b_ate:.3f} | {b_obj:.3f} |")
     print(f"| bounded, sparsified prior (agent view) | {s_ate:.3f} | {s_obj:.3f} |")
-    os.remove(path)
-    os.remove(path + ".truth.npz")
-    os.rmdir(tmp)
+    if tmp is not None:
+        os.remove(path)
+        os.remove(path + ".truth.npz")
+        os.rmdir(tmp)
     print(
         f"\npeak RSS of the process (VmHWM): {rss_mb('VmHWM'):.0f} MB; total "
         f"{time.perf_counter() - t0:.0f} s"
