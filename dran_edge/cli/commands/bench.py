@@ -104,6 +104,13 @@ def _add_g2o_parser(sub: Any) -> None:
         "or block Gauss-Seidel iterations only (never; docs/dran.md)",
     )
     _add_refine_options(g)
+    g.add_argument(
+        "--curve",
+        action="store_true",
+        help="dran: add 'curve', [rounds after the init, bytes sent so far (init included), "
+        "F] at the init's end, at each accepted refinement point and after every DRAN "
+        "round (F of the merged estimate each round: slower)",
+    )
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -245,7 +252,8 @@ def _add_suite_parser(sub: Any) -> None:
         "--poses",
         type=int,
         default=None,
-        help="poses per graph (default: 2000-4000 by seed for chains, 2000 grids)",
+        help="poses per graph (default: the suite's own cases, 2000-4000 by seed for "
+        "chains, 2000 grids; --families/--robots/--split then filter them)",
     )
     s.add_argument(
         "--robots",
@@ -276,6 +284,19 @@ def _add_suite_parser(sub: Any) -> None:
         "always, or the block Gauss-Seidel iterations only (never)",
     )
     _add_refine_options(s)
+    s.add_argument(
+        "--stop",
+        choices=("tail", "steps"),
+        default="tail",
+        help="the agents' stopping rule: tail (default, as bench g2o) or steps (Table 1's)",
+    )
+    s.add_argument(
+        "--until-decided",
+        action="store_true",
+        help="end a graph's DRAN run once F <= 1.001 F* has been reached and the run's stop "
+        "is known (the refinement converged or the stopping rule fired); values at the end "
+        "are then at that round (ended_round), not at --rounds",
+    )
     s.add_argument("--no-dgs", action="store_true", help="skip the DGS baseline")
     s.add_argument(
         "-o",
@@ -340,6 +361,7 @@ def run_g2o(args) -> int:
         cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain, stop=args.stop)
 
         bar = ProgressBar()
+        rec, part = _curve_recorder(g, args.robots) if args.curve else (None, None)
 
         def cb(k, fleet):  # progress on stderr; stdout stays the report
             if k == 1:
@@ -348,6 +370,8 @@ def run_g2o(args) -> int:
                     f"{fleet.traffic.bytes_total} bytes so far"
                 )
             bar("DRAN rounds", k, args.max_rounds or k)
+            if rec is not None:
+                rec(k, fleet)
 
         res = run_g2o_dran(
             g,
@@ -357,8 +381,16 @@ def run_g2o(args) -> int:
             callback=cb,
             init_params=init_params,
             refine=_refine_params(args),
+            partition=part,
             **run_kw,
         )
+        if rec is not None:
+            from dran_edge.experiments.suite import curve_after_init
+
+            if not rec.curve:  # no DRAN round (the refinement ended the run)
+                rec.curve.append((0, None, None))
+            curve, _ = curve_after_init(rec, res, res["rounds_total"], args.refine != "off")
+            res["curve"] = [list(p) for p in curve]
     else:
         res = run_g2o_dgs(
             g,
@@ -386,6 +418,23 @@ def run_g2o(args) -> int:
         for k, v in report.items():
             print(f"{k:>24}: {'n/a' if v is None else v}")
     return 0
+
+
+def _curve_recorder(g, robots: int):
+    """``bench g2o --curve``: a ``suite.CurveRecorder`` of F (SE-Sync) per DRAN round on the
+    contiguous split (the one ``run_g2o_dran`` makes by default), and that split."""
+    from dran_edge.dran.partition import partition_contiguous
+    from dran_edge.experiments.suite import CurveRecorder
+    from dran_edge.solver.objective import sesync_objective, sesync_weights
+
+    kappa, tau = sesync_weights(g.dim, g.information)
+    part = partition_contiguous(g.edges, g.num_vertices, robots)
+    shape = (g.num_vertices, g.dim + 1, g.dim + 1)
+
+    def F(T):
+        return sesync_objective(T, g.edges, g.measurements, kappa, tau)
+
+    return CurveRecorder(part, shape, F), part
 
 
 def _reference(g, res: dict, skip: bool) -> dict:
@@ -555,7 +604,7 @@ def run_suite_cmd(args) -> int:
     if rounds < 1:
         raise InputError(f"--rounds must be at least 1, got {rounds}")
     cases = suite.default_cases(args.quick, tuple(args.seeds))
-    if args.families or args.poses or args.robots or args.split:
+    if args.poses or (args.quick and (args.families or args.robots or args.split)):
         fams = args.families or sorted(suite.FAMILIES)
         cases = [
             suite.Case(f, args.poses or (300 if args.quick else 3000), seed, robots, split)
@@ -564,6 +613,16 @@ def run_suite_cmd(args) -> int:
             for robots in (args.robots or [5])
             for split in (args.split or ["contiguous"])
         ]
+    else:  # the suite's own cases (its pose counts), filtered
+        cases = [
+            c
+            for c in cases
+            if (not args.families or c.family in args.families)
+            and (not args.robots or c.robots in args.robots)
+            and (not args.split or c.split in args.split)
+        ]
+        if not cases:
+            raise InputError("no suite case matches --families/--robots/--split (add --poses)")
     rows = []
     for k, case in enumerate(cases):
         note(f"[{k + 1}/{len(cases)}] {case.name}")
@@ -573,6 +632,8 @@ def run_suite_cmd(args) -> int:
             init_direct=args.init,
             dgs=not args.no_dgs,
             refine=_refine_params(args),
+            stop_rule=args.stop,
+            until_decided=args.until_decided,
         )
         rows.append(row)
         if args.json:
