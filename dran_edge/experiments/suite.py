@@ -409,6 +409,35 @@ def default_cases(quick: bool = False, seeds=(1, 2, 3)) -> list[Case]:
     return cases
 
 
+def select_cases(
+    quick: bool = False,
+    seeds: Sequence[int] = (1, 2, 3),
+    families: Sequence[str] | None = None,
+    robots: Sequence[int] | None = None,
+    splits: Sequence[str] | None = None,
+    poses: int | None = None,
+) -> list[Case]:
+    """The cases of ``bench suite``: without ``poses``, the suite's own cases (their pose
+    counts) filtered by ``families`` / ``robots`` / ``splits``; with ``poses`` (or a quick run
+    with a filter), every family × seed × robots × split at that size (default 5 robots,
+    contiguous)."""
+    if poses or (quick and (families or robots or splits)):
+        return [
+            Case(f, poses or (300 if quick else 3000), seed, r, split)
+            for f in (families or sorted(FAMILIES))
+            for seed in seeds
+            for r in (robots or [5])
+            for split in (splits or ["contiguous"])
+        ]
+    return [
+        c
+        for c in default_cases(quick, tuple(seeds))
+        if (not families or c.family in families)
+        and (not robots or c.robots in robots)
+        and (not splits or c.split in splits)
+    ]
+
+
 def worst_by_family(rows: list[dict]) -> dict:
     """Per family the worst (largest) value of each ratio and the latest 1 % and 0.1 % rounds."""
     keys = [
@@ -438,7 +467,7 @@ def _fmt(v, spec=".4f") -> str:
 def _at(r: dict, key: str) -> str:
     """"round / kB" of the first point at ``key`` ("1pct", "01pct"), "–" if never."""
     k, b = r.get(f"round_at_{key}"), r.get(f"bytes_at_{key}")
-    return "–" if k is None else f"{k} / {b / 1e3:.0f}"
+    return "–" if k is None or b is None else f"{k} / {b / 1e3:.0f}"
 
 
 def markdown_table(rows: list[dict]) -> str:

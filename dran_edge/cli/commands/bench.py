@@ -603,26 +603,11 @@ def run_suite_cmd(args) -> int:
     rounds = args.rounds or (200 if args.quick else 1000)
     if rounds < 1:
         raise InputError(f"--rounds must be at least 1, got {rounds}")
-    cases = suite.default_cases(args.quick, tuple(args.seeds))
-    if args.poses or (args.quick and (args.families or args.robots or args.split)):
-        fams = args.families or sorted(suite.FAMILIES)
-        cases = [
-            suite.Case(f, args.poses or (300 if args.quick else 3000), seed, robots, split)
-            for f in fams
-            for seed in args.seeds
-            for robots in (args.robots or [5])
-            for split in (args.split or ["contiguous"])
-        ]
-    else:  # the suite's own cases (its pose counts), filtered
-        cases = [
-            c
-            for c in cases
-            if (not args.families or c.family in args.families)
-            and (not args.robots or c.robots in args.robots)
-            and (not args.split or c.split in args.split)
-        ]
-        if not cases:
-            raise InputError("no suite case matches --families/--robots/--split (add --poses)")
+    cases = suite.select_cases(
+        args.quick, args.seeds, args.families, args.robots, args.split, args.poses
+    )
+    if not cases:
+        raise InputError("no suite case matches --families/--robots/--split (add --poses)")
     rows = []
     for k, case in enumerate(cases):
         note(f"[{k + 1}/{len(cases)}] {case.name}")
