@@ -55,6 +55,7 @@ def test_until_decided_ends_the_run_once_the_target_and_the_stop_are_known():
     assert early["curve"] == full["curve"][: len(early["curve"])]  # the same run, cut
     assert early["round_at_01pct"] == full["round_at_01pct"] is not None
     assert "F_over_F_star_at_50" not in early and early["rule_round"] is None
+    assert early["central_status"] == "converged" and early["central_iterations"] > 0
 
 
 def test_without_a_converged_refinement_the_rule_must_fire_before_the_run_ends():

@@ -320,9 +320,10 @@ def _add_refine_options(p) -> None:
     p.add_argument(
         "--refine-steps",
         type=int,
-        default=20,
+        default=200,
         metavar="K",
-        help="at most K refinement trials after the start point (default 20)",
+        help="at most K refinement trials after the start point (default 200, a safety "
+        "cap: the refinement stops on --refine-tol)",
     )
     p.add_argument(
         "--refine-tol",
