@@ -8,7 +8,7 @@ curve: rounds after the init, bytes sent so far with the init's, F). The gap is 
 For every reference point (gap_ref, MB_ref) of the run's graph it prints the first curve point
 at or below gap_ref: DRAN's MB there and the ratio MB_DRAN / MB_ref (the target: ≤ 0.1), or
 "never" with the smallest gap DRAN reached. Only the reference's *end points* are compared,
-not its whole curve. ``--plot DIR``: one PNG per graph, gap against MB, log-log.
+not its whole curve. ``--plot DIR``: one PNG per graph (every run of that graph on it), gap against MB, log-log.
 """
 
 from __future__ import annotations
@@ -60,22 +60,31 @@ def compare(run: dict, refs: dict = DPGO_END) -> dict | None:
     }
 
 
-def plot(run: dict, row: dict | None, out_dir: Path) -> Path:
+def _label(run: dict) -> str:
+    label = f"DRAN, refine {run.get('refine', 'off')}"
+    if run.get("refine_used") is False:
+        label += " (declined)"
+    return label
+
+
+def plot(runs: list[dict], row: dict | None, out_dir: Path) -> Path:
+    """One PNG for one graph: every run's (MB, gap) curve and the reference point."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    curve = gap_curve(run)
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    ax.plot(
-        [mb for mb, _ in curve],
-        [max(g, 1e-12) for _, g in curve],
-        ".-",
-        ms=3,
-        label=f"DRAN (refine {run.get('refine', 'off')})",
-    )
-    ax.axvline(run["bytes_init"] / 1e6, color="0.6", lw=0.6, ls=":", label="init's end")
+    for run in runs:
+        curve = gap_curve(run)
+        ax.plot(
+            [mb for mb, _ in curve],
+            [max(g, 1e-12) for _, g in curve],
+            ".-",
+            ms=3,
+            label=_label(run),
+        )
+    ax.axvline(runs[0]["bytes_init"] / 1e6, color="0.6", lw=0.6, ls=":", label="init's end")
     if row is not None:
         ax.plot([row["ref_MB"]], [row["ref_gap"]], "r*", ms=10, label="DPGO end point")
         ax.axvline(row["ref_MB"] / 10, color="r", lw=0.6, ls="--", label="1/10 of DPGO's MB")
@@ -83,12 +92,12 @@ def plot(run: dict, row: dict | None, out_dir: Path) -> Path:
     ax.set_yscale("log")
     ax.set_xlabel("MB sent (init included)")
     ax.set_ylabel("(F − F*) / F*")
-    ax.set_title(run["dataset"])
+    ax.set_title(runs[0]["dataset"])
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
     out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"gap_bytes_{run['dataset']}.png"
+    path = out_dir / f"gap_bytes_{runs[0]['dataset']}.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -103,20 +112,22 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", help="bench g2o --json --curve outputs")
     ap.add_argument("--plot", metavar="DIR", help="write gap_bytes_GRAPH.png here")
     args = ap.parse_args(argv)
-    print("| graph | refine | DPGO gap / MB | DRAN MB at that gap (init MB) | ratio | DRAN end gap / MB |")
+    print("| graph | run | DPGO gap / MB | DRAN MB at that gap (init MB) | ratio | DRAN end gap / MB |")
     print("|---|---|---|---|---|---|")
+    by_graph: dict[str, list[dict]] = {}
     for path in args.runs:
         run = json.loads(Path(path).read_text())
+        by_graph.setdefault(run["dataset"], []).append(run)
         row = compare(run)
-        if args.plot:
-            plot(run, row, Path(args.plot))
         if row is None:
             continue
         print(
-            f"| {row['dataset']} | {row['refine']} | {row['ref_gap']:.1e} / {row['ref_MB']:g} | "
+            f"| {row['dataset']} | {_label(run)} | {row['ref_gap']:.1e} / {row['ref_MB']:g} | "
             f"{_fmt(row['dran_MB'], '.3f')} ({row['init_MB']:.3f}) | {_fmt(row['ratio'], '.4f')} | "
             f"{row['dran_end_gap']:.2e} / {row['dran_end_MB']:.3f} |"
         )
+    for runs in by_graph.values() if args.plot else ():
+        plot(runs, compare(runs[0]), Path(args.plot))
     return 0
 
 
