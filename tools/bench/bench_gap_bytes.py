@@ -2,13 +2,16 @@
 solver (by default DPGO's end points, docs/notes/generalisation.md, "DRAN against DPGO").
 
     .venv/bin/python tools/bench/bench_gap_bytes.py RUN.json [RUN.json ...] [--plot DIR]
+    .venv/bin/python tools/bench/bench_gap_bytes.py --quick   # a generated 240-pose chain
 
 Each RUN.json is the output of ``dran-edge bench g2o FILE --json --curve [...]`` (F* and the
 curve: rounds after the init, bytes sent so far with the init's, F). The gap is (F − F*)/F*.
 For every reference point (gap_ref, MB_ref) of the run's graph it prints the first curve point
 at or below gap_ref: DRAN's MB there and the ratio MB_DRAN / MB_ref (the target: ≤ 0.1), or
 "never" with the smallest gap DRAN reached. Only the reference's *end points* are compared,
-not its whole curve. ``--plot DIR``: one PNG per graph (every run of that graph on it), gap against MB, log-log.
+not its whole curve. ``--quick``: runs ``bench g2o --refine auto --curve`` on a generated
+240-pose 2D chain (3 robots) against a made-up reference point (1e-3, 1 MB), to exercise the
+script. ``--plot DIR``: one PNG per graph (every run of that graph on it), gap against MB, log-log.
 """
 
 from __future__ import annotations
@@ -107,11 +110,41 @@ def _fmt(v, spec: str) -> str:
     return "never" if v is None else format(v, spec)
 
 
+def _quick_run(tmp: Path) -> Path:
+    """``bench g2o --json --curve --refine auto`` on a generated chain; the JSON's path."""
+    import contextlib
+    import io
+
+    from dran_edge.cli.app import main as cli
+    from dran_edge.experiments import suite
+    from dran_edge.formats.g2o import write_g2o
+
+    g, _ = suite.make_graph(suite.Case("car2d", 240, 1, robots=3))
+    path = tmp / "quick-chain.g2o"
+    write_g2o(path, g, g.poses)
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(io.StringIO()):
+        rc = cli(["bench", "g2o", str(path), "--robots", "3", "--json", "--curve", "--refine", "auto"])
+    if rc != 0:
+        raise SystemExit(rc)
+    out = tmp / "quick-chain.json"
+    out.write_text(buf.getvalue())
+    return out
+
+
 def main(argv=None) -> int:
+    import tempfile
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("runs", nargs="+", help="bench g2o --json --curve outputs")
+    ap.add_argument("runs", nargs="*", help="bench g2o --json --curve outputs")
+    ap.add_argument("--quick", action="store_true", help="a generated chain (see above)")
     ap.add_argument("--plot", metavar="DIR", help="write gap_bytes_GRAPH.png here")
     args = ap.parse_args(argv)
+    if args.quick:
+        DPGO_END.setdefault("quick-chain", (1e-3, 1.0))
+        args.runs = [str(_quick_run(Path(tempfile.mkdtemp(prefix="gap_bytes_"))))]
+    if not args.runs:
+        ap.error("give bench g2o --json --curve outputs, or --quick")
     print("| graph | run | DPGO gap / MB | DRAN MB at that gap (init MB) | ratio | DRAN end gap / MB |")
     print("|---|---|---|---|---|---|")
     by_graph: dict[str, list[dict]] = {}
