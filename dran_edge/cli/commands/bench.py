@@ -332,6 +332,13 @@ def _add_refine_options(p) -> None:
         help="stop refining after an accepted step lowering F by less than this "
         "fraction (default 1e-5)",
     )
+    p.add_argument(
+        "--refine-hessian",
+        choices=("gauss_newton", "exact"),
+        default="gauss_newton",
+        help="the refinement's model: Gauss-Newton (default) or the exact Hessian (damped "
+        "Newton once a step gains < 1 %%, Gauss-Newton where not positive definite)",
+    )
 
 
 def _refine_params(args):
@@ -342,7 +349,12 @@ def _refine_params(args):
         return None
     if args.refine_steps < 0:
         raise InputError(f"--refine-steps must be at least 0, got {args.refine_steps}")
-    return RefineParams(mode=args.refine, max_steps=args.refine_steps, rel_tol=args.refine_tol)
+    return RefineParams(
+        mode=args.refine,
+        max_steps=args.refine_steps,
+        rel_tol=args.refine_tol,
+        hessian=args.refine_hessian,
+    )
 
 
 def run_g2o(args) -> int:
@@ -409,6 +421,8 @@ def run_g2o(args) -> int:
     }
     if args.refine != "off":
         report["refine"] = args.refine
+        if args.refine_hessian != "gauss_newton":
+            report["refine_hessian"] = args.refine_hessian
     report.update(
         {k: v for k, v in res.items() if k not in ("poses", "poses_init", "poses_refined")}
     )
