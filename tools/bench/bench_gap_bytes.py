@@ -65,6 +65,8 @@ def compare(run: dict, refs: dict = DPGO_END) -> dict | None:
 
 def _label(run: dict) -> str:
     label = f"DRAN, refine {run.get('refine', 'off')}"
+    if run.get("refine_hessian"):
+        label += f", {run['refine_hessian']} Hessian"
     if run.get("refine_used") is False:
         label += " (declined)"
     return label
