@@ -123,3 +123,26 @@ def test_bench_g2o_reports_f_over_fstar_or_says_na(capsys, tmp_path):
     )
     out = capsys.readouterr().out
     assert "F_over_Fstar: n/a" in out
+
+
+def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
+    from dran_edge.formats.g2o import write_g2o
+    from dran_edge.sim.graphgen import synthetic_graph
+
+    g, _ = synthetic_graph(dim=2, side=5, layers=1, seed=1)
+    path = tmp_path / "grid.g2o"
+    write_g2o(path, g, g.poses)
+    base = ["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--json", "--curve"]
+    assert main(base) == 0
+    rep = json.loads(capsys.readouterr().out)
+    curve = rep["curve"]
+    assert curve[0] == [0, rep["bytes_init"], rep["objective_init"]]
+    assert [k for k, _, _ in curve] == list(range(rep["rounds"] + 1))  # one point per round
+    assert curve[-1][1:] == [rep["bytes_total"], pytest.approx(rep["objective_final"])]
+    assert all(b1 <= b2 for (_, b1, _), (_, b2, _) in zip(curve, curve[1:]))
+    assert main([*base, "--refine", "always", "--refine-hessian", "exact", "--refine-steps", "3"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["refine_hessian"] == "exact" and rep["refine_used"]
+    # the init's end, the refinement's accepted points and its end, then DRAN's rounds
+    assert len(rep["curve"]) == 1 + len(rep["refine_curve"]) + rep["rounds"]
+    assert rep["curve"][-1][1] == rep["bytes_total"]

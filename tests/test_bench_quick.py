@@ -44,6 +44,7 @@ SCRIPTS = {
     "test_bench_bags": ("bench_bags.py", (), ("rosbags",)),
     "test_bench_generalisation": ("bench_generalisation.py", (), ()),
     "test_bench_stopping": ("bench_stopping.py", (), ()),
+    "test_bench_gap_bytes": ("bench_gap_bytes.py", (), ()),
     "test_bench_rehearsal": ("bench_rehearsal.py", (), ()),
 }
 
@@ -262,3 +263,12 @@ def test_bench_stopping(runs):
 def test_bench_rehearsal(runs):
     out = run_quick(runs, "test_bench_rehearsal")
     assert "SR_ATE %" in out and "targets (SR_ATE within 5 points of replay" in out
+
+
+def test_bench_gap_bytes(runs):
+    out = run_quick(runs, "test_bench_gap_bytes")
+    row = next(line for line in out.splitlines() if line.startswith("| quick-chain"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    mb, ratio = float(cells[3].split()[0]), float(cells[4])
+    # the refined chain gets below 1e-3 within a few hundred kB: MB > 0, ratio = MB / 1 MB
+    assert 0 < mb < 1 and ratio == pytest.approx(mb, abs=1e-3)

@@ -305,13 +305,15 @@ class Fleet:
                     incoming[i].extend(msg.init)
 
     def run(self, max_rounds: int, min_rounds: int = 1, patience: int = 3, callback=None) -> int:
-        """Rounds until every agent has reported convergence ``patience`` rounds in a row."""
+        """Rounds until every agent has reported convergence ``patience`` rounds in a row.
+        ``callback(k, fleet)`` after each round; a true return value ends the run there
+        (benchmarks whose question is decided before ``max_rounds``)."""
         streak = 0
         for k in range(max_rounds):
             done = self.step()
             streak = streak + 1 if done else 0
-            if callback is not None:
-                callback(k + 1, self)
+            if callback is not None and callback(k + 1, self):
+                return k + 1
             if k + 1 >= min_rounds and streak >= patience:
                 return k + 1
         return max_rounds
@@ -576,6 +578,7 @@ def run_g2o_dran(
     partition=None,
     stop: bool = True,
     refine=None,
+    on_start=None,
 ) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
@@ -593,7 +596,9 @@ def run_g2o_dran(
     bytes since the init, F as the root summed it) at every accepted point), ``objective_refined``
     and ``poses_refined``, where DRAN starts. A refinement that stopped on its relative-decrease
     test (``refine_converged``) ends the run there when ``stop``: DRAN runs no round
-    (``stopped_by`` "refine")."""
+    (``stopped_by`` "refine"). ``on_start(numbers)``: called once before DRAN's first round
+    with the refinement's ``refine_*`` numbers ({} without refinement), for callbacks that
+    need to know whether the run would already have ended there."""
     # Long: the Table 1 protocol in order (split, init, refinement, agents, rounds, record).
     from dran_edge.dran.linear_stage import greedy_colouring
     from dran_edge.solver.objective import sesync_objective
@@ -630,6 +635,8 @@ def run_g2o_dran(
     fleet.agents = agents
     fleet.estimates = [None] * num_robots
     cap = max_rounds or config.k_max * (int(colour.max()) + 1)
+    if on_start is not None:
+        on_start({k: v for k, v in refined.items() if k != "poses_refined"})
     if stop and refined.get("refine_converged"):  # the root's global test already held
         rounds, reasons = 0, ["refine"]
     else:

@@ -112,6 +112,13 @@ def _add_g2o_parser(sub: Any) -> None:
         "and the refinement then go through the selective-repeat ARQ (docs/dran.md, "
         "'Over lossy links')",
     )
+    g.add_argument(
+        "--curve",
+        action="store_true",
+        help="dran: add 'curve', [rounds after the init, bytes sent so far (init included), "
+        "F] at the init's end, at each accepted refinement point and after every DRAN "
+        "round (F of the merged estimate each round: slower)",
+    )
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -253,7 +260,8 @@ def _add_suite_parser(sub: Any) -> None:
         "--poses",
         type=int,
         default=None,
-        help="poses per graph (default: 2000-4000 by seed for chains, 2000 grids)",
+        help="poses per graph (default: the suite's own cases, 2000-4000 by seed for "
+        "chains, 2000 grids; --families/--robots/--split then filter them)",
     )
     s.add_argument(
         "--robots",
@@ -284,6 +292,19 @@ def _add_suite_parser(sub: Any) -> None:
         "always, or the block Gauss-Seidel iterations only (never)",
     )
     _add_refine_options(s)
+    s.add_argument(
+        "--stop",
+        choices=("tail", "steps"),
+        default="tail",
+        help="the agents' stopping rule: tail (default, as bench g2o) or steps (Table 1's)",
+    )
+    s.add_argument(
+        "--until-decided",
+        action="store_true",
+        help="end a graph's DRAN run once F <= 1.001 F* has been reached and the run's stop "
+        "is known (the refinement converged or the stopping rule fired); values at the end "
+        "are then at that round (ended_round), not at --rounds",
+    )
     s.add_argument("--no-dgs", action="store_true", help="skip the DGS baseline")
     s.add_argument(
         "-o",
@@ -307,9 +328,10 @@ def _add_refine_options(p) -> None:
     p.add_argument(
         "--refine-steps",
         type=int,
-        default=20,
+        default=200,
         metavar="K",
-        help="at most K refinement trials after the start point (default 20)",
+        help="at most K refinement trials after the start point (default 200, a safety "
+        "cap: the refinement stops on --refine-tol)",
     )
     p.add_argument(
         "--refine-tol",
@@ -317,6 +339,13 @@ def _add_refine_options(p) -> None:
         default=1e-5,
         help="stop refining after an accepted step lowering F by less than this "
         "fraction (default 1e-5)",
+    )
+    p.add_argument(
+        "--refine-hessian",
+        choices=("gauss_newton", "exact"),
+        default="gauss_newton",
+        help="the refinement's model: Gauss-Newton (default) or the exact Hessian (damped "
+        "Newton once a step gains < 1 %%, Gauss-Newton where not positive definite)",
     )
 
 
@@ -328,7 +357,12 @@ def _refine_params(args):
         return None
     if args.refine_steps < 0:
         raise InputError(f"--refine-steps must be at least 0, got {args.refine_steps}")
-    return RefineParams(mode=args.refine, max_steps=args.refine_steps, rel_tol=args.refine_tol)
+    return RefineParams(
+        mode=args.refine,
+        max_steps=args.refine_steps,
+        rel_tol=args.refine_tol,
+        hessian=args.refine_hessian,
+    )
 
 
 def run_g2o(args) -> int:
@@ -349,6 +383,7 @@ def run_g2o(args) -> int:
         cfg, run_kw = table1_setup(g.dim, args.residual, plain=args.plain, stop=args.stop)
 
         bar = ProgressBar()
+        rec, part = _curve_recorder(g, args.robots) if args.curve else (None, None)
 
         def cb(k, fleet):  # progress on stderr; stdout stays the report
             if k == 1:
@@ -357,6 +392,8 @@ def run_g2o(args) -> int:
                     f"{fleet.traffic.bytes_total} bytes so far"
                 )
             bar("DRAN rounds", k, args.max_rounds or k)
+            if rec is not None:
+                rec(k, fleet)
 
         res = run_g2o_dran(
             g,
@@ -367,8 +404,16 @@ def run_g2o(args) -> int:
             init_params=init_params,
             refine=_refine_params(args),
             links=BusParams(loss_probability=args.loss) if args.loss > 0 else None,
+            partition=part,
             **run_kw,
         )
+        if rec is not None:
+            from dran_edge.experiments.suite import curve_after_init
+
+            if not rec.curve:  # no DRAN round (the refinement ended the run)
+                rec.curve.append((0, None, None))
+            curve, _ = curve_after_init(rec, res, res["rounds_total"], args.refine != "off")
+            res["curve"] = [list(p) for p in curve]
     else:
         res = run_g2o_dgs(
             g,
@@ -387,6 +432,8 @@ def run_g2o(args) -> int:
     }
     if args.refine != "off":
         report["refine"] = args.refine
+        if args.refine_hessian != "gauss_newton":
+            report["refine_hessian"] = args.refine_hessian
     if args.loss > 0:
         report["loss"] = args.loss
     report.update(
@@ -399,6 +446,23 @@ def run_g2o(args) -> int:
         for k, v in report.items():
             print(f"{k:>24}: {'n/a' if v is None else v}")
     return 0
+
+
+def _curve_recorder(g, robots: int):
+    """``bench g2o --curve``: a ``suite.CurveRecorder`` of F (SE-Sync) per DRAN round on the
+    contiguous split (the one ``run_g2o_dran`` makes by default), and that split."""
+    from dran_edge.dran.partition import partition_contiguous
+    from dran_edge.experiments.suite import CurveRecorder
+    from dran_edge.solver.objective import sesync_objective, sesync_weights
+
+    kappa, tau = sesync_weights(g.dim, g.information)
+    part = partition_contiguous(g.edges, g.num_vertices, robots)
+    shape = (g.num_vertices, g.dim + 1, g.dim + 1)
+
+    def F(T):
+        return sesync_objective(T, g.edges, g.measurements, kappa, tau)
+
+    return CurveRecorder(part, shape, F), part
 
 
 def _reference(g, res: dict, skip: bool) -> dict:
@@ -567,16 +631,11 @@ def run_suite_cmd(args) -> int:
     rounds = args.rounds or (200 if args.quick else 1000)
     if rounds < 1:
         raise InputError(f"--rounds must be at least 1, got {rounds}")
-    cases = suite.default_cases(args.quick, tuple(args.seeds))
-    if args.families or args.poses or args.robots or args.split:
-        fams = args.families or sorted(suite.FAMILIES)
-        cases = [
-            suite.Case(f, args.poses or (300 if args.quick else 3000), seed, robots, split)
-            for f in fams
-            for seed in args.seeds
-            for robots in (args.robots or [5])
-            for split in (args.split or ["contiguous"])
-        ]
+    cases = suite.select_cases(
+        args.quick, args.seeds, args.families, args.robots, args.split, args.poses
+    )
+    if not cases:
+        raise InputError("no suite case matches --families/--robots/--split (add --poses)")
     rows = []
     for k, case in enumerate(cases):
         note(f"[{k + 1}/{len(cases)}] {case.name}")
@@ -586,6 +645,8 @@ def run_suite_cmd(args) -> int:
             init_direct=args.init,
             dgs=not args.no_dgs,
             refine=_refine_params(args),
+            stop_rule=args.stop,
+            until_decided=args.until_decided,
         )
         rows.append(row)
         if args.json:
