@@ -104,8 +104,9 @@ class AgentConfig(_Checked):
     lambda_ij <- lambda_ij + eta beta w_ij phi + theta (lambda_ij - lambda_ij before its last
     update), on the pairs the anti-windup lets integrate. Needs no shared round; both ends of a
     pair apply the same linear recurrence to antisymmetric increments. 0: off, the paper's eq.
-    5b (measured: not faster than plain on the object simulation; docs/dran.md, "Acceleration
-    without a shared round")."""
+    5b (measured: faster on small fleets and the demo replay, not on the paper-size object
+    simulation, and worse with lossy links; docs/dran.md, "Acceleration without a shared
+    round")."""
     eps_u: float = _f(1e-2, lo=0.0)
     """Terminate when the private step norm |u| < eps_u."""
     eps_v: float = _f(1e-1, lo=0.0)
