@@ -458,3 +458,37 @@ def test_a_copy_past_the_relay_limit_still_updates_neighbours_that_hold_it(scena
         send_first=False
     )  # never sent: a copy at the limit is not offered
     assert not never
+
+
+def _near_copy_rounds(scenario, theta, rounds):
+    """Robot 0 holding robot 1's copy of one object 5 cm off its own for ``rounds`` rounds
+    (near consensus, so eq. 5b integrates); returns the agent."""
+    a = Agent(
+        dataclasses.replace(CFG, robot_id=0, neighbours=(1,), dual_momentum=theta),
+        scenario.problems[0],
+        weights={1: 0.5},
+    )
+    oid = min(a.y)
+    near = a.y[oid].copy()
+    near[0, 3] += 0.05
+    for k in range(1, rounds + 1):
+        a.handle(_obj_msg(1, k, oid, near))
+        a.handle(Tick(k))
+        assert a.last_decrease >= 0.0  # the accepted local step never raises L̂_i
+    return a, oid
+
+
+def test_dual_momentum_is_a_heavy_ball_on_eq_5b(scenario):
+    """dual_momentum θ: λ ← λ + ηβwφ + θ(λ − λ_prev). Off it is eq. 5b to the bit; on, the
+    first update equals eq. 5b (no history) and later ones add θ times the last increment, so
+    a dual that keeps integrating the same sign grows faster."""
+    plain, oid = _near_copy_rounds(scenario, 0.0, 1)
+    heavy, _ = _near_copy_rounds(scenario, 0.8, 1)
+    assert np.array_equal(plain.lam[(1, oid)], heavy.lam[(1, oid)])
+    plain, _ = _near_copy_rounds(scenario, 0.0, 6)
+    heavy, _ = _near_copy_rounds(scenario, 0.8, 6)
+    assert np.linalg.norm(heavy.lam[(1, oid)]) > 1.5 * np.linalg.norm(plain.lam[(1, oid)])
+    b = Agent.from_state(heavy.config, heavy.to_state())  # the history is checkpointed
+    assert np.array_equal(b.lam_prev[(1, oid)], heavy.lam_prev[(1, oid)])
+    with pytest.raises(Exception, match="dual_momentum"):
+        dataclasses.replace(CFG, dual_momentum=1.0)

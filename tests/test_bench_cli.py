@@ -80,6 +80,18 @@ def test_bench_objects_rejects_a_non_positive_penalty_or_dual_step(capsys, flag)
     assert f"{flag}: {flag[2:]}: expected a value > 0" in capsys.readouterr().err
 
 
+def test_bench_objects_dual_momentum_flag(capsys):
+    """--dual-momentum sets AgentConfig.dual_momentum, shows in the row, and is range-checked."""
+    small = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4", "--rounds"]
+    assert main([*small, "2", "--json", "--dual-momentum", "0.8"]) == 0
+    row = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert row["dual_momentum"] == 0.8
+    assert main([*small, "2", "--json"]) == 0
+    assert "dual_momentum" not in json.loads(capsys.readouterr().out.splitlines()[0])
+    assert main(["bench", "objects", "--dual-momentum", "1.5"]) == 2
+    assert "--dual-momentum: dual_momentum: expected a value <= 0.95" in capsys.readouterr().err
+
+
 def test_bench_objects_reports_the_ratios_to_the_centralized_solution(capsys):
     rc = main(
         [

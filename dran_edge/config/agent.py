@@ -104,6 +104,14 @@ class AgentConfig(_Checked):
     Gauss-Seidel-like order when neighbours have different colours (docs/dran.md)."""
     colour: int = _f(0, lo=0, hi=255)
     """This robot's colour in the schedule (0 <= colour < colours)."""
+    dual_momentum: float = _f(0.0, lo=0.0, hi=0.95)
+    """Heavy-ball momentum theta on the dual update (eq. 5b), a schedule without a shared round:
+    lambda_ij <- lambda_ij + eta beta w_ij phi + theta (lambda_ij - lambda_ij before its last
+    update), on the pairs the anti-windup lets integrate. Needs no shared round; both ends of a
+    pair apply the same linear recurrence to antisymmetric increments. 0: off, the paper's eq.
+    5b (measured: faster on small fleets and the demo replay, not on the paper-size object
+    simulation, and worse with lossy links; docs/dran.md, "Acceleration without a shared
+    round")."""
     eps_u: float = _f(1e-2, lo=0.0)
     """Terminate when the private step norm |u| < eps_u."""
     eps_v: float = _f(1e-1, lo=0.0)

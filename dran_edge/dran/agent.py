@@ -14,6 +14,7 @@ One round (Alg. 1, lines 3–13)::
 
     absorb neighbour data; initialise unknown objects from neighbours (lines 3–8)
     λ_ij ← λ_ij + η β w_ij φ(y_i, y_j)                                        (eq. 5b, line 9)
+           [+ θ (λ_ij − λ_ij before its last update): dual_momentum θ > 0, off by default]
     L̂_i = f_intra + f_inter + f_obj + Σ_j (β/2)‖w_ij φ(y_i, y_j) + λ_ij/β‖²  (eq. 6)
     M = JᵀJ + μI = [[A, C], [Cᵀ, B]],  g = [g_x; g_y]                         (eq. 7)
     ĝ = g_y − Cᵀ A⁻¹ g_x,  Ĥ = B − Cᵀ A⁻¹ C                                   (eqs. 11, 12)
@@ -134,6 +135,8 @@ class Agent:
         self.anchor_round: dict[AnchorKey, int] = {}
         #: (neighbour, object id) -> λ_ij, the dual of that consensus pair
         self.lam: dict[PairKey, np.ndarray] = {}
+        #: (neighbour, object id) -> λ_ij before the last dual update (dual_momentum > 0)
+        self.lam_prev: dict[PairKey, np.ndarray] = {}
         self.last_sent: dict[SentKey, tuple[np.ndarray, int]] = {}
         #: (neighbour, "o", object id) -> (origin, hop, support) last sent with that copy
         self.last_sent_provenance: dict[SentKey, tuple[int, int, int]] = {}
@@ -253,7 +256,13 @@ class Agent:
             # Anti-windup: integrate only pairs already near consensus (docs/dran.md); far apart
             # copies (first rounds, sparse graphs) made the duals overshoot and diverge.
             near = consensus_error(y_i, y_j) <= c.dual_max_phi2
-            lam = np.where(near[:, None], dual_update(lam, p_ij, w, c.beta, c.eta), lam)
+            new = dual_update(lam, p_ij, w, c.beta, c.eta)
+            if c.dual_momentum > 0.0:  # heavy ball on eq. 5b (docs/dran.md, acceleration)
+                prev = np.stack([self.lam_prev.get(k, l) for k, l in zip(s.pair_keys, lam)])
+                new = new + c.dual_momentum * (lam - prev)
+                for key, value in zip(s.pair_keys, lam):
+                    self.lam_prev[key] = value
+            lam = np.where(near[:, None], new, lam)
             for key, value in zip(s.pair_keys, lam):
                 self.lam[key] = value
         cons = self._consensus_blocks(s.object_slot, s.consensus_base, s.pair_keys)
@@ -506,6 +515,7 @@ class Agent:
             "nbr_support": obj["nbr_support"],
             "support": obj["support"],
             "lam": {k: v.copy() for k, v in self.lam.items()},
+            "lam_prev": {k: v.copy() for k, v in self.lam_prev.items()},
             "w": dict(self.w),
             "counters": self.counters.to_dict(),
             "decrements": list(self.decrements),
@@ -523,6 +533,7 @@ class Agent:
         agent.anchors = {_key2(k): np.asarray(v) for k, v in state["anchors"].items()}
         agent.anchor_round = {_key2(k): int(v) for k, v in state["anchor_round"].items()}
         agent.lam = {_key2(k): np.asarray(v) for k, v in state["lam"].items()}
+        agent.lam_prev = {_key2(k): np.asarray(v) for k, v in state.get("lam_prev", {}).items()}
         agent.counters.update(state["counters"])
         agent.decrements = [float(d) for d in state.get("decrements", [])]
         agent.done_count = int(state.get("done_count", 0))

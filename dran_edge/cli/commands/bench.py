@@ -197,6 +197,13 @@ def _add_objects_parser(sub: Any) -> None:
     )
     o.add_argument("--eta", type=float, default=None, help="dual step η (default: the paper's 0.1)")
     o.add_argument(
+        "--dual-momentum",
+        type=float,
+        default=None,
+        help="heavy-ball momentum θ on the dual update (AgentConfig.dual_momentum; "
+        "default 0: off; docs/notes/object-simulation.md measures it)",
+    )
+    o.add_argument(
         "--rounds",
         type=int,
         default=150,
@@ -496,12 +503,12 @@ def run_objects_cmd(args) -> int:
         )
     robust = args.outliers > 0 or args.robust
     cfg = bench_config(robust, args.min_views)
-    for name in ("beta", "eta"):
+    for name in ("beta", "eta", "dual_momentum"):
         if getattr(args, name) is not None:
             try:  # AgentConfig's own range check, reported with the flag's name
                 cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
             except ConfigError as exc:
-                raise InputError(f"--{name}: {exc}") from None
+                raise InputError(f"--{name.replace('_', '-')}: {exc}") from None
     rows = []
     bar = ProgressBar()
     for noise in args.noise:
@@ -548,6 +555,8 @@ def run_objects_cmd(args) -> int:
             }
             if args.refine != "off":
                 row["refine"] = args.refine
+            if cfg.dual_momentum:
+                row["dual_momentum"] = cfg.dual_momentum
             row.update({k: v for k, v in out.items() if k != "history" or args.history_every})
             rows.append(row)
             if args.json:
