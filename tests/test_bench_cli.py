@@ -152,7 +152,9 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
     assert [k for k, _, _ in curve] == list(range(rep["rounds"] + 1))  # one point per round
     assert curve[-1][1:] == [rep["bytes_total"], pytest.approx(rep["objective_final"])]
     assert all(b1 <= b2 for (_, b1, _), (_, b2, _) in zip(curve, curve[1:]))
-    assert main([*base, "--refine", "always", "--refine-hessian", "exact", "--refine-steps", "3"]) == 0
+    assert (
+        main([*base, "--refine", "always", "--refine-hessian", "exact", "--refine-steps", "3"]) == 0
+    )
     rep = json.loads(capsys.readouterr().out)
     assert rep["refine_hessian"] == "exact" and rep["refine_used"]
     # the init's end, the refinement's accepted points and its end, then DRAN's rounds

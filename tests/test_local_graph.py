@@ -380,6 +380,7 @@ def test_skeleton_node_leaves_the_prior_with_its_exact_pair_marginal(seed):
         g._add_factor(p, q, geo.se3_between(T[p], Tq), cov(sig), kind)
     g.skeleton.add(0)
     g.skeleton.add(2)
+
     class ByKey(dict):  # poses indexed by an array of keys, as _information indexes them
         def __getitem__(self, keys):
             return np.stack([dict.__getitem__(self, int(k)) for k in keys])

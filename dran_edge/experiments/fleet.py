@@ -645,23 +645,26 @@ def run_g2o_dran(
     merged = start.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
-    return refined | {
-        "poses": merged,
-        "poses_init": init_poses,
-        "rounds": rounds,
-        "stopped_by": "+".join(reasons) if rounds < cap else None,
-        "init_rounds": init_rounds,
-        "rounds_total": init_rounds + refined.get("refine_rounds", 0) + rounds,
-        "bytes_init": init_bytes,
-        "bytes_total": fleet.traffic.bytes_total,
-        "datagrams": fleet.traffic.datagrams,
-        "objective_init": F_init,
-        "objective_final": F(merged),
-        "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
-        "schedule": schedule,
-        "colours": int(colour.max()) + 1,
-        "delta_every": delta_every,
-        "wall_s": time.perf_counter() - t_start,
-    } | ({"init_fallback": fleet.init_fallback} if fleet.init_fallback else {}) | (
-        {"arq": arq_totals(fleet)} if fleet.arq is not None else {}
+    return (
+        refined
+        | {
+            "poses": merged,
+            "poses_init": init_poses,
+            "rounds": rounds,
+            "stopped_by": "+".join(reasons) if rounds < cap else None,
+            "init_rounds": init_rounds,
+            "rounds_total": init_rounds + refined.get("refine_rounds", 0) + rounds,
+            "bytes_init": init_bytes,
+            "bytes_total": fleet.traffic.bytes_total,
+            "datagrams": fleet.traffic.datagrams,
+            "objective_init": F_init,
+            "objective_final": F(merged),
+            "local_step_ms_median": float(np.median(fleet.step_ms)) if fleet.step_ms else 0.0,
+            "schedule": schedule,
+            "colours": int(colour.max()) + 1,
+            "delta_every": delta_every,
+            "wall_s": time.perf_counter() - t_start,
+        }
+        | ({"init_fallback": fleet.init_fallback} if fleet.init_fallback else {})
+        | ({"arq": arq_totals(fleet)} if fleet.arq is not None else {})
     )

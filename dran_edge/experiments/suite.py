@@ -474,7 +474,7 @@ def _fmt(v, spec=".4f") -> str:
 
 
 def _at(r: dict, key: str) -> str:
-    """"round / kB" of the first point at ``key`` ("1pct", "01pct"), "–" if never."""
+    """ "round / kB" of the first point at ``key`` ("1pct", "01pct"), "–" if never."""
     k, b = r.get(f"round_at_{key}"), r.get(f"bytes_at_{key}")
     return "–" if k is None or b is None else f"{k} / {b / 1e3:.0f}"
 

@@ -126,7 +126,9 @@ def _quick_run(tmp: Path) -> Path:
     write_g2o(path, g, g.poses)
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(io.StringIO()):
-        rc = cli(["bench", "g2o", str(path), "--robots", "3", "--json", "--curve", "--refine", "auto"])
+        rc = cli(
+            ["bench", "g2o", str(path), "--robots", "3", "--json", "--curve", "--refine", "auto"]
+        )
     if rc != 0:
         raise SystemExit(rc)
     out = tmp / "quick-chain.json"
@@ -147,7 +149,9 @@ def main(argv=None) -> int:
         args.runs = [str(_quick_run(Path(tempfile.mkdtemp(prefix="gap_bytes_"))))]
     if not args.runs:
         ap.error("give bench g2o --json --curve outputs, or --quick")
-    print("| graph | run | DPGO gap / MB | DRAN MB at that gap (init MB) | ratio | DRAN end gap / MB |")
+    print(
+        "| graph | run | DPGO gap / MB | DRAN MB at that gap (init MB) | ratio | DRAN end gap / MB |"
+    )
     print("|---|---|---|---|---|---|")
     by_graph: dict[str, list[dict]] = {}
     for path in args.runs:
