@@ -68,11 +68,28 @@ def test_no_watchdog_after_a_failed_tick(tmp_path):
 
 
 def test_run_keeps_absolute_deadlines(tmp_path):
-    d = make(tmp_path)
+    """Ten rounds on deadlines t0 + k·period: every period between the first round and the last
+    was either a round or counted as missed (a loaded machine may miss some; none is run late
+    as a catch-up), so no timing is asserted."""
+    import time
+
+    from dran_edge.events import Tick
+
+    d = make(tmp_path)  # period 0.05 s
     d.start()
+    handle = d.agent.handle
+    starts = []
+
+    def timed(event):
+        if isinstance(event, Tick):
+            starts.append(time.monotonic())
+        return handle(event)
+
+    d.agent.handle = timed
     d.run(max_ticks=10)
-    assert d.stats.ticks == 10
-    assert d.stats.missed == 0
+    assert d.stats.ticks == 10 == len(starts)
+    periods = (starts[-1] - starts[0]) / 0.05
+    assert abs(d.stats.ticks - 1 + d.stats.missed - periods) <= 1.5
 
 
 def test_overlong_rounds_are_skipped_and_counted_not_queued(tmp_path):
