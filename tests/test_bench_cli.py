@@ -6,6 +6,9 @@ import pytest
 
 from dran_edge.cli.app import main
 
+#: ``bench objects`` on a toy: 3 robots, 4 objects; the round count follows.
+SMALL = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4", "--rounds"]
+
 
 @pytest.mark.parametrize(
     "flags, robust, min_views, beta, eta",
@@ -19,22 +22,7 @@ from dran_edge.cli.app import main
 def test_bench_objects_reports_the_settings_it_ran_with(
     capsys, flags, robust, min_views, beta, eta
 ):
-    rc = main(
-        [
-            "bench",
-            "objects",
-            "--rho",
-            "1.0",
-            "--robots",
-            "3",
-            "--objects",
-            "4",
-            "--rounds",
-            "3",
-            "--json",
-            *flags,
-        ]
-    )
+    rc = main([*SMALL, "3", "--json", *flags])
     assert rc == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.strip()]
     assert len(rows) == 1
@@ -45,23 +33,7 @@ def test_bench_objects_reports_the_settings_it_ran_with(
 
 
 def test_bench_objects_history_has_one_row_per_n_rounds(capsys):
-    rc = main(
-        [
-            "bench",
-            "objects",
-            "--rho",
-            "1.0",
-            "--robots",
-            "3",
-            "--objects",
-            "4",
-            "--rounds",
-            "4",
-            "--history-every",
-            "2",
-            "--json",
-        ]
-    )
+    rc = main([*SMALL, "4", "--history-every", "2", "--json"])
     assert rc == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     assert row["rounds"] == 4  # this toy does not meet the stopping rule in 4 rounds
@@ -82,34 +54,17 @@ def test_bench_objects_rejects_a_non_positive_penalty_or_dual_step(capsys, flag)
 
 def test_bench_objects_dual_momentum_flag(capsys):
     """--dual-momentum sets AgentConfig.dual_momentum, shows in the row, and is range-checked."""
-    small = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4", "--rounds"]
-    assert main([*small, "2", "--json", "--dual-momentum", "0.8"]) == 0
+    assert main([*SMALL, "2", "--json", "--dual-momentum", "0.8"]) == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     assert row["dual_momentum"] == 0.8
-    assert main([*small, "2", "--json"]) == 0
+    assert main([*SMALL, "2", "--json"]) == 0
     assert "dual_momentum" not in json.loads(capsys.readouterr().out.splitlines()[0])
     assert main(["bench", "objects", "--dual-momentum", "1.5"]) == 2
     assert "--dual-momentum: dual_momentum: expected a value <= 0.95" in capsys.readouterr().err
 
 
 def test_bench_objects_reports_the_ratios_to_the_centralized_solution(capsys):
-    rc = main(
-        [
-            "bench",
-            "objects",
-            "--rho",
-            "1.0",
-            "--robots",
-            "3",
-            "--objects",
-            "4",
-            "--rounds",
-            "3",
-            "--history-every",
-            "3",
-            "--json",
-        ]
-    )
+    rc = main([*SMALL, "3", "--history-every", "3", "--json"])
     assert rc == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     assert row["F_over_Fstar"] == pytest.approx(row["F"] / row["F_star"])
