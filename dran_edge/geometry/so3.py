@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from dran_edge.geometry import _series as s
+from dran_edge.geometry._products import matmul
 
 
 def hat3(w: np.ndarray) -> np.ndarray:
@@ -48,7 +49,7 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
     P = hat3(phi)
     a = s.sinc(theta_sq)[..., None, None]
     b = s.one_minus_cos_over_sq(theta_sq)[..., None, None]
-    return np.eye(3) + a * P + b * (P @ P)
+    return np.eye(3) + a * P + b * matmul(P, P)
 
 
 def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
@@ -147,7 +148,7 @@ def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
     P = hat3(phi)
     b = s.one_minus_cos_over_sq(theta_sq)[..., None, None]
     c = s.theta_minus_sin_over_cube(theta_sq)[..., None, None]
-    return np.eye(3) + b * P + c * (P @ P)
+    return np.eye(3) + b * P + c * matmul(P, P)
 
 
 def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
@@ -156,7 +157,7 @@ def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     theta_sq = np.sum(phi * phi, axis=-1)
     P = hat3(phi)
     c = s.so3_jinv_coeff(theta_sq)[..., None, None]
-    return np.eye(3) - 0.5 * P + c * (P @ P)
+    return np.eye(3) - 0.5 * P + c * matmul(P, P)
 
 
 def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
@@ -173,7 +174,7 @@ def so3_project(M: np.ndarray) -> np.ndarray:
     """The rotation nearest to M in Frobenius norm: U diag(1, …, det(U Vᵀ)) Vᵀ (any d × d)."""
     M = np.asarray(M, dtype=np.float64)
     U, _, Vt = np.linalg.svd(M)
-    det = np.linalg.det(U @ Vt)
+    det = np.linalg.det(matmul(U, Vt))
     D = np.ones(M.shape[:-1])
     D[..., -1] = det
-    return (U * D[..., None, :]) @ Vt
+    return matmul(U * D[..., None, :], Vt)
