@@ -29,15 +29,16 @@ def matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B`` for ``(..., n, k) @ (..., k, m)`` (leading axes broadcast), summed in fixed order."""
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
-    k = A.shape[-1]
+    n, k = A.shape[-2:]
+    m = B.shape[-1]
     if B.shape[-2] != k:
         raise ValueError(f"matmul: inner dimensions differ, {A.shape} @ {B.shape}")
-    batch = np.broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    if k <= _SEQUENTIAL_REDUCE_MAX_K and int(np.prod(batch, dtype=np.int64)) <= _FEW:
+    matrices = max(A.size // max(n * k, 1), B.size // max(k * m, 1))  # no broadcast_shapes call
+    if k <= _SEQUENTIAL_REDUCE_MAX_K and matrices <= _FEW:
         return np.add.reduce(A[..., :, :, None] * B[..., None, :, :], axis=-2)
     out = A[..., :, 0:1] * B[..., 0:1, :]
     for j in range(1, k):
-        out = out + A[..., :, j : j + 1] * B[..., j : j + 1, :]
+        out += A[..., :, j : j + 1] * B[..., j : j + 1, :]
     return out
 
 

@@ -33,6 +33,17 @@ def hat3(w: np.ndarray) -> np.ndarray:
     return out
 
 
+def hat3_squared(w: np.ndarray) -> np.ndarray:
+    """``[w]×² = w wᵀ − ‖w‖² I`` entry by entry (one rounded product per entry, no matrix
+    product): ``(..., 3) -> (..., 3, 3)``."""
+    w = np.asarray(w, dtype=np.float64)
+    out = w[..., :, None] * w[..., None, :]
+    theta_sq = w[..., 0] * w[..., 0] + w[..., 1] * w[..., 1] + w[..., 2] * w[..., 2]
+    for i in range(3):
+        out[..., i, i] -= theta_sq
+    return out
+
+
 def vee3(W: np.ndarray) -> np.ndarray:
     """Inverse of ``hat3`` (takes the skew part of W); ``(..., 3, 3) -> (..., 3)``."""
     W = np.asarray(W, dtype=np.float64)
@@ -49,7 +60,7 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
     P = hat3(phi)
     a = s.sinc(theta_sq)[..., None, None]
     b = s.one_minus_cos_over_sq(theta_sq)[..., None, None]
-    return np.eye(3) + a * P + b * matmul(P, P)
+    return np.eye(3) + a * P + b * hat3_squared(phi)
 
 
 def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
@@ -148,7 +159,7 @@ def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
     P = hat3(phi)
     b = s.one_minus_cos_over_sq(theta_sq)[..., None, None]
     c = s.theta_minus_sin_over_cube(theta_sq)[..., None, None]
-    return np.eye(3) + b * P + c * matmul(P, P)
+    return np.eye(3) + b * P + c * hat3_squared(phi)
 
 
 def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
@@ -157,7 +168,7 @@ def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     theta_sq = np.sum(phi * phi, axis=-1)
     P = hat3(phi)
     c = s.so3_jinv_coeff(theta_sq)[..., None, None]
-    return np.eye(3) - 0.5 * P + c * matmul(P, P)
+    return np.eye(3) - 0.5 * P + c * hat3_squared(phi)
 
 
 def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
