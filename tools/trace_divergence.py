@@ -3,6 +3,7 @@
 
     tools/trace_divergence.py record RUN_DIR OUT.npz   # on each machine (x86-64, the arm64 root)
     tools/trace_divergence.py compare A.npz B.npz      # on either
+    tools/trace_divergence.py compare A.npz B.npz --coarse 1e-9
 
 ``record`` wraps every function and method defined in dran_edge (imported under their own
 module, the layers the replay uses) so that each call appends (name, hash of its arguments,
@@ -11,7 +12,11 @@ hash of its result) when it returns, then replays a copy of RUN_DIR with the gol
 containers of them; other objects (the agents themselves) are not hashed. ``compare`` walks
 both records over the functions traced on both machines and prints the first calls whose
 arguments hashed equal but whose results did not: in return order, so the first one printed
-is the innermost traced function in which the floating point parted.
+is the innermost traced function in which the floating point parted. With ``--coarse RTOL``
+the comparison ignores roundoff (each call also stores its floats' sums and the hash of
+everything else): it prints the first call whose arguments agree to RTOL and whose result does
+not, i.e. where a last-bit difference became a different decision, and where the call
+sequences part (a branch taken on one machine only).
 
 A development tool (slow: every call is hashed); not part of make test.
 """
