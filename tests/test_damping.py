@@ -86,7 +86,12 @@ def test_a_cost_equal_up_to_roundoff_is_accepted_and_keeps_mu(policy):
     policy, with μ kept and no gain ratio (a decision on roundoff would part two CPUs' runs)."""
     for new_cost in (C0, C0 * (1 + 0.5 * COST_RESOLUTION), C0 * (1 - 0.5 * COST_RESOLUTION)):
         out = damped_step(
-            replace(policy, max_trials=1), DampingState(1.0), lm_model, constant_cost(new_cost), C0, G
+            replace(policy, max_trials=1),
+            DampingState(1.0),
+            lm_model,
+            constant_cost(new_cost),
+            C0,
+            G,
         )
         assert out.accepted and out.cost == new_cost
         assert math.isnan(out.rho)

@@ -254,7 +254,9 @@ def compare_coarse(a_path: Path, b_path: Path, show: int, rtol: float) -> int:
         args_close = ha[i, 0] == hb[i, 0] and close(sa[i, :2], sb[i, :2], 0.0)
         result_close = ha[i, 1] == hb[i, 1] and close(sa[i, 2:], sb[i, 2:], sa[i, 0])
         if args_close and not result_close:
-            what = "discrete parts" if ha[i, 1] != hb[i, 1] else f"floats {sa[i, 2]!r} vs {sb[i, 2]!r}"
+            what = (
+                "discrete parts" if ha[i, 1] != hb[i, 1] else f"floats {sa[i, 2]!r} vs {sb[i, 2]!r}"
+            )
             print(f"call {i}: {na[i]}: arguments equal up to roundoff, results differ ({what})")
             found += 1
             if found >= show:
