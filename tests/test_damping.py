@@ -10,12 +10,16 @@ import pytest
 from dran_edge.config import AgentConfig
 from dran_edge.solver.damping import (
     AGENT_DAMPING,
+    COST_FLOOR,
+    COST_RESOLUTION,
     LM_DAMPING,
     LM_NEWTON_DAMPING,
     DampingState,
     MuStart,
+    costs_equal,
     damped_step,
 )
+
 from dran_edge.solver.lm import LinearSolveError, LMParams
 
 # A quadratic cost c(ξ) = c0 + ⟨g, ξ⟩ + ½⟨ξ, H ξ⟩ in (u, v) = (ξ[:2], ξ[2:]).
@@ -76,21 +80,42 @@ def test_gain_ratio_sets_the_decrease_factor():
     assert out.state.mu == pytest.approx(mu)
 
 
-@pytest.mark.parametrize(
-    "policy, accepted",
-    [(LM_DAMPING, False), (AGENT_DAMPING, True)],
-    ids=["lm-strict", "agent-non-strict"],
-)
-def test_acceptance_boundary_equal_cost(policy, accepted):
+@pytest.mark.parametrize("policy", POLICIES)
+def test_a_cost_equal_up_to_roundoff_is_accepted_and_keeps_mu(policy):
+    """Costs within COST_RESOLUTION (relative) or COST_FLOOR are equal: accepted by every
+    policy, with μ kept and no gain ratio (a decision on roundoff would part two CPUs' runs)."""
+    for new_cost in (C0, C0 * (1 + 0.5 * COST_RESOLUTION), C0 * (1 - 0.5 * COST_RESOLUTION)):
+        out = damped_step(
+            replace(policy, max_trials=1),
+            DampingState(1.0),
+            lm_model,
+            constant_cost(new_cost),
+            C0,
+            G,
+        )
+        assert out.accepted and out.cost == new_cost
+        assert math.isnan(out.rho)
+        assert out.state == DampingState(1.0, 2.0)
+    # a cost that is zero in exact arithmetic, as 0 on one machine and 4e-26 on another
     out = damped_step(
-        replace(policy, max_trials=1), DampingState(1.0), lm_model, constant_cost(C0), C0, G
+        replace(policy, max_trials=1), DampingState(1.0), lm_model, constant_cost(4e-26), 0.0, G
     )
-    assert out.accepted is accepted
-    if accepted:
-        assert out.rho == 0.0  # no actual decrease
-        assert out.cost == C0
-    else:
-        assert out.candidate is None and math.isnan(out.rho)
+    assert out.accepted and out.state.mu == 1.0
+    assert costs_equal(0.0, 0.5 * COST_FLOOR) and not costs_equal(0.0, 2.0 * COST_FLOOR)
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_a_cost_measurably_above_is_rejected(policy):
+    out = damped_step(
+        replace(policy, max_trials=1),
+        DampingState(1.0),
+        lm_model,
+        constant_cost(C0 * (1 + 2 * COST_RESOLUTION)),
+        C0,
+        G,
+    )
+    assert not out.accepted
+    assert out.candidate is None and math.isnan(out.rho)
 
 
 def test_acceptance_needs_a_finite_cost():

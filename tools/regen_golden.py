@@ -4,8 +4,8 @@
 - ``tests/data/golden/tiny_run/`` is a tiny 3-robot run *as robots record it*: each robot's
   ``ingest.bin`` holds its odometry, keyframes, loops and the tag observations its perception
   found (no frames). Replaying it needs no perception, so every architecture gets the same
-  inputs; the summary agrees within the back end's floating point
-  (tests/test_replay.py::test_matches_the_golden_summary states the tolerances).
+  inputs, and the summary (floats to ``GOLDEN_SIGNIFICANT_DIGITS`` digits) is the same on
+  each (tests/test_replay.py::test_matches_the_golden_summary compares it exactly).
 - ``tests/data/golden/tiny_replay.json`` is the golden summary of that replay.
 
 Run this only when a change to the simulator, the perception pipeline, the agent or the replay

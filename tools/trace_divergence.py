@@ -3,6 +3,7 @@
 
     tools/trace_divergence.py record RUN_DIR OUT.npz   # on each machine (x86-64, the arm64 root)
     tools/trace_divergence.py compare A.npz B.npz      # on either
+    tools/trace_divergence.py compare A.npz B.npz --coarse 1e-9
 
 ``record`` wraps every function and method defined in dran_edge (imported under their own
 module, the layers the replay uses) so that each call appends (name, hash of its arguments,
@@ -11,7 +12,11 @@ hash of its result) when it returns, then replays a copy of RUN_DIR with the gol
 containers of them; other objects (the agents themselves) are not hashed. ``compare`` walks
 both records over the functions traced on both machines and prints the first calls whose
 arguments hashed equal but whose results did not: in return order, so the first one printed
-is the innermost traced function in which the floating point parted.
+is the innermost traced function in which the floating point parted. With ``--coarse RTOL``
+the comparison ignores roundoff (each call also stores its floats' sums and the hash of
+everything else): it prints the first call whose arguments agree to RTOL and whose result does
+not, i.e. where a last-bit difference became a different decision, and where the call
+sequences part (a branch taken on one machine only).
 
 A development tool (slow: every call is hashed); not part of make test.
 """
@@ -76,6 +81,45 @@ def _feed(x: Any, d: Any) -> None:
         d.update(x)
 
 
+def _coarse(x: Any, d: Any, acc: list[float]) -> None:
+    """Like ``_feed`` but floats go to ``acc`` (compared with a tolerance) and only their shape
+    and every other leaf to the hash: a fingerprint that roundoff does not change."""
+    if isinstance(x, np.ndarray) and x.dtype.kind == "f":
+        d.update(repr(x.shape).encode())
+        acc.extend(x.ravel().tolist())
+    elif isinstance(x, float):
+        acc.append(x)
+    elif isinstance(x, (list, tuple)):
+        d.update(f"<{len(x)}".encode())
+        for v in x:
+            _coarse(v, d, acc)
+    elif isinstance(x, dict):
+        for k in sorted(x, key=repr):
+            d.update(repr(k).encode())
+            _coarse(x[k], d, acc)
+    elif isinstance(x, np.ndarray) and x.dtype == object:
+        for v in x.ravel():
+            _coarse(v, d, acc)
+    elif hasattr(x, "__dataclass_fields__"):
+        for k in x.__dataclass_fields__:
+            _coarse(getattr(x, k, None), d, acc)
+    elif isinstance(x, (np.floating,)):
+        acc.append(float(x))
+    else:
+        _feed(x, d)
+
+
+def _fingerprint(x: Any) -> tuple[int, float, float]:
+    """(hash of the non-float leaves and float shapes, Σ |f|, Σ f·(1 + i/n)) over the floats f."""
+    d = hashlib.blake2b(digest_size=8)
+    acc: list[float] = []
+    _coarse(x, d, acc)
+    f = np.asarray(acc, dtype=np.float64)
+    f = np.where(np.isfinite(f), f, 0.0)
+    w = 1.0 + np.arange(len(f)) / max(len(f), 1)
+    return int.from_bytes(d.digest(), "little", signed=True), float(np.abs(f).sum()), float(f @ w)
+
+
 def _digest(x: Any) -> int:
     d = hashlib.blake2b(digest_size=8)
     _feed(x, d)
@@ -98,14 +142,16 @@ def _modules() -> list[Any]:
     return [importlib.import_module(n) for n in sorted(names)]
 
 
-def _install_tracer(record: list[tuple[str, int, int]]) -> int:
+def _install_tracer(record: list[tuple[str, int, int]], coarse: list[tuple[Any, ...]]) -> int:
     """Replace dran_edge's functions and methods by recording wrappers; returns how many."""
 
     def wrap(name: str, f: Callable[..., Any]) -> Callable[..., Any]:
         def traced(*args: Any, **kwargs: Any) -> Any:
             before = _digest((args, kwargs))
+            fp_before = _fingerprint((args, kwargs))
             result = f(*args, **kwargs)
             record.append((name, before, _digest(result)))
+            coarse.append(fp_before + _fingerprint(result))
             return result
 
         return traced
@@ -135,7 +181,8 @@ def record(run_dir: Path, out: Path) -> None:
     from dran_edge.replay.run import ReplayOptions, replay_run
 
     calls: list[tuple[str, int, int]] = []
-    n = _install_tracer(calls)
+    coarse: list[tuple[Any, ...]] = []
+    n = _install_tracer(calls, coarse)
     work = Path(tempfile.mkdtemp()) / "run"
     shutil.copytree(run_dir, work)
     report = replay_run(work, ReplayOptions(workers=1, settle_rounds=10)).report
@@ -147,6 +194,8 @@ def record(run_dir: Path, out: Path) -> None:
         name=np.array([index[c[0]] for c in calls], dtype=np.int32),
         args=np.array([c[1] for c in calls], dtype=np.int64),
         result=np.array([c[2] for c in calls], dtype=np.int64),
+        coarse_hash=np.array([(c[0], c[3]) for c in coarse], dtype=np.int64),
+        coarse_sums=np.array([(c[1], c[2], c[4], c[5]) for c in coarse], dtype=np.float64),
     )
     print(f"{n} functions traced, {len(calls)} calls -> {out}")
     print(f"bytes_total {report['bytes_total']}  sr_ate {report.get('sr_ate')!r}")
@@ -181,6 +230,42 @@ def compare(a_path: Path, b_path: Path, show: int) -> int:
     return 1 if found else 0
 
 
+def compare_coarse(a_path: Path, b_path: Path, show: int, rtol: float) -> int:
+    """First calls whose arguments agree up to roundoff (same discrete leaves, float sums within
+    ``rtol``) and whose results do not: where a roundoff difference became a different decision."""
+    za, zb = np.load(a_path), np.load(b_path)
+    na = [str(za["names"][i]) for i in za["name"]]
+    nb = [str(zb["names"][i]) for i in zb["name"]]
+    ha, hb, sa, sb = za["coarse_hash"], zb["coarse_hash"], za["coarse_sums"], zb["coarse_sums"]
+
+    def close(x: np.ndarray, y: np.ndarray, ref: float) -> bool:  # (Σ|f|, Σ f·w) within rtol·ref
+        scale = rtol * max(x[0], y[0], ref) + 1e-300
+        return bool(np.all(np.abs(x - y) <= scale))
+
+    found = 0
+    for i in range(min(len(na), len(nb))):
+        if na[i] != nb[i]:
+            print(f"call {i}: the call sequences part ({na[i]} vs {nb[i]})")
+            return 1
+        if na[i] in NOT_ARITHMETIC:
+            continue
+        # a result's roundoff is relative to its arguments' size (a cancellation to ~0 is not
+        # a real difference): the reference for the result is the larger of the two sums
+        args_close = ha[i, 0] == hb[i, 0] and close(sa[i, :2], sb[i, :2], 0.0)
+        result_close = ha[i, 1] == hb[i, 1] and close(sa[i, 2:], sb[i, 2:], sa[i, 0])
+        if args_close and not result_close:
+            what = (
+                "discrete parts" if ha[i, 1] != hb[i, 1] else f"floats {sa[i, 2]!r} vs {sb[i, 2]!r}"
+            )
+            print(f"call {i}: {na[i]}: arguments equal up to roundoff, results differ ({what})")
+            found += 1
+            if found >= show:
+                break
+    if not found:
+        print(f"equal up to rtol {rtol}: {min(len(na), len(nb))} calls")
+    return 1 if found else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -191,10 +276,19 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
     c.add_argument("--show", type=int, default=10, help="how many parting calls to print")
+    c.add_argument(
+        "--coarse",
+        type=float,
+        metavar="RTOL",
+        help="compare up to roundoff (float sums within RTOL): find the first call where a "
+        "last-bit difference became a real one (a different branch, count or size)",
+    )
     args = p.parse_args(argv)
     if args.cmd == "record":
         record(args.run_dir, args.out)
         return 0
+    if args.coarse is not None:
+        return compare_coarse(args.a, args.b, args.show, args.coarse)
     return compare(args.a, args.b, args.show)
 
 

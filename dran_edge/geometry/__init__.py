@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dran_edge.geometry._products import matmul, matvec
 from dran_edge.geometry.convert import (
     quat_xyzw_from_rotmat,
     rotmat_from_quat_xyzw,
@@ -111,11 +112,11 @@ def inverse(T: np.ndarray) -> np.ndarray:
 
 def compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     _is_se3_matrix(A)
-    return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
+    return matmul(A, B)
 
 
 def between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    return inverse(A) @ np.asarray(B, dtype=np.float64)
+    return matmul(inverse(A), B)
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -131,7 +132,7 @@ def right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
 
 
 def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    return np.asarray(T, dtype=np.float64) @ exp(xi)
+    return matmul(T, exp(xi))
 
 
 def geodesic_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -521,9 +521,31 @@ GOLDEN_KEYS = (
 )
 
 
+#: Significant digits of the floats in a golden summary. The back end's arithmetic is not
+#: bit-identical across CPUs (numpy's and scipy's compiled loops and LAPACK differ in the last
+#: bits between x86-64 and aarch64), but every decision that could amplify such a difference is
+#: taken at a stated resolution (fixed-order pose products in dran_edge.geometry, costs equal
+#: below dran_edge.solver.damping.COST_RESOLUTION), so the replays agree in every count and
+#: byte and their floats within ~1e-13 relative (docs/notes/arm64-check.md): ten digits is
+#: what a summary states and the same on both.
+GOLDEN_SIGNIFICANT_DIGITS = 10
+
+
+def _round_significant(x: Any, digits: int) -> Any:
+    if isinstance(x, float):
+        return float(f"{x:.{digits}g}") if math.isfinite(x) else x
+    if isinstance(x, dict):
+        return {k: _round_significant(v, digits) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_round_significant(v, digits) for v in x]
+    return x
+
+
 def golden_summary(report: dict) -> dict:
-    """The machine-independent part of a replay report (see ``WALL_CLOCK_FIELDS``)."""
-    return json_clean({k: report.get(k) for k in GOLDEN_KEYS})
+    """The machine-independent part of a replay report (see ``WALL_CLOCK_FIELDS``), floats to
+    ``GOLDEN_SIGNIFICANT_DIGITS`` significant digits."""
+    summary = json_clean({k: report.get(k) for k in GOLDEN_KEYS})
+    return dict(_round_significant(summary, GOLDEN_SIGNIFICANT_DIGITS))
 
 
 #: Counts that must match exactly; other integer counts (bytes, observations, keyframes) may

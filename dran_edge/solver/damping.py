@@ -17,8 +17,12 @@ non-linear least squares problems", 2004, Sec. 3.2; from ``(H + μI) ξ = −g``
 
 Gain ratio ``ρ = (cost − cost_new) / (L(0) − L(ξ))`` (0 when the prediction is not positive).
 
-A trial is *accepted* when the new cost is finite and lower than the old one (strictly, or
-``≤`` by policy): a descent step in the sense of eq. 23. Then (Nielsen's update)
+A trial is *accepted* when the new cost is finite and not higher than the old one: a descent
+step in the sense of eq. 23. Costs closer than ``COST_RESOLUTION`` (relative) count as equal:
+at that size a difference is the order in which floating-point sums were taken (BLAS kernels,
+CPUs), not the step, so neither the decision nor μ may depend on it; such a trial is accepted
+(it moves the cost by nothing measurable; the callers' stopping rules then see a zero decrease)
+and keeps μ (its gain ratio would be noise). Else (Nielsen's update)
 
     μ ← max(μ · max(f, 1 − (2ρ − 1)³), μ_min),   ν ← 2,
 
@@ -52,6 +56,26 @@ from dran_edge.solver.schur import LinearSolveError
 
 log = logging.getLogger(__name__)
 
+COST_RESOLUTION = 1e-10
+"""Relative cost difference below which two costs are equal for the damping loop. Poses that
+differ in the last bit (another CPU's BLAS kernel: x86-64 against aarch64) move a cost by far
+more than 1e-16 relative when the residuals are small against the poses (a 1e-15 m position
+error on a 1e-4 m residual), and a trial decided on such a difference makes two machines' runs
+part (docs/notes/arm64-check.md). 1e-10 is the centralized LM's own convergence tolerance
+(``LMParams.cost_tol``): a decrease below it already ends that solver."""
+
+COST_FLOOR = 1e-18
+"""Absolute cost difference (χ² units: whitened squared residuals) below which two costs are
+equal: a cost that is zero in exact arithmetic (a prior at its measurement) comes out as 0 on
+one machine and 4e-26 on another, which no relative tolerance covers."""
+
+
+def costs_equal(cost: float, new_cost: float) -> bool:
+    """|cost − new_cost| ≤ COST_RESOLUTION · max(|cost|, |new_cost|) + COST_FLOOR: a difference
+    roundoff can explain."""
+    scale = max(abs(cost), abs(new_cost))
+    return abs(cost - new_cost) <= COST_RESOLUTION * scale + COST_FLOOR
+
 
 class MuStart(str, Enum):
     """Which statistic of diag(JᵀJ) scales the first μ."""
@@ -77,8 +101,6 @@ class DampingPolicy:
     """Factor on μ after a rejected trial; None for Nielsen's ``μ ← μν, ν ← 2ν``."""
     decrease_floor: float
     """Smallest factor of the decrease ``max(floor, 1 − (2ρ − 1)³)`` after an accepted trial."""
-    accept_equal_cost: bool
-    """Accept a trial whose cost equals the old one (``≤``); else only a strict decrease."""
     max_trials: int
     """Cap on trials (damped solves, accepted or not) per step."""
     grow_on_solve_failure: bool = True
@@ -95,7 +117,8 @@ class DampingPolicy:
         """Whether a trial that moved the cost from ``cost`` to ``new_cost`` is a descent step."""
         if not math.isfinite(new_cost):
             return False
-        return new_cost <= cost if self.accept_equal_cost else new_cost < cost
+        equal = costs_equal(cost, new_cost)  # first: the same calls whichever side roundoff fell
+        return equal or new_cost < cost
 
     def decreased(self, state: DampingState, rho: float) -> DampingState:
         """Nielsen's decrease after an accepted trial with gain ratio ``rho``."""
@@ -123,7 +146,6 @@ LM_DAMPING = DampingPolicy(
     mu_min=1e-20,
     growth=None,
     decrease_floor=1.0 / 3.0,
-    accept_equal_cost=False,
     max_trials=30,
 )
 """Centralized LM (Gauss–Newton model). ``lm.solve`` takes mu_init, mu_min and max_trials from
@@ -141,7 +163,6 @@ LM_NEWTON_DAMPING = DampingPolicy(
     mu_min=LM_DAMPING.mu_min,
     growth=None,
     decrease_floor=NEWTON_MU_DECREASE,
-    accept_equal_cost=False,
     max_trials=1,
     grow_on_solve_failure=False,
 )
@@ -154,7 +175,6 @@ LM_SHARED_NEWTON_DAMPING = DampingPolicy(
     mu_min=LM_DAMPING.mu_min,
     growth=1.0,
     decrease_floor=1.0 / 3.0,
-    accept_equal_cost=False,
     max_trials=1,
     grow_on_solve_failure=False,
 )
@@ -167,7 +187,6 @@ AGENT_DAMPING = DampingPolicy(
     mu_min=1e-12,
     growth=4.0,
     decrease_floor=1.0 / 3.0,
-    accept_equal_cost=True,
     max_trials=6,
 )
 """DRAN's local step (one per round); the agent takes mu_init from ``AgentConfig.mu_init``."""
@@ -187,7 +206,8 @@ class DampedStep:
     mu: float
     """μ of the last trial (the accepted one when ``accepted``); nan without trials."""
     rho: float
-    """Gain ratio of the accepted trial; nan when none was accepted."""
+    """Gain ratio of the accepted trial; nan when none was accepted or its decrease was below
+    ``COST_RESOLUTION``."""
     predicted: float
     """Predicted decrease ½(μ‖ξ‖² − ⟨g, ξ⟩) of the last solved trial; inf when none was solved."""
     u: np.ndarray | None = None
@@ -249,10 +269,14 @@ def damped_step(
         log.debug("%s mu=%.3g predicted %.6g actual %.6g", label, mu, predicted, cost - new_cost)
         if policy.accepts(cost, new_cost):
             actual = cost - new_cost
-            rho = actual / predicted if predicted > 0 else 0.0
+            if costs_equal(cost, new_cost):  # an unmeasurable decrease says nothing about μ
+                rho, after = math.nan, DampingState(state.mu, 2.0)
+            else:
+                rho = actual / predicted if predicted > 0 else 0.0
+                after = policy.decreased(state, rho)
             return DampedStep(
                 True,
-                policy.decreased(state, rho),
+                after,
                 trials,
                 failures,
                 mu,
