@@ -101,11 +101,11 @@ SKIP=(--deselect tests/test_vins_bridge.py)
 if [ "${ARM64_CHECK_FULL:-0}" = 1 ]; then
     SEL=(tests)
 else  # the subset (the full suite takes 12+ minutes under qemu on an idle machine): the golden
-      # replay of the recorded run (and the fixed-order products and the damping's cost
-      # resolution it relies on), the detector, the wire codec, RADIO/DISH over the bundle's
-      # libzmq, the offline driver install, the deb-src rule; re-detection is measured by
+      # replay of the recorded run (and the damping's cost resolution it relies on), the
+      # detector, the wire codec, RADIO/DISH over the bundle's libzmq, the offline driver
+      # install, the deb-src rule; re-detection is measured by
       # tools/redetect_diff.py below (what tests/test_replay.py's tolerance test asserts)
-    SEL=(tests/test_replay.py::test_matches_the_golden_summary tests/test_geometry_products.py
+    SEL=(tests/test_replay.py::test_matches_the_golden_summary
          tests/test_damping.py tests/test_perception_detector.py
          tests/test_codec.py tests/test_radio.py tests/test_install_drivers.py
          tests/test_deb_src.py)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from dran_edge.geometry._products import matmul, matvec
 from dran_edge.geometry.convert import (
     quat_xyzw_from_rotmat,
     rotmat_from_quat_xyzw,
@@ -112,11 +111,11 @@ def inverse(T: np.ndarray) -> np.ndarray:
 
 def compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     _is_se3_matrix(A)
-    return matmul(A, B)
+    return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
 
 
 def between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    return matmul(inverse(A), B)
+    return inverse(A) @ np.asarray(B, dtype=np.float64)
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -132,7 +131,7 @@ def right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
 
 
 def retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    return matmul(T, exp(xi))
+    return np.asarray(T, dtype=np.float64) @ exp(xi)
 
 
 def geodesic_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:

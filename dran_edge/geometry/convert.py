@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from dran_edge.geometry._products import matmul
 from dran_edge.geometry.se3 import se3_from_rt
 from dran_edge.geometry.so3 import (
     quat_wxyz_from_rotmat,
@@ -91,7 +90,7 @@ def se3_interpolate(
     span = (stamps[hi] - stamps[lo]).astype(np.float64)
     s = np.clip((query - stamps[lo]).astype(np.float64) / span, 0.0, 1.0)
     R0, R1 = T[lo, :3, :3], T[hi, :3, :3]
-    dphi = so3_log(matmul(np.swapaxes(R0, -1, -2), R1))
-    R = matmul(R0, so3_exp(s[:, None] * dphi))
+    dphi = so3_log(np.swapaxes(R0, -1, -2) @ R1)
+    R = R0 @ so3_exp(s[:, None] * dphi)
     t = (1 - s)[:, None] * T[lo, :3, 3] + s[:, None] * T[hi, :3, 3]
     return se3_from_rt(R, t), valid

@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 from dran_edge.geometry import _series as s
-from dran_edge.geometry._products import matmul, matvec
 
 
 def so2_exp(theta: np.ndarray) -> np.ndarray:
@@ -48,7 +47,7 @@ def se2_exp(xi: np.ndarray) -> np.ndarray:
     """Exp: ``(..., 3)`` [x, y, θ] -> ``(..., 3, 3)``."""
     xi = np.asarray(xi, dtype=np.float64)
     theta = xi[..., 2]
-    t = matvec(_v_matrix(theta), xi[..., :2])
+    t = (_v_matrix(theta) @ xi[..., :2, None])[..., 0]
     return se2_from_rt(so2_exp(theta), t)
 
 
@@ -64,7 +63,7 @@ def se2_log(T: np.ndarray) -> np.ndarray:
 def se2_inverse(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     Rt = np.swapaxes(T[..., :2, :2], -1, -2)
-    return se2_from_rt(Rt, -matvec(Rt, T[..., :2, 2]))
+    return se2_from_rt(Rt, -(Rt @ T[..., :2, 2:3])[..., 0])
 
 
 def se2_adjoint(T: np.ndarray) -> np.ndarray:
@@ -105,7 +104,7 @@ def se2_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
 
 def se2_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """T ⊕ ξ = T Exp(ξ)."""
-    return matmul(T, se2_exp(xi))
+    return np.asarray(T, dtype=np.float64) @ se2_exp(xi)
 
 
 def se2_from_xy_theta(a: np.ndarray) -> np.ndarray:

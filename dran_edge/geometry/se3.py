@@ -19,7 +19,6 @@ from __future__ import annotations
 import numpy as np
 
 from dran_edge.geometry import _series as s
-from dran_edge.geometry._products import matmul, matvec
 from dran_edge.geometry.so3 import (
     hat3,
     so3_exp,
@@ -48,41 +47,40 @@ def se3_inverse(T: np.ndarray) -> np.ndarray:
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     out = np.zeros(T.shape[:-2] + (4, 4))
     out[..., :3, :3] = Rt
-    out[..., :3, 3] = -matvec(Rt, T[..., :3, 3])
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3:4])[..., 0]
     out[..., 3, 3] = 1.0
     return out
 
 
 def se3_transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Points ``P (..., N, 3)`` in frame b -> frame a by ``T_a_b (..., 4, 4)``: R p + t."""
-    T = np.asarray(T, dtype=np.float64)
-    return matmul(P, np.swapaxes(T[..., :3, :3], -1, -2)) + T[..., None, :3, 3]
+    return np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3]
 
 
 def se3_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """A B (``T_a_c = se3_compose(T_a_b, T_b_c)``)."""
-    return matmul(A, B)
+    return np.asarray(A, dtype=np.float64) @ np.asarray(B, dtype=np.float64)
 
 
 def se3_between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """A⁻¹ B: the pose of B in A's frame (``T_a_b = se3_between(T_w_a, T_w_b)``)."""
-    return matmul(se3_inverse(A), B)
+    return se3_inverse(A) @ np.asarray(B, dtype=np.float64)
 
 
 def _q_matrix(rho: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """Barfoot's Q(ρ, φ), the upper-right block of the SE(3) left Jacobian."""
     theta_sq = np.sum(phi * phi, axis=-1)[..., None, None]
     P, Rh = hat3(phi), hat3(rho)
-    PR, RP = matmul(P, Rh), matmul(Rh, P)
-    PRP = matmul(PR, P)
+    PR, RP = P @ Rh, Rh @ P
+    PRP = PR @ P
     c1 = s.theta_minus_sin_over_cube(theta_sq)
     c2 = s.se3_q_c2(theta_sq)
     c3 = s.se3_q_c3(theta_sq)
     return (
         0.5 * Rh
         + c1 * (PR + RP + PRP)
-        + c2 * (matmul(P, PR) + matmul(RP, P) - 3 * PRP)
-        + c3 * (matmul(PRP, P) + matmul(P, PRP))
+        + c2 * (P @ PR + RP @ P - 3 * PRP)
+        + c3 * (PRP @ P + P @ PRP)
     )
 
 
@@ -90,7 +88,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     """Exp: ``(..., 6)`` [ρ, φ] -> ``(..., 4, 4)``."""
     xi = np.asarray(xi, dtype=np.float64)
     rho, phi = xi[..., :3], xi[..., 3:]
-    t = matvec(so3_left_jacobian(phi), rho)
+    t = (so3_left_jacobian(phi) @ rho[..., None])[..., 0]
     return se3_from_rt(so3_exp(phi), t)
 
 
@@ -98,7 +96,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     """Log: ``(..., 4, 4)`` -> ``(..., 6)`` [ρ, φ] with ‖φ‖ ≤ π."""
     T = np.asarray(T, dtype=np.float64)
     phi = so3_log(T[..., :3, :3])
-    rho = matvec(so3_left_jacobian_inv(phi), T[..., :3, 3])
+    rho = (so3_left_jacobian_inv(phi) @ T[..., :3, 3:4])[..., 0]
     return np.concatenate([rho, phi], axis=-1)
 
 
@@ -109,7 +107,7 @@ def se3_adjoint(T: np.ndarray) -> np.ndarray:
     out = np.zeros(T.shape[:-2] + (6, 6))
     out[..., :3, :3] = R
     out[..., 3:, 3:] = R
-    out[..., :3, 3:] = matmul(hat3(t), R)
+    out[..., :3, 3:] = hat3(t) @ R
     return out
 
 
@@ -133,7 +131,7 @@ def se3_left_jacobian_inv(xi: np.ndarray) -> np.ndarray:
     out = np.zeros(xi.shape[:-1] + (6, 6))
     out[..., :3, :3] = Ji
     out[..., 3:, 3:] = Ji
-    out[..., :3, 3:] = -matmul(matmul(Ji, _q_matrix(rho, phi)), Ji)
+    out[..., :3, 3:] = -Ji @ _q_matrix(rho, phi) @ Ji
     return out
 
 
@@ -149,7 +147,7 @@ def se3_right_jacobian_inv(xi: np.ndarray) -> np.ndarray:
 
 def se3_retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """The project's retraction: T ⊕ ξ = T Exp(ξ)."""
-    return matmul(T, se3_exp(xi))
+    return np.asarray(T, dtype=np.float64) @ se3_exp(xi)
 
 
 def se3_geodesic_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:

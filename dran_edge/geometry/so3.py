@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 
 from dran_edge.geometry import _series as s
-from dran_edge.geometry._products import matmul
 
 
 def hat3(w: np.ndarray) -> np.ndarray:
@@ -30,17 +29,6 @@ def hat3(w: np.ndarray) -> np.ndarray:
     out[..., 1, 2] = -w[..., 0]
     out[..., 2, 0] = -w[..., 1]
     out[..., 2, 1] = w[..., 0]
-    return out
-
-
-def hat3_squared(w: np.ndarray) -> np.ndarray:
-    """``[w]×² = w wᵀ − ‖w‖² I`` entry by entry (one rounded product per entry, no matrix
-    product): ``(..., 3) -> (..., 3, 3)``."""
-    w = np.asarray(w, dtype=np.float64)
-    out = w[..., :, None] * w[..., None, :]
-    theta_sq = w[..., 0] * w[..., 0] + w[..., 1] * w[..., 1] + w[..., 2] * w[..., 2]
-    for i in range(3):
-        out[..., i, i] -= theta_sq
     return out
 
 
@@ -60,7 +48,7 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
     P = hat3(phi)
     a = s.sinc(theta_sq)[..., None, None]
     b = s.one_minus_cos_over_sq(theta_sq)[..., None, None]
-    return np.eye(3) + a * P + b * hat3_squared(phi)
+    return np.eye(3) + a * P + b * (P @ P)
 
 
 def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
@@ -159,7 +147,7 @@ def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
     P = hat3(phi)
     b = s.one_minus_cos_over_sq(theta_sq)[..., None, None]
     c = s.theta_minus_sin_over_cube(theta_sq)[..., None, None]
-    return np.eye(3) + b * P + c * hat3_squared(phi)
+    return np.eye(3) + b * P + c * (P @ P)
 
 
 def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
@@ -168,7 +156,7 @@ def so3_left_jacobian_inv(phi: np.ndarray) -> np.ndarray:
     theta_sq = np.sum(phi * phi, axis=-1)
     P = hat3(phi)
     c = s.so3_jinv_coeff(theta_sq)[..., None, None]
-    return np.eye(3) - 0.5 * P + c * hat3_squared(phi)
+    return np.eye(3) - 0.5 * P + c * (P @ P)
 
 
 def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
@@ -185,7 +173,7 @@ def so3_project(M: np.ndarray) -> np.ndarray:
     """The rotation nearest to M in Frobenius norm: U diag(1, …, det(U Vᵀ)) Vᵀ (any d × d)."""
     M = np.asarray(M, dtype=np.float64)
     U, _, Vt = np.linalg.svd(M)
-    det = np.linalg.det(matmul(U, Vt))
+    det = np.linalg.det(U @ Vt)
     D = np.ones(M.shape[:-1])
     D[..., -1] = det
-    return matmul(U * D[..., None, :], Vt)
+    return (U * D[..., None, :]) @ Vt

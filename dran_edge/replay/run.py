@@ -523,11 +523,10 @@ GOLDEN_KEYS = (
 
 #: Significant digits of the floats in a golden summary. The back end's arithmetic is not
 #: bit-identical across CPUs (numpy's and scipy's compiled loops and LAPACK differ in the last
-#: bits between x86-64 and aarch64), but every decision that could amplify such a difference is
-#: taken at a stated resolution (fixed-order pose products in dran_edge.geometry, costs equal
-#: below dran_edge.solver.damping.COST_RESOLUTION), so the replays agree in every count and
-#: byte and their floats within ~1e-13 relative (docs/notes/arm64-check.md): ten digits is
-#: what a summary states and the same on both.
+#: bits between x86-64 and aarch64), but the decisions that amplified such a difference are
+#: taken at a stated resolution (costs equal below dran_edge.solver.damping.COST_RESOLUTION),
+#: so the replays agree in every count and byte and their floats within ~1e-13 relative
+#: (docs/notes/arm64-check.md): ten digits is what a summary states and the same on both.
 GOLDEN_SIGNIFICANT_DIGITS = 10
 
 
