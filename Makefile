@@ -17,6 +17,12 @@ STAMP  := $(VENV)/.dran-edge-installed
 EXTRAS ?= perception,comms,systemd,eval,viz,test
 DRIVERS ?= realsense
 DEMO_DIR ?= demo-run
+# pytest-xdist worker processes for make test / test-all ("auto": one per core; 0: in this process).
+# --dist loadfile keeps each test file on one worker: module- and session-scoped fixtures (the
+# simulated and replayed runs, the benchmark scripts tests/test_bench_quick.py starts together)
+# are built once per file instead of once per worker.
+PYTEST_WORKERS ?= auto
+PYTEST_PARALLEL := -n $(PYTEST_WORKERS) --dist loadfile
 
 .PHONY: help setup test lint types test-all demo bench bundle clean
 
@@ -41,7 +47,7 @@ $(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/de
 	touch $@
 
 test: setup lint types
-	$(PY) -m pytest -q -m "not slow and not hardware"
+	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow and not hardware"
 
 # ruff (pyproject [tool.ruff]): pyflakes-level checks and the formatting; the layer contracts
 # are tests/test_layering.py (part of the test run)
@@ -54,7 +60,7 @@ types: setup
 	$(PY) -m mypy
 
 test-all: setup
-	$(PY) -m pytest -q -m "not hardware"
+	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not hardware"
 
 demo: setup
 	$(VENV)/bin/dran-edge demo --out $(DEMO_DIR)

@@ -8,7 +8,9 @@ that is checked too.
 
 The selected scripts start together when the first test needs one (one process each, ~15 s of
 CPU in all): on a busy 2-core machine that takes a fair share of the CPU for the whole set
-instead of a fraction of a core for one script after another.
+instead of a fraction of a core for one script after another. Under pytest-xdist the file must
+stay on one worker (``make test`` uses ``--dist loadfile``): with ``--dist load`` every worker
+that gets one of its tests would start all the scripts.
 """
 
 from __future__ import annotations

@@ -50,7 +50,9 @@ def test_kill_9_mid_mission_loses_nothing_accepted(tmp_path):
     mission = vio_mission(240, seed=5)
     events = mission.events
     records = [encode_event(e) for e in events]
-    cfg_path = write_config(tmp_path, daemon={"checkpoint_period_s": 1.0})
+    # a round every 0.1 s: the 30 rounds after the data take 3 s, not 6 (the reference counts
+    # rounds, not seconds); checkpoints stay 1 s apart (the kill must land after the last one)
+    cfg_path = write_config(tmp_path, comms={"period_s": 0.1}, daemon={"checkpoint_period_s": 1.0})
     cfg = load_config(cfg_path)
     run = tmp_path / "run"
     status = run / "status.sock"

@@ -422,10 +422,9 @@ def test_skeleton_stays_bounded_and_spans_the_mission():
     assert g.counters.get("skeleton_released_from_prior", 0) > 0
 
 
-def _loop_attachment(skeleton_fraction: float):
-    """Run a mission with small caps, then a loop from the newest keyframe to a long removed
+def _loop_attachment(m, skeleton_fraction: float):
+    """Run mission ``m`` with small caps, then a loop from the newest keyframe to a long removed
     one: (the old end's node, whether it is a skeleton node, the loop's translation σ)."""
-    m = vio_mission(700, seed=12)
     g = KeyframeGraph(
         AgentConfig(
             graph=GraphBounds(max_nodes=60, max_edges=240, skeleton_fraction=skeleton_fraction)
@@ -459,8 +458,9 @@ def _loop_attachment(skeleton_fraction: float):
 
 
 def test_loop_into_an_old_place_attaches_to_a_skeleton_node():
-    node, on_skeleton, sigma_m = _loop_attachment(0.4)
-    node0, on_skeleton0, sigma0_m = _loop_attachment(0.0)
+    m = vio_mission(700, seed=12)  # one mission, fed to a fresh graph with and without skeleton
+    node, on_skeleton, sigma_m = _loop_attachment(m, 0.4)
+    node0, on_skeleton0, sigma0_m = _loop_attachment(m, 0.0)
     assert on_skeleton and not on_skeleton0
     assert sigma_m < 0.5 and sigma_m < 0.2 * sigma0_m  # short range instead of the window's edge
 

@@ -12,7 +12,7 @@ damped solves, seconds, F and the ratio of times; then GTSAM's LM (defaults, rel
 
 Graphs: generated long street-grid trajectories (``dran_edge.sim.graphgen.city_graph``: 15 000
 poses, 3 % loop closures, σ 0.1 m / 0.08 rad, and a noisier 0.2 m / 0.15 rad one; ``--quick``:
-5000 poses), the paper's six graphs with ``--table1``, and any g2o files given.
+2000 poses), the paper's six graphs with ``--table1``, and any g2o files given.
 gtsam is a benchmark-only dependency (the project's 'bench' extra).
 """
 
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     default = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "g2o"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="*", help="extra g2o files")
-    ap.add_argument("--quick", action="store_true", help="5000-pose generated graphs")
+    ap.add_argument("--quick", action="store_true", help="2000-pose generated graphs")
     ap.add_argument(
         "--table1",
         nargs="?",
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             return 3
     graphs = []
     if not args.no_generated:
-        graphs += list(_generated(5000 if args.quick else 15000))
+        graphs += list(_generated(2000 if args.quick else 15000))
     if args.table1:
         graphs += [(name, Path(args.table1) / f) for name, (f, _) in DATASETS.items()]
     graphs += [(Path(f).stem, Path(f)) for f in args.files]
