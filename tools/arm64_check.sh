@@ -23,11 +23,15 @@ REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 BUNDLE=${1:-$(ls -t "$REPO"/dist/dran-edge-*-aarch64.tar.gz 2>/dev/null | sed -n 1p)}
 ROOT=${ARM64_CHECK_ROOT:-/var/tmp/dran-arm64/check-root}
 OUT=$REPO/dist/arm64_check
-HOSTPY=${PYTHON:-$REPO/.venv/bin/python}
+# the host's Python downloads the test-only aarch64 wheels: the checkout's venv when there is
+# one (make setup), else python3 with pip (a fresh clone after `make bundle` has no venv)
+HOSTPY=${PYTHON:-$([ -x "$REPO/.venv/bin/python" ] && echo "$REPO/.venv/bin/python" || command -v python3 || true)}
 R="bash $REPO/tools/arm64_root.sh"
 log() { echo "arm64_check: $*" >&2; }
 die() { log "ERROR: $*"; exit 1; }
 [ -f "$BUNDLE" ] || die "no bundle (make bundle first, or pass BUNDLE.tar.gz)"
+[ -n "$HOSTPY" ] && "$HOSTPY" -m pip --version >/dev/null 2>&1 \
+    || die "no host Python with pip (${HOSTPY:-python3}): install python3-pip, or set PYTHON=/path/to/python"
 NAME=$(basename "$BUNDLE" .tar.gz)
 PYV=$(tar -xzOf "$BUNDLE" "$NAME/BUNDLE_INFO" | sed -n 's/^python=//p')
 mkdir -p "$OUT"
