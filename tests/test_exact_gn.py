@@ -130,3 +130,66 @@ def test_run_g2o_dran_refines_over_the_bus_and_counts_its_rounds_and_bytes():
     assert on["rounds_total"] == on["init_rounds"] + on["refine_rounds"]
     assert on["bytes_total"] == on["bytes_init"] + on["refine_bytes"]
     assert [k for k, _, _ in on["refine_curve"]] == sorted(k for k, _, _ in on["refine_curve"])
+
+
+def _frozen_run(case, hessian, exchange=direct_exchange):
+    g, _ = make_graph(case)
+    part = make_partition(case, g)
+    kappa, tau = sesync_weights(g.dim, g.information)
+    params = exact_gn.RefineParams(mode="always", rel_tol=1e-12, hessian=hessian, frozen=True)
+    T0 = initial_poses(g, "chordal")
+    res = exact_gn.refine(
+        g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, T0, exchange, params,
+        wire_dtype=None,
+    )
+    return g, part, kappa, tau, res
+
+
+@pytest.mark.parametrize("hessian", ["gauss_newton", "exact"])
+def test_frozen_steps_reach_the_centralized_optimum(hessian):
+    from dran_edge.solver.centralized import solve_g2o
+    from dran_edge.solver.lm import Hessian, LMParams
+
+    case = Case("car3d", 200, 2, robots=3, split="interleaved")
+    g, _, kappa, tau, res = _frozen_run(case, hessian)
+    central = solve_g2o(g, params=LMParams(hessian=Hessian.EXACT, cost_tol=1e-14))
+    F = sesync_objective(res.poses, g.edges, g.measurements, kappa, tau)
+    assert res.converged and res.frozen_steps >= 2
+    assert np.all(np.diff(res.F_history) <= 0)
+    assert F == pytest.approx(central.objective_final, rel=1e-9)
+    assert F == pytest.approx(res.F_history[-1], rel=1e-12)
+
+
+def test_a_frozen_gather_sends_only_the_condensed_gradient():
+    """Per robot and tree link a frozen gather carries its boundary vector (|B_r|·dof floats),
+    its 5 scalars and the chunk length, padded to d×d chunks; a full gather far more."""
+    from dran_edge import geometry as geo
+    from dran_edge.dran import substructure
+    from dran_edge.messages import InitStage
+
+    sent: list[tuple[int, int]] = []  # (rounds, floats) of every REFINE_SCHUR exchange
+
+    def counting(kind, rounds, outgoing):
+        if kind == InitStage.REFINE_SCHUR:
+            floats = sum(np.size(e.value) for lst in outgoing.values() for _, es in lst for e in es)
+            sent.append((rounds, floats))
+        return direct_exchange(kind, rounds, outgoing)
+
+    case = Case("car3d", 200, 2, robots=3, split="interleaved")
+    g, part, _, _, res = _frozen_run(case, "exact", counting)
+    tree = substructure.robot_tree(part)
+    d, b = g.dim, geo.dof(g.dim)
+    gathers: list[int] = []  # floats per gather (one exchange per tree level, consecutive rounds)
+    for k, (r, f) in enumerate(sent):
+        if k and r == sent[k - 1][0] + 1 and len(gathers) and tree.height > 1:
+            gathers[-1] += f
+        else:
+            gathers.append(f)
+    frozen_floats = sum(
+        int(tree.depth[p.robot_id]) * -(-(1 + substructure.boundary(p, 0).size * b + 5) // (d * d))
+        * d * d
+        for p in part.parts
+    )
+    frozen = [f for f in gathers if f == frozen_floats]
+    assert len(frozen) >= res.frozen_steps >= 2
+    assert all(f == frozen_floats or f > 10 * frozen_floats for f in gathers)

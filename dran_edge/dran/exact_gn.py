@@ -221,7 +221,8 @@ class LMRule:
         self, F: float, pred: float, trials: int, frozen: bool = False
     ) -> tuple[bool, bool, str]:
         """(accepted, stop, reason) for the point just gathered; updates μ. ``frozen``: the
-        trial was a frozen step (a slow one does not stop the run: a full gather follows)."""
+        trial was a frozen step, its decrease is compared with the previous one's (of the same
+        factor); a slow one does not stop the run (a full gather follows)."""
         p = self.p
         rel = None
         accept = not self.trial or F < self.F_acc
@@ -339,6 +340,7 @@ def refine_shares(
     no_boundary = [np.zeros(0, np.int64)] * len(robots)
     iface: substructure.Interface | None = None  # the root's last factorised interface
     model_exact = root.exact  # the model of the last full gather (the robots' word)
+    stepped_frozen = False  # the last step was solved with a frozen factor
     while True:
         frozen = robots[0].frozen  # every robot has the root's same word
         locs, shares, packed = [], [], []
@@ -361,7 +363,8 @@ def refine_shares(
             pd = iface.positive_definite
         F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:4].sum())
         was_trial = root.trial
-        accept, stop, reason = root.decide(F, pred, res.trials, frozen)  # 2. the root's rule
+        # 2. the root's rule (the trial was a frozen step: the last step came from a frozen gather)
+        accept, stop, reason = root.decide(F, pred, res.trials, stepped_frozen)
         if accept and (was_trial or not res.F_history):
             res.F_history.append(F)
             res.F_rounds.append(res.rounds)
@@ -376,6 +379,7 @@ def refine_shares(
             params.frozen and step and root.exact == model_exact and not (frozen and root.slow)
         )
         res.frozen_steps += int(step and frozen)
+        stepped_frozen = step and frozen
         values = iface.solve(gs) if step and iface is not None else {}
         flags = int(accept) | int(stop) << 1 | int(step) << 2 | int(root.exact) << 3
         flags |= int(frozen_next) << 4
