@@ -34,6 +34,21 @@ one more round trip). The μ the root announces is used from the robots' next co
 first, or an accepted step whose relative decrease ``(F_acc − F)/F_acc`` is below ``rel_tol``,
 or μ above ``mu_max`` (no step lowers F). The last scatter carries only the decision.
 
+Frozen steps (``RefineParams.frozen``, chord Newton; off by default): a gather costs the dense
+condensed systems (|B_r|² per robot), a step's right-hand side only |B_r|. After a full gather
+whose step was taken the root may announce (``REFINE_CONTROL`` flag 16) that the next gather
+is *frozen*: every robot keeps its interior factor of ``H⁽ʳ⁾ + μ diag H⁽ʳ⁾`` (and ``H⁽ʳ⁾`` of
+that model, for ℓ_r), linearises only its gradient at its new poses and sends
+``g_r = −g⁽ʳ⁾_B + H_BI H_II⁻¹ g⁽ʳ⁾_I`` (``Condensed.with_rhs``: |B_r|·dof floats, then the same
+five scalars) as ``REFINE_SCHUR`` chunks; the root solves with its kept factor of ``Σ S_r``
+(``substructure.Interface``), scatters the boundary steps as above and the robots
+back-substitute with the kept factor. The fixed point is ``g = 0`` whatever the frozen matrix
+(its float32 rounding on the wire included: it changes the contraction, not the optimum).
+The root announces a full gather instead after a rejected trial (μ changed), when its rule
+changes the model (Gauss–Newton → exact) or when a frozen step decreased F by more than
+``frozen_rate`` times the previous step of the same factor (linear contraction too slow);
+a slow frozen step does not stop the run on ``rel_tol``.
+
 When (``RefineParams.mode="auto"``): if one step's condensed systems (``direct_floats`` with
 block size dof) cost at most ``step_budget`` rounds' worth of separator poses
 (``iteration_floats``), i.e. where DRAN's own rounds are the more expensive way to converge.
