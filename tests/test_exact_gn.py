@@ -204,8 +204,10 @@ def test_the_root_treats_a_rejected_or_slow_frozen_step_as_a_stale_factor():
     assert rule.mu == mu  # the factor was stale, not the damping too weak
     rule.decide(90.0, 0.0, 3)  # the accepted point again
     assert rule.decide(86.0, 4.0, 4) == (True, False, "")  # a full step: −4
+    mu = rule.mu
     accepted, stop, _ = rule.decide(85.5, 0.5, 5, frozen=True)  # −0.5: fast, < rel_tol: stop
     assert accepted and stop and not rule.slow
+    assert rule.mu == mu  # damped with the frozen factor's μ
     rule = exact_gn.LMRule(exact_gn.RefineParams(mu_init=1e-3, rel_tol=1e-2), wire_dtype=None)
     rule.decide(100.0, 0.0, 0)
     rule.decide(99.5, 0.5, 1)  # −0.5

@@ -44,8 +44,9 @@ five scalars) as ``REFINE_SCHUR`` chunks; the root solves with its kept factor o
 (``substructure.Interface``), scatters the boundary steps as above and the robots
 back-substitute with the kept factor. The fixed point is ``g = 0`` whatever the frozen matrix
 (its float32 rounding on the wire included: it changes the contraction, not the optimum).
-The root announces a full gather instead after a rejected trial (a rejected frozen step
-leaves μ as it was: the factor was stale, not the damping too weak), when its rule
+A frozen step leaves μ as it was (it was damped with the frozen factor's μ; rejected, the
+factor was stale, not the damping too weak). The root announces a full gather instead after a
+rejected trial, when its rule
 changes the model (Gauss–Newton → exact) or when a frozen step decreased F by more than
 ``frozen_rate`` times the previous step of the same factor (linear contraction too slow);
 a slow frozen step does not stop the run on ``rel_tol``.
@@ -238,8 +239,9 @@ class LMRule:
     ) -> tuple[bool, bool, str]:
         """(accepted, stop, reason) for the point just gathered; updates μ. ``frozen``: the
         trial was a frozen step, its decrease is compared with the previous one's (of the same
-        factor); a slow one does not stop the run, a rejected one leaves μ (the factor, not the
-        damping, was stale: a full gather follows)."""
+        factor); a slow one does not stop the run; μ stays (the step was damped with the
+        frozen factor's μ; a rejected one means the factor, not the damping, was stale: a full
+        gather follows)."""
         p = self.p
         rel = None
         accept = not self.trial or F < self.F_acc
@@ -249,11 +251,13 @@ class LMRule:
                 dec = self.F_acc - F
                 self.slow = frozen and dec > p.frozen_rate * self.last_dec
                 self.last_dec = dec
-            if accept:
+            if frozen:  # the step's damping was the frozen factor's: μ stays
+                pass
+            elif accept:
                 rho = (self.F_acc - F) / pred if pred > 0 else 1.0
                 self.mu = max(self.mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), p.mu_min)
                 self.nu = 2.0
-            elif not frozen:
+            else:
                 self.mu, self.nu = self.mu * self.nu, self.nu * 2
         if self.wire_dtype is not None:  # what every robot receives
             self.mu = float(self.wire_dtype(self.mu))
