@@ -46,10 +46,9 @@ back-substitute with the kept factor. The fixed point is ``g = 0`` whatever the 
 (its float32 rounding on the wire included: it changes the contraction, not the optimum).
 A frozen step leaves μ as it was (it was damped with the frozen factor's μ; rejected, the
 factor was stale, not the damping too weak). The root announces a full gather instead after a
-rejected trial, when its rule
-changes the model (Gauss–Newton → exact) or when a frozen step decreased F by more than
-``frozen_rate`` times the previous step of the same factor (linear contraction too slow);
-a slow frozen step does not stop the run on ``rel_tol``.
+rejected trial, when its rule changes the model (Gauss–Newton → exact) or when a frozen step
+decreased F by more than ``frozen_rate`` times the previous step of the same factor (linear
+contraction too slow); a slow frozen step does not stop the run on ``rel_tol``.
 
 When (``RefineParams.mode="auto"``): if one step's condensed systems (``direct_floats`` with
 block size dof) cost at most ``step_budget`` rounds' worth of separator poses
@@ -363,7 +362,7 @@ def refine_shares(
     model_exact = root.exact  # the model of the last full gather (the robots' word)
     stepped_frozen = False  # the last step was solved with a frozen factor
     while True:
-        frozen = robots[0].frozen  # every robot has the root's same word
+        frozen = robots[tree.root].frozen  # the root's own word (every robot has it)
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
             loc, H, g, flat = _condense_share(part, partition, share_of, rob, b, gauge)
@@ -379,7 +378,7 @@ def refine_shares(
             gs = {o: bundle[o][:-5].reshape(-1, 1) for o in sorted(bundle)}
             pd = True
         else:
-            model_exact = robots[0].exact
+            model_exact = robots[tree.root].exact
             iface, gs, scalars = substructure.factor_interface(bundle, b, 1, 5)
             pd = iface.positive_definite
         F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:4].sum())
