@@ -198,18 +198,19 @@ def test_a_frozen_gather_sends_only_the_condensed_gradient():
 def test_the_root_treats_a_rejected_or_slow_frozen_step_as_a_stale_factor():
     rule = exact_gn.LMRule(exact_gn.RefineParams(mu_init=1e-3, rel_tol=1e-2), wire_dtype=None)
     rule.decide(100.0, 0.0, 0)  # the start point
-    assert rule.decide(90.0, 10.0, 1) == (True, False, "")  # the full step: −10
+    assert rule.decide(80.0, 20.0, 1) == (True, False, "")  # the full step: −20
     mu = rule.mu
-    assert rule.decide(91.0, 1.0, 2, frozen=True)[0] is False  # a frozen step raised F
+    assert rule.decide(81.0, 1.0, 2, frozen=True)[0] is False  # a frozen step raised F
     assert rule.mu == mu  # the factor was stale, not the damping too weak
-    rule.decide(90.0, 0.0, 3)  # the accepted point again
-    assert rule.decide(86.0, 4.0, 4) == (True, False, "")  # a full step: −4
+    rule.decide(80.0, 0.0, 3)  # the accepted point again
+    assert rule.decide(70.0, 10.0, 4) == (True, False, "")  # a full step: −10
     mu = rule.mu
-    accepted, stop, _ = rule.decide(85.5, 0.5, 5, frozen=True)  # −0.5: fast, < rel_tol: stop
-    assert accepted and stop and not rule.slow
-    assert rule.mu == mu  # damped with the frozen factor's μ
-    rule = exact_gn.LMRule(exact_gn.RefineParams(mu_init=1e-3, rel_tol=1e-2), wire_dtype=None)
-    rule.decide(100.0, 0.0, 0)
-    rule.decide(99.5, 0.5, 1)  # −0.5
-    accepted, stop, _ = rule.decide(99.2, 0.3, 2, frozen=True)  # −0.3 > ½ · 0.5: slow
-    assert accepted and not stop and rule.slow  # < rel_tol, but a full gather follows
+    assert rule.decide(66.0, 4.0, 5, frozen=True) == (True, False, "")  # −4 ≤ ½ · 10: fast
+    assert not rule.slow and rule.mu == mu  # damped with the frozen factor's μ
+    assert rule.decide(63.0, 3.0, 6, frozen=True) == (True, False, "")  # −3 > ½ · 4: slow
+    assert rule.slow  # a full gather follows
+    rule.decide(62.9, 0.1, 7)  # a full step: −0.1
+    accepted, stop, _ = rule.decide(62.88, 0.02, 8, frozen=True)  # fast, < rel_tol: no stop
+    assert accepted and not stop and rule.slow
+    accepted, stop, reason = rule.decide(62.87, 0.01, 9)  # a full step < rel_tol: stop
+    assert accepted and stop and reason.startswith("relative decrease")

@@ -48,7 +48,9 @@ A frozen step leaves μ as it was (it was damped with the frozen factor's μ; re
 factor was stale, not the damping too weak). The root announces a full gather instead after a
 rejected trial, when its rule changes the model (Gauss–Newton → exact) or when a frozen step
 decreased F by more than ``frozen_rate`` times the previous step of the same factor (linear
-contraction too slow); a slow frozen step does not stop the run on ``rel_tol``.
+contraction too slow) or below ``rel_tol`` (the stop is decided on a full step's decrease, as
+without frozen steps: a frozen step's is smaller where the model is poor, e.g. Gauss–Newton on
+large residuals).
 
 When (``RefineParams.mode="auto"``): if one step's condensed systems (``direct_floats`` with
 block size dof) cost at most ``step_budget`` rounds' worth of separator poses
@@ -113,7 +115,8 @@ class RefineParams:
     ``frozen_rate``."""
     frozen_rate: float = 0.5
     """Frozen steps go on while an accepted step's decrease of F is at most this fraction of
-    the previous accepted step's (linear contraction of the chord iteration)."""
+    the previous accepted step's (linear contraction of the chord iteration) and at least
+    ``rel_tol`` (relative)."""
 
 
 @dataclass
@@ -238,7 +241,7 @@ class LMRule:
     ) -> tuple[bool, bool, str]:
         """(accepted, stop, reason) for the point just gathered; updates μ. ``frozen``: the
         trial was a frozen step, its decrease is compared with the previous one's (of the same
-        factor); a slow one does not stop the run; μ stays (the step was damped with the
+        factor); a slow one, or one below ``rel_tol``, does not stop the run; μ stays (the step was damped with the
         frozen factor's μ; a rejected one means the factor, not the damping, was stale: a full
         gather follows)."""
         p = self.p
@@ -248,7 +251,8 @@ class LMRule:
             rel = (self.F_acc - F) / self.F_acc
             if accept:
                 dec = self.F_acc - F
-                self.slow = frozen and dec > p.frozen_rate * self.last_dec
+                # a frozen step's decrease is no optimality test (the full step's is)
+                self.slow = frozen and (dec > p.frozen_rate * self.last_dec or rel < p.rel_tol)
                 self.last_dec = dec
             if frozen:  # the step's damping was the frozen factor's: μ stays
                 pass
