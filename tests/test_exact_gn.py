@@ -214,3 +214,6 @@ def test_the_root_treats_a_rejected_or_slow_frozen_step_as_a_stale_factor():
     assert accepted and not stop and rule.slow
     accepted, stop, reason = rule.decide(62.87, 0.01, 9)  # a full step < rel_tol: stop
     assert accepted and stop and reason.startswith("relative decrease")
+    rule.decide(62.86, 0.01, 10, frozen=True)  # a frozen step < rel_tol again
+    accepted, stop, reason = rule.decide(62.87, 0.01, 11)  # the full step after it: rejected
+    assert not accepted and stop and reason.startswith("relative decrease")

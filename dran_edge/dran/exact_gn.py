@@ -50,7 +50,7 @@ rejected trial, when its rule changes the model (Gauss–Newton → exact) or wh
 decreased F by more than ``frozen_rate`` times the previous step of the same factor (linear
 contraction too slow) or below ``rel_tol`` (the stop is decided on a full step's decrease, as
 without frozen steps: a frozen step's is smaller where the model is poor, e.g. Gauss–Newton on
-large residuals).
+large residuals; a full step rejected right after a frozen step below ``rel_tol`` stops too).
 
 When (``RefineParams.mode="auto"``): if one step's condensed systems (``direct_floats`` with
 block size dof) cost at most ``step_budget`` rounds' worth of separator poses
@@ -235,15 +235,17 @@ class LMRule:
         self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch  # next model
         self.last_dec = np.inf  # decrease of F by the last accepted trial
         self.slow = False  # the last accepted trial decreased F by > frozen_rate of the one before
+        self.small_frozen: float | None = None  # its rel. decrease, a frozen step's < rel_tol
 
     def decide(
         self, F: float, pred: float, trials: int, frozen: bool = False
     ) -> tuple[bool, bool, str]:
         """(accepted, stop, reason) for the point just gathered; updates μ. ``frozen``: the
         trial was a frozen step, its decrease is compared with the previous one's (of the same
-        factor); a slow one, or one below ``rel_tol``, does not stop the run; μ stays (the step was damped with the
-        frozen factor's μ; a rejected one means the factor, not the damping, was stale: a full
-        gather follows)."""
+        factor); a slow one, or one below ``rel_tol``, does not stop the run (a full step
+        decides: its decrease below ``rel_tol``, or its rejection after a frozen step below
+        ``rel_tol``, stops); μ stays (the step was damped with the frozen factor's μ; a
+        rejected one means the factor, not the damping, was stale: a full gather follows)."""
         p = self.p
         rel = None
         accept = not self.trial or F < self.F_acc
@@ -254,6 +256,15 @@ class LMRule:
                 # a frozen step's decrease is no optimality test (the full step's is)
                 self.slow = frozen and (dec > p.frozen_rate * self.last_dec or rel < p.rel_tol)
                 self.last_dec = dec
+                self.small_frozen = rel if frozen and rel < p.rel_tol else None
+            elif not frozen and self.small_frozen is not None:  # no full step gains: optimal
+                small, self.small_frozen = self.small_frozen, None
+                return (
+                    False,
+                    True,
+                    f"relative decrease {small:.1e} < {p.rel_tol:g} (a frozen step; "
+                    "the full step after it rejected)",
+                )
             if frozen:  # the step's damping was the frozen factor's: μ stays
                 pass
             elif accept:
