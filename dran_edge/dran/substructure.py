@@ -33,8 +33,9 @@ The steps are generic in the share: ``condense`` takes any robot share ``Q⁽ʳ�
 travel with the condensed system and entries the root adds to the scatter. ``solve_direct``
 composes them for an init stage, ``dran_edge.dran.exact_gn`` for Gauss–Newton steps.
 
-Size: over ~500 lines because the condensation protocol's four steps share its packed layout;
-over 500 only by ruff format's layout.
+Size: over ~500 lines because the condensation protocol's four steps share its packed layout
+and the kept factors of a frozen-Hessian refinement step (``Condensed.with_rhs``,
+``Interface``) reuse them.
 """
 
 from __future__ import annotations
@@ -200,6 +201,12 @@ def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
 expand = block_rows
 
 
+def _positive_pivots(lu: Any) -> bool:
+    """A SuperLU factor (no pivoting, symmetric mode) of an SPD matrix: all pivots positive;
+    None (an empty block) counts as positive definite."""
+    return lu is None or bool(np.all(lu.U.diagonal() > 0))
+
+
 @dataclass
 class Condensed:
     """One robot's share of a block-sparse SPD system condensed onto its boundary."""
@@ -223,7 +230,7 @@ class Condensed:
     @property
     def positive_definite(self) -> bool:
         """The interior block's LU pivots (no pivoting, symmetric mode) are all positive."""
-        return self.lu is None or bool(np.all(self.lu.U.diagonal() > 0))
+        return _positive_pivots(self.lu)
 
     def back_substitute(self, X_B: np.ndarray) -> np.ndarray:
         """Interior values ``X_I = (Q⁽ʳ⁾_II)⁻¹ (rhs_I − Q_IB X_B)`` for boundary values X_B."""
@@ -418,7 +425,7 @@ class Interface:
     @property
     def positive_definite(self) -> bool:
         """Its LU pivots (no pivoting, symmetric mode) are all positive."""
-        return self.lu is None or bool(np.all(self.lu.U.diagonal() > 0))
+        return _positive_pivots(self.lu)
 
     def solve(self, gs: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """``{boundary vertex: (b, ncol) value}`` of ``(Σ S_r) X_B = Σ g_r``, ``gs`` the
