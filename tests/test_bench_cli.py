@@ -115,3 +115,9 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
     # the init's end, the refinement's accepted points and its end, then DRAN's rounds
     assert len(rep["curve"]) == 1 + len(rep["refine_curve"]) + rep["rounds"]
     assert rep["curve"][-1][1] == rep["bytes_total"]
+    per_gather = rep["refine_bytes"] / (rep["refine_trials"] + 1)
+    frozen = ["--refine", "always", "--refine-hessian", "exact", "--refine-frozen"]
+    assert main([*base, *frozen, "--refine-steps", "3"]) == 0
+    rep = json.loads(capsys.readouterr().out)  # frozen gathers send less
+    assert rep["refine_frozen"] and rep["refine_frozen_steps"] >= 1
+    assert rep["refine_bytes"] / (rep["refine_trials"] + 1) < per_gather

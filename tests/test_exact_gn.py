@@ -130,3 +130,90 @@ def test_run_g2o_dran_refines_over_the_bus_and_counts_its_rounds_and_bytes():
     assert on["rounds_total"] == on["init_rounds"] + on["refine_rounds"]
     assert on["bytes_total"] == on["bytes_init"] + on["refine_bytes"]
     assert [k for k, _, _ in on["refine_curve"]] == sorted(k for k, _, _ in on["refine_curve"])
+
+
+def _frozen_run(case, hessian, exchange=direct_exchange):
+    g, _ = make_graph(case)
+    part = make_partition(case, g)
+    kappa, tau = sesync_weights(g.dim, g.information)
+    params = exact_gn.RefineParams(mode="always", rel_tol=1e-12, hessian=hessian, frozen=True)
+    T0 = initial_poses(g, "chordal")
+    res = exact_gn.refine(
+        g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, T0, exchange, params,
+        wire_dtype=None,
+    )
+    return g, part, kappa, tau, res
+
+
+@pytest.mark.parametrize("hessian", ["gauss_newton", "exact"])
+def test_frozen_steps_reach_the_centralized_optimum(hessian):
+    from dran_edge.solver.centralized import solve_g2o
+    from dran_edge.solver.lm import Hessian, LMParams
+
+    case = Case("car3d", 200, 2, robots=3, split="interleaved")
+    g, _, kappa, tau, res = _frozen_run(case, hessian)
+    central = solve_g2o(g, params=LMParams(hessian=Hessian.EXACT, cost_tol=1e-14))
+    F = sesync_objective(res.poses, g.edges, g.measurements, kappa, tau)
+    assert res.converged and res.frozen_steps >= 2
+    assert np.all(np.diff(res.F_history) <= 0)
+    assert F == pytest.approx(central.objective_final, rel=1e-9)
+    assert F == pytest.approx(res.F_history[-1], rel=1e-12)
+
+
+def test_a_frozen_gather_sends_only_the_condensed_gradient():
+    """Per robot and tree link a frozen gather carries its boundary vector (|B_r|·dof floats),
+    its 5 scalars and the chunk length, padded to d×d chunks; a full gather far more."""
+    from dran_edge import geometry as geo
+    from dran_edge.dran import substructure
+    from dran_edge.messages import InitStage
+
+    sent: list[tuple[int, int]] = []  # (rounds, floats) of every REFINE_SCHUR exchange
+
+    def counting(kind, rounds, outgoing):
+        if kind == InitStage.REFINE_SCHUR:
+            floats = sum(np.size(e.value) for lst in outgoing.values() for _, es in lst for e in es)
+            sent.append((rounds, floats))
+        return direct_exchange(kind, rounds, outgoing)
+
+    case = Case("car3d", 200, 2, robots=3, split="interleaved")
+    g, part, _, _, res = _frozen_run(case, "exact", counting)
+    tree = substructure.robot_tree(part)
+    d, b = g.dim, geo.dof(g.dim)
+    gathers: list[int] = []  # floats per gather (one exchange per tree level, consecutive rounds)
+    for k, (r, f) in enumerate(sent):
+        if k and r == sent[k - 1][0] + 1 and len(gathers) and tree.height > 1:
+            gathers[-1] += f
+        else:
+            gathers.append(f)
+    frozen_floats = sum(
+        int(tree.depth[p.robot_id]) * -(-(1 + substructure.boundary(p, 0).size * b + 5) // (d * d))
+        * d * d
+        for p in part.parts
+    )
+    frozen = [f for f in gathers if f == frozen_floats]
+    assert len(frozen) >= res.frozen_steps >= 2
+    assert all(f == frozen_floats or f > 10 * frozen_floats for f in gathers)
+
+
+def test_the_root_treats_a_rejected_or_slow_frozen_step_as_a_stale_factor():
+    rule = exact_gn.LMRule(exact_gn.RefineParams(mu_init=1e-3, rel_tol=1e-2), wire_dtype=None)
+    rule.decide(100.0, 0.0, 0)  # the start point
+    assert rule.decide(80.0, 20.0, 1) == (True, False, "")  # the full step: −20
+    mu = rule.mu
+    assert rule.decide(81.0, 1.0, 2, frozen=True)[0] is False  # a frozen step raised F
+    assert rule.mu == mu  # the factor was stale, not the damping too weak
+    rule.decide(80.0, 0.0, 3)  # the accepted point again
+    assert rule.decide(70.0, 10.0, 4) == (True, False, "")  # a full step: −10
+    mu = rule.mu
+    assert rule.decide(66.0, 4.0, 5, frozen=True) == (True, False, "")  # −4 ≤ ½ · 10: fast
+    assert not rule.slow and rule.mu == mu  # damped with the frozen factor's μ
+    assert rule.decide(63.0, 3.0, 6, frozen=True) == (True, False, "")  # −3 > ½ · 4: slow
+    assert rule.slow  # a full gather follows
+    rule.decide(62.9, 0.1, 7)  # a full step: −0.1
+    accepted, stop, _ = rule.decide(62.88, 0.02, 8, frozen=True)  # fast, < rel_tol: no stop
+    assert accepted and not stop and rule.slow
+    accepted, stop, reason = rule.decide(62.87, 0.01, 9)  # a full step < rel_tol: stop
+    assert accepted and stop and reason.startswith("relative decrease")
+    rule.decide(62.86, 0.01, 10, frozen=True)  # a frozen step < rel_tol again
+    accepted, stop, reason = rule.decide(62.87, 0.01, 11)  # the full step after it: rejected
+    assert not accepted and stop and reason.startswith("relative decrease")

@@ -34,6 +34,24 @@ one more round trip). The μ the root announces is used from the robots' next co
 first, or an accepted step whose relative decrease ``(F_acc − F)/F_acc`` is below ``rel_tol``,
 or μ above ``mu_max`` (no step lowers F). The last scatter carries only the decision.
 
+Frozen steps (``RefineParams.frozen``, chord Newton; off by default): a gather costs the dense
+condensed systems (|B_r|² per robot), a step's right-hand side only |B_r|. After a full gather
+whose step was taken the root may announce (``REFINE_CONTROL`` flag 16) that the next gather
+is *frozen*: every robot keeps its interior factor of ``H⁽ʳ⁾ + μ diag H⁽ʳ⁾`` (and ``H⁽ʳ⁾`` of
+that model, for ℓ_r), linearises only its gradient at its new poses and sends
+``g_r = −g⁽ʳ⁾_B + H_BI H_II⁻¹ g⁽ʳ⁾_I`` (``Condensed.with_rhs``: |B_r|·dof floats, then the same
+five scalars) as ``REFINE_SCHUR`` chunks; the root solves with its kept factor of ``Σ S_r``
+(``substructure.Interface``), scatters the boundary steps as above and the robots
+back-substitute with the kept factor. The fixed point is ``g = 0`` whatever the frozen matrix
+(its float32 rounding on the wire included: it changes the contraction, not the optimum).
+A frozen step leaves μ as it was (it was damped with the frozen factor's μ; rejected, the
+factor was stale, not the damping too weak). The root announces a full gather instead after a
+rejected trial, when its rule changes the model (Gauss–Newton → exact) or when a frozen step
+decreased F by more than ``frozen_rate`` times the previous step of the same factor (linear
+contraction too slow) or below ``rel_tol`` (the stop is decided on a full step's decrease, as
+without frozen steps: a frozen step's is smaller where the model is poor, e.g. Gauss–Newton on
+large residuals; a full step rejected right after a frozen step below ``rel_tol`` stops too).
+
 When (``RefineParams.mode="auto"``): if one step's condensed systems (``direct_floats`` with
 block size dof) cost at most ``step_budget`` rounds' worth of separator poses
 (``iteration_floats``), i.e. where DRAN's own rounds are the more expensive way to converge.
@@ -89,6 +107,16 @@ class RefineParams:
     a car3d chain."""
     newton_switch: float = 1e-2
     """See ``hessian``; ``inf``: the exact Hessian from the first step."""
+    frozen: bool = False
+    """Chord (frozen-Hessian) steps (module docstring, "Frozen steps"): after a full gather
+    whose step was taken, the robots send only their gradients condensed with the frozen
+    interior factors and the root solves with its frozen interface factor, until a step is
+    rejected, the model changes (Gauss–Newton → exact) or the contraction is slower than
+    ``frozen_rate``."""
+    frozen_rate: float = 0.5
+    """Frozen steps go on while an accepted step's decrease of F is at most this fraction of
+    the previous accepted step's (linear contraction of the chord iteration) and at least
+    ``rel_tol`` (relative)."""
 
 
 @dataclass
@@ -113,6 +141,8 @@ class RefineResult:
     """Stopped on ``rel_tol`` (an accepted step lowered F by less than that fraction)."""
     ratio_floats: float = 0.0
     """One step's floats over one round's separator values (``step_budget``'s test)."""
+    frozen_steps: int = 0
+    """Steps taken from a frozen factorisation (``RefineParams.frozen``)."""
 
 
 def step_ratio(
@@ -188,6 +218,9 @@ class _Robot:
     mu: float
     pred: float = 0.0
     exact: bool = False  # model of the next condensation (the root's word)
+    frozen: bool = False  # the next gather sends only the condensed gradient (the root's word)
+    loc: substructure.Condensed | None = None  # the kept (frozen) condensation
+    H: sp.csr_matrix | None = None  # its model's (undamped) Hessian share, for ℓ_r
 
 
 class LMRule:
@@ -200,15 +233,41 @@ class LMRule:
         self.trial = False  # the gathered point is a trial (else the accepted point)
         self.last_rel = np.inf  # relative decrease of the last accepted trial
         self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch  # next model
+        self.last_dec = np.inf  # decrease of F by the last accepted trial
+        self.slow = False  # the last accepted trial decreased F by > frozen_rate of the one before
+        self.small_frozen: float | None = None  # its rel. decrease, a frozen step's < rel_tol
 
-    def decide(self, F: float, pred: float, trials: int) -> tuple[bool, bool, str]:
-        """(accepted, stop, reason) for the point just gathered; updates μ."""
+    def decide(
+        self, F: float, pred: float, trials: int, frozen: bool = False
+    ) -> tuple[bool, bool, str]:
+        """(accepted, stop, reason) for the point just gathered; updates μ. ``frozen``: the
+        trial was a frozen step, its decrease is compared with the previous one's (of the same
+        factor); a slow one, or one below ``rel_tol``, does not stop the run (a full step
+        decides: its decrease below ``rel_tol``, or its rejection after a frozen step below
+        ``rel_tol``, stops); μ stays (the step was damped with the frozen factor's μ; a
+        rejected one means the factor, not the damping, was stale: a full gather follows)."""
         p = self.p
         rel = None
         accept = not self.trial or F < self.F_acc
         if self.trial:
             rel = (self.F_acc - F) / self.F_acc
             if accept:
+                dec = self.F_acc - F
+                # a frozen step's decrease is no optimality test (the full step's is)
+                self.slow = frozen and (dec > p.frozen_rate * self.last_dec or rel < p.rel_tol)
+                self.last_dec = dec
+                self.small_frozen = rel if frozen and rel < p.rel_tol else None
+            elif not frozen and self.small_frozen is not None:  # no full step gains: optimal
+                small, self.small_frozen = self.small_frozen, None
+                return (
+                    False,
+                    True,
+                    f"relative decrease {small:.1e} < {p.rel_tol:g} (a frozen step; "
+                    "the full step after it rejected)",
+                )
+            if frozen:  # the step's damping was the frozen factor's: μ stays
+                pass
+            elif accept:
                 rho = (self.F_acc - F) / pred if pred > 0 else 1.0
                 self.mu = max(self.mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), p.mu_min)
                 self.nu = 2.0
@@ -222,7 +281,7 @@ class LMRule:
                 self.last_rel = rel
         self.trial = accept
         self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch
-        if accept and rel is not None and rel < p.rel_tol:
+        if accept and rel is not None and rel < p.rel_tol and not self.slow:
             return accept, True, f"relative decrease {rel:.1e} < {p.rel_tol:g}"
         if trials >= p.max_steps:
             return accept, True, f"{p.max_steps} steps"
@@ -314,27 +373,33 @@ def refine_shares(
     res = RefineResult(poses, True, ratio_floats=ratio)
     to_entry = _step_entry(partition.owner, d, b)
     no_boundary = [np.zeros(0, np.int64)] * len(robots)
+    iface: substructure.Interface | None = None  # the root's last factorised interface
+    model_exact = root.exact  # the model of the last full gather (the robots' word)
+    stepped_frozen = False  # the last step was solved with a frozen factor
     while True:
+        frozen = robots[tree.root].frozen  # the root's own word (every robot has it)
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
-            H, g, cost, D = share_of(part, rob.T, rob.exact)
-            loc = substructure.condense(
-                part, partition, H + rob.mu * sp.diags(D), -g[:, None], b, gauge, np.zeros((b, 1))
-            )
+            loc, H, g, flat = _condense_share(part, partition, share_of, rob, b, gauge)
             locs.append(loc)
             shares.append((H, g))
-            packed.append(
-                substructure.pack(
-                    loc, b, _split(cost) + _split(rob.pred) + [float(loc.positive_definite)]
-                )
-            )
+            packed.append(flat)
         bundle, res.rounds = substructure.gather(
             tree, packed, d, exchange, InitStage.REFINE_SCHUR, res.rounds
         )
-        values, scalars, pd = substructure.solve_interface(bundle, b, 1, 5)
+        if frozen:  # the root's frozen factor, the new right-hand sides
+            assert iface is not None
+            scalars = np.array([bundle[o][-5:] for o in sorted(bundle)])
+            gs = {o: bundle[o][:-5].reshape(-1, 1) for o in sorted(bundle)}
+            pd = True
+        else:
+            model_exact = robots[tree.root].exact
+            iface, gs, scalars = substructure.factor_interface(bundle, b, 1, 5)
+            pd = iface.positive_definite
         F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:4].sum())
         was_trial = root.trial
-        accept, stop, reason = root.decide(F, pred, res.trials)  # 2. the root's rule
+        # 2. the root's rule (the trial was a frozen step: the last step came from a frozen gather)
+        accept, stop, reason = root.decide(F, pred, res.trials, stepped_frozen)
         if accept and (was_trial or not res.F_history):
             res.F_history.append(F)
             res.F_rounds.append(res.rounds)
@@ -344,7 +409,15 @@ def refine_shares(
             step = False
             root.indefinite()
             res.indefinite += 1
+        # frozen next: a step from a factor of the model the rule wants next, not slowing down
+        frozen_next = (
+            params.frozen and step and root.exact == model_exact and not (frozen and root.slow)
+        )
+        res.frozen_steps += int(step and frozen)
+        stepped_frozen = step and frozen
+        values = iface.solve(gs) if step and iface is not None else {}
         flags = int(accept) | int(stop) << 1 | int(step) << 2 | int(root.exact) << 3
+        flags |= int(frozen_next) << 4
         control = InitEntry(
             InitStage.REFINE_CONTROL,
             tree.root,
@@ -371,7 +444,9 @@ def refine_shares(
             flags_f, mu = np.asarray(ctl[0].value, float).ravel()[:2]
             flags = int(round(flags_f))
             acc, stepping = flags & 1, flags & 4
-            rob.mu, rob.exact = float(mu), bool(flags & 8)
+            rob.mu, rob.exact, rob.frozen = float(mu), bool(flags & 8), bool(flags & 16)
+            if rob.frozen and not frozen:  # keep this gather's factor and model
+                rob.loc, rob.H = loc, shares[r][0]
             if acc:
                 rob.T_acc = rob.T.copy()
             rob.T, rob.pred = rob.T_acc.copy(), 0.0
@@ -395,3 +470,30 @@ def refine_shares(
     for part, rob in zip(partition.parts, robots):
         res.poses[part.vertices] = rob.T_acc[part.vertices]
     return res
+
+
+def _condense_share(
+    part: RobotPart,
+    partition: Partition,
+    share_of: ShareFn,
+    rob: _Robot,
+    b: int,
+    gauge: int,
+) -> tuple[substructure.Condensed, sp.csr_matrix, np.ndarray, np.ndarray]:
+    """Step 1 for one robot: (condensed system, H⁽ʳ⁾ of the model, g⁽ʳ⁾, packed vector). A full
+    gather condenses the damped share at the robot's poses; a frozen one only the new gradient,
+    with the kept interior factor, and sends that boundary vector and the scalars alone."""
+    if rob.frozen:
+        assert rob.loc is not None and rob.H is not None
+        _, g, cost, _ = share_of(part, rob.T, False)
+        loc = rob.loc.with_rhs(-g[:, None])
+        scalars = _split(cost) + _split(rob.pred) + [1.0]
+        return loc, rob.H, g, np.concatenate([loc.g.ravel(), scalars])
+    H, g, cost, D = share_of(part, rob.T, rob.exact)
+    loc = substructure.condense(
+        part, partition, H + rob.mu * sp.diags(D), -g[:, None], b, gauge, np.zeros((b, 1))
+    )
+    flat = substructure.pack(
+        loc, b, _split(cost) + _split(rob.pred) + [float(loc.positive_definite)]
+    )
+    return loc, H, g, flat

@@ -33,15 +33,16 @@ The steps are generic in the share: ``condense`` takes any robot share ``Q⁽ʳ�
 travel with the condensed system and entries the root adds to the scatter. ``solve_direct``
 composes them for an init stage, ``dran_edge.dran.exact_gn`` for Gauss–Newton steps.
 
-Size: over ~500 lines because the condensation protocol's four steps share its packed layout;
-over 500 only by ruff format's layout.
+Size: over ~500 lines because the condensation protocol's four steps share its packed layout
+and the kept factors of a frozen-Hessian refinement step (``Condensed.with_rhs``,
+``Interface``) reuse them.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -200,6 +201,12 @@ def iteration_floats(partition: Partition, b: int, ncol: int) -> int:
 expand = block_rows
 
 
+def _positive_pivots(lu: Any) -> bool:
+    """A SuperLU factor (no pivoting, symmetric mode) of an SPD matrix: all pivots positive;
+    None (an empty block) counts as positive definite."""
+    return lu is None or bool(np.all(lu.U.diagonal() > 0))
+
+
 @dataclass
 class Condensed:
     """One robot's share of a block-sparse SPD system condensed onto its boundary."""
@@ -223,7 +230,7 @@ class Condensed:
     @property
     def positive_definite(self) -> bool:
         """The interior block's LU pivots (no pivoting, symmetric mode) are all positive."""
-        return self.lu is None or bool(np.all(self.lu.U.diagonal() > 0))
+        return _positive_pivots(self.lu)
 
     def back_substitute(self, X_B: np.ndarray) -> np.ndarray:
         """Interior values ``X_I = (Q⁽ʳ⁾_II)⁻¹ (rhs_I − Q_IB X_B)`` for boundary values X_B."""
@@ -231,6 +238,16 @@ class Condensed:
             return self.rhs_I
         X_I: np.ndarray = self.lu.solve(self.rhs_I - self.Q_IB @ X_B)
         return X_I
+
+    def with_rhs(self, rhs: np.ndarray) -> Condensed:
+        """The same (frozen) interior factor with a new right-hand side ``rhs`` (n·b rows, the
+        gauge held at zero): ``g_r = rhs_B − Q_BI (Q_II)⁻¹ rhs_I``, no new factorisation."""
+        b = self.Q_BB.shape[-1]  # (p, b, b), also with no pairs
+        rb, ri = expand(self.B, b), expand(self.I, b)
+        g = rhs[rb].copy()
+        if ri.size:
+            g -= self.Q_IB.T @ self.lu.solve(rhs[ri])
+        return replace(self, rhs_I=rhs[ri], g=g)
 
 
 def condense(
@@ -395,26 +412,49 @@ def gather(
     return bundles[tree.root], rounds
 
 
-def solve_interface(
+@dataclass
+class Interface:
+    """The root's assembled interface system ``Σ S_r`` (factorised once), kept so that later
+    right-hand sides ``Σ g_r`` solve with the same factor (a frozen-Hessian step)."""
+
+    Bglob: np.ndarray  # every boundary vertex (sorted)
+    at: dict[int, np.ndarray]  # per origin robot: its B's positions in Bglob
+    lu: Any  # scipy SuperLU of Σ S_r, None without a boundary
+    b: int
+
+    @property
+    def positive_definite(self) -> bool:
+        """Its LU pivots (no pivoting, symmetric mode) are all positive."""
+        return _positive_pivots(self.lu)
+
+    def solve(self, gs: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """``{boundary vertex: (b, ncol) value}`` of ``(Σ S_r) X_B = Σ g_r``, ``gs`` the
+        (|B_r|·b, ncol) right-hand sides by origin robot."""
+        b, ncol = self.b, next(iter(gs.values())).shape[1]
+        g_glob = np.zeros((self.Bglob.size * b, ncol))
+        for o, g in gs.items():
+            np.add.at(g_glob, expand(self.at[o], b), g)
+        X_B = self.lu.solve(g_glob) if self.lu is not None else g_glob
+        X_B = X_B.reshape(self.Bglob.size, b, ncol)
+        return {int(v): X_B[k] for k, v in enumerate(self.Bglob.tolist())}
+
+
+def factor_interface(
     bundle: dict[int, np.ndarray], b: int, ncol: int, nscalars: int = 0
-) -> tuple[dict[int, np.ndarray], np.ndarray, bool]:
-    """Step 2: the root assembles ``Σ S_r``, ``Σ g_r`` from the gathered vectors and solves;
-    returns ``{boundary vertex: (b, ncol) value}``, the (R, nscalars) scalars by robot and
-    whether ``Σ S_r`` is positive definite (its LU pivots, no pivoting, all positive)."""
-    unpacked = [_unpack(bundle[o], b, ncol, nscalars) for o in sorted(bundle)]
-    Bglob = np.unique(np.concatenate([u[0] for u in unpacked]))
+) -> tuple[Interface, dict[int, np.ndarray], np.ndarray]:
+    """Step 2's assembly: the root's ``Σ S_r`` factorised from the gathered vectors; returns it,
+    the right-hand sides ``g_r`` by origin robot and the (R, nscalars) scalars by robot."""
+    unpacked = {o: _unpack(bundle[o], b, ncol, nscalars) for o in sorted(bundle)}
+    Bglob = np.unique(np.concatenate([u[0] for u in unpacked.values()]))
+    at = {o: np.searchsorted(Bglob, u[0]) for o, u in unpacked.items()}
     rows, cols, vals = [], [], []
-    g_glob = np.zeros((Bglob.size * b, ncol))
-    for B, g, pieces, _ in unpacked:
-        at = np.searchsorted(Bglob, B)
-        np.add.at(g_glob, expand(at, b), g)
+    for o, (_, _, pieces, _) in unpacked.items():
         for loc_idx, P in pieces:
-            idx = expand(at[loc_idx], b)
+            idx = expand(at[o][loc_idx], b)
             rows.append(np.repeat(idx, idx.size))
             cols.append(np.tile(idx, idx.size))
             vals.append(P.ravel())
-    X_B: np.ndarray = np.zeros_like(g_glob)
-    pd = True
+    lu = None
     if Bglob.size:
         S_glob = sp.csc_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
@@ -426,10 +466,19 @@ def solve_interface(
             diag_pivot_thresh=0.0,
             options={"SymmetricMode": True},
         )
-        X_B, pd = lu.solve(g_glob), bool(np.all(lu.U.diagonal() > 0))
-    X_B = X_B.reshape(Bglob.size, b, ncol)
-    scalars = np.array([u[3] for u in unpacked]).reshape(len(unpacked), nscalars)
-    return {int(v): X_B[k] for k, v in enumerate(Bglob.tolist())}, scalars, pd
+    scalars = np.array([u[3] for u in unpacked.values()]).reshape(len(unpacked), nscalars)
+    gs = {o: u[1] for o, u in unpacked.items()}
+    return Interface(Bglob, at, lu, b), gs, scalars
+
+
+def solve_interface(
+    bundle: dict[int, np.ndarray], b: int, ncol: int, nscalars: int = 0
+) -> tuple[dict[int, np.ndarray], np.ndarray, bool]:
+    """Step 2: the root assembles ``Σ S_r``, ``Σ g_r`` from the gathered vectors and solves;
+    returns ``{boundary vertex: (b, ncol) value}``, the (R, nscalars) scalars by robot and
+    whether ``Σ S_r`` is positive definite (its LU pivots, no pivoting, all positive)."""
+    iface, gs, scalars = factor_interface(bundle, b, ncol, nscalars)
+    return iface.solve(gs), scalars, iface.positive_definite
 
 
 def scatter(

@@ -392,6 +392,8 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, reliable: bool, skip: str = 
         ],
         "refine_step_over_round_floats": res.ratio_floats,
     }
+    if res.frozen_steps:  # RefineParams.frozen
+        out["refine_frozen_steps"] = res.frozen_steps
     if reliable:
         out["refine_arq"] = {k: v - arq0[k] for k, v in arq_totals(fleet).items()}
     return out

@@ -354,6 +354,13 @@ def _add_refine_options(p) -> None:
         help="the refinement's model: Gauss-Newton (default) or the exact Hessian (damped "
         "Newton once a step gains < 1 %%, Gauss-Newton where not positive definite)",
     )
+    p.add_argument(
+        "--refine-frozen",
+        action="store_true",
+        help="frozen-Hessian (chord) refinement steps: after one full gather of the condensed "
+        "systems only the condensed gradients travel, solved with the kept factors, until a "
+        "step is rejected or slows down (RefineParams.frozen)",
+    )
 
 
 def _refine_params(args):
@@ -369,6 +376,7 @@ def _refine_params(args):
         max_steps=args.refine_steps,
         rel_tol=args.refine_tol,
         hessian=args.refine_hessian,
+        frozen=args.refine_frozen,
     )
 
 
@@ -441,6 +449,8 @@ def run_g2o(args) -> int:
         report["refine"] = args.refine
         if args.refine_hessian != "gauss_newton":
             report["refine_hessian"] = args.refine_hessian
+        if args.refine_frozen:
+            report["refine_frozen"] = True
     if args.loss > 0:
         report["loss"] = args.loss
     report.update(
