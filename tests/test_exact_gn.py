@@ -139,7 +139,16 @@ def _frozen_run(case, hessian, exchange=direct_exchange):
     params = exact_gn.RefineParams(mode="always", rel_tol=1e-12, hessian=hessian, frozen=True)
     T0 = initial_poses(g, "chordal")
     res = exact_gn.refine(
-        g.dim, g.num_vertices, g.edges, g.measurements, kappa, tau, part, T0, exchange, params,
+        g.dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        kappa,
+        tau,
+        part,
+        T0,
+        exchange,
+        params,
         wire_dtype=None,
     )
     return g, part, kappa, tau, res
@@ -185,9 +194,13 @@ def test_a_frozen_gather_sends_only_the_condensed_gradient():
             gathers[-1] += f
         else:
             gathers.append(f)
+
+    def chunked(floats: int) -> int:  # entries carry d × d values: round up to whole entries
+        return -(-floats // (d * d)) * d * d
+
+    # each robot's frozen gather: 1 + |B_r|·dof gradient values + 5 scalars, relayed depth times
     frozen_floats = sum(
-        int(tree.depth[p.robot_id]) * -(-(1 + substructure.boundary(p, 0).size * b + 5) // (d * d))
-        * d * d
+        int(tree.depth[p.robot_id]) * chunked(1 + substructure.boundary(p, 0).size * b + 5)
         for p in part.parts
     )
     frozen = [f for f in gathers if f == frozen_floats]
