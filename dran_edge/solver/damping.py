@@ -18,11 +18,12 @@ non-linear least squares problems", 2004, Sec. 3.2; from ``(H + μI) ξ = −g``
 Gain ratio ``ρ = (cost − cost_new) / (L(0) − L(ξ))`` (0 when the prediction is not positive).
 
 A trial is *accepted* when the new cost is finite and not higher than the old one: a descent
-step in the sense of eq. 23. Costs closer than ``COST_RESOLUTION`` (relative) count as equal:
-at that size a difference is the order in which floating-point sums were taken (BLAS kernels,
-CPUs), not the step, so neither the decision nor μ may depend on it; such a trial is accepted
-(it moves the cost by nothing measurable; the callers' stopping rules then see a zero decrease)
-and keeps μ (its gain ratio would be noise). Else (Nielsen's update)
+step in the sense of eq. 23. Costs closer than ``COST_RESOLUTION`` (relative; ``COST_FLOOR``
+absolute) count as equal (``costs_equal``): at that size a difference is the order in which
+floating-point sums were taken (BLAS kernels, CPUs), not the step, so neither the decision nor
+μ may depend on it; such a trial is accepted (it moves the cost by nothing measurable; the
+callers' stopping rules then see a zero decrease) and keeps μ (its gain ratio would be noise).
+Else (Nielsen's update)
 
     μ ← max(μ · max(f, 1 − (2ρ − 1)³), μ_min),   ν ← 2,
 
