@@ -265,14 +265,13 @@ class LMRule:
                     f"relative decrease {small:.1e} < {p.rel_tol:g} (a frozen step; "
                     "the full step after it rejected)",
                 )
-            if frozen:  # the step's damping was the frozen factor's: μ stays
-                pass
-            elif accept:
-                rho = (self.F_acc - F) / pred if pred > 0 else 1.0
-                self.mu = max(self.mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), p.mu_min)
-                self.nu = 2.0
-            else:
-                self.mu, self.nu = self.mu * self.nu, self.nu * 2
+            if not frozen:  # a frozen step's damping was the frozen factor's: μ stays
+                if accept:
+                    rho = (self.F_acc - F) / pred if pred > 0 else 1.0
+                    self.mu = max(self.mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), p.mu_min)
+                    self.nu = 2.0
+                else:
+                    self.mu, self.nu = self.mu * self.nu, self.nu * 2
         if self.wire_dtype is not None:  # what every robot receives
             self.mu = float(self.wire_dtype(self.mu))
         if accept:
