@@ -48,6 +48,8 @@ SCRIPTS = {
     "test_bench_stopping": ("bench_stopping.py", (), ()),
     "test_bench_gap_bytes": ("bench_gap_bytes.py", (), ()),
     "test_bench_rehearsal": ("bench_rehearsal.py", (), ()),
+    # copies the .venv (~1 GB) into a git worktree of HEAD: slow
+    "test_bench_test_time": ("bench_test_time.py", (), ()),
 }
 
 
@@ -274,3 +276,14 @@ def test_bench_gap_bytes(runs):
     mb, ratio = float(cells[3].split()[0]), float(cells[4])
     # the refined chain gets below 1e-3 within a few hundred kB: MB > 0, ratio = MB / 1 MB
     assert 0 < mb < 1 and ratio == pytest.approx(mb, abs=1e-3)
+
+
+@pytest.mark.slow
+def test_bench_test_time(runs):
+    out = run_quick(runs, "test_bench_test_time")
+    runs_ = [line for line in out.splitlines() if " -n " in line and not line.startswith(" ")]
+    rows = {line.split()[0] + line.split()[2]: line for line in runs_}
+    assert {"base0", "headauto"} <= set(rows), out
+    assert all(" ok " in row for row in rows.values()), out  # both arms' tests passed
+    ratio = float(re.search(r"head -n auto\s+[\d.]+ s\s+ratio (\d+\.\d+)", out).group(1))
+    assert ratio > 0
