@@ -20,9 +20,10 @@ DEMO_DIR ?= demo-run
 # pytest-xdist worker processes for make test / test-all ("auto": one per core; 0: in this process).
 # --dist loadfile keeps each test file on one worker: module- and session-scoped fixtures (the
 # simulated and replayed runs, the benchmark scripts tests/test_bench_quick.py starts together)
-# are built once per file instead of once per worker.
+# are built once per file instead of once per worker. --no-loadscope-reorder hands the files out
+# in collection order, which tests/conftest.py makes longest first (LONGEST_FILES).
 PYTEST_WORKERS ?= auto
-PYTEST_PARALLEL := -n $(PYTEST_WORKERS) --dist loadfile
+PYTEST_PARALLEL := -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: help setup test lint types test-all demo bench bundle clean
 

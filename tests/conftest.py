@@ -15,6 +15,38 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import pytest  # noqa: E402
 
+#: The test files that take longest (CPU seconds per file, `pytest --durations=0`, 2026-11-26),
+#: longest first. pytest-xdist's --dist loadfile hands files to its workers in collection order,
+#: so these start first and the short files fill in around them (longest-first scheduling):
+#: in alphabetical order the longest files started last and one worker ran alone at the end.
+#: test_bench_quick.py goes first: it starts a dozen benchmark processes at once, and a file
+#: with real-time checks (a daemon's 2 s watchdog cadence) running beside that burst failed
+#: 2 of 4 suite runs; at the start the other worker builds test_replay.py's simulated run.
+#: The order changes no result (every file's tests keep their own order).
+LONGEST_FILES = (
+    "test_bench_quick.py",
+    "test_replay.py",
+    "test_local_graph.py",
+    "test_import_bag.py",
+    "test_codec.py",
+    "test_multiagent.py",
+    "test_daemon_systemd.py",
+    "test_eval.py",
+    "test_dish_fuzz.py",
+    "test_rehearsal.py",
+    "test_dist_init.py",
+    "test_perception_tagpose.py",
+    "test_stopping.py",
+    "test_daemon_crash.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Longest files first (``LONGEST_FILES``), the rest in collection order; stable."""
+    rank = {name: k for k, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
 #: The small simulated mission the bag and trajectory-format tests share (3 robots, 16 s,
 #: rendered frames at 1 Hz, so the replay runs the AprilTag pipeline).
 SMALL_SIM = dict(

@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import correlate
 
 from dran_edge import geometry as geo
 from dran_edge.errors import InputError
@@ -217,6 +216,8 @@ def _lag_correlation(
     """(rho, n, var_e, var_r) per lag L = k − (len(e) − 1): the normalised cross-correlation
     of the finite samples of ``e`` and ``r`` over their overlap, its sample count and the
     (unnormalised) variances of both signals there."""
+    from scipy.signal import correlate  # here: scipy.signal costs ~1 s to import
+
     me, mr = np.isfinite(e), np.isfinite(r)
     e0, r0 = np.where(me, e, 0.0), np.where(mr, r, 0.0)
     fe, fr = me.astype(float), mr.astype(float)

@@ -17,7 +17,8 @@ ratio of this checkout's median to the baseline's.
   pytest-xdist came in).
 - This checkout: the steps of ``make test`` after setup — ``ruff check``, ``ruff format
   --check``, ``mypy`` (with ``--cold-types`` from an empty cache, as on a fresh clone) and
-  ``pytest -q -n W --dist loadfile -m "not slow and not hardware"`` for each ``--workers`` W.
+  ``pytest -q $(PYTEST_PARALLEL) -m "not slow and not hardware"`` (the Makefile's pytest-xdist
+  options) for each ``--workers`` W.
 
 The default baseline, 1ec7aa4, is the last commit before the offline-bundle work (the commit
 whose ``make test`` time the bundle must not worsen). A run whose tests fail is reported and
@@ -67,9 +68,14 @@ def _summary(output: str) -> str:
     return re.sub(r"\s+in [\d.]+s.*$", "", lines[-1].strip("= "))
 
 
-def _pytest_args(workers: str) -> list[str]:
+def _pytest_args(workers: str, makefile: Path = REPO / "Makefile") -> list[str]:
+    """The Makefile's PYTEST_PARALLEL with ``workers`` (nothing for 0: one process; a Makefile
+    from before pytest-xdist: ``-n W --dist loadfile``)."""
     if workers in ("0", ""):
         return []
+    for line in makefile.read_text().splitlines():
+        if line.startswith("PYTEST_PARALLEL"):
+            return line.split(":=", 1)[1].replace("$(PYTEST_WORKERS)", workers).split()
     return ["-n", workers, "--dist", "loadfile"]
 
 
@@ -108,7 +114,7 @@ def prepare_base(rev: str, workdir: Path) -> Path:
 def run_base(tree: Path, workers: str, tests: list[str]) -> tuple[bool, str, float]:
     py = str(tree / ".venv" / "bin" / "python")
     cmd = [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", MARKERS, *tests]
-    rc, out, wall = _run(cmd + _pytest_args(workers), tree, _env())
+    rc, out, wall = _run(cmd + _pytest_args(workers, tree / "Makefile"), tree, _env())
     return rc == 0, _summary(out), wall
 
 
