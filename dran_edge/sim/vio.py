@@ -149,13 +149,10 @@ def _odometry_samples(
     keyframe itself for the first keyframe and after a reset."""
     if i == 0 or i in resets:
         return [OdometrySample(int(stamps[i]), T_odom[i].copy())]
-    out = []
     n_sub = max(1, dt_kf_ns // 100_000_000)
-    for j in range(1, n_sub + 1):
-        st = int(stamps[i - 1] + j * dt_kf_ns // n_sub)
-        T, _ = geo.se3_interpolate(stamps[i - 1 : i + 1], T_odom[i - 1 : i + 1], np.array([st]))
-        out.append(OdometrySample(st, T[0]))
-    return out
+    st = [int(stamps[i - 1] + j * dt_kf_ns // n_sub) for j in range(1, n_sub + 1)]
+    T, _ = geo.se3_interpolate(stamps[i - 1 : i + 1], T_odom[i - 1 : i + 1], np.array(st))
+    return [OdometrySample(s, T_s) for s, T_s in zip(st, T)]
 
 
 def _tag_observations(

@@ -68,6 +68,12 @@ def _summary(output: str) -> str:
     return re.sub(r"\s+in [\d.]+s.*$", "", lines[-1].strip("= "))
 
 
+def _failures(output: str, lines: int = 30) -> str:
+    """What a failed step said: pytest's ``E`` and ``FAILED`` lines, else the output's end."""
+    found = [ln for ln in output.splitlines() if ln.startswith(("E ", "FAILED", "ERROR"))]
+    return "\n".join(found[:lines]) if found else output[-2000:]
+
+
 def _pytest_args(workers: str, makefile: Path = REPO / "Makefile") -> list[str]:
     """The Makefile's PYTEST_PARALLEL with ``workers`` (nothing for 0: one process; a Makefile
     from before pytest-xdist: ``-n W --dist loadfile``)."""
@@ -115,7 +121,7 @@ def run_base(tree: Path, workers: str, tests: list[str]) -> tuple[bool, str, flo
     py = str(tree / ".venv" / "bin" / "python")
     cmd = [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", MARKERS, *tests]
     rc, out, wall = _run(cmd + _pytest_args(workers, tree / "Makefile"), tree, _env())
-    return rc == 0, _summary(out), wall
+    return rc == 0, _summary(out) if rc == 0 else f"failed:\n{_failures(out)}", wall
 
 
 def run_head(
@@ -135,13 +141,17 @@ def run_head(
     ]
     if not checks:
         steps = steps[-1:]
-    total, out, ok = 0.0, "", True
+    total, out = 0.0, ""
     for cmd in steps:
         rc, out, wall = _run(cmd, REPO, env)
         total += wall
         if rc != 0:
-            return False, f"{Path(cmd[0]).name} {' '.join(cmd[1:3])} failed: {out[-300:]}", total
-    return ok, _summary(out), total
+            return (
+                False,
+                f"{' '.join(Path(c).name for c in cmd[:3])} failed:\n{_failures(out)}",
+                total,
+            )
+    return True, _summary(out), total
 
 
 def main(argv: list[str] | None = None) -> int:
