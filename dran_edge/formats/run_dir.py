@@ -191,6 +191,8 @@ class _Node:
 def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
     import yaml
 
+    from dran_edge.config.loader import safe_loader
+
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -201,8 +203,8 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
         raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
     lines: dict[str, int] = {}
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        root = yaml.compose(text, Loader=safe_loader())
+        data = yaml.load(text, Loader=safe_loader())
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         raise InputError(
