@@ -33,6 +33,7 @@ import argparse
 import os
 import re
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -189,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     if not (REPO / ".venv" / "bin" / "python").exists():
         ap.error("no .venv in this checkout: run `make setup` first")
 
+    # a SIGTERM ends the run through the cleanup below (the worktree removed, the test run killed)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     workdir = Path(tempfile.mkdtemp(prefix="bench-test-time-"))
     failed = False
     times: dict[str, list[float]] = {}
