@@ -17,8 +17,9 @@ import pytest  # noqa: E402
 
 #: The test files that take longest (CPU seconds per file, `pytest --durations=0`, 2026-11-26),
 #: longest first. pytest-xdist's --dist loadfile hands files to its workers in collection order,
-#: so these start first and the short files fill in around them (longest-first scheduling):
-#: in alphabetical order the longest files started last and one worker ran alone at the end.
+#: so these start first and the short files fill in around them (longest-first scheduling).
+#: By default xdist orders the files by their number of tests instead, which starts a long file
+#: with few tests late, so that one worker can run alone at the end.
 #: test_bench_quick.py goes first: it starts a dozen benchmark processes at once, and a file
 #: with real-time checks (a daemon's 2 s watchdog cadence) running beside that burst failed
 #: 2 of 4 suite runs; at the start the other worker builds test_replay.py's simulated run.
