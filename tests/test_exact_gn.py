@@ -15,6 +15,24 @@ from dran_edge.solver.lm import build_plan, linearize
 from dran_edge.solver.objective import sesync_objective, sesync_weights
 
 
+def _refine(g, part, T0, exchange, params):
+    """``exact_gn.refine`` on graph ``g`` (SE-Sync weights), values exchanged as float64."""
+    kappa, tau = sesync_weights(g.dim, g.information)
+    return exact_gn.refine(
+        g.dim,
+        g.num_vertices,
+        g.edges,
+        g.measurements,
+        kappa,
+        tau,
+        part,
+        T0,
+        exchange,
+        params,
+        wire_dtype=None,
+    )
+
+
 def _central_step(g, poses, mu, exact=False):
     """One centralized damped step (A + μ diag A_GN) u = −g_x, every vertex but the gauge
     private (``solver.lm``'s own linearisation; A the Gauss–Newton or the exact Hessian)."""
@@ -44,13 +62,8 @@ def test_condensed_step_equals_the_centralized_step(case, hessian):
     kappa, tau = sesync_weights(g.dim, g.information)
     T0 = initial_poses(g, "chordal" if hessian == "exact" else "odometry")
     mu = 1e-3
-    res = exact_gn.refine(
-        g.dim,
-        g.num_vertices,
-        g.edges,
-        g.measurements,
-        kappa,
-        tau,
+    res = _refine(
+        g,
         part,
         T0,
         direct_exchange,
@@ -62,7 +75,6 @@ def test_condensed_step_equals_the_centralized_step(case, hessian):
             hessian=hessian,
             newton_switch=np.inf,
         ),
-        wire_dtype=None,
     )
     assert res.used and res.steps == 1 and res.rounds > 0 and res.indefinite == 0
     T1 = _central_step(g, T0, mu, exact=hessian == "exact")
@@ -90,18 +102,12 @@ def test_refinement_never_raises_the_cost_from_a_bad_start():
     rng = np.random.default_rng(0)
     T0 = initial_poses(g, "odometry")
     T0[1:] = geo.retract(T0[1:], rng.normal(0, 2.0, (g.num_vertices - 1, 3)))
-    res = exact_gn.refine(
-        g.dim,
-        g.num_vertices,
-        g.edges,
-        g.measurements,
-        kappa,
-        tau,
+    res = _refine(
+        g,
         part,
         T0,
         direct_exchange,
         exact_gn.RefineParams(mode="always", max_steps=12, mu_init=1e-6, rel_tol=0.0),
-        wire_dtype=None,
     )
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     assert res.trials > res.steps  # some trial raised F and was rejected
@@ -138,18 +144,12 @@ def _frozen_run(case, hessian, exchange=direct_exchange):
     kappa, tau = sesync_weights(g.dim, g.information)
     params = exact_gn.RefineParams(mode="always", rel_tol=1e-12, hessian=hessian, frozen=True)
     T0 = initial_poses(g, "chordal")
-    res = exact_gn.refine(
-        g.dim,
-        g.num_vertices,
-        g.edges,
-        g.measurements,
-        kappa,
-        tau,
+    res = _refine(
+        g,
         part,
         T0,
         exchange,
         params,
-        wire_dtype=None,
     )
     return g, part, kappa, tau, res
 
