@@ -205,10 +205,20 @@ ShareFn = Callable[
 ]
 
 
+#: Scalars after every REFINE_SCHUR vector: f_r and ℓ_r as float32 pairs (``_split``), then
+#: 1.0 when the robot's interior block was positive definite.
+NSCALARS = 5
+
+
 def _split(x: float) -> list[float]:
     """x as a float32 pair (hi, lo) with hi + lo ≈ x to ~1e-14 relative."""
     hi = float(np.float32(x))
     return [hi, float(np.float32(x - hi))]
+
+
+def _scalars(cost: float, pred: float, positive_definite: bool) -> list[float]:
+    """The ``NSCALARS`` values after a robot's REFINE_SCHUR vector."""
+    return _split(cost) + _split(pred) + [float(positive_definite)]
 
 
 @dataclass
@@ -388,12 +398,12 @@ def refine_shares(
         )
         if frozen:  # the root's frozen factor, the new right-hand sides
             assert iface is not None
-            scalars = np.array([bundle[o][-5:] for o in sorted(bundle)])
-            gs = {o: bundle[o][:-5].reshape(-1, 1) for o in sorted(bundle)}
+            scalars = np.array([bundle[o][-NSCALARS:] for o in sorted(bundle)])
+            gs = {o: bundle[o][:-NSCALARS].reshape(-1, 1) for o in sorted(bundle)}
             pd = True
         else:
             model_exact = robots[tree.root].exact
-            iface, gs, scalars = substructure.factor_interface(bundle, b, 1, 5)
+            iface, gs, scalars = substructure.factor_interface(bundle, b, 1, NSCALARS)
             pd = iface.positive_definite
         F, pred = 2 * float(scalars[:, :2].sum()), 2 * float(scalars[:, 2:4].sum())
         was_trial = root.trial
@@ -486,13 +496,10 @@ def _condense_share(
         assert rob.loc is not None and rob.H is not None
         _, g, cost, _ = share_of(part, rob.T, False)
         loc = rob.loc.with_rhs(-g[:, None])
-        scalars = _split(cost) + _split(rob.pred) + [1.0]
-        return loc, rob.H, g, np.concatenate([loc.g.ravel(), scalars])
+        return loc, rob.H, g, np.concatenate([loc.g.ravel(), _scalars(cost, rob.pred, True)])
     H, g, cost, D = share_of(part, rob.T, rob.exact)
     loc = substructure.condense(
         part, partition, H + rob.mu * sp.diags(D), -g[:, None], b, gauge, np.zeros((b, 1))
     )
-    flat = substructure.pack(
-        loc, b, _split(cost) + _split(rob.pred) + [float(loc.positive_definite)]
-    )
+    flat = substructure.pack(loc, b, _scalars(cost, rob.pred, loc.positive_definite))
     return loc, H, g, flat
