@@ -25,7 +25,7 @@ DEMO_DIR ?= demo-run
 PYTEST_WORKERS ?= auto
 PYTEST_PARALLEL := -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
-.PHONY: help setup test lint types test-all demo bench bundle clean
+.PHONY: help setup test suite lint types test-all demo bench bundle clean
 
 help:
 	@echo "make demo      simulate a 6-robot mission, replay it through the robot code, score it"
@@ -47,7 +47,14 @@ $(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/de
 	$(PY) tools/install_drivers.py '-e .' $(DRIVERS)
 	touch $@
 
-test: setup lint types
+# lint first; then mypy (one process, ~25 s from an empty cache) beside the suite, at the lowest
+# CPU priority: it takes the cycles the suite's workers leave while they wait on sockets and
+# child processes, and does not slow them. The suite prints as it runs, mypy when it is done;
+# either failing fails the target. `make types` / `make suite` run one of them.
+test: setup lint
+	@$(MAKE) --no-print-directory -j 2 --output-sync=line TYPES_NICE="nice -n 19" types suite
+
+suite: setup
 	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow and not hardware"
 
 # ruff (pyproject [tool.ruff]): pyflakes-level checks and the formatting; the layer contracts
@@ -58,7 +65,7 @@ lint: setup
 
 # mypy (pyproject [tool.mypy]): the package at mypy's default level, solver/ and dran/ strict
 types: setup
-	$(PY) -m mypy
+	$(TYPES_NICE) $(PY) -m mypy
 
 test-all: setup
 	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not hardware"

@@ -15,10 +15,15 @@ ratio of this checkout's median to the baseline's.
 - Baseline: ``pytest -q -m "not slow and not hardware"`` in the worktree, with
   ``--base-workers`` pytest-xdist workers (default 0: in one process, as ``make test`` ran before
   pytest-xdist came in).
-- This checkout: the steps of ``make test`` after setup — ``ruff check``, ``ruff format
-  --check``, ``mypy`` (with ``--cold-types`` from an empty cache, as on a fresh clone) and
-  ``pytest -q $(PYTEST_PARALLEL) -m "not slow and not hardware"`` (the Makefile's pytest-xdist
-  options) for each ``--workers`` W.
+- This checkout: the steps of ``make test`` after setup, as the Makefile runs them — ``ruff
+  check``, ``ruff format --check``, then ``mypy`` (with ``--cold-types`` from an empty cache, as
+  on a fresh clone) in the background at nice 19 beside ``pytest -q $(PYTEST_PARALLEL) -m "not
+  slow and not hardware"`` (the Makefile's pytest-xdist options) for each ``--workers`` W.
+- ``--fresh-bytecode``: both arms with Python's default bytecode caching (an environment's
+  PYTHONDONTWRITEBYTECODE removed), each run started from a tree without ``__pycache__``
+  folders (outside .venv), as a fresh clone's first run on a default Python. Without it the
+  caller's environment holds; where it sets PYTHONDONTWRITEBYTECODE, every process (each test
+  worker, each ``dran-edge`` child process) compiles the repository's modules from source.
 
 The default baseline, 1ec7aa4, is the last commit before the offline-bundle work (the commit
 whose ``make test`` time the bundle must not worsen). A run whose tests fail is reported and
@@ -47,12 +52,22 @@ MARKERS = "not slow and not hardware"
 LINT_PATHS = ["dran_edge", "comms", "perception", "tests", "tools"]
 
 
-def _env() -> dict[str, str]:
+def _env(fresh_bytecode: bool = False) -> dict[str, str]:
     env = dict(os.environ)
     env["OPENBLAS_NUM_THREADS"] = "1"
     env["OMP_NUM_THREADS"] = "1"
     env.pop("PYTHONPATH", None)
+    if fresh_bytecode:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
     return env
+
+
+def _clear_bytecode(tree: Path) -> None:
+    """Remove the compiled modules (and pytest's rewritten test modules) under ``tree``, outside
+    its .venv: the state of a fresh clone."""
+    for d in tree.rglob("__pycache__"):
+        if ".venv" not in d.relative_to(tree).parts:
+            shutil.rmtree(d, ignore_errors=True)
 
 
 def _run(cmd: list[str], cwd: Path, env: dict[str, str]) -> tuple[int, str, float]:
@@ -118,41 +133,66 @@ def prepare_base(rev: str, workdir: Path) -> Path:
     return tree
 
 
-def run_base(tree: Path, workers: str, tests: list[str]) -> tuple[bool, str, float]:
+def run_base(
+    tree: Path, workers: str, tests: list[str], fresh_bytecode: bool = False
+) -> tuple[bool, str, float]:
     py = str(tree / ".venv" / "bin" / "python")
     cmd = [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", MARKERS, *tests]
-    rc, out, wall = _run(cmd + _pytest_args(workers, tree / "Makefile"), tree, _env())
+    if fresh_bytecode:
+        _clear_bytecode(tree)
+    rc, out, wall = _run(cmd + _pytest_args(workers, tree / "Makefile"), tree, _env(fresh_bytecode))
     return rc == 0, _summary(out) if rc == 0 else f"failed:\n{_failures(out)}", wall
 
 
 def run_head(
-    workers: str, cold_types: bool, workdir: Path, tests: list[str], checks: bool = True
+    workers: str,
+    cold_types: bool,
+    workdir: Path,
+    tests: list[str],
+    checks: bool = True,
+    fresh_bytecode: bool = False,
 ) -> tuple[bool, str, float]:
-    """The steps of `make test` after setup, timed together (``checks`` False: pytest only)."""
+    """The steps of `make test` after setup, timed together as the Makefile runs them: ruff
+    check and format, then mypy in the background at nice 19 beside pytest (``checks`` False:
+    pytest only)."""
     venv = REPO / ".venv" / "bin"
-    env = _env()
-    steps = [
+    env = _env(fresh_bytecode)
+    lint = [
         [str(venv / "ruff"), "check", *LINT_PATHS],
         [str(venv / "ruff"), "format", "--check", *LINT_PATHS],
-        [str(venv / "python"), "-m", "mypy"]
-        + (["--cache-dir", str(workdir / f"mypy-{time.monotonic_ns()}")] if cold_types else []),
+    ]
+    mypy = ["nice", "-n", "19", str(venv / "python"), "-m", "mypy"] + (
+        ["--cache-dir", str(workdir / f"mypy-{time.monotonic_ns()}")] if cold_types else []
+    )
+    pytest = (
         [str(venv / "python"), "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", MARKERS]
         + tests
-        + _pytest_args(workers),
-    ]
-    if not checks:
-        steps = steps[-1:]
-    total, out = 0.0, ""
-    for cmd in steps:
-        rc, out, wall = _run(cmd, REPO, env)
-        total += wall
+        + _pytest_args(workers)
+    )
+    if fresh_bytecode:
+        _clear_bytecode(REPO)
+    t0 = time.perf_counter()
+    for cmd in lint if checks else []:
+        rc, out, _ = _run(cmd, REPO, env)
         if rc != 0:
-            return (
-                False,
-                f"{' '.join(Path(c).name for c in cmd[:3])} failed:\n{_failures(out)}",
-                total,
-            )
-    return True, _summary(out), total
+            return False, f"ruff failed:\n{_failures(out)}", time.perf_counter() - t0
+    types = None
+    if checks:
+        types = subprocess.Popen(
+            mypy, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
+    try:
+        rc, out, _ = _run(pytest, REPO, env)
+        types_out = types.communicate()[0] if types is not None else ""
+    finally:
+        if types is not None and types.poll() is None:
+            types.kill()
+    wall = time.perf_counter() - t0
+    if types is not None and types.returncode != 0:
+        return False, f"mypy failed:\n{types_out[-2000:]}", wall
+    if rc != 0:
+        return False, f"pytest failed:\n{_failures(out)}", wall
+    return True, _summary(out), wall
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -177,6 +217,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--tests", nargs="+", default=[], help="only these test files (default: the whole suite)"
+    )
+    ap.add_argument(
+        "--fresh-bytecode",
+        action="store_true",
+        help="Python's default bytecode caching (PYTHONDONTWRITEBYTECODE unset), every run from "
+        "a tree without compiled modules, as a fresh clone's first run",
     )
     ap.add_argument("--keep", action="store_true", help="keep the baseline worktree")
     ap.add_argument(
@@ -205,10 +251,15 @@ def main(argv: list[str] | None = None) -> int:
                 label = f"{arm} -n {w}"
                 print(f"[{rep + 1}/{args.repeat}] {label} ...", file=sys.stderr, flush=True)
                 if arm == "base":
-                    ok, summary, wall = run_base(tree, w, args.tests)
+                    ok, summary, wall = run_base(tree, w, args.tests, args.fresh_bytecode)
                 else:
                     ok, summary, wall = run_head(
-                        w, args.cold_types, workdir, args.tests, not args.quick
+                        w,
+                        args.cold_types,
+                        workdir,
+                        args.tests,
+                        not args.quick,
+                        args.fresh_bytecode,
                     )
                 failed |= not ok
                 times.setdefault(label, []).append(wall)
