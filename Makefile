@@ -49,10 +49,11 @@ $(STAMP): pyproject.toml tools/setup_system.sh tools/build_zmq_draft.sh tools/de
 
 # lint first; then mypy (one process, ~25 s from an empty cache) beside the suite, at the lowest
 # CPU priority: it takes the cycles the suite's workers leave while they wait on sockets and
-# child processes, and does not slow them. The suite prints as it runs, mypy when it is done;
-# either failing fails the target. `make types` / `make suite` run one of them.
+# child processes, and does not slow them. The suite prints its progress as it runs; mypy's
+# report ("Success: ..." or its errors) appears among it when mypy is done. Either failing fails
+# the target. `make types` / `make suite` run one of them.
 test: setup lint
-	@$(MAKE) --no-print-directory -j 2 --output-sync=line TYPES_NICE="nice -n 19" types suite
+	@$(MAKE) --no-print-directory -j 2 TYPES_NICE="nice -n 19" types suite
 
 suite: setup
 	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow and not hardware"

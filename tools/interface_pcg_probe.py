@@ -41,7 +41,6 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from dran_edge import geometry as geo
 from dran_edge.dran import exact_gn, substructure
@@ -55,37 +54,24 @@ GAUGE = 0
 
 
 def robot_systems(g, part, W, T: np.ndarray, mu: float, b: int) -> list[dict]:
-    """Per robot: its damped exact-Hessian share condensed onto its boundary, densely."""
+    """Per robot: its damped exact-Hessian share condensed onto its boundary by
+    ``substructure.condense`` (what the refinement would gather), with S_r and its H_BB dense."""
     out = []
     for p in part.parts:
         H, gr, _, D = exact_gn.share(p, g.num_vertices, g.dim, g.edges, g.measurements, W, T, True)
-        H = (H + mu * sp.diags(D)).tocsr()
-        B = substructure.boundary(p, GAUGE)
-        I = np.setdiff1d(p.vertices, np.concatenate([p.separators, [GAUGE]]))
-        rb, ri = substructure.expand(B, b), substructure.expand(I, b)
-        lu = spla.splu(
-            sp.csc_matrix(H[ri][:, ri]),
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
-            options={"SymmetricMode": True},
+        loc = substructure.condense(
+            p, part, H + mu * sp.diags(D), -gr[:, None], b, GAUGE, np.zeros((b, 1))
         )
-        H_IB = H[ri][:, rb].toarray()
-        Y = lu.solve(np.column_stack([H_IB, -gr[ri]]))
-        H_BB = H[rb][:, rb].toarray()
-        S = H_BB - H_IB.T @ Y[:, :-1]
-        out.append(
-            dict(
-                B=B,
-                I=I,
-                S=0.5 * (S + S.T),
-                H_BB=H_BB,
-                g_B=-gr[rb] - H_IB.T @ Y[:, -1],
-                lu=lu,
-                H_IB=H_IB,
-                rhs_I=-gr[ri],
-                positive_definite=bool(np.all(lu.U.diagonal() > 0)),
-            )
-        )
+        m = loc.B.size * b
+        H_BB = np.zeros((m, m))
+        for (i, j), blk in zip(loc.st.pairs.tolist(), loc.Q_BB):
+            H_BB[i * b : (i + 1) * b, j * b : (j + 1) * b] = blk
+            H_BB[j * b : (j + 1) * b, i * b : (i + 1) * b] = blk.T
+        S = H_BB.copy()
+        for (_, N), P in zip(loc.st.comps, loc.pieces):
+            rn = substructure.expand(N, b)
+            S[np.ix_(rn, rn)] += P
+        out.append(dict(B=loc.B, S=S, H_BB=H_BB, g_B=loc.g[:, 0], loc=loc))
     return out
 
 
@@ -193,8 +179,9 @@ def back_substitute(g, part, systems, where, dB: np.ndarray, b: int, T: np.ndarr
     for p, s in zip(part.parts, systems):
         idx = np.array([where[v] for v in s["B"]], np.int64)
         x_B = dB[substructure.expand(idx, b)]
-        if s["I"].size:
-            delta[s["I"]] = s["lu"].solve(s["rhs_I"] - s["H_IB"] @ x_B).reshape(-1, b)
+        loc = s["loc"]
+        if loc.I.size:
+            delta[loc.I] = loc.back_substitute(x_B[:, None]).reshape(-1, b)
         own = np.isin(s["B"], p.vertices)
         delta[s["B"][own]] = x_B.reshape(-1, b)[own]
     return geo.retract(T, delta)
@@ -235,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         F = sesync_objective(T, g.edges, g.measurements, kappa, tau)
         print(
             f"\nstep {step}: F/F_init {F / F0:.10f}, |g_B| {np.linalg.norm(rhs):.3e}, interiors "
-            f"positive definite {all(s['positive_definite'] for s in systems)}"
+            f"positive definite {all(s['loc'].positive_definite for s in systems)}"
         )
         bj = block_diagonal(S, b)
         candidates: dict[str, tuple[np.ndarray, int]] = {"bj": (bj, sum(sizes) * b * (b + 1) // 2)}
