@@ -193,12 +193,24 @@ def safe_loader() -> Any:
     return getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
-def _line_map(text: str) -> dict[str, int]:
-    """Key path -> 1-based line, from the YAML node tree; also rejects duplicate keys."""
+def parse_yaml(text: str) -> tuple[Any, Any]:
+    """(data, root node) of one YAML document, parsed once with :func:`safe_loader`: the data
+    ``yaml.load`` returns and the node tree it was built from (for :func:`key_lines`)."""
+    loader = safe_loader()(text)
+    try:
+        root = loader.get_single_node()
+        return (loader.construct_document(root) if root is not None else None), root
+    finally:
+        loader.dispose()
+
+
+def key_lines(root: Any, reject_duplicates: bool = False) -> dict[str, int]:
+    """Key path (``a.b``, ``a[0]``) -> 1-based line, from a YAML node tree (None: empty);
+    ``reject_duplicates``: a key twice in one mapping raises (with its line) instead of the
+    later one winning."""
     import yaml
 
     lines: dict[str, int] = {}
-    root = yaml.compose(text, Loader=safe_loader())
 
     def walk(node: Any, path: str) -> None:
         if isinstance(node, yaml.MappingNode):
@@ -206,7 +218,7 @@ def _line_map(text: str) -> dict[str, int]:
             for k_node, v_node in node.value:
                 key = str(k_node.value)
                 child = f"{path}.{key}" if path else key
-                if key in seen:
+                if reject_duplicates and key in seen:
                     raise _LoadError(f"{child}: duplicate key", k_node.start_mark.line + 1)
                 seen.add(key)
                 lines[child] = k_node.start_mark.line + 1
@@ -248,8 +260,8 @@ def _read_yaml(path: Path) -> tuple[Any, dict[str, int]]:
     except OSError as exc:
         raise ConfigError(f"cannot read the config file: {exc.strerror}", path=str(path)) from None
     try:
-        lines = _line_map(text)
-        data = yaml.load(text, Loader=safe_loader())
+        data, root = parse_yaml(text)
+        lines = key_lines(root, reject_duplicates=True)
     except _LoadError as exc:
         raise ConfigError(str(exc), path=str(path), line=exc.line) from None
     except yaml.YAMLError as exc:

@@ -191,7 +191,7 @@ class _Node:
 def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
     import yaml
 
-    from dran_edge.config.loader import safe_loader
+    from dran_edge.config.loader import key_lines, parse_yaml
 
     try:
         text = path.read_text(encoding="utf-8")
@@ -201,10 +201,8 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
         ) from None
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror}", path=str(path)) from None
-    lines: dict[str, int] = {}
     try:
-        root = yaml.compose(text, Loader=safe_loader())
-        data = yaml.load(text, Loader=safe_loader())
+        data, root = parse_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         raise InputError(
@@ -212,21 +210,7 @@ def _yaml_with_lines(path: Path) -> tuple[Any, dict[str, int]]:
             path=str(path),
             line=mark.line + 1 if mark else None,
         ) from None
-
-    def walk(node: Any, prefix: str) -> None:
-        if isinstance(node, yaml.MappingNode):
-            for k, v in node.value:
-                key = f"{prefix}.{k.value}" if prefix else str(k.value)
-                lines[key] = k.start_mark.line + 1
-                walk(v, key)
-        elif isinstance(node, yaml.SequenceNode):
-            for i, item in enumerate(node.value):
-                lines[f"{prefix}[{i}]"] = item.start_mark.line + 1
-                walk(item, f"{prefix}[{i}]")
-
-    if root is not None:
-        walk(root, "")
-    return data, lines
+    return data, key_lines(root)
 
 
 # ------------------------------------------------------------------------------ mission.yaml
