@@ -424,10 +424,13 @@ def test_skeleton_stays_bounded_and_spans_the_mission():
 
 def _loop_attachment(m, skeleton_fraction: float):
     """Run mission ``m`` with small caps, then a loop from the newest keyframe to a long removed
-    one: (the old end's node, whether it is a skeleton node, the loop's translation σ)."""
+    one: (the old end's node, whether it is a skeleton node, the loop's translation σ); without
+    the archive, whose attachments are the subject of their own tests."""
     g = KeyframeGraph(
         AgentConfig(
-            graph=GraphBounds(max_nodes=60, max_edges=240, skeleton_fraction=skeleton_fraction)
+            graph=GraphBounds(
+                max_nodes=60, max_edges=240, skeleton_fraction=skeleton_fraction, archive_size=0
+            )
         )
     )
     feed(g, m.events)

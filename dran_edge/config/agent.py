@@ -57,6 +57,10 @@ class GraphBounds(_Checked):
     nodes spread evenly over the whole mission, so that loops into the distant past attach at
     short range (docs/notes/solve-and-bounded-graph.md, section 4); 0 (the default): only the
     recent window — the skeleton made ATE worse where it was measured."""
+    archive_size: int = _f(4096, lo=0, hi=1_000_000)
+    """Marginalised keyframes whose last estimate and covariance are kept, so that a loop into
+    the distant past becomes a prior on its current node instead of a long VIO attachment
+    (docs/notes/solve-and-bounded-graph.md, section 5); thinned by half when full; 0: off."""
     segment_gap_s: float = _f(1.0, lo=0.0, lo_open=True)
     """An odometry stamp gap longer than this starts a new segment, seconds (VINS restarts on 1 s)."""
     segment_jump_m: float = _f(1.0, lo=0.0, lo_open=True)

@@ -84,7 +84,7 @@ def problem_from_graph(
 
     btw = node_p & node_q & ((kind == KIND_ODOMETRY) | (kind == KIND_LOOP))
     obs = node_p & (q >= OBJ) & (kind == KIND_OBSERVATION)
-    pri = (p < 0) & node_q & (kind == KIND_PRIOR)
+    pri = (p < 0) & node_q & ((kind == KIND_PRIOR) | (kind == KIND_LOOP))  # loops into the archive
     z = np.zeros(0, np.int64)
     T0 = np.zeros((0, 4, 4))
     return LocalProblem(

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig, GraphBounds
@@ -35,8 +36,12 @@ from dran_edge.robot.factor_algebra import (
     invert_cov,
     split_weights,
 )
+from dran_edge.robot.archive import ArchivedPose, PoseArchive
 from dran_edge.robot.skeleton import Skeleton
 from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
+
+#: an archived pose whose variance exceeds this (m², rad²) carries no usable information
+ARCHIVE_MAX_VARIANCE = 1e2
 
 #: a factor: (p, q, Z, Σ, kind)
 Factor = tuple[int, int, np.ndarray, np.ndarray, int]
@@ -128,6 +133,7 @@ class FactorStore:
     last_node_of_segment: dict[int, int]
     seg_nodes: dict[int, tuple[list[int], list[int]]]
     skeleton: Skeleton
+    archive: PoseArchive
 
     def _init_factors(self) -> None:
         # factors: slot -> (p, q, Z, S, kind); adjacency: key -> set of slots
@@ -246,7 +252,7 @@ class FactorStore:
         if chain or not self.marginalize:
             self._compose_out(n, slots)
         else:
-            self._marginalize_out(n, self._reanchor_loops(n, slots))
+            self._marginalize_out(n, *self._loops_out(n, slots))
         seg = self.node_segment.get(n)
         stamps, nodes = self.seg_nodes.get(seg, ([], [])) if seg is not None else ([], [])
         if n in nodes:
@@ -264,6 +270,41 @@ class FactorStore:
         self.special.pop(n, None)
         self.protected.discard(n)
         self._count("nodes_removed")
+
+    def _loops_out(self, n: int, slots: list[int]) -> tuple[list[int], tuple | None]:
+        """Take ``n``'s loops off before it is marginalised: into the archive when ``n``'s
+        marginal is finite (:meth:`_loops_into_archive`), else re-anchored onto a neighbour
+        (:meth:`_reanchor_loops`). Returns the slots left for the Schur complement, and its
+        normal equations when they were built on the way."""
+        loops = [s for s in slots if self.factors[s][4] == KIND_LOOP and self.factors[s][0] != NONE]
+        if self.archive.capacity > 0:
+            rest = [s for s in slots if s not in loops]
+            system = self._marginal_system(n, [self.factors[s] for s in rest])
+            if self._loops_into_archive(n, loops, system):
+                return rest, system
+        return self._reanchor_loops(n, slots), None
+
+    def _loops_into_archive(self, n: int, loops: list[int], system: tuple) -> bool:
+        """Archive ``n`` (:meth:`_archive_node`) and turn each loop ``(x, n)`` into a unary factor
+        on ``x``: ``T_x ≈ T̂_n Z_nx`` with ``Σ = Ad(Z_nx⁻¹) (Σ_n / w) Ad(Z_nx⁻¹)ᵀ + Σ_nx``. The
+        ``k`` loops share half of the information of ``n``'s marginal ``Σ_n``, ``w = 1/(2k)``;
+        later loops into the archived ``n`` take half of what is left each
+        (:meth:`~dran_edge.robot.archive.ArchivedPose.take`), so all of them together use it at
+        most once. False when ``n``'s marginal is not finite (nothing changed)."""
+        keys_arr, _, H, _ = system
+        entry = self._archive_node(n, H, int(np.searchsorted(keys_arr, n)))
+        if entry is None:
+            return False
+        S_n = entry.covariance
+        T_n = self.node_est[n]
+        w = entry.take(len(loops)) if loops else 1.0
+        for s in loops:
+            p, q, Z, S, _ = self._remove_factor(s)
+            x = p if q == n else q
+            Z_nx, S_nx = (Z, S) if p == n else invert_cov(Z, S)
+            self._add_factor(NONE, x, *compose_cov(T_n, S_n / w, Z_nx, S_nx), KIND_LOOP)
+            self._count("loops_into_archive")
+        return True
 
     def _reanchor_loops(self, n: int, slots: list[int]) -> list[int]:
         """Move ``n``'s loop factors onto its most certain odometry neighbour (composition).
@@ -310,9 +351,9 @@ class FactorStore:
             rest = [s for s in rest if s != bridge]
         return rest
 
-    def _marginalize_out(self, n: int, slots: list[int]) -> None:
-        """Schur-complement node ``n`` out of its factors and the prior into a new prior."""
-        facs = [self._remove_factor(s) for s in slots]
+    def _marginal_system(self, n: int, facs: list[Factor]) -> tuple:
+        """(keys, poses, H, g): the dense normal equations of factors ``facs`` of node ``n`` and
+        the prior, over ``n``, the factors' other endpoints and the prior's variables."""
         keys = {n}
         for p, q, *_ in facs:
             keys.update(k for k in (p, q) if k != NONE)
@@ -320,11 +361,17 @@ class FactorStore:
             keys.update(self.prior["keys"].tolist())
         keys_arr = np.array(sorted(keys), dtype=np.int64)
         poses = np.stack([self._estimate(k) for k in keys_arr.tolist()])
-        fa = _arrays(facs)
-        blocks = self._blocks(fa, keys_arr, self.config.residual)
+        blocks = self._blocks(_arrays(facs), keys_arr, self.config.residual)
         if self.prior is not None:
             blocks.append(self._prior_block(keys_arr))
         H, g = _dense_normal_equations(blocks, len(keys_arr), poses)
+        return keys_arr, poses, H, g
+
+    def _marginalize_out(self, n: int, slots: list[int], system: tuple | None = None) -> None:
+        """Schur-complement node ``n`` out of its factors and the prior into a new prior
+        (``system``: their normal equations, :meth:`_marginal_system`, if already built)."""
+        facs = [self._remove_factor(s) for s in slots]
+        keys_arr, poses, H, g = system or self._marginal_system(n, facs)
         i = int(np.searchsorted(keys_arr, n))
         sn = np.arange(6 * i, 6 * i + 6)
         sb = np.setdiff1d(np.arange(H.shape[0]), sn)
@@ -341,6 +388,38 @@ class FactorStore:
         for older, newer in zip(in_prior, in_prior[1:]):  # keep the newest skeleton node only
             if self.prior is not None:
                 self._release_from_prior(older, newer)
+
+    def _archive_node(self, n: int, H: np.ndarray, i: int) -> ArchivedPose | None:
+        """Keep ``n``'s estimate and its covariance given the factors being marginalised and the
+        prior (``[H⁻¹]_nn``) in the archive (:mod:`dran_edge.robot.archive`); nothing when ``H``
+        is singular (no absolute information: the marginal is not finite)."""
+        if self.archive.capacity <= 0:
+            return None
+        try:
+            c = scipy.linalg.cho_factor(0.5 * (H + H.T))
+        except np.linalg.LinAlgError:
+            self._count("archive_singular")
+            return None
+        E = np.zeros((H.shape[0], 6))
+        E[6 * i : 6 * i + 6] = np.eye(6)
+        S = scipy.linalg.cho_solve(c, E)[6 * i : 6 * i + 6]
+        S = 0.5 * (S + S.T)
+        if not np.all(np.isfinite(S)) or float(np.max(np.diag(S))) > ARCHIVE_MAX_VARIANCE:
+            self._count("archive_singular")
+            return None
+        d_m, r_rad = self.node_cum[n]
+        entry = ArchivedPose(
+            self.node_stamp[n],
+            self.node_segment[n],
+            self.node_est[n].copy(),
+            S,
+            self.node_odom[n].copy(),
+            d_m,
+            r_rad,
+        )
+        self.archive.add(entry)
+        self._count("nodes_archived")
+        return entry
 
     def _release_from_prior(self, s: int, t: int) -> None:
         """Take skeleton node ``s`` out of the dense prior: the prior becomes its exact marginal
@@ -430,11 +509,19 @@ class FactorStore:
                         label=KIND_NAMES[kind],
                     )
                 )
-        sel = fa["p"] < 0
-        if np.any(sel):
-            blocks.append(
-                PriorFactors(qi[sel][:, None], fa["Z"][sel], W[sel], residual, None, label="prior")
-            )
+        for kind in (KIND_PRIOR, KIND_LOOP):  # loops into the archive are unary too
+            sel = (fa["p"] < 0) & (fa["kind"] == kind)
+            if np.any(sel):
+                blocks.append(
+                    PriorFactors(
+                        qi[sel][:, None],
+                        fa["Z"][sel],
+                        W[sel],
+                        residual,
+                        kernels.get(kind),
+                        label=KIND_NAMES[kind],
+                    )
+                )
         return blocks
 
     def _compose_out(self, n: int, slots: list[int]) -> None:
@@ -472,9 +559,9 @@ class FactorStore:
         _, ws = split_weights(0.0, [S for *_, S, _ in users])
         for (p, q, Z, S, kind), w in zip(users, ws):
             S_bridge = S_nm / w
-            if p == NONE:  # prior on n -> prior on m
+            if p == NONE:  # prior on n -> prior on m (a loop into the archive stays a loop)
                 Z2, S2 = compose_cov(Z, S, Z_nm, S_bridge)
-                self._add_factor(NONE, m, Z2, S2, KIND_PRIOR)
+                self._add_factor(NONE, m, Z2, S2, kind)
                 continue
             x = p if q == n else q
             Z_xn, S_xn = (Z, S) if q == n else invert_cov(Z, S)

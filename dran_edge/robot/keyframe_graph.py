@@ -38,6 +38,17 @@ counted once in total, and conservative — the kept graph's information never e
 marginal's (docs/notes/solve-and-bounded-graph.md). Factors that end up parallel (same
 endpoints) are fused, ``Ω = Ω₁ + Ω₂``, ``Z = Z₁ Exp(Ω⁻¹ Ω₂ Log(Z₁⁻¹ Z₂))``, which is what keeps
 the edge count bounded. Memory is O(max_nodes + max_edges + buffers) whatever the mission length.
+
+**Loops into the past** (``archive_size``, on by default; :mod:`dran_edge.robot.archive`). A node
+that is marginalised leaves its estimate and its marginal covariance (given its factors and the
+prior) in a bounded archive, and its loops become unary factors on their other ends through that
+estimate instead of being re-anchored (the re-anchored loops piled up on the window's oldest
+node and each got a tiny share of one bridge). A loop that arrives later and refers to an
+archived keyframe becomes such a unary factor on its current node too. The loops into one
+archived keyframe use its marginal's information at most once in total — but that information
+is also in the dense prior, so it is counted up to twice: not conservative (module
+:mod:`dran_edge.robot.archive`). A robot without absolute information (not the gauge anchor)
+archives nothing and re-anchors as before.
 Optionally (``skeleton_fraction``, off by default) a share of the nodes is kept as a skeleton
 spread over the whole mission (:mod:`dran_edge.robot.skeleton`).
 
@@ -85,6 +96,7 @@ from dran_edge.robot.factor_store import (  # noqa: F401
     _blockdiag_bound,
     _dense_normal_equations,
 )
+from dran_edge.robot.archive import PoseArchive
 from dran_edge.robot.segments import Segmenter
 from dran_edge.robot.skeleton import Skeleton
 from dran_edge.solver.graph import PoseGraph, VariableKind
@@ -128,6 +140,7 @@ class KeyframeGraph(FactorStore):
         self.seg_nodes: dict[int, tuple[list[int], list[int]]] = {}  # seg -> (stamps, nodes)
         self._init_factors()
         self.skeleton = Skeleton(int(self.bounds.skeleton_fraction * self.bounds.max_nodes))
+        self.archive = PoseArchive(self.bounds.archive_size if marginalize else 0)
         # buffers
         self.odo_stamps: deque[int] = deque(maxlen=ODOMETRY_BUFFER)
         self.odo_poses: deque[np.ndarray] = deque(maxlen=ODOMETRY_BUFFER)
@@ -324,10 +337,12 @@ class KeyframeGraph(FactorStore):
         return self.odo_segments[lo], T[0]
 
     def _loop(self, ev: LoopClosure) -> bool:
-        ends = []
+        ends: list[tuple[int, np.ndarray, np.ndarray]] = []
         for stamp in (ev.stamp_old_ns, ev.stamp_cur_ns):
             kf = self._keyframe_pose(stamp)
             att = None if kf is None else self._attach(stamp, kf[1], kf[0], kf[2])
+            if not ends and kf is not None:  # the old end: a marginalised keyframe nearer?
+                att = self._attach_archived(stamp, kf[1], kf[0], kf[2], att)
             if att is None:
                 self._count("loops_unattachable")
                 return False
@@ -336,14 +351,49 @@ class KeyframeGraph(FactorStore):
         if a == b:
             self._count("loops_within_one_node")
             return False
-        # T_a⁻¹ T_b = Z_a_old · T_old_cur · Z_b_cur⁻¹
+        # T_a⁻¹ T_b = Z_a_old · T_old_cur · Z_b_cur⁻¹ (a = NONE: the archive, T_a = I)
         Z, S = compose_cov(Z_a_old, S_a, ev.T_old_cur, diag_covariance(self.config.loop_noise))
         Zi, Si = invert_cov(Z_b_cur, S_b)
         Z, S = compose_cov(Z, S, Zi, Si)
         self._add_factor(a, b, Z, S, KIND_LOOP)
-        self._count("loops_added")
+        self._count("loops_added" if a != NONE else "loops_to_archived_keyframes")
         self._enforce_bounds()
         return True
+
+    def _attach_archived(
+        self,
+        stamp_ns: int,
+        T_odom_body: np.ndarray,
+        seg: int,
+        cum: tuple[float, float] | None,
+        att: tuple[int, np.ndarray, np.ndarray] | None,
+    ) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """``(NONE, T̂_world_body, Σ)`` at ``stamp_ns`` from the nearest archived keyframe of
+        ``seg`` (:mod:`dran_edge.robot.archive`) when it is nearer in VIO path than the kept
+        node of ``att`` (or there is none); else ``att``."""
+        entry = self.archive.nearest(seg, stamp_ns)
+        if entry is None:
+            return att
+        if cum is not None:
+            d_arch = abs(cum[0] - entry.path_m)
+        else:
+            d_arch = float(np.linalg.norm(geo.se3_between(entry.T_odom_body, T_odom_body)[:3, 3]))
+        if att is not None:
+            node = att[0]
+            if cum is not None:
+                d_node = abs(cum[0] - self.node_cum[node][0])
+            else:
+                d_node = float(np.linalg.norm(att[1][:3, 3]))
+            if d_node <= d_arch:
+                return att
+        Z = geo.se3_between(entry.T_odom_body, T_odom_body)
+        if cum is not None:
+            S_vio = self.odometry_covariance(
+                Z, abs(cum[0] - entry.path_m), abs(cum[1] - entry.turn_rad)
+            )
+        else:
+            S_vio = self.odometry_covariance(Z)
+        return (NONE, *compose_cov(entry.T_world_body, entry.covariance / entry.take(), Z, S_vio))
 
     def _observations(self, batch: ObservationBatch, retry: bool = False) -> bool:
         at = self._interpolate(batch.stamp_ns)
@@ -497,6 +547,7 @@ class KeyframeGraph(FactorStore):
             "counters": dict(self.counters),
             "prior": self.prior,
             "skeleton": self.skeleton.to_state(),
+            "archive": self.archive.to_state(),
         }
 
     @classmethod
@@ -554,6 +605,7 @@ class KeyframeGraph(FactorStore):
         g.segmenter = Segmenter.from_state(config.graph, state["segmenter"])
         g.counters = {str(k): int(v) for k, v in state["counters"].items()}
         g.skeleton = Skeleton.from_state(g.skeleton.capacity, state.get("skeleton"))
+        g.archive = PoseArchive.from_state(g.archive.capacity, state.get("archive"))
         pr = state.get("prior")
         g.prior = (
             None if pr is None else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")}

@@ -171,6 +171,12 @@ def main(argv=None) -> int:
         default=GraphBounds().skeleton_fraction,
         help="graph.skeleton_fraction of the bounded graph (docs/config.md)",
     )
+    ap.add_argument(
+        "--archive-size",
+        type=int,
+        default=GraphBounds().archive_size,
+        help="graph.archive_size of the bounded graph (docs/config.md; 0: off)",
+    )
     ap.add_argument("--round-every", type=int, default=10, help="keyframes per round")
     ap.add_argument("--iterations", type=int, default=3, help="LM iterations per round")
     ap.add_argument("--report-every", type=int, default=1000)
@@ -243,6 +249,7 @@ def main(argv=None) -> int:
             max_nodes=args.max_nodes,
             max_edges=args.max_edges,
             skeleton_fraction=args.skeleton_fraction,
+            archive_size=args.archive_size,
         )
     )
     bounded = KeyframeGraph(base)
@@ -302,7 +309,7 @@ def main(argv=None) -> int:
     print(
         f"\nbounded graph peak: {peak_nodes} nodes, {peak_edges} factors (caps "
         f"{args.max_nodes} / {args.max_edges}); skeleton {len(bounded.skeleton)} nodes, stride "
-        f"{bounded.skeleton.stride}; counters {bounded.counters}"
+        f"{bounded.skeleton.stride}; archive {len(bounded.archive)} keyframes; counters {bounded.counters}"
     )
 
     # final accuracy on the nodes the bounded graph holds

@@ -1,0 +1,140 @@
+"""The archive of marginalised keyframes (dran_edge/robot/archive.py) and loops into it."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from dran_edge import geometry as geo
+from dran_edge.config import AgentConfig, GraphBounds
+from dran_edge.daemon.checkpoint import dumps, loads
+from dran_edge.events import Keyframe, LoopClosure
+from dran_edge.robot.archive import ArchivedPose, PoseArchive
+from dran_edge.robot.keyframe_graph import KIND_LOOP, NONE, KeyframeGraph
+from dran_edge.sim.vio import vio_mission
+
+
+def cfg(archive_size: int = 4096, **kw) -> AgentConfig:
+    return AgentConfig(
+        graph=GraphBounds(max_nodes=60, max_edges=240, archive_size=archive_size), **kw
+    )
+
+
+def feed(g: KeyframeGraph, events) -> None:
+    for e in events:
+        g.handle(e)
+
+
+def entry(stamp: int, segment: int = 0) -> ArchivedPose:
+    T = geo.se3_exp(np.array([stamp * 0.1, 0, 0, 0, 0, 0.01 * stamp]))
+    return ArchivedPose(stamp, segment, T, 1e-4 * np.eye(6), T, 0.1 * stamp, 0.01 * stamp)
+
+
+def test_archive_stays_bounded_and_spans_the_mission():
+    a = PoseArchive(16)
+    for k in range(1000):
+        a.add(entry(k, segment=k // 500))
+        assert len(a) <= 16
+    assert len(a) >= 8 and a.thinned > 0
+    # still spans both segments from their start to their end
+    for seg, lo, hi in ((0, 0, 499), (1, 500, 999)):
+        assert a.nearest(seg, lo).stamp_ns - lo < 500 // 4
+        assert hi - a.nearest(seg, hi).stamp_ns < 500 // 4
+    assert a.nearest(2, 10) is None
+    b = PoseArchive.from_state(16, loads(dumps(a.to_state())))
+    assert len(b) == len(a) and b.thinned == a.thinned
+    e, f = a.nearest(1, 777), b.nearest(1, 777)
+    assert e.stamp_ns == f.stamp_ns
+    np.testing.assert_array_equal(e.T_world_body, f.T_world_body)
+
+
+MISSION = vio_mission(300, seed=21)
+_GRAPHS: dict = {}
+
+
+def _mission_graph(archive_size: int, anchor_first: bool = True):
+    """The mission streamed into a bounded graph, solved every 10 nodes as the daemon does
+    (built once per setting; callers get a copy)."""
+    key = (archive_size, anchor_first)
+    if key not in _GRAPHS:
+        g = KeyframeGraph(cfg(archive_size), anchor_first=anchor_first)
+        for e in MISSION.events:
+            g.handle(e)
+            if isinstance(e, Keyframe) and g.counters.get("nodes_added", 0) % 10 == 0:
+                g.solve()
+        _GRAPHS[key] = g
+    return MISSION, copy.deepcopy(_GRAPHS[key])
+
+
+def test_archived_covariance_is_not_overconfident_on_a_mission():
+    """Each archived keyframe's error against the truth, whitened by its covariance: on
+    average no larger than a consistent Gaussian's (E[χ²₆] = 6). Over-confident covariances
+    (information counted twice in the marginal) would push it above."""
+    m, g = _mission_graph(4096)
+    entries = [e for seg in sorted(g.archive._entries) for e in g.archive._entries[seg]]
+    assert len(entries) > 30 and g.counters["nodes_archived"] == len(entries)
+    i = np.searchsorted(m.keyframe_stamps_ns, [e.stamp_ns for e in entries])
+    T = np.stack([e.T_world_body for e in entries])
+    err = geo.se3_log(geo.se3_between(T, m.T_world_body_true[i]))
+    nees = [d @ np.linalg.solve(e.covariance, d) for d, e in zip(err, entries)]
+    assert np.mean(nees) < 6.0, np.mean(nees)
+
+
+def test_a_loop_into_a_removed_keyframe_becomes_a_prior_on_its_current_node():
+    """With the archive the old end is the removed keyframe's own estimate, not a kept node
+    hundreds of keyframes away through VIO odometry: a unary loop factor on the current node,
+    far more certain."""
+    sigmas = {}
+    for size in (4096, 0):
+        m, g = _mission_graph(size)
+        kept = set(g.node_stamps_ns().tolist())
+        old = next(i for i in range(50, 150) if int(m.keyframe_stamps_ns[i]) not in kept)
+        cur = len(m.keyframe_stamps_ns) - 1
+        rel = geo.se3_between(m.T_world_body_true[old], m.T_world_body_true[cur])
+        before = g.num_factors
+        loops_before = dict(g.counters)
+        assert g.handle(
+            LoopClosure(int(m.keyframe_stamps_ns[old]), int(m.keyframe_stamps_ns[cur]), rel, 60)
+        )
+        fa = g.factor_arrays(include_prior=False)
+        newest = int(g.node_keys()[-1])
+        if size:
+            assert g.counters["loops_to_archived_keyframes"] == 1 + loops_before.get(
+                "loops_to_archived_keyframes", 0
+            )
+            sel = (fa["p"] == NONE) & (fa["q"] == newest) & (fa["kind"] == KIND_LOOP)
+            assert sel.sum() == 1
+            # its mean: the archived estimate composed with the loop, near the truth
+            T_pred = fa["Z"][sel][0]
+            assert np.linalg.norm(T_pred[:3, 3] - m.T_world_body_true[cur][:3, 3]) < 0.5
+        else:
+            assert g.num_factors >= before  # a binary loop to a kept node
+            sel = (fa["q"] == newest) & (fa["kind"] == KIND_LOOP) & (fa["p"] != NONE)
+        sigmas[size] = float(np.sqrt(np.trace(fa["S"][sel][-1][:3, :3]) / 3))
+    assert sigmas[4096] < 0.5 * sigmas[0], sigmas
+
+
+def test_a_robot_without_absolute_information_archives_nothing():
+    """A fleet robot that does not carry the gauge: its marginals are not finite, so nothing is
+    archived and loops of removed nodes are re-anchored as without the archive."""
+    _, g = _mission_graph(4096, anchor_first=False)
+    assert len(g.archive) == 0 and "nodes_archived" not in g.counters
+    assert g.counters.get("loops_reanchored", 0) > 0
+    fa = g.factor_arrays(include_prior=False)
+    assert not np.any(fa["p"] == NONE)
+
+
+def test_state_round_trip_keeps_the_archive():
+    m = vio_mission(300, seed=9)
+    a = KeyframeGraph(cfg())
+    half = len(m.events) // 2
+    feed(a, m.events[:half])
+    assert len(a.archive) > 0
+    b = KeyframeGraph.from_state(cfg(), loads(dumps(a.to_state())))
+    feed(a, m.events[half:])
+    feed(b, m.events[half:])
+    assert a.counters == b.counters and len(a.archive) == len(b.archive)
+    fa, fb = a.factor_arrays(), b.factor_arrays()
+    for k in fa:
+        np.testing.assert_allclose(fa[k], fb[k])
