@@ -13,6 +13,7 @@ from dran_edge.events import Keyframe, LoopClosure
 from dran_edge.robot.archive import ArchivedPose, PoseArchive
 from dran_edge.robot.keyframe_graph import KIND_LOOP, NONE, KeyframeGraph
 from dran_edge.sim.vio import vio_mission
+from dran_edge.solver import lm
 
 
 def cfg(archive_size: int = 4096, **kw) -> AgentConfig:
@@ -62,7 +63,7 @@ def _mission_graph(archive_size: int, anchor_first: bool = True):
         for e in MISSION.events:
             g.handle(e)
             if isinstance(e, Keyframe) and g.counters.get("nodes_added", 0) % 10 == 0:
-                g.solve()
+                g.solve(lm.LMParams(max_iterations=3))
         _GRAPHS[key] = g
     return MISSION, copy.deepcopy(_GRAPHS[key])
 
@@ -116,8 +117,8 @@ def test_a_loop_into_a_removed_keyframe_becomes_a_prior_on_its_current_node():
 
 
 def test_a_robot_without_absolute_information_archives_nothing():
-    """A fleet robot that does not carry the gauge: its marginals are not finite, so nothing is
-    archived and loops of removed nodes are re-anchored as without the archive."""
+    """A fleet robot that does not carry the gauge: its marginals hold no absolute information,
+    so nothing is archived and loops of removed nodes are re-anchored as without the archive."""
     _, g = _mission_graph(4096, anchor_first=False)
     assert len(g.archive) == 0 and "nodes_archived" not in g.counters
     assert g.counters.get("loops_reanchored", 0) > 0
@@ -138,3 +139,16 @@ def test_state_round_trip_keeps_the_archive():
     fa, fb = a.factor_arrays(), b.factor_arrays()
     for k in fa:
         np.testing.assert_allclose(fa[k], fb[k])
+
+
+def test_the_agent_sees_loops_into_the_archive_as_robust_priors():
+    from dran_edge.dran.problem import LocalProblem
+    from dran_edge.robot.core import problem_from_graph
+
+    _, g = _mission_graph(4096)
+    fa = g.factor_arrays()
+    unary_loops = int(np.sum((fa["p"] == NONE) & (fa["kind"] == KIND_LOOP)))
+    assert unary_loops > 0
+    p = problem_from_graph(g, g.config.residual)
+    assert p.prior_robust.shape == p.prior_own.shape and int(p.prior_robust.sum()) == unary_loops
+    assert LocalProblem.from_dict(p.to_dict()).prior_robust.sum() == unary_loops

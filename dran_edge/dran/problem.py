@@ -90,6 +90,9 @@ class LocalProblem:
     obs_W: np.ndarray
     separators_for: dict[int, IntArray] = field(default_factory=dict)
     """neighbour id -> (s,) own indices it needs as anchors."""
+    prior_robust: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    """(p,) bool: apply the robust kernel to that prior (a loop into the robot's archive of
+    past keyframes, dran_edge/robot/archive.py); empty: none."""
 
     @property
     def n(self) -> int:
@@ -244,11 +247,19 @@ class LocalProblem:
                             )
                         )
         if self.prior_own.size:
-            blocks.append(
-                PriorFactors(
-                    self.prior_own[:, None], self.prior_T, self.prior_W, self.residual, None
-                )
-            )
+            rob = np.zeros(self.prior_own.size, bool)
+            rob[: self.prior_robust.size] = self.prior_robust
+            for mask, ker in ((~rob, None), (rob, kernel)):
+                if mask.any():
+                    blocks.append(
+                        PriorFactors(
+                            self.prior_own[mask][:, None],
+                            self.prior_T[mask],
+                            self.prior_W[mask],
+                            self.residual,
+                            ker,
+                        )
+                    )
         ok = obs_ok
         if ok.any():
             var = np.stack(

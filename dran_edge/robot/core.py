@@ -112,6 +112,7 @@ def problem_from_graph(
         obs_T=fa["Z"][obs],
         obs_W=W[obs],
         separators_for={},
+        prior_robust=kind[pri] == KIND_LOOP,
     )
 
 

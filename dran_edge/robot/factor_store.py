@@ -42,6 +42,9 @@ from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
 
 #: an archived pose whose variance exceeds this (m², rad²) carries no usable information
 ARCHIVE_MAX_VARIANCE = 1e2
+#: ... and a marginal system whose smallest Cholesky pivot is below this share of its largest
+#: diagonal entry is singular (the prior's own null-space cut is 1e-9 of its largest eigenvalue)
+ARCHIVE_MIN_PIVOT = 1e-10
 
 #: a factor: (p, q, Z, Σ, kind)
 Factor = tuple[int, int, np.ndarray, np.ndarray, int]
@@ -398,6 +401,11 @@ class FactorStore:
         try:
             c = scipy.linalg.cho_factor(0.5 * (H + H.T))
         except np.linalg.LinAlgError:
+            self._count("archive_singular")
+            return None
+        # a gauge direction without information factorises on round-off: pivots ~1e-16 of the scale
+        pivots = np.diag(c[0]) ** 2
+        if float(pivots.min()) <= ARCHIVE_MIN_PIVOT * float(np.max(np.diag(H))):
             self._count("archive_singular")
             return None
         E = np.zeros((H.shape[0], 6))

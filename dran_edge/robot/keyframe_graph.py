@@ -47,8 +47,8 @@ node and each got a tiny share of one bridge). A loop that arrives later and ref
 archived keyframe becomes such a unary factor on its current node too. The loops into one
 archived keyframe use its marginal's information at most once in total — but that information
 is also in the dense prior, so it is counted up to twice: not conservative (module
-:mod:`dran_edge.robot.archive`). A robot without absolute information (not the gauge anchor)
-archives nothing and re-anchors as before.
+:mod:`dran_edge.robot.archive`). A graph without the gauge prior (a fleet robot that is not the
+gauge anchor: its frame comes from object consensus) archives nothing and re-anchors as before.
 Optionally (``skeleton_fraction``, off by default) a share of the nodes is kept as a skeleton
 spread over the whole mission (:mod:`dran_edge.robot.skeleton`).
 
@@ -140,7 +140,9 @@ class KeyframeGraph(FactorStore):
         self.seg_nodes: dict[int, tuple[list[int], list[int]]] = {}  # seg -> (stamps, nodes)
         self._init_factors()
         self.skeleton = Skeleton(int(self.bounds.skeleton_fraction * self.bounds.max_nodes))
-        self.archive = PoseArchive(self.bounds.archive_size if marginalize else 0)
+        # archived estimates are absolute: only a graph that carries the gauge has them (a
+        # gauge-free graph's marginals are singular but for the linearised prior's round-off)
+        self.archive = PoseArchive(self.bounds.archive_size if marginalize and anchor_first else 0)
         # buffers
         self.odo_stamps: deque[int] = deque(maxlen=ODOMETRY_BUFFER)
         self.odo_poses: deque[np.ndarray] = deque(maxlen=ODOMETRY_BUFFER)
