@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
 from dran_edge import geometry as geo
 from dran_edge.config import AgentConfig, GraphBounds
@@ -42,9 +41,8 @@ from dran_edge.solver.factors import BetweenFactors, PriorFactors, make_kernel
 
 #: an archived pose whose variance exceeds this (m², rad²) carries no usable information
 ARCHIVE_MAX_VARIANCE = 1e2
-#: ... and a marginal system whose smallest Cholesky pivot is below this share of its largest
-#: diagonal entry is singular (the prior's own null-space cut is 1e-9 of its largest eigenvalue)
-ARCHIVE_MIN_PIVOT = 1e-10
+#: ... and one whose marginal information's smallest eigenvalue is below this share of its largest
+ARCHIVE_MIN_EIGENVALUE = 1e-10
 
 #: a factor: (p, q, Z, Σ, kind)
 Factor = tuple[int, int, np.ndarray, np.ndarray, int]
@@ -394,25 +392,34 @@ class FactorStore:
 
     def _archive_node(self, n: int, H: np.ndarray, i: int) -> ArchivedPose | None:
         """Keep ``n``'s estimate and its covariance given the factors being marginalised and the
-        prior (``[H⁻¹]_nn``) in the archive (:mod:`dran_edge.robot.archive`); nothing when ``H``
-        is singular (no absolute information: the marginal is not finite)."""
+        prior in the archive (:mod:`dran_edge.robot.archive`): the inverse of ``n``'s Schur
+        complement ``H_nn − H_nb H_bb⁺ H_bn`` (``[H⁻¹]_nn`` when ``H`` is regular; the
+        pseudo-inverse drops directions of ``H_bb`` without information that ``n``'s factors do
+        not touch, e.g. a node of a segment before a VIO reset left in the prior). Nothing when a
+        direction without information is coupled to ``n``, when the complement is singular, or
+        when the variance is too large to be of use."""
         if self.archive.capacity <= 0:
             return None
-        try:
-            c = scipy.linalg.cho_factor(0.5 * (H + H.T))
-        except np.linalg.LinAlgError:
+        H = 0.5 * (H + H.T)
+        sn = np.arange(6 * i, 6 * i + 6)
+        sb = np.setdiff1d(np.arange(H.shape[0]), sn)
+        Hnb = H[np.ix_(sn, sb)]
+        lam_b, V = np.linalg.eigh(H[np.ix_(sb, sb)])
+        null = lam_b <= ARCHIVE_MIN_EIGENVALUE * max(float(lam_b.max(initial=0.0)), 1e-300)
+        # a direction without information that n's factors touch: n's marginal is not finite
+        coupled = np.linalg.norm(Hnb @ V[:, null], axis=0)
+        if np.any(coupled > 1e-8 * max(float(np.linalg.norm(Hnb)), 1e-300)):
             self._count("archive_singular")
             return None
-        # a gauge direction without information factorises on round-off: pivots ~1e-16 of the scale
-        pivots = np.diag(c[0]) ** 2
-        if float(pivots.min()) <= ARCHIVE_MIN_PIVOT * float(np.max(np.diag(H))):
+        Vr = V[:, ~null]
+        M = H[np.ix_(sn, sn)] - (Hnb @ Vr) @ ((Hnb @ Vr) / lam_b[~null]).T
+        lam = np.linalg.eigvalsh(0.5 * (M + M.T))
+        if not np.all(np.isfinite(lam)) or lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300):
             self._count("archive_singular")
             return None
-        E = np.zeros((H.shape[0], 6))
-        E[6 * i : 6 * i + 6] = np.eye(6)
-        S = scipy.linalg.cho_solve(c, E)[6 * i : 6 * i + 6]
+        S = np.linalg.inv(M)
         S = 0.5 * (S + S.T)
-        if not np.all(np.isfinite(S)) or float(np.max(np.diag(S))) > ARCHIVE_MAX_VARIANCE:
+        if float(np.max(np.diag(S))) > ARCHIVE_MAX_VARIANCE:
             self._count("archive_singular")
             return None
         d_m, r_rad = self.node_cum[n]
