@@ -152,3 +152,30 @@ def test_the_agent_sees_loops_into_the_archive_as_robust_priors():
     p = problem_from_graph(g, g.config.residual)
     assert p.prior_robust.shape == p.prior_own.shape and int(p.prior_robust.sum()) == unary_loops
     assert LocalProblem.from_dict(p.to_dict()).prior_robust.sum() == unary_loops
+
+
+def test_a_marginal_ignores_what_it_does_not_touch_and_refuses_a_free_direction():
+    """``_archive_node``'s covariance is ``[H⁻¹]_nn`` for a regular system, is unchanged by a
+    variable without information that ``n`` is not coupled to (a node of an earlier VIO segment
+    left in the prior), and is refused when a direction without information touches ``n``."""
+    m = vio_mission(30, seed=3)
+    g = KeyframeGraph(cfg())
+    feed(g, m.events)
+    n = int(g.node_keys()[1])
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(18, 18))
+    H = A @ A.T + 0.1 * np.eye(18)  # n is variable 1 of 3
+    e = g._archive_node(n, H, 1)
+    assert e is not None
+    np.testing.assert_allclose(e.covariance, np.linalg.inv(H)[6:12, 6:12], rtol=1e-9)
+    H4 = np.zeros((24, 24))
+    H4[:18, :18] = H  # variable 3: no information at all, coupled to nothing
+    np.testing.assert_allclose(g._archive_node(n, H4, 1).covariance, e.covariance, rtol=1e-9)
+    # a free direction of variable 0 coupled to n: n's marginal is not finite
+    v = np.zeros(18)
+    v[0] = 1.0
+    P = np.eye(18) - np.outer(v + np.eye(18)[6], v + np.eye(18)[6]) / 2.0  # null along v + e_6
+    Hs = P @ H @ P
+    singular = g.counters.get("archive_singular", 0)
+    assert g._archive_node(n, Hs, 1) is None
+    assert g.counters["archive_singular"] == singular + 1
