@@ -340,16 +340,18 @@ class KeyframeGraph(FactorStore):
 
     def _loop(self, ev: LoopClosure) -> bool:
         ends: list[tuple[int, np.ndarray, np.ndarray]] = []
-        for stamp in (ev.stamp_old_ns, ev.stamp_cur_ns):
+        # the current end first: the old end may take a share of an archived keyframe's
+        # information (_attach_archived), which only a loop that is added should spend
+        for stamp in (ev.stamp_cur_ns, ev.stamp_old_ns):
             kf = self._keyframe_pose(stamp)
             att = None if kf is None else self._attach(stamp, kf[1], kf[0], kf[2])
-            if not ends and kf is not None:  # the old end: a marginalised keyframe nearer?
+            if ends and kf is not None:  # the old end: a marginalised keyframe nearer?
                 att = self._attach_archived(stamp, kf[1], kf[0], kf[2], att)
             if att is None:
                 self._count("loops_unattachable")
                 return False
             ends.append(att)
-        (a, Z_a_old, S_a), (b, Z_b_cur, S_b) = ends
+        (b, Z_b_cur, S_b), (a, Z_a_old, S_a) = ends
         if a == b:
             self._count("loops_within_one_node")
             return False
