@@ -135,15 +135,9 @@ class PoseArchive:
             "budget": np.array([e.budget for e in entries], np.float64),
             "stamps": np.array([e.stamp_ns for e in entries], np.int64),
             "segments": np.array([e.segment for e in entries], np.int64),
-            "T_world_body": np.stack([e.T_world_body for e in entries])
-            if entries
-            else np.zeros((0, 4, 4)),
-            "covariance": np.stack([e.covariance for e in entries])
-            if entries
-            else np.zeros((0, 6, 6)),
-            "T_odom_body": np.stack([e.T_odom_body for e in entries])
-            if entries
-            else np.zeros((0, 4, 4)),
+            "T_world_body": np.array([e.T_world_body for e in entries]).reshape(-1, 4, 4),
+            "covariance": np.array([e.covariance for e in entries]).reshape(-1, 6, 6),
+            "T_odom_body": np.array([e.T_odom_body for e in entries]).reshape(-1, 4, 4),
             "cum": np.array([(e.path_m, e.turn_rad) for e in entries], np.float64).reshape(-1, 2),
             "thinned": self.thinned,
         }

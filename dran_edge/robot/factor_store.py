@@ -296,14 +296,13 @@ class FactorStore:
         entry = self._archive_node(n, H, int(np.searchsorted(keys_arr, n)))
         if entry is None:
             return False
-        S_n = entry.covariance
-        T_n = self.node_est[n]
         w = entry.take(len(loops)) if loops else 1.0
         for s in loops:
             p, q, Z, S, _ = self._remove_factor(s)
             x = p if q == n else q
             Z_nx, S_nx = (Z, S) if p == n else invert_cov(Z, S)
-            self._add_factor(NONE, x, *compose_cov(T_n, S_n / w, Z_nx, S_nx), KIND_LOOP)
+            Z_x, S_x = compose_cov(entry.T_world_body, entry.covariance / w, Z_nx, S_nx)
+            self._add_factor(NONE, x, Z_x, S_x, KIND_LOOP)
             self._count("loops_into_archive")
         return True
 
