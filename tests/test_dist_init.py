@@ -196,25 +196,32 @@ def test_table1_setup_keeps_the_centralized_optimum_a_fixed_point(graph):
 
 
 def test_bench_g2o_cli_runs_the_table1_setup_plain_and_dgs(graph, tmp_path, capsys):
-    """``dran-edge bench g2o`` end to end on a small graph: the default is the Table 1 setup
-    (colour schedule, deltas), ``--plain`` Alg. 1 as printed; ``--out`` writes the estimate."""
+    """``dran-edge bench g2o`` end to end on a small graph: DRAN's rounds (``--refine off``)
+    run the Table 1 setup (colour schedule, deltas), ``--plain`` Alg. 1 as printed; ``--out``
+    writes the estimate. The default refines first (``--refine auto``): on this small graph
+    the refinement converges and ends the run below the objective DRAN's rounds stop at."""
     from dran_edge.cli.app import main
     from dran_edge.formats.g2o import read_g2o, write_g2o
 
     path = tmp_path / "lawnmower.g2o"
     write_g2o(path, graph)
     reports = {}
-    for extra in ([], ["--plain"], ["--method", "dgs"]):
+    for extra in (["--refine", "off"], ["--plain"], ["--method", "dgs"], []):
         out = tmp_path / f"merged{len(reports)}.g2o"
         rc = main(["bench", "g2o", str(path), "--robots", "3", "--json", "--out", str(out), *extra])
         captured = capsys.readouterr()
         assert rc == 0, captured.err
         reports[" ".join(extra)] = json.loads(captured.out)
         assert read_g2o(out).num_vertices == graph.num_vertices
-    fast, plain, dgs = reports[""], reports["--plain"], reports["--method dgs"]
+    fast, plain, dgs = reports["--refine off"], reports["--plain"], reports["--method dgs"]
+    default = reports[""]
+    assert "refine" not in fast and "refine" not in plain  # --plain: the paper's rounds alone
+    assert (default["refine"], default["stopped_by"], default["rounds"]) == ("auto", "refine", 0)
+    assert default["objective_final"] < fast["objective_final"]
+    assert default["F_over_Fstar"] < 1 + 1e-6 < fast["F_over_Fstar"]
     assert (fast["schedule"], fast["delta_every"]) == ("colour", 20) and fast["colours"] > 1
     assert (plain["schedule"], plain["delta_every"], plain["colours"]) == ("parallel", 0, 1)
-    for r in reports.values():
+    for r in (fast, plain, dgs):
         assert r["objective_final"] < r["objective_init"] and r["bytes_total"] > r["bytes_init"] > 0
     assert dgs["bytes_init"] == fast["bytes_init"]  # same init over the same wire layout
     # from the exact (substructured) init, Alg. 1's ε_u stop ends the plain run after a few
