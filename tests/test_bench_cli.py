@@ -6,8 +6,9 @@ import pytest
 
 from dran_edge.cli.app import main
 
-#: ``bench objects`` on a toy: 3 robots, 4 objects; the round count follows.
-SMALL = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4", "--rounds"]
+#: ``bench objects`` on a toy, DRAN's rounds alone: 3 robots, 4 objects; the round count follows.
+SMALL = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4", "--refine", "off"]
+SMALL += ["--rounds"]
 
 
 @pytest.mark.parametrize(
@@ -80,14 +81,12 @@ def test_bench_g2o_reports_f_over_fstar_or_says_na(capsys, tmp_path):
     g, _ = synthetic_graph(dim=2, side=5, layers=1, seed=1)
     path = tmp_path / "grid.g2o"
     write_g2o(path, g, g.poses)
-    assert main(["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--json"]) == 0
+    g2o = ["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--refine", "off"]
+    assert main([*g2o, "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     assert rep["F_over_Fstar"] == pytest.approx(rep["objective_final"] / rep["F_star"])
     assert rep["F_over_Fstar"] >= 1 - 1e-9 and rep["stopped_by"] is None
-    assert (
-        main(["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--no-reference"])
-        == 0
-    )
+    assert main([*g2o, "--no-reference"]) == 0
     out = capsys.readouterr().out
     assert "F_over_Fstar: n/a" in out
 
@@ -100,7 +99,7 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
     path = tmp_path / "grid.g2o"
     write_g2o(path, g, g.poses)
     base = ["bench", "g2o", str(path), "--robots", "2", "--max-rounds", "5", "--json", "--curve"]
-    assert main(base) == 0
+    assert main([*base, "--refine", "off"]) == 0
     rep = json.loads(capsys.readouterr().out)
     curve = rep["curve"]
     assert curve[0] == [0, rep["bytes_init"], rep["objective_init"]]
@@ -121,3 +120,12 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
     rep = json.loads(capsys.readouterr().out)  # frozen gathers send less
     assert rep["refine_frozen"] and rep["refine_frozen_steps"] >= 1
     assert rep["refine_bytes"] / (rep["refine_trials"] + 1) < per_gather
+
+
+def test_bench_objects_refines_by_default(capsys):
+    """Without --refine the run is --refine auto: on the toy the exact distributed refinement
+    converges before any DRAN round, at the centralized optimum."""
+    assert main([*SMALL[:-3], "--rounds", "50", "--json"]) == 0
+    row = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert row["refine"] == "auto" and row["refine_used"] and row["stopped_by"] == "refine"
+    assert row["F_over_Fstar"] < 1 + 1e-6
