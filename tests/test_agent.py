@@ -13,7 +13,7 @@ from dran_edge.events import EstimateUpdate, NeighbourData, Outgoing, Tick
 from dran_edge.messages import NeighbourMessage, ObjectEntry
 from dran_edge.experiments.objects import SimParams, make_scenario
 
-CFG = AgentConfig(robust_kernel="none")
+CFG = AgentConfig(robust_kernel="none", beta=1.0)  # unit-information toys: the paper's β
 
 
 @pytest.fixture(scope="module")
@@ -418,7 +418,9 @@ def _pull(scenario, config, offset_m, origin=None):
 
 
 def test_consensus_kernel_acts_only_on_conflicting_copies(scenario):
-    robust = AgentConfig(robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0)
+    robust = AgentConfig(
+        robust_kernel="cauchy", robust_threshold=0.1, object_robust_threshold=1.0, beta=1.0
+    )
     reach = robust.conflict_reach_m  # 16 m: two copies each within the 8 m gate of the object
     drift, a, oid = _pull(scenario, robust, 0.6 * reach)
     assert not a.objects.conflicts(((1, oid),)).any() and a.counters.consensus_conflicts == 0

@@ -12,7 +12,7 @@ from dran_edge.dran.consensus import metropolis_hastings_matrix
 from dran_edge.experiments.fleet import Fleet, neighbour_weights
 from dran_edge.experiments.objects import SimParams, make_scenario, run_objects
 
-CFG = AgentConfig(robust_kernel="none", eps_phi=1e-6)
+CFG = AgentConfig(robust_kernel="none", eps_phi=1e-6, beta=1.0)  # unit information: the paper's β
 SMALL = SimParams(
     num_robots=3, num_objects=6, box_m=(12.0, 12.0, 3.0), goals_per_robot=2, step_m=1.5, seed=3
 )
@@ -282,3 +282,28 @@ def test_outlier_runs_are_scored_against_the_outlier_free_centralized_solution()
         assert noisy[key] == clean[key], key
     # ... and it is a sound one: the centralized LM lands near the ground truth
     assert noisy["ATE_star"] < 0.5 * noisy["ATE_init"]
+
+
+def test_beta_has_the_units_of_information(toy):
+    """DRAN is invariant under Ω → sΩ, β → sβ (duals λ → sλ; the damping is relative to the
+    Hessian's diagonal, the kernels act on whitened residuals, the consensus tests on φ): with
+    every whitening × √s and β × s the run takes the same steps, so F scales by s and ATE is
+    unchanged. The paper's β = 1 is therefore a statement about unit information, and a robot
+    whose observations carry Ω ~ 10³–10⁴ needs a β of that scale (docs/dran.md)."""
+    s = 100.0
+
+    def scaled(p):
+        return dataclasses.replace(
+            p,
+            **{f: getattr(p, f) * np.sqrt(s) for f in ("between_W", "inter_W", "prior_W", "obs_W")},
+        )
+
+    big = dataclasses.replace(toy, problems=[scaled(p) for p in toy.problems])
+    edges = [(0, 1), (1, 2), (0, 2)]
+    a = run_objects(toy, CFG, edges, max_rounds=25)
+    b = run_objects(big, dataclasses.replace(CFG, beta=s * CFG.beta), edges, max_rounds=25)
+    assert b["F"] == pytest.approx(s * a["F"], rel=1e-6)
+    assert b["ATE"] == pytest.approx(a["ATE"], rel=1e-6) and b["bytes"] == a["bytes"]
+    # and the same scaled problem with the unscaled β is a different (slower) run
+    c = run_objects(big, CFG, edges, max_rounds=25)
+    assert c["F_over_Fstar"] > 1.01 * b["F_over_Fstar"]
