@@ -6,9 +6,10 @@ import pytest
 
 from dran_edge.cli.app import main
 
-#: ``bench objects`` on a toy, DRAN's rounds alone: 3 robots, 4 objects; the round count follows.
-SMALL = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4", "--refine", "off"]
-SMALL += ["--rounds"]
+#: ``bench objects`` on a toy: 3 robots, 4 objects.
+TOY = ["bench", "objects", "--rho", "1.0", "--robots", "3", "--objects", "4"]
+#: the toy with DRAN's rounds alone; the round count follows.
+SMALL = [*TOY, "--refine", "off", "--rounds"]
 
 
 @pytest.mark.parametrize(
@@ -125,7 +126,7 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
 def test_bench_objects_refines_by_default(capsys):
     """Without --refine the run is --refine auto: on the toy the exact distributed refinement
     converges before any DRAN round, at the centralized optimum."""
-    assert main([*SMALL[:-3], "--rounds", "50", "--json"]) == 0
+    assert main([*TOY, "--rounds", "50", "--json"]) == 0
     row = json.loads(capsys.readouterr().out.splitlines()[0])
     assert row["refine"] == "auto" and row["refine_used"] and row["stopped_by"] == "refine"
     assert row["F_over_Fstar"] < 1 + 1e-6

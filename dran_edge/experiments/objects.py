@@ -267,10 +267,12 @@ def bench_config(robust: bool, min_views: int | None = None) -> AgentConfig:
     check's centre (``centre_reach_m``, 16 m, the agent default) stays on: a lone wrong view
     cleared by the exclusion can start a phantom in the first round, and least squares would
     average it into the relays before the check drops it ("Thirteenth session"). ``min_views``
-    overrides the min views. β is the paper's 1 (unit information). The fleet stops on the "tail" rule (docs/notes/stopping-rule.md):
-    the paper's ε_u/ε_v test let a run stop at K_max 27 % above F*."""
+    overrides the min views. β is the paper's 1: this simulation has unit information (β has
+    the units of information; the daemon's default is for the robot's tag observations). The
+    fleet stops on the "tail" rule (docs/notes/stopping-rule.md): the paper's ε_u/ε_v test let
+    a run stop at K_max 27 % above F*."""
     return AgentConfig(
-        beta=1.0,  # the paper's: this simulation has unit information (docs/dran.md, β's units)
+        beta=1.0,
         stop_rule="tail",
         robust_kernel=RobustKernel.CAUCHY if robust else RobustKernel.NONE,
         robust_threshold=0.05,
