@@ -80,3 +80,29 @@ def test_the_checkpoint_loads_back_into_the_core(tmp_path):
         assert abs(est[[nodes.index(k) for k in ids]] - x).max() < 1e-12
     finally:
         again.shutdown()
+
+
+def test_beta_is_checked_against_the_tag_observations(tmp_path, caplog):
+    """At a status period the daemon compares agent.beta with the information of its tag
+    observations (dran.beta_scale): the ratio goes into the status document, and a β far
+    outside the measured window is logged once."""
+    from dran_edge.daemon.status import status_document
+
+    cfg = load_config(write_config(tmp_path, comms={"period_s": 0.05}, agent={"beta": 1e-3}))
+    d = Daemon(cfg, notifier=Notifier({}), environ={})
+    d.start()
+    try:
+        _send_all(d, vio_mission(60, seed=3).events)
+        d._last_status = float("-inf")  # the next tick is a status period
+        with caplog.at_level("WARNING", logger="dran_edge.daemon.service"):
+            d.tick()
+            d._last_status = float("-inf")
+            d.tick()
+        doc = status_document(d, "running")
+    finally:
+        d.shutdown()
+    check = doc["beta_check"]
+    assert check["beta"] == 1e-3 and check["observation_information"] > 0
+    assert check["ratio"] == check["beta"] / check["observation_information"] < 0.003
+    warned = [r for r in caplog.records if "agent.beta = 0.001" in r.getMessage()]
+    assert len(warned) == 1 and "too weak" in warned[0].getMessage()

@@ -67,6 +67,10 @@ def test_outputs_exist_and_are_readable(tiny):
     for key in ("sr_ate", "sr_cost", "ate_m", "ce", "bias"):
         assert key in report
     assert 0 < report["ate_m"] < 0.2
+    # β against the observations' information (dran.beta_scale): the default is in the window
+    beta = report["beta_check"]
+    assert beta["ratio"] == pytest.approx(beta["beta"] / beta["observation_information"])
+    assert 0.01 <= beta["ratio"] <= 0.2 and "warning" not in beta and "warnings" not in report
 
 
 def test_same_run_same_numbers(tiny, tmp_path):
@@ -98,6 +102,9 @@ def test_matches_the_golden_summary(regen, tmp_path):
         pytest.fail(f"{GOLDEN} missing: run tools/regen_golden.py")
     report = regen.replay_stored(tmp_path)
     assert report["frames_processed"] == 0
+    # recorded with the paper's β = 1, 3.5e-4 of its observations' information: said so
+    assert report["beta_check"]["beta"] == 1.0 and "too weak" in report["beta_check"]["warning"]
+    assert report["warnings"] == [report["beta_check"]["warning"]]
     golden = json.loads(GOLDEN.read_text())
     actual = rp.golden_summary(report)
     diffs = rp.compare_summary(actual, golden, rtol=0, atol=0, count_rtol=0)

@@ -87,6 +87,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: tag observations in the local graph before β is checked against their information
+BETA_CHECK_MIN_OBSERVATIONS = 20
+
 #: 2: the core is an RobotCore; its state's keys ("agent", "graph", "online") sit at the top
 #: level of the checkpoint next to the daemon's own.
 STATE_FORMAT = 2
@@ -134,6 +137,9 @@ class Daemon:
         self.transport: Transport | None = None
         self.live: Any = None
         self._record_file: BinaryIO | None = None
+        self.beta_check: dict | None = None
+        """β against this robot's tag observations (``dran.beta_scale``), at status periods."""
+        self._beta_warned = False
 
     # ------------------------------------------------------------------ start-up
     def start(self) -> None:
@@ -340,6 +346,30 @@ class Daemon:
             line = status_line(self)
             self.notifier.status(line)
             log.info("status: %s", line)
+            self._check_beta()
+
+    def _check_beta(self) -> None:
+        """β against the information of this robot's tag observations (``dran.beta_scale``,
+        docs/dran.md): in the status document, and one warning in the log when it is far
+        outside the measured window (a camera or tag size that gives another information
+        scale than the default β was set for)."""
+        from dran_edge.dran import beta_scale
+        from dran_edge.robot.factor_algebra import KIND_OBSERVATION
+
+        graph = getattr(self.agent, "local_graph", None)
+        if graph is None:
+            return
+        fa = graph.factor_arrays(include_prior=False)
+        obs = fa["S"][fa["kind"] == KIND_OBSERVATION]
+        if len(obs) < BETA_CHECK_MIN_OBSERVATIONS:
+            return
+        beta = self.cfg.agent.beta
+        scale = beta_scale.observation_scale([obs])
+        ratio, warning = beta_scale.check(beta, scale)
+        self.beta_check = {"beta": beta, "observation_information": scale, "ratio": ratio}
+        if warning and not self._beta_warned:
+            self._beta_warned = True
+            log.warning("%s", warning)
 
     @property
     def graph(self) -> Any:

@@ -158,6 +158,7 @@ def status_document(d: Daemon, state: str) -> dict:
         else {"batches": d.perception.batches, "errors": d.perception.errors},
         "counters": d.counters.as_dict(),
         "agent": d.agent_health,
+        "beta_check": getattr(d, "beta_check", None),
         "estimate": _estimate_section(est),
         "systemd": d.notifier.backend,
     }

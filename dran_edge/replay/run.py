@@ -432,11 +432,48 @@ def _report(
         "final_consensus_error": rounds_rows[-1]["consensus_error"] if rounds_rows else None,
         **costs.report(),
     }
-    if s.clock_warnings:
-        report["warnings"] = s.clock_warnings
+    beta = _beta_check(s.run, res)
+    if beta:
+        report["beta_check"] = beta
+    warnings = [*s.clock_warnings, *([beta["warning"]] if beta.get("warning") else [])]
+    if warnings:
+        report["warnings"] = warnings
     if s.bus is not None:
         report["datagrams_lost"] = {k: int(v) for k, v in s.bus.lost.items()}
     return report
+
+
+def _beta_check(run: rd.Run, res: list[RobotResult]) -> dict[str, Any]:
+    """β against the information of the robots' tag observations (``dran.beta_scale``): the
+    robots' β (one value when they agree), the observations' scale, their ratio and a warning
+    when the ratio is far outside the measured window; {} without observations."""
+    from dran_edge.dran import beta_scale
+    from dran_edge.robot.factor_algebra import KIND_OBSERVATION
+
+    scale = beta_scale.observation_scale(
+        r.graph["factors"]["S"][r.graph["factors"]["kind"] == KIND_OBSERVATION]
+        for r in res
+        if r.graph is not None
+    )
+    if scale is None:
+        return {}
+    betas = {r.name: run.load_config(r.name).agent.beta for r in res}
+    out: dict[str, Any] = {"observation_information": scale}
+    if len(set(betas.values())) > 1:  # eq. 5b keeps λ_ij + λ_ji = 0 only with one β per pair
+        out["beta"] = betas
+        out["warning"] = (
+            f"the robots' agent.beta differ ({betas}): the consensus duals of a pair stay "
+            "balanced only when both ends use the same beta (docs/dran.md)"
+        )
+        log.warning("%s", out["warning"])
+        return out
+    beta = next(iter(betas.values()))
+    ratio, warning = beta_scale.check(beta, scale)
+    out.update(beta=beta, ratio=ratio)
+    if warning:
+        log.warning("%s", warning)
+        out["warning"] = warning
+    return out
 
 
 def _replay(
