@@ -99,9 +99,18 @@ def test_three_daemons_match_replay(tmp_path):
         assert p["keyframes"] > 5 and p["objects"] > 0
     assert (res.out_dir / "out" / "dingo1" / "dingo1.tum").exists()
     assert (res.out_dir / "out" / "merged.g2o").exists()
-    # same agent code, same inputs: only the clocks and round alignment differ
-    assert abs(r["sr_ate"] - rep["sr_ate"]) <= 5.0, (r["sr_ate"], rep["sr_ate"])
-    assert abs(r["ate_m"] - rep["ate_m"]) <= 0.2 * rep["ate_m"], (r["ate_m"], rep["ate_m"])
+    # same agent code, same inputs: only the clocks and round alignment differ. After 60
+    # rounds the fleet is still converging (F/F* ~1.45), so a neighbour's copy read a round
+    # later shows: measured on a quiet machine (β = 250, 4 rehearsals) F/F* within 0.7 %, ATE
+    # within 2.1 % (1.4 mm), SR_ATE within 4.5 points — on this 20 s mission ATE_init − ATE*
+    # is a few cm, so SR_ATE amplifies millimetres (6.8 points seen under CI load). With the
+    # paper's β = 1 the fleet barely moved in 60 rounds (F/F* 4.4) and agreed to 0.02 points.
+    assert abs(r["f_over_fstar"] - rep["f_over_fstar"]) <= 0.03 * rep["f_over_fstar"], (
+        r["f_over_fstar"],
+        rep["f_over_fstar"],
+    )
+    assert abs(r["ate_m"] - rep["ate_m"]) <= 0.1 * rep["ate_m"], (r["ate_m"], rep["ate_m"])
+    assert abs(r["sr_ate"] - rep["sr_ate"]) <= 10.0, (r["sr_ate"], rep["sr_ate"])
     saved = json.loads((res.out_dir / "rehearsal.json").read_text())
     assert saved["sr_ate"] == pytest.approx(r["sr_ate"])
 
