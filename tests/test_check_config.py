@@ -183,6 +183,7 @@ def test_check_fleet_finds_every_inconsistency(tmp_path):
             cfg["neighbours"][0]["address"] = "10.0.0.9:5600"  # r3 at another address
         if i == 4:
             cfg["robot"]["id"] = 2  # duplicate id (and r4 vanishes)
+            cfg["agent"] = {"beta": 1.0}  # the paper's β beside the others' default
 
     rep = _fleet(tmp_path, edit=edit)
     text = "\n".join(map(str, rep.errors))
@@ -191,6 +192,7 @@ def test_check_fleet_finds_every_inconsistency(tmp_path):
     assert "does not list r1 (id 1) back" in text
     assert "listed at different addresses" in text
     assert "neighbour 4 (r4) is not a robot of this directory" in text
+    assert "robots disagree on agent.beta: 1.0 (r4); 250.0 (r1, r2, r3)" in text
 
 
 @needs_ed25519

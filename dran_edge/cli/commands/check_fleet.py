@@ -29,8 +29,9 @@ def build_parser(prog: str) -> argparse.ArgumentParser:
         "its address matching that robot's port, and the neighbour lists it back; "
         "one key policy (comms.auth); with hmac the same fleet key where the key "
         "files are readable; with ed25519 or pairwise each robot's public key (from its key "
-        "file's .pub) in every neighbour's keys. Also the same agent.dim and "
-        "comms.period_s. Prints every problem and exits 2, or a summary and 0.",
+        "file's .pub) in every neighbour's keys. Also the same agent.dim, "
+        "comms.period_s, agent.beta and agent.eta (the consensus duals of a pair balance "
+        "only with one beta and eta). Prints every problem and exits 2, or a summary and 0.",
     )
     p.add_argument("dir", metavar="DIR", help="the directory of robot configs (e.g. calib/fleet)")
     return p
@@ -93,6 +94,10 @@ def _identity(cfgs: list, rep: FleetReport) -> None:
     for what, get in (
         ("agent.dim", lambda c: c.agent.dim),
         ("comms.period_s", lambda c: c.comms.period_s),
+        # the dual step η β w of eq. 5b must be the same at both ends of a pair, or the duals'
+        # sum λ_ij + λ_ji drifts off zero and the consensus settles off the optimum
+        ("agent.beta", lambda c: c.agent.beta),
+        ("agent.eta", lambda c: c.agent.eta),
     ):
         values = defaultdict(list)
         for c in cfgs:
