@@ -47,6 +47,15 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def nearest_in_time(stamps: list[int], stamp_ns: int) -> int:
+    """Index of the stamp in the sorted, non-empty ``stamps`` nearest to ``stamp_ns`` (the
+    earlier one on a tie)."""
+    i = bisect.bisect_left(stamps, stamp_ns)
+    return min(
+        (j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp_ns)
+    )
+
+
 @dataclass
 class ArchivedPose:
     """One marginalised keyframe."""
@@ -121,10 +130,7 @@ class PoseArchive:
         stamps = self._stamps.get(segment)
         if not stamps:
             return None
-        i = bisect.bisect_left(stamps, stamp_ns)
-        cands = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
-        j = min(cands, key=lambda j: abs(stamps[j] - stamp_ns))
-        return self._entries[segment][j]
+        return self._entries[segment][nearest_in_time(stamps, stamp_ns)]
 
     def to_state(self) -> dict:
         entries = [e for seg in sorted(self._entries) for e in self._entries[seg]]

@@ -65,7 +65,6 @@ and algebra are in their own modules); over 500 only by ruff format's layout.
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections import deque
 
@@ -96,7 +95,7 @@ from dran_edge.robot.factor_store import (  # noqa: F401
     _blockdiag_bound,
     _dense_normal_equations,
 )
-from dran_edge.robot.archive import PoseArchive
+from dran_edge.robot.archive import PoseArchive, nearest_in_time
 from dran_edge.robot.segments import Segmenter
 from dran_edge.robot.skeleton import Skeleton
 from dran_edge.solver.graph import PoseGraph, VariableKind
@@ -286,21 +285,28 @@ class KeyframeGraph(FactorStore):
         stamps, nodes = self.seg_nodes.get(seg, ([], []))
         if not stamps:
             return None
-        i = bisect.bisect_left(stamps, stamp_ns)
-        cands = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
-        j = min(cands, key=lambda j: abs(stamps[j] - stamp_ns))
-        best, best_dt = nodes[j], abs(stamps[j] - stamp_ns)
+        j = nearest_in_time(stamps, stamp_ns)
+        best = nodes[j]
         if best is None or T_odom_body is None:
             return None
-        Z = geo.se3_between(self.node_odom[best], T_odom_body)
-        if not best_dt:
-            return best, Z, np.zeros((6, 6))
-        if cum is not None:  # drift grows with the path travelled, not the straight line
-            c = self.node_cum[best]
-            S = self.odometry_covariance(Z, abs(cum[0] - c[0]), abs(cum[1] - c[1]))
-        else:
-            S = self.odometry_covariance(Z)
-        return best, Z, S
+        if stamps[j] == stamp_ns:
+            return best, geo.se3_between(self.node_odom[best], T_odom_body), np.zeros((6, 6))
+        return best, *self._vio_motion(self.node_odom[best], self.node_cum[best], T_odom_body, cum)
+
+    def _vio_motion(
+        self,
+        T_odom_from: np.ndarray,
+        cum_from: tuple[float, float],
+        T_odom_to: np.ndarray,
+        cum: tuple[float, float] | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(Z, Σ): the VIO motion between two body poses and its drift covariance, which grows
+        with the path travelled and the turn (``cum`` and ``cum_from``: (path_m, turn_rad))
+        where the target's is known, else with the straight line."""
+        Z = geo.se3_between(T_odom_from, T_odom_to)
+        if cum is None:
+            return Z, self.odometry_covariance(Z)
+        return Z, self.odometry_covariance(Z, abs(cum[0] - cum_from[0]), abs(cum[1] - cum_from[1]))
 
     def _keyframe_pose(self, stamp_ns: int):
         """(segment, T_odom_body, (path_m, turn_rad) or None) of a VIO keyframe stamp."""
@@ -378,25 +384,19 @@ class KeyframeGraph(FactorStore):
         entry = self.archive.nearest(seg, stamp_ns)
         if entry is None:
             return att
-        if cum is not None:
-            d_arch = abs(cum[0] - entry.path_m)
-        else:
-            d_arch = float(np.linalg.norm(geo.se3_between(entry.T_odom_body, T_odom_body)[:3, 3]))
-        if att is not None:
-            node = att[0]
+        Z, S_vio = self._vio_motion(
+            entry.T_odom_body, (entry.path_m, entry.turn_rad), T_odom_body, cum
+        )
+        if att is not None:  # the kept node wins when it is at most as far (VIO path)
             if cum is not None:
-                d_node = abs(cum[0] - self.node_cum[node][0])
+                d_arch, d_node = abs(cum[0] - entry.path_m), abs(cum[0] - self.node_cum[att[0]][0])
             else:
-                d_node = float(np.linalg.norm(att[1][:3, 3]))
+                d_arch, d_node = (
+                    float(np.linalg.norm(Z[:3, 3])),
+                    float(np.linalg.norm(att[1][:3, 3])),
+                )
             if d_node <= d_arch:
                 return att
-        Z = geo.se3_between(entry.T_odom_body, T_odom_body)
-        if cum is not None:
-            S_vio = self.odometry_covariance(
-                Z, abs(cum[0] - entry.path_m), abs(cum[1] - entry.turn_rad)
-            )
-        else:
-            S_vio = self.odometry_covariance(Z)
         return (NONE, *compose_cov(entry.T_world_body, entry.covariance / entry.take(), Z, S_vio))
 
     def _observations(self, batch: ObservationBatch, retry: bool = False) -> bool:
