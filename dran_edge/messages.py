@@ -51,6 +51,12 @@ class InitStage(enum.IntEnum):
     #: is the first sequence number of a run of the recipient's datagrams the sender of the
     #: ack received, ``owner_robot`` the run's length (≥ 1).
     ARQ_ACK = 10
+    #: The refinement's iterative interface solve (``dran_edge.dran.interface_pcg``), d x d
+    #: chunks of one packed float vector as the SCHUR stages: REFINE_PCG_UP a robot's vector
+    #: up the robot tree (``owner_robot`` the robot it is from), REFINE_PCG_DOWN the root's
+    #: vector for one robot down the tree (``owner_robot`` the robot it is for).
+    REFINE_PCG_UP = 11
+    REFINE_PCG_DOWN = 12
 
     @property
     def valueless(self) -> bool:
@@ -79,6 +85,8 @@ class InitStage(enum.IntEnum):
             InitStage.REFINE_SCHUR,
             InitStage.REFINE_STEP,
             InitStage.REFINE_CONTROL,
+            InitStage.REFINE_PCG_UP,
+            InitStage.REFINE_PCG_DOWN,
             InitStage.ARQ_ACK,
         )
 

@@ -121,6 +121,12 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
     rep = json.loads(capsys.readouterr().out)  # frozen gathers send less
     assert rep["refine_frozen"] and rep["refine_frozen_steps"] >= 1
     assert rep["refine_bytes"] / (rep["refine_trials"] + 1) < per_gather
+    pcg = ["--refine", "always", "--refine-interface", "pcg", "--refine-steps", "3"]
+    assert main([*base, *pcg]) == 0
+    rep = json.loads(capsys.readouterr().out)  # the iterative interface solve
+    assert rep["refine_interface"] == "pcg" and len(rep["refine_pcg_iterations"]) >= 1
+    assert main([*base, *pcg, "--refine-frozen"]) == 2  # frozen steps need the dense interface
+    assert "--refine-frozen needs --refine-interface dense" in capsys.readouterr().err
 
 
 def test_bench_objects_refines_by_default(capsys):

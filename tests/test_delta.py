@@ -140,7 +140,14 @@ def test_truncated_delta_datagrams_are_decode_errors():
 
 
 @pytest.mark.parametrize(
-    "stage", [InitStage.REFINE_SCHUR, InitStage.REFINE_STEP, InitStage.REFINE_CONTROL]
+    "stage",
+    [
+        InitStage.REFINE_SCHUR,
+        InitStage.REFINE_STEP,
+        InitStage.REFINE_CONTROL,
+        InitStage.REFINE_PCG_UP,
+        InitStage.REFINE_PCG_DOWN,
+    ],
 )
 def test_refinement_values_always_travel_absolute_in_float32(stage):
     """A condensed system needs every digit float32 keeps: no quantised deltas, even for a

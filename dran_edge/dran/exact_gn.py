@@ -69,7 +69,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from dran_edge import geometry as geo
-from dran_edge.dran import substructure
+from dran_edge.dran import interface_pcg, substructure
 from dran_edge.dran.dist_init import Exchange
 from dran_edge.dran.partition import Partition, RobotPart
 from dran_edge.messages import InitEntry, InitStage
@@ -117,6 +117,21 @@ class RefineParams:
     """Frozen steps go on while an accepted step's decrease of F is at most this fraction of
     the previous accepted step's (linear contraction of the chord iteration) and at least
     ``rel_tol`` (relative)."""
+    interface: str = "dense"
+    """How the root solves the interface system: "dense" (every robot's condensed S_r gathered
+    and factorised) or "pcg" (``dran_edge.dran.interface_pcg``: S_r stays with its robot; the
+    gathers carry only the condensed gradients, then preconditioned CG over the tree to the
+    relative residual ``pcg_eta``). Not with ``frozen``."""
+    pcg_eta: float = 1e-2
+    """"pcg": relative residual of the interface system at which CG stops (an inexact Newton
+    step)."""
+    pcg_mode_tol: float = 1e-3
+    """"pcg": a robot's coarse modes are the eigenvectors of S_r against its block diagonal
+    with eigenvalue below this (``interface_pcg.soft_modes``)."""
+    pcg_max_modes: int = 60
+    """"pcg": coarse modes per robot at most."""
+    pcg_max_iter: int = 200
+    """"pcg": CG iterations per step at most."""
 
 
 @dataclass
@@ -143,6 +158,8 @@ class RefineResult:
     """One step's floats over one round's separator values (``step_budget``'s test)."""
     frozen_steps: int = 0
     """Steps taken from a frozen factorisation (``RefineParams.frozen``)."""
+    pcg_iterations: list[int] = field(default_factory=list)
+    """CG iterations of every interface solve (``RefineParams.interface`` "pcg")."""
 
 
 def step_ratio(
@@ -366,6 +383,10 @@ def refine_shares(
     # steps share the per-robot state; each step is a few lines and commented.
     if params.mode not in ("auto", "always", "never"):
         raise ValueError(f"RefineParams.mode must be auto, always or never, got {params.mode!r}")
+    if params.interface not in ("dense", "pcg"):
+        raise ValueError(f"RefineParams.interface must be dense or pcg, got {params.interface!r}")
+    if params.interface == "pcg" and params.frozen:
+        raise ValueError("RefineParams: frozen steps need the dense interface, not pcg")
     poses = np.asarray(poses, np.float64)
     if params.mode == "never" or partition.num_robots < 2:
         return RefineResult(poses.copy(), False, reason="off")
@@ -387,17 +408,18 @@ def refine_shares(
     stepped_frozen = False  # the last step was solved with a frozen factor
     while True:
         frozen = robots[tree.root].frozen  # the root's own word (every robot has it)
+        pcg = params.interface == "pcg"
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
-            loc, H, g, flat = _condense_share(part, partition, share_of, rob, b, gauge)
+            loc, H, g, flat = _condense_share(part, partition, share_of, rob, b, gauge, pcg)
             locs.append(loc)
             shares.append((H, g))
             packed.append(flat)
         bundle, res.rounds = substructure.gather(
             tree, packed, d, exchange, InitStage.REFINE_SCHUR, res.rounds
         )
-        if frozen:  # the root's frozen factor, the new right-hand sides
-            assert iface is not None
+        if frozen or pcg:  # the root's frozen factor, or CG: the right-hand sides only
+            assert iface is not None or pcg
             scalars = np.array([bundle[o][-NSCALARS:] for o in sorted(bundle)])
             gs = {o: bundle[o][:-NSCALARS].reshape(-1, 1) for o in sorted(bundle)}
             pd = True
@@ -424,7 +446,32 @@ def refine_shares(
         )
         res.frozen_steps += int(step and frozen)
         stepped_frozen = step and frozen
-        values = iface.solve(gs) if step and iface is not None else {}
+        values: dict[int, np.ndarray] = {}
+        if step and pcg:  # CG over the tree (S_r stays with robot r)
+            sides = [
+                interface_pcg.RobotSide.of(loc, b, params.pcg_mode_tol, params.pcg_max_modes)
+                for loc in locs
+            ]
+            sol = interface_pcg.solve(
+                tree,
+                sides,
+                {o: gv[:, 0] for o, gv in gs.items()},
+                exchange,
+                res.rounds,
+                b,
+                d,
+                params.pcg_eta,
+                params.pcg_max_iter,
+            )
+            res.rounds = sol.rounds
+            res.pcg_iterations.append(sol.iterations)
+            values = sol.values
+            if not sol.positive_definite:  # curvature ≤ 0: no step, as an indefinite system
+                step, values = False, {}
+                root.indefinite()
+                res.indefinite += 1
+        elif step and iface is not None:
+            values = iface.solve(gs)
         flags = int(accept) | int(stop) << 1 | int(step) << 2 | int(root.exact) << 3
         flags |= int(frozen_next) << 4
         control = InitEntry(
@@ -488,10 +535,13 @@ def _condense_share(
     rob: _Robot,
     b: int,
     gauge: int,
+    gradient_only: bool = False,
 ) -> tuple[substructure.Condensed, sp.csr_matrix, np.ndarray, np.ndarray]:
     """Step 1 for one robot: (condensed system, H⁽ʳ⁾ of the model, g⁽ʳ⁾, packed vector). A full
     gather condenses the damped share at the robot's poses; a frozen one only the new gradient,
-    with the kept interior factor, and sends that boundary vector and the scalars alone."""
+    with the kept interior factor, and sends that boundary vector and the scalars alone.
+    ``gradient_only`` (the "pcg" interface): condensed in full, but only the condensed gradient
+    and the scalars travel (S_r stays with the robot)."""
     if rob.frozen:
         assert rob.loc is not None and rob.H is not None
         _, g, cost, _ = share_of(part, rob.T, False)
@@ -501,5 +551,7 @@ def _condense_share(
     loc = substructure.condense(
         part, partition, H + rob.mu * sp.diags(D), -g[:, None], b, gauge, np.zeros((b, 1))
     )
-    flat = substructure.pack(loc, b, _scalars(cost, rob.pred, loc.positive_definite))
-    return loc, H, g, flat
+    scalars = _scalars(cost, rob.pred, loc.positive_definite)
+    if gradient_only:
+        return loc, H, g, np.concatenate([loc.g.ravel(), scalars])
+    return loc, H, g, substructure.pack(loc, b, scalars)

@@ -394,6 +394,8 @@ def refine_over_fleet(fleet: Fleet, mode: str, run, reliable: bool, skip: str = 
     }
     if res.frozen_steps:  # RefineParams.frozen
         out["refine_frozen_steps"] = res.frozen_steps
+    if res.pcg_iterations:  # RefineParams.interface "pcg"
+        out["refine_pcg_iterations"] = res.pcg_iterations
     if reliable:
         out["refine_arq"] = {k: v - arq0[k] for k, v in arq_totals(fleet).items()}
     return out

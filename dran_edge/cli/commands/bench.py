@@ -365,6 +365,22 @@ def _add_refine_options(p) -> None:
         "systems only the condensed gradients travel, solved with the kept factors, until a "
         "step is rejected or slows down (RefineParams.frozen)",
     )
+    p.add_argument(
+        "--refine-interface",
+        choices=("dense", "pcg"),
+        default="dense",
+        help="how the refinement solves for the robots' boundary poses: dense (default: every "
+        "robot's condensed system gathered at the root) or pcg (conjugate gradients over the "
+        "robot tree with a two-level Neumann-Neumann preconditioner: only boundary vectors "
+        "travel; dran_edge/dran/interface_pcg.py)",
+    )
+    p.add_argument(
+        "--refine-pcg-eta",
+        type=float,
+        default=1e-2,
+        metavar="ETA",
+        help="--refine-interface pcg: relative residual at which CG stops (default 0.01)",
+    )
 
 
 def _refine_params(args):
@@ -375,12 +391,18 @@ def _refine_params(args):
         return None
     if args.refine_steps < 0:
         raise InputError(f"--refine-steps must be at least 0, got {args.refine_steps}")
+    if args.refine_interface == "pcg" and args.refine_frozen:
+        raise InputError("--refine-frozen needs --refine-interface dense")
+    if not 0.0 < args.refine_pcg_eta < 1.0:
+        raise InputError(f"--refine-pcg-eta must be in (0, 1), got {args.refine_pcg_eta}")
     return RefineParams(
         mode=args.refine,
         max_steps=args.refine_steps,
         rel_tol=args.refine_tol,
         hessian=args.refine_hessian,
         frozen=args.refine_frozen,
+        interface=args.refine_interface,
+        pcg_eta=args.refine_pcg_eta,
     )
 
 
@@ -455,6 +477,9 @@ def run_g2o(args) -> int:
             report["refine_hessian"] = args.refine_hessian
         if args.refine_frozen:
             report["refine_frozen"] = True
+        if args.refine_interface != "dense":
+            report["refine_interface"] = args.refine_interface
+            report["refine_pcg_eta"] = args.refine_pcg_eta
     if args.loss > 0:
         report["loss"] = args.loss
     report.update(
