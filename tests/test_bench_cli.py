@@ -127,6 +127,18 @@ def test_bench_g2o_curve_counts_init_refinement_and_rounds(capsys, tmp_path):
     assert rep["refine_interface"] == "pcg" and len(rep["refine_pcg_iterations"]) >= 1
     assert main([*base, *pcg, "--refine-frozen"]) == 2  # frozen steps need the dense interface
     assert "--refine-frozen needs --refine-interface dense" in capsys.readouterr().err
+    # --polish: Newton steps from DRAN's estimate, after its rounds, their points on the curve
+    assert main([*base, "--refine", "off", "--polish"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["polish"] and rep["polish_used"] and rep["polish_converged"]
+    assert rep["rounds"] >= 1 and rep["polish_pcg_iterations"]
+    assert rep["curve"][-1] == [
+        rep["rounds_total"] - rep["init_rounds"],
+        rep["bytes_total"],
+        pytest.approx(rep["objective_final"]),
+    ]
+    assert rep["objective_final"] <= rep["polish_F_history"][0]
+    assert rep["F_over_Fstar"] < 1 + 1e-8
 
 
 def test_bench_objects_refines_by_default(capsys):

@@ -120,3 +120,36 @@ def test_soft_modes_count_the_floating_pieces():
     R = np.kron(np.eye(10), Q)
     modes = interface_pcg.soft_modes(R @ S @ R.T, b, 1e-3, 20)
     assert modes.shape == (30, 2 * b)
+
+
+def test_an_iteration_moves_one_value_per_vertex_and_link():
+    """Down, a link carries its subtree's boundary vertices once (not one copy per robot); up,
+    their sums: every CG exchange is Σ_links (1 + |∪ B_subtree|·dof) floats, in d×d chunks."""
+    from dran_edge import geometry as geo
+
+    per_exchange: dict[InitStage, list[int]] = {}
+
+    def counting(kind, rounds, outgoing):
+        floats = sum(np.size(e.value) for lst in outgoing.values() for _, es in lst for e in es)
+        per_exchange.setdefault(InitStage(kind), []).append(floats)
+        return direct_exchange(kind, rounds, outgoing)
+
+    g, part, _, _, res = _run(INTERLEAVED, counting, rel_tol=1e-8, interface="pcg")
+    b, d = geo.dof(g.dim), g.dim
+    tree = substructure.robot_tree(part)
+    B = [substructure.boundary(p, 0) for p in part.parts]
+    expected = {  # per tree level, the links into it
+        level: sum(
+            -(-(1 + np.unique(np.concatenate([B[q] for q in tree.subtree(c)])).size * b) // d**2)
+            * d**2
+            for c in np.flatnonzero(tree.depth == level).tolist()
+        )
+        for level in range(1, tree.height + 1)
+    }
+    iterations = sum(res.pcg_iterations)
+    for kind in (InitStage.REFINE_PCG_DOWN, InitStage.REFINE_PCG_UP):
+        sizes = per_exchange[kind]
+        # a solve of k iterations: the preconditioner at the start, then S p and (but after the
+        # last) the preconditioner per iteration: 2k round trips, one such exchange per level
+        for level, floats in expected.items():
+            assert sizes.count(floats) == 2 * iterations

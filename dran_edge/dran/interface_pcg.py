@@ -69,9 +69,15 @@ def soft_modes(S: np.ndarray, b: int, tol: float, k_max: int) -> np.ndarray:
     k = min(k_max, m)
     if k == 0:
         return np.zeros((m, 0))
+    # the 6×6 (3×3) diagonal blocks, made positive definite (|λ|, floored): with the exact
+    # Hessian a block can be indefinite
+    diag = np.stack([S[i : i + b, i : i + b] for i in range(0, m, b)])
+    lam_d, V_d = np.linalg.eigh(0.5 * (diag + np.swapaxes(diag, 1, 2)))
+    mag = np.abs(lam_d)
+    mag = np.maximum(mag, 1e-12 * max(float(mag.max(initial=0.0)), 1e-300))
     blocks = np.zeros_like(S)
-    for i in range(0, m, b):
-        blocks[i : i + b, i : i + b] = S[i : i + b, i : i + b]
+    for j, i in enumerate(range(0, m, b)):
+        blocks[i : i + b, i : i + b] = (V_d[j] * mag[j]) @ V_d[j].T
     lam, V = sla.eigh(0.5 * (S + S.T), blocks, subset_by_index=[0, k - 1])
     return np.asarray(V[:, lam < tol])
 
@@ -105,11 +111,13 @@ class PCGResult:
     residual: float = np.inf
     """‖g_B − S δ_B‖ / ‖g_B‖ at the end."""
     positive_definite: bool = True
-    """False when CG met a direction of non-positive curvature (no step is taken)."""
+    """False when CG met a direction of non-positive curvature, or a preconditioned residual
+    with ``rᵀPr ≤ 0`` (the robots' S_r indefinite): no step is taken."""
     history: list[float] = field(default_factory=list)
 
 
-def _pack_up(vectors: list[np.ndarray]) -> np.ndarray:
+def _pack_up(vectors: list[Any]) -> np.ndarray:
+    """One float vector of the arrays ``vectors`` (raveled, in order)."""
     return np.concatenate([np.asarray(v, float).ravel() for v in vectors])
 
 
@@ -160,6 +168,104 @@ def down(
     return out, rounds
 
 
+def _link_exchange(
+    kind: InitStage,
+    sends: dict[int, list[tuple[int, int, np.ndarray]]],
+    d: int,
+    exchange: Any,
+    rounds: int,
+) -> dict[int, dict[int, np.ndarray]]:
+    """One exchange of packed vectors over tree links: ``sends[sender]`` lists ``(receiver,
+    key, vector)``; returns ``{receiver: {key: vector}}`` (``key``: ``owner_robot``)."""
+    outgoing: dict[int, list[Any]] = {}
+    for sender, items in sends.items():
+        for receiver, key, vec in items:
+            entries = [
+                InitEntry(kind, key, k, ch) for k, ch in enumerate(substructure._chunks(vec, d))
+            ]
+            outgoing.setdefault(sender, []).append((receiver, entries))
+    incoming = exchange(kind, rounds, outgoing)
+    out: dict[int, dict[int, np.ndarray]] = {}
+    for r, entries in incoming.items():
+        parts: dict[int, dict[int, np.ndarray]] = {}
+        for e in entries:
+            if InitStage(e.stage) == kind:
+                parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = np.asarray(
+                    e.value, float
+                ).ravel()
+        for q, by_index in parts.items():
+            chunks = sorted(by_index.items())
+            flat = np.concatenate([v for _, v in chunks])
+            if [k for k, _ in chunks] != list(range(len(chunks))) or flat.size < 1 + int(
+                round(flat[0])
+            ):
+                substructure.missing(f"a vector for robot {q} reached robot {r} incomplete")
+            out.setdefault(r, {})[q] = flat[1 : 1 + int(round(flat[0]))]
+    return out
+
+
+class _Links:
+    """Boundary vectors over the tree, one value per vertex and link: the link above robot c
+    carries the vertices of its subtree's boundaries (``union[c]``); down, a robot forwards
+    what its children need; up, it adds its own and its children's sums (the root only needs
+    ``Σ_r R_rᵀ v_r``)."""
+
+    def __init__(self, tree: substructure.RobotTree, Bs: list[np.ndarray], b: int):
+        self.tree, self.b = tree, b
+        self.union = {
+            r: np.unique(np.concatenate([Bs[q] for q in tree.subtree(r)])) for r in range(len(Bs))
+        }
+        self.B = Bs
+
+    def rows(self, inner: np.ndarray, outer: np.ndarray) -> np.ndarray:
+        """Rows of the vertices ``inner`` (⊆ ``outer``) in a vector over ``outer``."""
+        return substructure.expand(np.searchsorted(outer, inner), self.b)
+
+    def down(
+        self, x: np.ndarray, Bglob: np.ndarray, d: int, exchange: Any, rounds: int
+    ) -> tuple[list[np.ndarray], int]:
+        """The global vector ``x`` (over ``Bglob``, at the root) restricted to every robot's
+        boundary, as each robot receives it."""
+        t = self.tree
+        have = {t.root: x[self.rows(self.union[t.root], Bglob)]}
+        for level in range(1, t.height + 1):
+            sends: dict[int, list[tuple[int, int, np.ndarray]]] = {}
+            for c in np.flatnonzero(t.depth == level).tolist():
+                p = int(t.parent[c])
+                v = have[p][self.rows(self.union[c], self.union[p])]
+                sends.setdefault(p, []).append((c, c, v))
+            got = _link_exchange(InitStage.REFINE_PCG_DOWN, sends, d, exchange, rounds)
+            rounds += 1
+            for items in sends.values():
+                for c, _, _ in items:
+                    if c not in got.get(c, {}):
+                        substructure.missing(f"robot {c} did not receive its boundary vector")
+                    have[c] = got[c][c]
+        return [have[r][self.rows(B, self.union[r])] for r, B in enumerate(self.B)], rounds
+
+    def up(
+        self, parts: list[np.ndarray], Bglob: np.ndarray, d: int, exchange: Any, rounds: int
+    ) -> tuple[np.ndarray, int]:
+        """``Σ_r R_rᵀ parts[r]`` at the root (over ``Bglob``), summed on the way up."""
+        t = self.tree
+        acc = {r: np.zeros(self.union[r].size * self.b) for r in range(len(parts))}
+        for r, v in enumerate(parts):
+            acc[r][self.rows(self.B[r], self.union[r])] += v
+        for level in range(t.height, 0, -1):
+            sends: dict[int, list[tuple[int, int, np.ndarray]]] = {}
+            for c in np.flatnonzero(t.depth == level).tolist():
+                sends[c] = [(int(t.parent[c]), c, acc[c])]
+            got = _link_exchange(InitStage.REFINE_PCG_UP, sends, d, exchange, rounds)
+            rounds += 1
+            for c, [(p, _, _)] in sends.items():
+                if c not in got.get(p, {}):
+                    substructure.missing(f"robot {c}'s partial sum did not reach robot {p}")
+                acc[p][self.rows(self.union[c], self.union[p])] += got[p][c]
+        out = np.zeros(Bglob.size * self.b)
+        out[self.rows(self.union[t.root], Bglob)] = acc[t.root]
+        return out, rounds
+
+
 class _Root:
     """The root's view of the interface: where every robot's boundary sits, and D_r."""
 
@@ -192,36 +298,66 @@ def _coarse_space(
     rounds: int,
     d: int,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """(Z, S Z, rounds) at the root: every robot's soft modes up; to every robot the columns of
-    Z that touch its boundary (their rows there), down; ``S_r`` times those columns, up."""
+    """(Z, S Z, rounds) at the root. Up: every robot's soft modes N_r. Down: to every robot its
+    weights D_r and the other robots' columns where they overlap its boundary. Up: ``S_r`` times
+    the columns touching its boundary (its own ``D_r N_r`` first, then by robot)."""
     b = root.b
-    up = [_pack_up([np.array([s.modes.shape[1]]), s.modes]) for s in sides]
+    wire = [s.modes.astype(np.float32).astype(np.float64) for s in sides]  # N_r as it travels
+    up = [_pack_up([np.array([N.shape[1]]), N]) for N in wire]
     bundle, rounds = substructure.gather(tree, up, d, exchange, InitStage.REFINE_PCG_UP, rounds)
-    cols = []
+    blocks: list[np.ndarray] = []  # Z's columns, robot by robot
+    first: list[int] = []
     for r, s in enumerate(sides):
         k = int(round(bundle[r][0]))
-        N = bundle[r][1:].reshape(s.B.size * b, k)
         Zr = np.zeros((root.n, k))
-        Zr[root.rows[r]] = root.weight[r][:, None] * N
-        cols.append(Zr)
-    Z = np.hstack(cols) if cols else np.zeros((root.n, 0))
-    touch = {r: np.flatnonzero(np.any(Z[rows] != 0.0, axis=0)) for r, rows in root.rows.items()}
-    packed = {
-        r: _pack_up([np.array([touch[r].size]), Z[root.rows[r]][:, touch[r]]])
+        Zr[root.rows[r]] = root.weight[r][:, None] * bundle[r][1:].reshape(s.B.size * b, k)
+        first.append(sum(blk.shape[1] for blk in blocks))
+        blocks.append(Zr)
+    Z = np.hstack(blocks) if blocks else np.zeros((root.n, 0))
+    shared = {  # robot r -> [(q, positions in B_r of B_r ∩ B_q)]
+        r: [
+            (q, np.flatnonzero(np.isin(sides[r].B, sides[q].B)))
+            for q in range(len(sides))
+            if q != r and np.isin(sides[r].B, sides[q].B).any() and blocks[q].shape[1]
+        ]
         for r in range(len(sides))
     }
-    got, rounds = down(tree, packed, d, exchange, rounds)
-    SZ_r = []
+    packed = {}
     for r, s in enumerate(sides):
-        kt = int(round(got[r][0]))
-        SZ_r.append(s.S @ got[r][1:].reshape(s.B.size * b, kt))
+        parts: list[np.ndarray] = [root.weight[r][::b]]
+        for q, pos in shared[r]:
+            rows = root.rows[r][substructure.expand(pos, b)]
+            span = slice(first[q], first[q] + blocks[q].shape[1])
+            parts += [np.array([q, blocks[q].shape[1], pos.size]), pos, Z[rows, span]]
+        packed[r] = _pack_up(parts)
+    got, rounds = down(tree, packed, d, exchange, rounds)
+    mine = []
+    for r, s in enumerate(sides):
+        flat, nb = got[r], s.B.size
+        w = np.repeat(flat[:nb], b)
+        by_robot = {r: w[:, None] * wire[r]}
+        at = nb
+        while at < flat.size:  # [q, k, m, m positions, the m·b × k values]
+            q, k, m = (int(round(v)) for v in flat[at : at + 3])
+            pos = np.rint(flat[at + 3 : at + 3 + m]).astype(np.int64)
+            Zq = np.zeros((nb * b, k))
+            Zq[substructure.expand(pos, b)] = flat[at + 3 + m : at + 3 + m + m * b * k].reshape(
+                m * b, k
+            )
+            by_robot[q] = Zq
+            at += 3 + m + m * b * k
+        qs = sorted(by_robot)
+        mine.append((qs, s.S @ np.hstack([by_robot[q] for q in qs])))
     bundle, rounds = substructure.gather(
-        tree, [v.ravel() for v in SZ_r], d, exchange, InitStage.REFINE_PCG_UP, rounds
+        tree, [SZr.ravel() for _, SZr in mine], d, exchange, InitStage.REFINE_PCG_UP, rounds
     )
     SZ = np.zeros_like(Z)
-    for r, rows in root.rows.items():
-        if touch[r].size:
-            SZ[np.ix_(rows, touch[r])] += bundle[r].reshape(rows.size, touch[r].size)
+    for r, (qs, _) in enumerate(mine):
+        idx = np.concatenate(
+            [np.arange(first[q], first[q] + blocks[q].shape[1]) for q in qs]
+        ).astype(np.int64)
+        if idx.size:
+            SZ[np.ix_(root.rows[r], idx)] += bundle[r].reshape(root.rows[r].size, idx.size)
     return Z, SZ, rounds
 
 
@@ -240,31 +376,29 @@ def solve(
     ``sides[r]`` is robot r's (held by robot r only), ``gs`` the root's gathered right-hand
     sides by robot. Setup: the soft modes up, the overlapping coarse columns down, ``S_r R_r Z``
     up; then CG, two round trips per iteration."""
-    R = len(sides)
     root = _Root({r: s.B for r, s in enumerate(sides)}, b)
     Z, SZ, rounds = _coarse_space(tree, sides, root, exchange, rounds, d)
     E = Z.T @ SZ
     Einv = np.linalg.pinv(0.5 * (E + E.T), rcond=1e-12) if E.size else E
 
-    def round_trip(vectors: dict[int, np.ndarray], neumann: bool) -> dict[int, np.ndarray]:
-        """Down ``vectors[r]`` to robot r, up ``S_r v`` (or ``S_r⁻¹ v``) from it."""
-        nonlocal rounds
-        got, rounds = down(tree, vectors, d, exchange, rounds)
-        back = [s.neumann(got[r]) if neumann else s.S @ got[r] for r, s in enumerate(sides)]
-        bundle, rounds = substructure.gather(
-            tree, back, d, exchange, InitStage.REFINE_PCG_UP, rounds
-        )
-        return {r: bundle[r] for r in range(R)}
+    links = _Links(tree, [s.B for s in sides], b)
 
-    def apply_S(p: np.ndarray) -> np.ndarray:
-        return root.assemble(round_trip(root.restrict(p), neumann=False))
+    def round_trip(x: np.ndarray, neumann: bool) -> np.ndarray:
+        """Down ``x`` restricted to every boundary, up ``Σ_r R_rᵀ S_r x_r`` (or, ``neumann``,
+        ``Σ_r R_rᵀ D_r S_r⁻¹ D_r x_r``: every robot knows its D_r)."""
+        nonlocal rounds
+        got, rounds = links.down(x, root.Bglob, d, exchange, rounds)
+        back = [
+            root.weight[r] * s.neumann(root.weight[r] * got[r]) if neumann else s.S @ got[r]
+            for r, s in enumerate(sides)
+        ]
+        total, rounds = links.up(back, root.Bglob, d, exchange, rounds)
+        return total
 
     def apply_P(res: np.ndarray) -> np.ndarray:
         """The balancing preconditioner (module docstring); one round trip."""
         a = Einv @ (Z.T @ res)
-        u = root.restrict(res - SZ @ a)
-        parts = round_trip({q: root.weight[q] * v for q, v in u.items()}, neumann=True)
-        y = root.assemble({q: root.weight[q] * v for q, v in parts.items()})
+        y = round_trip(res - SZ @ a, neumann=True)
         out: np.ndarray = Z @ a + y - Z @ (Einv @ (SZ.T @ y))
         return out
 
@@ -280,7 +414,10 @@ def solve(
         p = z.copy()
         rz = float(res_vec @ z)
         for it in range(1, max_iter + 1):
-            q = apply_S(p)
+            if not rz > 0.0:  # the preconditioner is not positive definite here (exact Hessian)
+                out.positive_definite = False
+                break
+            q = round_trip(p, neumann=False)
             curvature = float(p @ q)
             if not curvature > 0.0:
                 out.positive_definite = False

@@ -412,9 +412,12 @@ def arq_totals(fleet: Fleet) -> dict:
     }
 
 
-def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, reliable: bool) -> dict:
+def _refine(
+    g, part, poses, kappa, tau, fleet: Fleet, params, reliable: bool, skip: str = ""
+) -> dict:
     """``run_g2o_dran``'s refinement (``exact_gn.refine`` over the fleet's bus): {} when
-    ``params`` is None, else the ``refine_*`` numbers and ``poses_refined``."""
+    ``params`` is None, else the ``refine_*`` numbers and ``poses_refined`` (``skip``: not run,
+    for this reason)."""
     from dran_edge.dran import exact_gn
 
     if params is None:
@@ -435,6 +438,7 @@ def _refine(g, part, poses, kappa, tau, fleet: Fleet, params, reliable: bool) ->
             params,
         ),
         reliable,
+        skip,
     )
     if out["poses_refined"] is None:
         out["poses_refined"] = poses.copy()
@@ -583,6 +587,7 @@ def run_g2o_dran(
     stop: bool = True,
     refine=None,
     on_start=None,
+    polish=None,
 ) -> dict:
     """Table 1 protocol: contiguous split, distributed chordal init, DRAN until every robot has
     converged (or K_max of its own local steps), over a bus on the split's neighbour graph with
@@ -594,6 +599,9 @@ def run_g2o_dran(
     ``num_robots`` robots): use this split instead of the contiguous one. ``stop=False``: run
     all ``max_rounds`` even after every robot has met its stopping rule (benchmarks that
     record where it fired, via ``callback``). The result also holds ``poses_init``.
+    ``polish`` (an ``exact_gn.RefineParams``): after DRAN's rounds, exact distributed LM
+    steps from DRAN's merged estimate over the same bus (its numbers as ``polish_*``, its end as
+    ``objective_polished``; ``poses`` is then the polished estimate).
     ``refine`` (an ``exact_gn.RefineParams``): after the init, exact distributed LM steps over
     the same bus (``dran_edge.dran.exact_gn``; over lossy links and partitions through the
     ARQ, ``Fleet.reliable_exchange``); the result then also holds ``refine_*`` numbers (``refine_curve``: (rounds,
@@ -649,15 +657,27 @@ def run_g2o_dran(
     merged = start.copy()
     for r, p in enumerate(part.parts):
         merged[p.vertices] = agents[r].x
+    polished: dict = {}
+    if polish is not None:  # Newton steps from DRAN's estimate (bench g2o --polish)
+        reliable = bool(partitions) or lossy_links(links)
+        skip = "the refinement converged" if refined.get("refine_converged") else ""
+        out = _refine(g, part, merged, kappa, tau, fleet, polish, reliable, skip)
+        merged = out.pop("poses_refined")
+        polished = {k.replace("refine_", "polish_", 1): v for k, v in out.items()}
+        polished["objective_polished"] = F(merged)
     return (
         refined
+        | polished
         | {
             "poses": merged,
             "poses_init": init_poses,
             "rounds": rounds,
             "stopped_by": "+".join(reasons) if rounds < cap else None,
             "init_rounds": init_rounds,
-            "rounds_total": init_rounds + refined.get("refine_rounds", 0) + rounds,
+            "rounds_total": init_rounds
+            + refined.get("refine_rounds", 0)
+            + rounds
+            + polished.get("polish_rounds", 0),
             "bytes_init": init_bytes,
             "bytes_total": fleet.traffic.bytes_total,
             "datagrams": fleet.traffic.datagrams,

@@ -120,7 +120,15 @@ def _add_g2o_parser(sub: Any) -> None:
         action="store_true",
         help="dran: add 'curve', [rounds after the init, bytes sent so far (init included), "
         "F] at the init's end, at each accepted refinement point and after every DRAN "
-        "round (F of the merged estimate each round: slower)",
+        "round (F of the merged estimate each round: slower), then the polish's points",
+    )
+    g.add_argument(
+        "--polish",
+        action="store_true",
+        help="dran: after DRAN's rounds stop, exact distributed Newton steps from its estimate "
+        "(near the optimum: the exact Hessian from the first step, Marquardt mu from 1e-10, "
+        "the iterative interface solve unless --refine-interface dense; --refine-tol, "
+        "--refine-steps and --refine-pcg-eta apply; docs/dran.md)",
     )
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
@@ -368,7 +376,7 @@ def _add_refine_options(p) -> None:
     p.add_argument(
         "--refine-interface",
         choices=("dense", "pcg"),
-        default="dense",
+        default=None,
         help="how the refinement solves for the robots' boundary poses: dense (default: every "
         "robot's condensed system gathered at the root) or pcg (conjugate gradients over the "
         "robot tree with a two-level Neumann-Neumann preconditioner: only boundary vectors "
@@ -377,9 +385,29 @@ def _add_refine_options(p) -> None:
     p.add_argument(
         "--refine-pcg-eta",
         type=float,
-        default=1e-2,
+        default=0.1,
         metavar="ETA",
-        help="--refine-interface pcg: relative residual at which CG stops (default 0.01)",
+        help="--refine-interface pcg: relative residual at which CG stops (default 0.1)",
+    )
+
+
+def _polish_params(args):
+    """``bench g2o --polish``: Newton steps from DRAN's estimate (near the optimum): the exact
+    Hessian from the first step, Marquardt μ from 1e-10, the iterative interface solve unless
+    --refine-interface dense is given."""
+    from dran_edge.dran.exact_gn import RefineParams
+
+    if not args.polish:
+        return None
+    return RefineParams(
+        mode="always",
+        max_steps=args.refine_steps,
+        rel_tol=args.refine_tol,
+        hessian="exact",
+        newton_switch=float("inf"),
+        mu_init=1e-10,
+        interface=args.refine_interface or "pcg",
+        pcg_eta=args.refine_pcg_eta,
     )
 
 
@@ -391,7 +419,7 @@ def _refine_params(args):
         return None
     if args.refine_steps < 0:
         raise InputError(f"--refine-steps must be at least 0, got {args.refine_steps}")
-    if args.refine_interface == "pcg" and args.refine_frozen:
+    if args.refine_frozen and args.refine_interface == "pcg":
         raise InputError("--refine-frozen needs --refine-interface dense")
     if not 0.0 < args.refine_pcg_eta < 1.0:
         raise InputError(f"--refine-pcg-eta must be in (0, 1), got {args.refine_pcg_eta}")
@@ -401,7 +429,7 @@ def _refine_params(args):
         rel_tol=args.refine_tol,
         hessian=args.refine_hessian,
         frozen=args.refine_frozen,
-        interface=args.refine_interface,
+        interface=args.refine_interface or "dense",
         pcg_eta=args.refine_pcg_eta,
     )
 
@@ -444,6 +472,7 @@ def run_g2o(args) -> int:
             callback=cb,
             init_params=init_params,
             refine=_refine_params(args),
+            polish=_polish_params(args),
             links=BusParams(loss_probability=args.loss) if args.loss > 0 else None,
             partition=part,
             **run_kw,
@@ -454,6 +483,12 @@ def run_g2o(args) -> int:
             if not rec.curve:  # no DRAN round (the refinement ended the run)
                 rec.curve.append((0, None, None))
             curve, _ = curve_after_init(rec, res, res["rounds_total"], args.refine != "off")
+            if res.get("polish_used"):  # the polish's accepted points and its end, after DRAN
+                b0, k0 = res["bytes_total"] - res["polish_bytes"], curve[-1][0]
+                curve += [(k0 + k, b0 + b, f) for k, b, f in res["polish_curve"][1:]]
+                curve.append(
+                    (k0 + res["polish_rounds"], res["bytes_total"], res["objective_final"])
+                )
             res["curve"] = [list(p) for p in curve]
     else:
         res = run_g2o_dgs(
@@ -477,9 +512,11 @@ def run_g2o(args) -> int:
             report["refine_hessian"] = args.refine_hessian
         if args.refine_frozen:
             report["refine_frozen"] = True
-        if args.refine_interface != "dense":
+        if args.refine_interface == "pcg":
             report["refine_interface"] = args.refine_interface
             report["refine_pcg_eta"] = args.refine_pcg_eta
+    if args.polish:
+        report["polish"] = True
     if args.loss > 0:
         report["loss"] = args.loss
     report.update(
