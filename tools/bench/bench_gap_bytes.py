@@ -69,6 +69,8 @@ def _label(run: dict) -> str:
         label += f", {run['refine_hessian']} Hessian"
     if run.get("refine_used") is False:
         label += " (declined)"
+    if run.get("polish_used"):
+        label += f" + polish ({len(run.get('polish_F_history', [])) - 1} steps)"
     return label
 
 

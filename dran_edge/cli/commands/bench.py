@@ -124,11 +124,13 @@ def _add_g2o_parser(sub: Any) -> None:
     )
     g.add_argument(
         "--polish",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="dran: after DRAN's rounds stop, exact distributed Newton steps from its estimate "
         "(near the optimum: the exact Hessian from the first step, Marquardt mu from 1e-10, "
         "the iterative interface solve unless --refine-interface dense; --refine-tol, "
-        "--refine-steps and --refine-pcg-eta apply; docs/dran.md)",
+        "--refine-steps and --refine-pcg-eta apply; docs/dran.md). Default: on, unless "
+        "--refine off or --plain, and skipped when the refinement before DRAN converged",
     )
     g.add_argument("-o", "--out", metavar="MERGED.g2o", help="write the merged estimate as g2o")
     g.add_argument("--json", action="store_true", help="print one JSON object")
@@ -392,12 +394,12 @@ def _add_refine_options(p) -> None:
 
 
 def _polish_params(args):
-    """``bench g2o --polish``: Newton steps from DRAN's estimate (near the optimum): the exact
-    Hessian from the first step, Marquardt μ from 1e-10, the iterative interface solve unless
-    --refine-interface dense is given."""
+    """``bench g2o --polish`` (on by default, unless --refine off or --plain): Newton steps
+    from DRAN's estimate (near the optimum): the exact Hessian from the first step, Marquardt μ
+    from 1e-10, the iterative interface solve unless --refine-interface dense is given."""
     from dran_edge.dran.exact_gn import RefineParams
 
-    if not args.polish:
+    if args.polish is False or (args.polish is None and (args.refine == "off" or args.plain)):
         return None
     return RefineParams(
         mode="always",
@@ -515,7 +517,7 @@ def run_g2o(args) -> int:
         if args.refine_interface == "pcg":
             report["refine_interface"] = args.refine_interface
             report["refine_pcg_eta"] = args.refine_pcg_eta
-    if args.polish:
+    if args.method == "dran" and _polish_params(args) is not None:
         report["polish"] = True
     if args.loss > 0:
         report["loss"] = args.loss
