@@ -184,6 +184,8 @@ def test_check_fleet_finds_every_inconsistency(tmp_path):
         if i == 4:
             cfg["robot"]["id"] = 2  # duplicate id (and r4 vanishes)
             cfg["agent"] = {"beta": 1.0}  # the paper's β beside the others' default
+        if i == 3:
+            cfg["agent"] = {"sor_omega": 1.9}  # Table 1's over-relaxation: not over WiFi
 
     rep = _fleet(tmp_path, edit=edit)
     text = "\n".join(map(str, rep.errors))
@@ -193,6 +195,7 @@ def test_check_fleet_finds_every_inconsistency(tmp_path):
     assert "listed at different addresses" in text
     assert "neighbour 4 (r4) is not a robot of this directory" in text
     assert "robots disagree on agent.beta: 1.0 (r4); 250.0 (r1, r2, r3)" in text
+    assert "agent.sor_omega is 1.9: over-relaxation needs every neighbour's newest" in text
 
 
 @needs_ed25519

@@ -105,7 +105,9 @@ class AgentConfig(_Checked):
     """Over-relaxation omega of the inter-robot iteration on the trajectory: after the accepted
     local step x <- Retr_x(gamma u) the robot keeps Retr_x(omega gamma u) instead (1: plain
     Alg. 1). With a colour schedule this is block SOR (docs/dran.md); the robot's first local
-    step is always plain."""
+    step is always plain. Needs every neighbour's newest values each round (the synchronous,
+    lossless Table 1 bench): with 30 % datagram loss it diverged (CSAIL F/F* 22 856), so bench
+    g2o runs lossy links with 1, check-fleet refuses other values and the daemon warns."""
     colours: int = _f(1, lo=1, hi=256)
     """Update schedule: the robot runs its local step only in rounds k with
     (k - 1) mod colours == colour; 1 is the paper's every-round (parallel) schedule, more give a

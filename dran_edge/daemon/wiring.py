@@ -195,6 +195,12 @@ def default_transport_factory(cfg: RobotConfig, boot_epoch: int) -> Transport | 
         relay_from=frozenset(cfg.comms.allow_relay_from),
     )
     radio: Any = RadioTransport(params)
+    if cfg.agent.sor_omega != 1.0:  # docs/config.md, agent.sor_omega
+        log.warning(
+            "agent.sor_omega is %g: over-relaxation needs every neighbour's newest values each "
+            "round; over a lossy network it diverged in the benches (use 1)",
+            cfg.agent.sor_omega,
+        )
     drop_file = os.environ.get("DRAN_EDGE_DROP_FILE")
     if drop_file:  # set by `dran-edge rehearse` only (docs/rehearsal.md)
         from dran_edge.comms.drop_hook import DropHookTransport

@@ -641,6 +641,9 @@ def run_g2o_dran(
         start = refined["poses_refined"]
         refined["objective_refined"] = F(start)
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
+    sor_off = config.sor_omega != 1.0 and (bool(partitions) or lossy_links(links))
+    if sor_off:  # block SOR needs every neighbour's values each round (docs/config.md)
+        config = dataclasses.replace(config, sor_omega=1.0)
     agents = _table1_agents(
         g, part, start, W, config, colour, stop_rounds_for(bus, config), kappa, tau
     )
@@ -690,5 +693,6 @@ def run_g2o_dran(
             "wall_s": time.perf_counter() - t_start,
         }
         | ({"init_fallback": fleet.init_fallback} if fleet.init_fallback else {})
+        | ({"sor_omega": "1 (lossy links)"} if sor_off else {})
         | ({"arq": arq_totals(fleet)} if fleet.arq is not None else {})
     )

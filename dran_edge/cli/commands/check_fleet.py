@@ -107,6 +107,14 @@ def _identity(cfgs: list, rep: FleetReport) -> None:
                 f"robots disagree on {what}: "
                 + "; ".join(f"{v} ({', '.join(n)})" for v, n in sorted(values.items()))
             )
+    for c in cfgs:  # block SOR assumes synchronous lossless rounds (docs/config.md)
+        if c.agent.sor_omega != 1.0:
+            rep.error(
+                f"agent.sor_omega is {c.agent.sor_omega:g}: over-relaxation needs every "
+                "neighbour's newest values each round and diverged over lossy links in the "
+                "benches; a fleet over WiFi uses 1",
+                path=c.source_path,
+            )
 
 
 def _neighbours(cfgs: list, rep: FleetReport) -> None:
