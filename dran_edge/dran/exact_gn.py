@@ -107,6 +107,11 @@ class RefineParams:
     a car3d chain."""
     newton_switch: float = 1e-2
     """See ``hessian``; ``inf``: the exact Hessian from the first step."""
+    newton_first: bool = False
+    """With ``hessian`` "exact": the exact Hessian from the first step, until a trial is
+    rejected or a system is not positive definite; then ``newton_switch`` decides (a start near
+    the optimum, e.g. the polish after DRAN; far from it, on large residuals, Newton steps are
+    mostly rejected and Gauss–Newton goes first)."""
     frozen: bool = False
     """Chord (frozen-Hessian) steps (module docstring, "Frozen steps"): after a full gather
     whose step was taken, the robots send only their gradients condensed with the frozen
@@ -260,7 +265,8 @@ class LMRule:
         self.F_acc = np.inf
         self.trial = False  # the gathered point is a trial (else the accepted point)
         self.last_rel = np.inf  # relative decrease of the last accepted trial
-        self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch  # next model
+        self.newton_ok = p.newton_first  # Newton until a rejection or an indefinite system
+        self.exact = self._model()  # next model
         self.last_dec = np.inf  # decrease of F by the last accepted trial
         self.slow = False  # the last accepted trial decreased F by > frozen_rate of the one before
         self.small_frozen: float | None = None  # its rel. decrease, a frozen step's < rel_tol
@@ -306,8 +312,10 @@ class LMRule:
             self.F_acc = F
             if rel is not None:
                 self.last_rel = rel
+        elif not frozen:
+            self.newton_ok = False
         self.trial = accept
-        self.exact = p.hessian == "exact" and self.last_rel <= p.newton_switch
+        self.exact = self._model()
         if accept and rel is not None and rel < p.rel_tol and not self.slow:
             return accept, True, f"relative decrease {rel:.1e} < {p.rel_tol:g}"
         if trials >= p.max_steps:
@@ -316,6 +324,11 @@ class LMRule:
             return accept, True, f"mu {self.mu:.1e} > {p.mu_max:g}"
         return accept, False, ""
 
+    def _model(self) -> bool:
+        """Whether the next condensation uses the exact Hessian (``RefineParams.hessian``)."""
+        p = self.p
+        return p.hessian == "exact" and (self.newton_ok or self.last_rel <= p.newton_switch)
+
     def indefinite(self) -> None:
         """The gathered (accepted) point's system is not positive definite: no step; more
         damping, and Gauss–Newton for the next condensation."""
@@ -323,6 +336,7 @@ class LMRule:
         if self.wire_dtype is not None:
             self.mu = float(self.wire_dtype(self.mu))
         self.trial, self.exact, self.last_rel = False, False, np.inf
+        self.newton_ok = False
 
 
 def _step_entry(owner: np.ndarray, d: int, b: int) -> Callable[[int, np.ndarray], InitEntry]:

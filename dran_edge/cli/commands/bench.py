@@ -127,7 +127,8 @@ def _add_g2o_parser(sub: Any) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="dran: after DRAN's rounds stop, exact distributed Newton steps from its estimate "
-        "(near the optimum: the exact Hessian from the first step, Marquardt mu from 1e-10, "
+        "(near the optimum: the exact Hessian from the first step until a trial is rejected, "
+        "Marquardt mu from 1e-10, "
         "the iterative interface solve unless --refine-interface dense; --refine-tol, "
         "--refine-steps and --refine-pcg-eta apply; docs/dran.md). Default: on, unless "
         "--refine off or --plain, and skipped when the refinement before DRAN converged",
@@ -395,8 +396,9 @@ def _add_refine_options(p) -> None:
 
 def _polish_params(args):
     """``bench g2o --polish`` (on by default, unless --refine off or --plain): Newton steps
-    from DRAN's estimate (near the optimum): the exact Hessian from the first step, Marquardt μ
-    from 1e-10, the iterative interface solve unless --refine-interface dense is given."""
+    from DRAN's estimate (near the optimum): the exact Hessian from the first step until a trial
+    is rejected (then Gauss–Newton first, as the refinement), Marquardt μ from 1e-10, the
+    iterative interface solve unless --refine-interface dense is given."""
     from dran_edge.dran.exact_gn import RefineParams
 
     if args.polish is False or (args.polish is None and (args.refine == "off" or args.plain)):
@@ -406,7 +408,7 @@ def _polish_params(args):
         max_steps=args.refine_steps,
         rel_tol=args.refine_tol,
         hessian="exact",
-        newton_switch=float("inf"),
+        newton_first=True,
         mu_init=1e-10,
         interface=args.refine_interface or "pcg",
         pcg_eta=args.refine_pcg_eta,
