@@ -230,3 +230,27 @@ def test_the_root_treats_a_rejected_or_slow_frozen_step_as_a_stale_factor():
     rule.decide(62.86, 0.01, 10, frozen=True)  # a frozen step < rel_tol again
     accepted, stop, reason = rule.decide(62.87, 0.01, 11)  # the full step after it: rejected
     assert not accepted and stop and reason.startswith("relative decrease")
+
+
+def test_newton_first_falls_back_to_gauss_newton_after_a_rejection():
+    """``newton_first``: the exact Hessian from the start point on, while trials are accepted;
+    after a rejected trial (or an indefinite system) Gauss–Newton until a step gains < 1 %."""
+    p = exact_gn.RefineParams(hessian="exact", newton_first=True, mu_init=1e-10)
+    rule = exact_gn.LMRule(p, wire_dtype=None)
+    assert rule.exact
+    rule.decide(100.0, 0.0, 0)  # the start point
+    assert rule.exact
+    rule.decide(90.0, 10.0, 1)  # accepted, gained 10 %: still Newton
+    assert rule.exact
+    rule.decide(95.0, 1.0, 2)  # rejected
+    assert not rule.exact
+    rule.decide(80.0, 10.0, 3)  # accepted, gained 11 %: Gauss–Newton goes on
+    assert not rule.exact
+    rule.decide(79.9, 0.1, 4)  # gained < 1 %: the usual switch
+    assert rule.exact
+    other = exact_gn.LMRule(p, wire_dtype=None)
+    other.decide(100.0, 0.0, 0)
+    other.indefinite()
+    assert not other.exact
+    plain = exact_gn.LMRule(exact_gn.RefineParams(hessian="exact"), wire_dtype=None)
+    assert not plain.exact  # without it, Gauss–Newton first
