@@ -220,3 +220,20 @@ def test_a_daemon_core_runs_its_rounds_on_loops_into_the_archive():
     i = np.searchsorted(m.keyframe_stamps_ns, a.keyframe_stamps_ns)
     err = np.linalg.norm(a.T_world_body[:, :3, 3] - m.T_world_body_true[i, :3, 3], axis=1)
     assert np.sqrt(np.mean(err**2)) < 0.2, np.sqrt(np.mean(err**2))  # 0.08 m here
+
+
+def test_archive_covariances_come_from_the_prior_without_the_archive():
+    """An archived keyframe's covariance is computed from a prior that never took in the
+    archive's own factors (``prior_clean``), so archive information does not feed later archive
+    entries: that prior holds no more information than the real one (Loewner order, on their
+    common variables), and strictly less once archive factors were marginalised."""
+    _, g = _mission_graph(4096)
+    assert g.counters.get("loops_into_archive", 0) > 0
+    full, clean = g.prior, g.prior_clean
+    assert full is not None and clean is not None
+    np.testing.assert_array_equal(full["keys"], clean["keys"])
+    H_full, H_clean = full["W"].T @ full["W"], clean["W"].T @ clean["W"]
+    # the linearisation points differ only where the two priors were built at other estimates
+    gap = np.linalg.eigvalsh(H_full - H_clean)
+    assert gap.min() > -1e-6 * np.abs(gap).max()
+    assert gap.max() > 1e-3 * np.linalg.eigvalsh(H_full).max()

@@ -25,7 +25,9 @@ and with the prior's copy it is counted at most twice — not conservative, but 
 that budget a keyframe visited on every lap pinned the window to its frozen estimate with full
 weight each time (docs/notes/solve-and-bounded-graph.md, section 5, has the measurements). The
 covariance is the node's marginal given only its own factors and the prior, larger than its
-marginal in the whole window. A graph without the gauge prior (a fleet robot that is not the
+marginal in the whole window, and both without the archive's own factors (``prior_clean``: the
+prior the same marginalisations give without them), so archive information does not feed the
+covariances of later entries (which compounded: each entry more certain than the last). A graph without the gauge prior (a fleet robot that is not the
 gauge anchor: its frame comes from object consensus and still moves) archives nothing: its
 marginals have no absolute information but the round-off of the dense prior's linearisation,
 which a numerical rank test cannot tell from weak information (forced on, 9 of the 79

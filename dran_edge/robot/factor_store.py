@@ -115,6 +115,43 @@ def _dense_normal_equations(
     return H, g
 
 
+def _from_archive(f: Factor) -> bool:
+    """A factor the archive made: a loop turned into a unary factor on its new end."""
+    return f[4] == KIND_LOOP and f[0] == NONE
+
+
+def _schur_out(
+    keys: np.ndarray, poses: np.ndarray, H: np.ndarray, g: np.ndarray, i: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(keys, poses, H, g) with variable ``i`` Schur-complemented out."""
+    sn = np.arange(6 * i, 6 * i + 6)
+    sb = np.setdiff1d(np.arange(H.shape[0]), sn)
+    Hnn = H[np.ix_(sn, sn)] + 1e-9 * np.eye(6)
+    Hbn = H[np.ix_(sb, sn)]
+    K = np.linalg.solve(Hnn, Hbn.T).T  # H_bn H_nn⁻¹
+    return (
+        np.delete(keys, i),
+        np.delete(poses, i, axis=0),
+        H[np.ix_(sb, sb)] - K @ Hbn.T,
+        g[sb] - K @ g[sn],
+    )
+
+
+def _dense_prior(keys: np.ndarray, T_lin: np.ndarray, H: np.ndarray, g: np.ndarray) -> dict | None:
+    """``½‖W δ + e‖²`` with ``WᵀW = H``, ``Wᵀe = g`` (null space dropped); None when H is 0."""
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
+    lam, V = lam[keep], V[:, keep]
+    if not len(lam):
+        return None
+    return {
+        "keys": keys,
+        "T_lin": T_lin,
+        "W": np.sqrt(lam)[:, None] * V.T,
+        "e": (V.T @ g) / np.sqrt(lam),
+    }
+
+
 class FactorStore:
     """Factors, adjacency and the marginalisation prior of one bounded graph; node removal.
 
@@ -145,6 +182,9 @@ class FactorStore:
         self.next_slot = 0
         # the marginalisation prior: keys (k,), T_lin (k, 4, 4), W (r, 6k), e (r,)
         self.prior: dict | None = None
+        # the same without the archive's factors (what an archived keyframe's covariance is
+        # computed from, so that archive information does not feed later archive entries)
+        self.prior_clean: dict | None = None
 
     def _count(self, key: str, n: int = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + n
@@ -278,10 +318,13 @@ class FactorStore:
         (:meth:`_reanchor_loops`). Returns the slots left for the Schur complement, and its
         normal equations when they were built on the way."""
         loops = [s for s in slots if self.factors[s][4] == KIND_LOOP and self.factors[s][0] != NONE]
-        if self.archive.capacity > 0:
+        if self.archive.capacity > 0:  # n's covariance from the system without archive factors
             rest = [s for s in slots if s not in loops]
             system = self._marginal_system(n, [self.factors[s] for s in rest])
-            if self._loops_into_archive(n, loops, system):
+            clean = self._marginal_system(
+                n, [self.factors[s] for s in rest if not _from_archive(self.factors[s])], True
+            )
+            if self._loops_into_archive(n, loops, clean):
                 return rest, system
         return self._reanchor_loops(n, slots), None
 
@@ -351,19 +394,21 @@ class FactorStore:
             rest = [s for s in rest if s != bridge]
         return rest
 
-    def _marginal_system(self, n: int, facs: list[Factor]) -> tuple:
+    def _marginal_system(self, n: int, facs: list[Factor], clean: bool = False) -> tuple:
         """(keys, poses, H, g): the dense normal equations of factors ``facs`` of node ``n`` and
-        the prior, over ``n``, the factors' other endpoints and the prior's variables."""
+        the prior (``clean``: the prior without the archive's factors), over ``n``, the
+        factors' other endpoints and the prior's variables."""
+        prior = self.prior_clean if clean else self.prior
         keys = {n}
         for p, q, *_ in facs:
             keys.update(k for k in (p, q) if k != NONE)
-        if self.prior is not None:
-            keys.update(self.prior["keys"].tolist())
+        if prior is not None:
+            keys.update(prior["keys"].tolist())
         keys_arr = np.array(sorted(keys), dtype=np.int64)
         poses = np.stack([self._estimate(k) for k in keys_arr.tolist()])
         blocks = self._blocks(_arrays(facs), keys_arr, self.config.residual)
-        if self.prior is not None:
-            blocks.append(self._prior_block(keys_arr))
+        if prior is not None:
+            blocks.append(self._prior_block(keys_arr, prior))
         H, g = _dense_normal_equations(blocks, len(keys_arr), poses)
         return keys_arr, poses, H, g
 
@@ -372,16 +417,16 @@ class FactorStore:
         (``system``: their normal equations, :meth:`_marginal_system`, if already built)."""
         facs = [self._remove_factor(s) for s in slots]
         keys_arr, poses, H, g = system or self._marginal_system(n, facs)
+        if self.archive.capacity > 0:  # the prior without the archive's factors, alike
+            ck, cp, cH, cg = self._marginal_system(
+                n, [f for f in facs if not _from_archive(f)], True
+            )
+            ci = int(np.searchsorted(ck, n))
+            crest, cT, cHp, cgp = _schur_out(ck, cp, cH, cg, ci)
+            self.prior_clean = _dense_prior(crest, cT, cHp, cgp)
         i = int(np.searchsorted(keys_arr, n))
-        sn = np.arange(6 * i, 6 * i + 6)
-        sb = np.setdiff1d(np.arange(H.shape[0]), sn)
-        Hnn = H[np.ix_(sn, sn)] + 1e-9 * np.eye(6)
-        Hbn = H[np.ix_(sb, sn)]
-        K = np.linalg.solve(Hnn, Hbn.T).T  # H_bn H_nn⁻¹
-        Hp = H[np.ix_(sb, sb)] - K @ Hbn.T
-        gp = g[sb] - K @ g[sn]
-        rest = np.delete(keys_arr, i)
-        if not self._set_prior(rest, np.delete(poses, i, axis=0), Hp, gp):
+        rest, T_rest, Hp, gp = _schur_out(keys_arr, poses, H, g, i)
+        if not self._set_prior(rest, T_rest, Hp, gp):
             return
         self._count("nodes_marginalised")
         in_prior = sorted(k for k in rest.tolist() if k in self.skeleton)
@@ -391,7 +436,8 @@ class FactorStore:
 
     def _archive_node(self, n: int, H: np.ndarray, i: int) -> ArchivedPose | None:
         """Keep ``n``'s estimate and its covariance given the factors being marginalised and the
-        prior in the archive (:mod:`dran_edge.robot.archive`): the inverse of ``n``'s Schur
+        prior, both without the archive's factors (``H`` of the clean system, :meth:`_loops_out`),
+        in the archive (:mod:`dran_edge.robot.archive`): the inverse of ``n``'s Schur
         complement ``H_nn − H_nb H_bb⁺ H_bn`` (``[H⁻¹]_nn`` when ``H`` is regular; the
         pseudo-inverse drops directions of ``H_bb`` without information that ``n``'s factors do
         not touch, e.g. a node of a segment before a VIO reset left in the prior). Nothing when a
@@ -468,29 +514,25 @@ class FactorStore:
         K = np.linalg.solve(H[np.ix_(si, si)] + 1e-9 * np.eye(6), H[np.ix_(si, sr)]).T
         Hp = H[np.ix_(sr, sr)] - K @ H[np.ix_(si, sr)]
         self._set_prior(np.delete(keys, i), np.delete(T_lin, i, axis=0), Hp, g[sr] - K @ g[si])
+        clean = self.prior_clean
+        if clean is not None and s in clean["keys"]:  # its marginal without s, alike
+            c = int(np.searchsorted(clean["keys"], s))
+            Wc, ec = clean["W"], clean["e"]
+            self.prior_clean = _dense_prior(
+                *_schur_out(clean["keys"], clean["T_lin"], Wc.T @ Wc, Wc.T @ ec, c)
+            )
 
     def _set_prior(self, keys: np.ndarray, T_lin: np.ndarray, H: np.ndarray, g: np.ndarray) -> bool:
         """The dense prior ``½‖W δ + e‖²`` with ``WᵀW = H``, ``Wᵀe = g`` (its null space
         dropped); None when ``H`` is zero. Returns whether a prior is left."""
-        lam, V = np.linalg.eigh(0.5 * (H + H.T))
-        keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
-        lam, V = lam[keep], V[:, keep]
-        if not len(lam):
-            self.prior = None
-            return False
-        self.prior = {
-            "keys": keys,
-            "T_lin": T_lin,
-            "W": np.sqrt(lam)[:, None] * V.T,
-            "e": (V.T @ g) / np.sqrt(lam),
-        }
-        return True
+        self.prior = _dense_prior(keys, T_lin, H, g)
+        return self.prior is not None
 
     def _estimate(self, key: int) -> np.ndarray:
         return self.obj_est[key - OBJ] if key >= OBJ else self.node_est[key]
 
-    def _prior_block(self, keys_arr: np.ndarray) -> MarginalPrior:
-        prior = self.prior
+    def _prior_block(self, keys_arr: np.ndarray, prior: dict | None = None) -> MarginalPrior:
+        prior = prior if prior is not None else self.prior
         assert prior is not None
         return MarginalPrior(
             np.searchsorted(keys_arr, prior["keys"])[None], prior["T_lin"], prior["W"], prior["e"]

@@ -550,6 +550,7 @@ class KeyframeGraph(FactorStore):
             "segmenter": self.segmenter.to_state(),
             "counters": dict(self.counters),
             "prior": self.prior,
+            "prior_clean": self.prior_clean,
             "skeleton": self.skeleton.to_state(),
             "archive": self.archive.to_state(),
         }
@@ -610,8 +611,11 @@ class KeyframeGraph(FactorStore):
         g.counters = {str(k): int(v) for k, v in state["counters"].items()}
         g.skeleton = Skeleton.from_state(g.skeleton.capacity, state.get("skeleton"))
         g.archive = PoseArchive.from_state(g.archive.capacity, state.get("archive"))
-        pr = state.get("prior")
-        g.prior = (
-            None if pr is None else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")}
-        )
+        for name in ("prior", "prior_clean"):
+            pr = state.get(name)
+            setattr(
+                g,
+                name,
+                None if pr is None else {k: np.asarray(pr[k]) for k in ("keys", "T_lin", "W", "e")},
+            )
         return g
