@@ -16,24 +16,15 @@ INTERLEAVED = Case("car3d", 200, 2, robots=3, split="interleaved")
 
 
 def _run(case, exchange=direct_exchange, **params):
+    """The refinement (``RefineParams(mode="always", **params)``) of ``case`` from its
+    centralized chordal init, values exchanged as float64 (``test_exact_gn._refine``)."""
+    from test_exact_gn import _refine
+
     g, _ = make_graph(case)
     part = make_partition(case, g)
     kappa, tau = sesync_weights(g.dim, g.information)
     T0 = chordal_initialization(g.num_vertices, g.edges, g.measurements, kappa, tau)
-    p = exact_gn.RefineParams(mode="always", **params)
-    res = exact_gn.refine(
-        g.dim,
-        g.num_vertices,
-        g.edges,
-        g.measurements,
-        kappa,
-        tau,
-        part,
-        T0,
-        exchange,
-        p,
-        wire_dtype=None,
-    )
+    res = _refine(g, part, T0, exchange, exact_gn.RefineParams(mode="always", **params))
     return g, part, kappa, tau, res
 
 

@@ -121,53 +121,6 @@ def _pack_up(vectors: list[Any]) -> np.ndarray:
     return np.concatenate([np.asarray(v, float).ravel() for v in vectors])
 
 
-def down(
-    tree: substructure.RobotTree,
-    packed: dict[int, np.ndarray],
-    d: int,
-    exchange: Any,
-    rounds: int,
-) -> tuple[dict[int, np.ndarray], int]:
-    """The mirror of ``substructure.gather``: the root's per-robot vectors travel down the tree
-    (each link carries those of its subtree) as ``REFINE_PCG_DOWN`` chunks (``owner_robot`` the
-    destination). Returns every robot's vector (the root's own without a message)."""
-    kind = InitStage.REFINE_PCG_DOWN
-    have: list[dict[int, np.ndarray]] = [dict() for _ in range(tree.parent.size)]
-    have[tree.root] = dict(packed)
-    for level in range(1, tree.height + 1):
-        outgoing: dict[int, list[Any]] = {}
-        for c in np.flatnonzero(tree.depth == level):
-            p = int(tree.parent[c])
-            entries = [
-                InitEntry(kind, q, k, ch)
-                for q in sorted(tree.subtree(int(c)))
-                if q in have[p]
-                for k, ch in enumerate(substructure._chunks(have[p][q], d))
-            ]
-            outgoing.setdefault(p, []).append((int(c), entries))
-        incoming = exchange(kind, rounds, outgoing)
-        rounds += 1
-        for r, entries in incoming.items():
-            parts: dict[int, dict[int, np.ndarray]] = {}
-            for e in entries:
-                if InitStage(e.stage) == kind:
-                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = np.asarray(
-                        e.value, float
-                    ).ravel()
-            for q, by_index in parts.items():
-                chunks = sorted(by_index.items())
-                flat = np.concatenate([v for _, v in chunks])
-                if [k for k, _ in chunks] != list(range(len(chunks))) or flat.size < 1 + int(
-                    round(flat[0])
-                ):
-                    substructure.missing(f"robot {q}'s vector reached robot {r} incomplete")
-                have[r][q] = flat[1 : 1 + int(round(flat[0]))]
-    out = {r: have[r][r] for r in packed if r in have[r]}
-    if len(out) != len(packed):
-        substructure.missing("a robot did not receive its vector from the root")
-    return out, rounds
-
-
 def _link_exchange(
     kind: InitStage,
     sends: dict[int, list[tuple[int, int, np.ndarray]]],
@@ -185,23 +138,36 @@ def _link_exchange(
             ]
             outgoing.setdefault(sender, []).append((receiver, entries))
     incoming = exchange(kind, rounds, outgoing)
-    out: dict[int, dict[int, np.ndarray]] = {}
-    for r, entries in incoming.items():
-        parts: dict[int, dict[int, np.ndarray]] = {}
-        for e in entries:
-            if InitStage(e.stage) == kind:
-                parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = np.asarray(
-                    e.value, float
-                ).ravel()
-        for q, by_index in parts.items():
-            chunks = sorted(by_index.items())
-            flat = np.concatenate([v for _, v in chunks])
-            if [k for k, _ in chunks] != list(range(len(chunks))) or flat.size < 1 + int(
-                round(flat[0])
-            ):
-                substructure.missing(f"a vector for robot {q} reached robot {r} incomplete")
-            out.setdefault(r, {})[q] = flat[1 : 1 + int(round(flat[0]))]
-    return out
+    return {r: substructure.unchunk(es, kind, f"robot {r}") for r, es in incoming.items()}
+
+
+def down(
+    tree: substructure.RobotTree,
+    packed: dict[int, np.ndarray],
+    d: int,
+    exchange: Any,
+    rounds: int,
+) -> tuple[dict[int, np.ndarray], int]:
+    """The mirror of ``substructure.gather``: the root's per-robot vectors travel down the tree
+    (each link carries those of its subtree) as ``REFINE_PCG_DOWN`` chunks (``owner_robot`` the
+    destination). Returns every robot's vector (the root's own without a message)."""
+    have: list[dict[int, np.ndarray]] = [dict() for _ in range(tree.parent.size)]
+    have[tree.root] = dict(packed)
+    for level in range(1, tree.height + 1):
+        sends: dict[int, list[tuple[int, int, np.ndarray]]] = {}
+        for c in np.flatnonzero(tree.depth == level).tolist():
+            p = int(tree.parent[c])
+            sends.setdefault(p, []).extend(
+                (c, q, have[p][q]) for q in sorted(tree.subtree(c)) if q in have[p]
+            )
+        got = _link_exchange(InitStage.REFINE_PCG_DOWN, sends, d, exchange, rounds)
+        rounds += 1
+        for r, by_robot in got.items():
+            have[r].update(by_robot)
+    out = {r: have[r][r] for r in packed if r in have[r]}
+    if len(out) != len(packed):
+        substructure.missing("a robot did not receive its vector from the root")
+    return out, rounds
 
 
 class _Links:

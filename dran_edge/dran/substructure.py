@@ -371,6 +371,28 @@ def _chunks(flat: np.ndarray, d: int) -> list[np.ndarray]:
     return list(pad.reshape(-1, d, d))
 
 
+def unchunk(entries: Iterable[Any], kind: InitStage, where: str) -> dict[int, np.ndarray]:
+    """The packed vectors (``_chunks``) that ``entries`` of stage ``kind`` carry, by
+    ``owner_robot``; a duplicated datagram repeats a chunk (keyed by its index), a missing one
+    raises (``missing``: ``where`` names the receiver)."""
+    parts: dict[int, dict[int, np.ndarray]] = {}
+    for e in entries:
+        if InitStage(e.stage) == kind:
+            parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = np.asarray(
+                e.value, float
+            ).ravel()
+    out = {}
+    for o, by_index in parts.items():
+        chunks = sorted(by_index.items())
+        flat = np.concatenate([v for _, v in chunks])
+        if [k for k, _ in chunks] != list(range(len(chunks))) or flat.size < 1 + int(
+            round(flat[0])
+        ):
+            missing(f"the vector of robot {o} ({kind.name}) reached {where} incomplete")
+        out[o] = flat[1 : 1 + int(round(flat[0]))]
+    return out
+
+
 def gather(
     tree: RobotTree, packed: list[np.ndarray], d: int, exchange: Any, kind: InitStage, rounds: int
 ) -> tuple[dict[int, np.ndarray], int]:
@@ -390,20 +412,8 @@ def gather(
         incoming = exchange(kind, rounds, outgoing)
         rounds += 1
         for q, entries in incoming.items():
-            parts: dict[int, dict[int, Any]] = {}
-            for e in entries:  # a duplicated datagram repeats a chunk: keyed by its index
-                if InitStage(e.stage) == kind:
-                    parts.setdefault(int(e.owner_robot), {})[int(e.keyframe_id)] = np.asarray(
-                        e.value, float
-                    ).ravel()
-            for o, by_index in parts.items():
-                chunks = sorted(by_index.items())
-                flat = np.concatenate([v for _, v in chunks])
-                if [k for k, _ in chunks] != list(range(len(chunks))) or flat.size < 1 + int(
-                    round(flat[0])
-                ):
-                    missing(f"robot {o}'s condensed system reached robot {q} incomplete")
-                bundles[q][o] = flat[1 : 1 + int(round(flat[0]))]
+            for o, flat in unchunk(entries, kind, f"robot {q}").items():
+                bundles[q][o] = flat
     if len(bundles[tree.root]) != R:
         missing(
             f"the root (robot {tree.root}) lacks the condensed systems of robots "
