@@ -130,13 +130,15 @@ def _link_exchange(
 ) -> dict[int, dict[int, np.ndarray]]:
     """One exchange of packed vectors over tree links: ``sends[sender]`` lists ``(receiver,
     key, vector)``; returns ``{receiver: {key: vector}}`` (``key``: ``owner_robot``)."""
-    outgoing: dict[int, list[Any]] = {}
+    per_link: dict[tuple[int, int], list[InitEntry]] = {}  # one message per link
     for sender, items in sends.items():
         for receiver, key, vec in items:
-            entries = [
+            per_link.setdefault((sender, receiver), []).extend(
                 InitEntry(kind, key, k, ch) for k, ch in enumerate(substructure._chunks(vec, d))
-            ]
-            outgoing.setdefault(sender, []).append((receiver, entries))
+            )
+    outgoing: dict[int, list[Any]] = {}
+    for (sender, receiver), entries in per_link.items():
+        outgoing.setdefault(sender, []).append((receiver, entries))
     incoming = exchange(kind, rounds, outgoing)
     return {r: substructure.unchunk(es, kind, f"robot {r}") for r, es in incoming.items()}
 
