@@ -52,6 +52,12 @@ contraction too slow) or below ``rel_tol`` (the stop is decided on a full step's
 without frozen steps: a frozen step's is smaller where the model is poor, e.g. Gauss–Newton on
 large residuals; a full step rejected right after a frozen step below ``rel_tol`` stops too).
 
+Iterative interface solve (``RefineParams.interface="pcg"``, ``dran_edge.dran.interface_pcg``):
+every gather is a gradient gather as a frozen one (S_r stays with its robot) and the root solves
+the interface system by preconditioned conjugate gradients over the tree to ``pcg_eta``; not
+with frozen steps. ``newton_first``: the exact Hessian from the first step until a trial is
+rejected (the polish after DRAN's rounds, ``experiments.fleet.run_g2o_dran(polish=...)``).
+
 When (``RefineParams.mode="auto"``): if one step's condensed systems (``direct_floats`` with
 block size dof) cost at most ``step_budget`` rounds' worth of separator poses
 (``iteration_floats``), i.e. where DRAN's own rounds are the more expensive way to converge.
@@ -421,9 +427,9 @@ def refine_shares(
     iface: substructure.Interface | None = None  # the root's last factorised interface
     model_exact = root.exact  # the model of the last full gather (the robots' word)
     stepped_frozen = False  # the last step was solved with a frozen factor
+    pcg = params.interface == "pcg"  # S_r stays with its robot, CG over the tree
     while True:
         frozen = robots[tree.root].frozen  # the root's own word (every robot has it)
-        pcg = params.interface == "pcg"
         locs, shares, packed = [], [], []
         for part, rob in zip(partition.parts, robots):  # 1. linearise, damp, condense
             loc, H, g, flat = _condense_share(part, partition, share_of, rob, b, gauge, pcg)

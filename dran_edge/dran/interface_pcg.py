@@ -10,17 +10,21 @@ and the root runs preconditioned CG, each iteration two round trips of boundary 
 - ``q = S p``: down p restricted to B_r, up ``S_r p_r`` (the robot applies its own S_r);
 - the preconditioner, balancing Neumann–Neumann (Mandel 1993) with a coarse space:
 
-      M⁻¹ = Σ_r R_rᵀ D_r S_r⁻¹ D_r R_r                (one-level: down ``D_r u_r``, up ``S_r⁻¹ D_r u_r``)
+      M⁻¹ = Σ_r R_rᵀ D_r S_r⁻¹ D_r R_r        (one-level: down ``u_r``, up ``D_r S_r⁻¹ D_r u_r``)
       P   = Z E⁻¹ Zᵀ + (I − Z E⁻¹ Zᵀ S) M⁻¹ (I − S Z E⁻¹ Zᵀ),   E = Zᵀ S Z
 
   D_r the partition of unity (1 / the number of robots whose boundary holds the vertex, so
   ``Σ_r R_rᵀ D_r R_r = I``), and ``Z = [R_rᵀ D_r N_r]_r`` with ``N_r`` the eigenvectors of
   ``S_r`` against its own 6×6 (3×3) block diagonal whose eigenvalue is below ``mode_tol``, which
   each robot computes from its own S_r (the near-rigid motions of each floating piece of a
-  robot's map, which S_r alone barely resists: a GenEO-style coarse space). The root holds Z and ``S Z``, gathered once per linearisation: every robot sends its
-  N_r up, the root sends each robot the other robots' columns where they overlap B_r, and every
-  robot sends ``S_r R_r Z`` for the columns that touch B_r. So an iteration moves four boundary
-  vectors; the coarse solve and the projections happen at the root.
+  robot's map, which S_r alone barely resists: a GenEO-style coarse space).
+
+The root holds Z and ``S Z``, gathered once per linearisation: every robot sends its N_r up, the
+root sends each robot D_r and the other robots' columns where they overlap B_r, and every robot
+sends ``S_r R_r Z`` for the columns that touch B_r. In a round trip each tree link carries its
+subtree's boundary vertices once: down the values, up their partial sums ``Σ R_qᵀ v_q`` (a robot
+adds its children's to its own; ``_Links``). The coarse solve and the projections happen at the
+root.
 
 Measured centrally in float64 on sphere2500 (5 robots, exact damped Newton steps from the
 chordal init; the probe of docs/notes/generalisation.md): with 6 modes per robot 4–13 iterations
@@ -342,8 +346,8 @@ def solve(
 ) -> PCGResult:
     """``δ_B`` of ``(Σ S_r) δ_B = Σ g_r`` to the relative residual ``eta`` (module docstring).
     ``sides[r]`` is robot r's (held by robot r only), ``gs`` the root's gathered right-hand
-    sides by robot. Setup: the soft modes up, the overlapping coarse columns down, ``S_r R_r Z``
-    up; then CG, two round trips per iteration."""
+    sides by robot. Setup: the soft modes up, D_r and the overlapping coarse columns down,
+    ``S_r R_r Z`` up; then CG, two round trips per iteration (one to start)."""
     root = _Root({r: s.B for r, s in enumerate(sides)}, b)
     Z, SZ, rounds = _coarse_space(tree, sides, root, exchange, rounds, d)
     E = Z.T @ SZ

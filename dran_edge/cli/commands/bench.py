@@ -400,9 +400,12 @@ def _polish_params(args):
     is rejected (then Gauss–Newton first, as the refinement), Marquardt μ from 1e-10, the
     iterative interface solve unless --refine-interface dense is given."""
     from dran_edge.dran.exact_gn import RefineParams
+    from dran_edge.errors import InputError
 
     if args.polish is False or (args.polish is None and (args.refine == "off" or args.plain)):
         return None
+    if not 0.0 < args.refine_pcg_eta < 1.0:
+        raise InputError(f"--refine-pcg-eta must be in (0, 1), got {args.refine_pcg_eta}")
     return RefineParams(
         mode="always",
         max_steps=args.refine_steps,
