@@ -27,8 +27,9 @@ weight each time (docs/notes/solve-and-bounded-graph.md, section 5, has the meas
 covariance is the node's marginal given only its own factors and the prior, larger than its
 marginal in the whole window, and both without the archive's own factors (``prior_clean``: the
 prior the same marginalisations give without them), so archive information does not feed the
-covariances of later entries (which compounded: each entry more certain than the last). A graph without the gauge prior (a fleet robot that is not the
-gauge anchor: its frame comes from object consensus and still moves) archives nothing: its
+covariances of later entries (which compounded: each entry more certain than the last). A graph
+without the gauge prior (a fleet robot that is not the gauge anchor: its frame comes from object
+consensus and still moves) archives nothing: its
 marginals have no absolute information but the round-off of the dense prior's linearisation,
 which a numerical rank test cannot tell from weak information (forced on, 9 of the 79
 marginalised nodes of tests/test_archive.py's mission pass it).

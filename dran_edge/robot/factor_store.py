@@ -312,11 +312,12 @@ class FactorStore:
         self.protected.discard(n)
         self._count("nodes_removed")
 
-    def _loops_out(self, n: int, slots: list[int]) -> tuple[list[int], tuple | None]:
+    def _loops_out(self, n: int, slots: list[int]) -> tuple[list[int], tuple | None, tuple | None]:
         """Take ``n``'s loops off before it is marginalised: into the archive when ``n``'s
         marginal is finite (:meth:`_loops_into_archive`), else re-anchored onto a neighbour
         (:meth:`_reanchor_loops`). Returns the slots left for the Schur complement, and its
-        normal equations when they were built on the way."""
+        normal equations with and without the archive's factors when they were built on the
+        way."""
         loops = [s for s in slots if self.factors[s][4] == KIND_LOOP and self.factors[s][0] != NONE]
         if self.archive.capacity > 0:  # n's covariance from the system without archive factors
             rest = [s for s in slots if s not in loops]
@@ -325,8 +326,8 @@ class FactorStore:
                 n, [self.factors[s] for s in rest if not _from_archive(self.factors[s])], True
             )
             if self._loops_into_archive(n, loops, clean):
-                return rest, system
-        return self._reanchor_loops(n, slots), None
+                return rest, system, clean
+        return self._reanchor_loops(n, slots), None, None
 
     def _loops_into_archive(self, n: int, loops: list[int], system: tuple) -> bool:
         """Archive ``n`` (:meth:`_archive_node`) and turn each loop ``(x, n)`` into a unary factor
@@ -412,13 +413,15 @@ class FactorStore:
         H, g = _dense_normal_equations(blocks, len(keys_arr), poses)
         return keys_arr, poses, H, g
 
-    def _marginalize_out(self, n: int, slots: list[int], system: tuple | None = None) -> None:
+    def _marginalize_out(
+        self, n: int, slots: list[int], system: tuple | None = None, clean: tuple | None = None
+    ) -> None:
         """Schur-complement node ``n`` out of its factors and the prior into a new prior
         (``system``: their normal equations, :meth:`_marginal_system`, if already built)."""
         facs = [self._remove_factor(s) for s in slots]
         keys_arr, poses, H, g = system or self._marginal_system(n, facs)
         if self.archive.capacity > 0:  # the prior without the archive's factors, alike
-            ck, cp, cH, cg = self._marginal_system(
+            ck, cp, cH, cg = clean or self._marginal_system(
                 n, [f for f in facs if not _from_archive(f)], True
             )
             ci = int(np.searchsorted(ck, n))
