@@ -252,10 +252,8 @@ class _Root:
         self.rows = {r: substructure.expand(idx, b) for r, idx in self.at.items()}
         self.n = self.Bglob.size * b
 
-    def restrict(self, x: np.ndarray) -> dict[int, np.ndarray]:
-        return {r: x[rows] for r, rows in self.rows.items()}
-
     def assemble(self, parts: dict[int, np.ndarray]) -> np.ndarray:
+        """``Σ_r R_rᵀ parts[r]`` over the interface."""
         x = np.zeros(self.n)
         for r, v in parts.items():
             np.add.at(x, self.rows[r], v)
@@ -272,7 +270,7 @@ def _coarse_space(
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """(Z, S Z, rounds) at the root. Up: every robot's soft modes N_r. Down: to every robot its
     weights D_r and the other robots' columns where they overlap its boundary. Up: ``S_r`` times
-    the columns touching its boundary (its own ``D_r N_r`` first, then by robot)."""
+    the columns touching its boundary (its own ``D_r N_r`` among them), in robot order."""
     b = root.b
     wire = [s.modes.astype(np.float32).astype(np.float64) for s in sides]  # N_r as it travels
     up = [_pack_up([np.array([N.shape[1]]), N]) for N in wire]
