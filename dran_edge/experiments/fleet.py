@@ -624,6 +624,7 @@ def run_g2o_dran(
     init_rounds, init_bytes = fleet.round, fleet.traffic.bytes_total
     F = lambda T: sesync_objective(T, g.edges, g.measurements, kappa, tau)
     F_init = F(init_poses)
+    lossy = bool(partitions) or lossy_links(links)  # tree protocols through the ARQ, no SOR
     start, refined = (
         init_poses,
         _refine(
@@ -634,14 +635,14 @@ def run_g2o_dran(
             tau,
             fleet,
             refine,
-            reliable=bool(partitions) or lossy_links(links),
+            reliable=lossy,
         ),
     )
     if refined:
         start = refined["poses_refined"]
         refined["objective_refined"] = F(start)
     colour = greedy_colouring(part) if schedule == "colour" else np.zeros(num_robots, np.int64)
-    sor_off = config.sor_omega != 1.0 and (bool(partitions) or lossy_links(links))
+    sor_off = config.sor_omega != 1.0 and lossy
     if sor_off:  # block SOR needs every neighbour's values each round (docs/config.md)
         config = dataclasses.replace(config, sor_omega=1.0)
     agents = _table1_agents(
@@ -662,9 +663,8 @@ def run_g2o_dran(
         merged[p.vertices] = agents[r].x
     polished: dict = {}
     if polish is not None:  # Newton steps from DRAN's estimate (bench g2o --polish)
-        reliable = bool(partitions) or lossy_links(links)
         skip = "the refinement converged" if refined.get("refine_converged") else ""
-        out = _refine(g, part, merged, kappa, tau, fleet, polish, reliable, skip)
+        out = _refine(g, part, merged, kappa, tau, fleet, polish, lossy, skip)
         merged = out.pop("poses_refined")
         polished = {k.replace("refine_", "polish_", 1): v for k, v in out.items()}
         polished["objective_polished"] = F(merged)

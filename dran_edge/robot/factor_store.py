@@ -152,6 +152,13 @@ def _dense_prior(keys: np.ndarray, T_lin: np.ndarray, H: np.ndarray, g: np.ndarr
     }
 
 
+def _prior_without(prior: dict, key: int) -> dict | None:
+    """A dense prior's exact marginal without variable ``key`` (Schur complement)."""
+    W, e = prior["W"], prior["e"]
+    i = int(np.searchsorted(prior["keys"], key))
+    return _dense_prior(*_schur_out(prior["keys"], prior["T_lin"], W.T @ W, W.T @ e, i))
+
+
 class FactorStore:
     """Factors, adjacency and the marginalisation prior of one bounded graph; node removal.
 
@@ -512,18 +519,10 @@ class FactorStore:
             Ad = geo.se3_adjoint(geo.se3_inverse(Z))  # ε_t = -Ad(Z⁻¹) δ_s for t fixed
             self._add_factor(s, t, Z, Ad @ np.linalg.inv(info_s) @ Ad.T, KIND_ODOMETRY)
             self._count("skeleton_released_from_prior")
-        # the prior's exact marginal without s (Schur complement)
-        sr = np.setdiff1d(np.arange(H.shape[0]), si)
-        K = np.linalg.solve(H[np.ix_(si, si)] + 1e-9 * np.eye(6), H[np.ix_(si, sr)]).T
-        Hp = H[np.ix_(sr, sr)] - K @ H[np.ix_(si, sr)]
-        self._set_prior(np.delete(keys, i), np.delete(T_lin, i, axis=0), Hp, g[sr] - K @ g[si])
-        clean = self.prior_clean
-        if clean is not None and s in clean["keys"]:  # its marginal without s, alike
-            c = int(np.searchsorted(clean["keys"], s))
-            Wc, ec = clean["W"], clean["e"]
-            self.prior_clean = _dense_prior(
-                *_schur_out(clean["keys"], clean["T_lin"], Wc.T @ Wc, Wc.T @ ec, c)
-            )
+        # the prior's exact marginal without s (Schur complement), and the clean prior's alike
+        self._set_prior(*_schur_out(keys, T_lin, H, g, i))
+        if self.prior_clean is not None and s in self.prior_clean["keys"]:
+            self.prior_clean = _prior_without(self.prior_clean, s)
 
     def _set_prior(self, keys: np.ndarray, T_lin: np.ndarray, H: np.ndarray, g: np.ndarray) -> bool:
         """The dense prior ``½‖W δ + e‖²`` with ``WᵀW = H``, ``Wᵀe = g`` (its null space
