@@ -11,7 +11,14 @@ from dran_edge.config import AgentConfig, GraphBounds
 from dran_edge.daemon.checkpoint import dumps, loads
 from dran_edge.events import Keyframe, LoopClosure
 from dran_edge.robot.archive import ArchivedPose, PoseArchive
-from dran_edge.robot.keyframe_graph import KIND_LOOP, NONE, KeyframeGraph
+from dran_edge.robot.keyframe_graph import (
+    KIND_LOOP,
+    KIND_OBSERVATION,
+    NONE,
+    OBJ,
+    KeyframeGraph,
+    invert_cov,
+)
 from dran_edge.sim.vio import vio_mission
 from dran_edge.solver import lm
 
@@ -69,23 +76,30 @@ def _mission_graph(archive_size: int, anchor_first: bool = True):
 
 
 def test_archived_covariance_is_not_overconfident_on_a_mission():
-    """Each archived keyframe's error against the truth, whitened by its covariance: on
-    average no larger than a consistent Gaussian's (E[χ²₆] = 6). Over-confident covariances
-    (information counted twice in the marginal) would push it above."""
+    """Each archived keyframe's error against the truth (its pose relative to its reference
+    object, or in the world), whitened by its covariance: on average no larger than a
+    consistent Gaussian's (E[χ²₆] = 6). Over-confident covariances (information counted twice
+    in the marginal) would push it above."""
     m, g = _mission_graph(4096)
     entries = [e for seg in sorted(g.archive._entries) for e in g.archive._entries[seg]]
     assert len(entries) > 30 and g.counters["nodes_archived"] == len(entries)
     i = np.searchsorted(m.keyframe_stamps_ns, [e.stamp_ns for e in entries])
-    T = np.stack([e.T_world_body for e in entries])
-    err = geo.se3_log(geo.se3_between(T, m.T_world_body_true[i]))
+    T_true = m.T_world_body_true[i]
+    refs = np.array([e.ref_key for e in entries])
+    assert np.mean(refs >= OBJ) > 0.9  # objects are seen from the start: nearly all relative
+    T_ref_true = np.stack(
+        [m.T_world_object_true[r - OBJ] if r >= OBJ else np.eye(4) for r in refs.tolist()]
+    )
+    T = np.stack([e.T_ref_body for e in entries])
+    err = geo.se3_log(geo.se3_between(T, geo.se3_between(T_ref_true, T_true)))
     nees = [d @ np.linalg.solve(e.covariance, d) for d, e in zip(err, entries)]
     assert np.mean(nees) < 6.0, np.mean(nees)
 
 
-def test_a_loop_into_a_removed_keyframe_becomes_a_prior_on_its_current_node():
-    """With the archive the old end is the removed keyframe's own estimate, not a kept node
-    hundreds of keyframes away through VIO odometry: a unary loop factor on the current node,
-    far more certain."""
+def test_a_loop_into_a_removed_keyframe_becomes_a_factor_to_its_reference_object():
+    """With the archive the old end is the removed keyframe's own estimate relative to an
+    object, not a kept node hundreds of keyframes away through VIO odometry: a loop factor
+    between the current node and that object, far more certain."""
     sigmas = {}
     for size in (4096, 0):
         m, g = _mission_graph(size)
@@ -104,15 +118,18 @@ def test_a_loop_into_a_removed_keyframe_becomes_a_prior_on_its_current_node():
             assert g.counters["loops_to_archived_keyframes"] == 1 + loops_before.get(
                 "loops_to_archived_keyframes", 0
             )
-            sel = (fa["p"] == NONE) & (fa["q"] == newest) & (fa["kind"] == KIND_LOOP)
+            sel = (fa["p"] == newest) & (fa["q"] >= OBJ) & (fa["kind"] == KIND_LOOP)
             assert sel.sum() == 1
-            # its mean: the archived estimate composed with the loop, near the truth
-            T_pred = fa["Z"][sel][0]
+            # its mean (T_x⁻¹ T_o): the archived pose relative to the object composed with the
+            # loop, near the truth
+            Z, S = invert_cov(fa["Z"][sel][0], fa["S"][sel][0])  # T_o⁻¹ T_x
+            T_pred = g.obj_est[int(fa["q"][sel][0]) - OBJ] @ Z
             assert np.linalg.norm(T_pred[:3, 3] - m.T_world_body_true[cur][:3, 3]) < 0.5
         else:
             assert g.num_factors >= before  # a binary loop to a kept node
             sel = (fa["q"] == newest) & (fa["kind"] == KIND_LOOP) & (fa["p"] != NONE)
-        sigmas[size] = float(np.sqrt(np.trace(fa["S"][sel][-1][:3, :3]) / 3))
+            S = fa["S"][sel][-1]
+        sigmas[size] = float(np.sqrt(np.trace(S[:3, :3]) / 3))
     assert sigmas[4096] < 0.5 * sigmas[0], sigmas
 
 
@@ -141,17 +158,24 @@ def test_state_round_trip_keeps_the_archive():
         np.testing.assert_allclose(fa[k], fb[k])
 
 
-def test_the_agent_sees_loops_into_the_archive_as_robust_priors():
+def test_the_agent_sees_loops_into_the_archive():
+    """Loops into archived keyframes kept relative to an object reach the DRAN agent as views
+    of that object (its observations); those in the world frame as robust priors."""
     from dran_edge.dran.problem import LocalProblem
     from dran_edge.robot.core import problem_from_graph
 
     _, g = _mission_graph(4096)
     fa = g.factor_arrays()
-    unary_loops = int(np.sum((fa["p"] == NONE) & (fa["kind"] == KIND_LOOP)))
-    assert unary_loops > 0
+    loop = fa["kind"] == KIND_LOOP
+    relative = int(np.sum(loop & (fa["q"] >= OBJ)))
+    unary_loops = int(np.sum(loop & (fa["p"] == NONE)))
+    assert relative > 0
+    observations = int(np.sum((fa["kind"] == KIND_OBSERVATION) & (fa["q"] >= OBJ)))
     p = problem_from_graph(g, g.config.residual)
+    assert p.obs_own.size == observations + relative
     assert p.prior_robust.shape == p.prior_own.shape and int(p.prior_robust.sum()) == unary_loops
-    assert LocalProblem.from_dict(p.to_dict()).prior_robust.sum() == unary_loops
+    q = LocalProblem.from_dict(p.to_dict())
+    assert q.obs_own.size == p.obs_own.size and q.prior_robust.sum() == unary_loops
 
 
 def test_a_marginal_ignores_what_it_does_not_touch_and_refuses_a_free_direction():
@@ -237,3 +261,24 @@ def test_archive_covariances_come_from_the_prior_without_the_archive():
     gap = np.linalg.eigvalsh(H_full - H_clean)
     assert gap.min() > -1e-6 * np.abs(gap).max()
     assert gap.max() > 1e-3 * np.linalg.eigvalsh(H_full).max()
+
+
+def test_an_archived_pose_is_kept_relative_to_what_it_is_known_best_against():
+    """``_map_reference`` on a two-variable system (node n, object o, both at the identity, so
+    ``T_o⁻¹ T_n``'s error is ``δn − δo``): when both share a large common error (the map's
+    placement) and differ little, n is kept relative to o with the small covariance of the
+    difference; when n's world pose is certain and o's is not (a keyframe near the gauge), in
+    the world frame."""
+    _, g = _mission_graph(4096)
+    keys = np.array([5, OBJ + 3], dtype=np.int64)
+    poses = np.stack([np.eye(4), np.eye(4)])
+    I6 = np.eye(6)
+    common, own = 1e-2, 1e-6
+    C = np.block([[(common + own) * I6, common * I6], [common * I6, (common + own) * I6]])
+    ref, T, S = g._map_reference(np.linalg.inv(C), 0, keys, poses, np.eye(4), C[:6, :6])
+    assert ref == OBJ + 3
+    np.testing.assert_allclose(S, 2 * own * I6, rtol=1e-6, atol=1e-12)
+    C = np.block([[own * I6, 0 * I6], [0 * I6, common * I6]])
+    ref, T, S = g._map_reference(np.linalg.inv(C), 0, keys, poses, np.eye(4), C[:6, :6])
+    assert ref == NONE
+    np.testing.assert_allclose(S, own * I6)

@@ -6,19 +6,33 @@ through VIO odometry whose covariance grows with the path, and the loops of a re
 re-anchored onto its neighbour: they pile up on the window's oldest node (tens per removal) and
 each keeps a small share of one odometry edge — little is left of them. The archive keeps, for
 every node the graph *marginalises* (plain chain nodes composed out are not archived), its
-estimate ``T_world_body`` at removal and the covariance of that estimate given the node's
-factors and the prior (:meth:`~dran_edge.robot.factor_store.FactorStore._archive_node`). Then
+estimate at removal relative to a reference and the covariance of that relative pose given the
+node's factors and the prior (:meth:`~dran_edge.robot.factor_store.FactorStore._archive_node`).
+Then
 
-- the node's loops ``(x, n)`` become unary factors on ``x``, ``T_x ≈ T̂_n Z_nx``, instead of
-  being re-anchored (:meth:`~dran_edge.robot.factor_store.FactorStore._loops_into_archive`);
+- the node's loops ``(x, n)`` become factors between ``x`` and the reference ``o``,
+  ``T_o⁻¹ T_x ≈ T̂_o_n Z_nx``, instead of being re-anchored
+  (:meth:`~dran_edge.robot.factor_store.FactorStore._loops_into_archive`);
 - a later loop whose old end is nearer (in VIO path) to an archived keyframe than to any kept
-  node becomes a unary factor on its current node: ``T_b ≈ T̂_old · T_old_cur · Z_b_cur⁻¹``,
-  the archived covariance propagated through the VIO motion from the archived keyframe to the
-  loop's stamp, plus the loop's own noise and the attachment.
+  node becomes such a factor on its current node: ``T_o⁻¹ T_b ≈ T̂_o_old · T_old_cur ·
+  Z_b_cur⁻¹``, the archived covariance propagated through the VIO motion from the archived
+  keyframe to the loop's stamp, plus the loop's own noise and the attachment.
 
-**What it costs in consistency.** The archived estimate was computed from information the dense
-prior still holds (the gauge, the objects' observations, the odometry before it): a loop into
-the archive uses that shared part again. The loops into one archived keyframe share its
+**Relative to the map.** The reference is the object the keyframe is known best against (the
+smallest covariance volume of ``T_o⁻¹ T_n``), or the world when no object is known yet
+(:meth:`~dran_edge.robot.factor_store.FactorStore._map_reference`). A keyframe's world-frame
+estimate carries the map's placement error of its time (gauge, drift), common to every entry
+of that time and to the objects the dense prior keeps; with world-frame entries each loop into
+the archive counted that common error again, and the window was pinned to the placement the
+map had when the entries were made. Measured on four 10 000-keyframe missions, the window's
+mean position error then differed from the unbounded graph's by up to 4.5 cm, in a direction
+the unbounded graph had long corrected; relative to an object it follows the unbounded graph's
+placement (docs/notes/solve-and-bounded-graph.md, section 5c). In the DRAN agent's problem a
+loop into the archive relative to an object is a view of that object (an observation).
+
+**What it costs in consistency.** The archived relative pose was computed from information the
+dense prior still holds (the objects' observations, the odometry before it): a loop into the
+archive uses that shared part again. The loops into one archived keyframe share its
 marginal's information: those made when it is marginalised get half of it, every later batch
 half of what is left (:meth:`ArchivedPose.take`), so all of them together use it at most once,
 and with the prior's copy it is counted at most twice — not conservative, but bounded; without
@@ -49,6 +63,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dran_edge.robot.factor_algebra import NONE
+
 
 def nearest_in_time(stamps: list[int], stamp_ns: int) -> int:
     """Index of the stamp in the sorted, non-empty ``stamps`` nearest to ``stamp_ns`` (the
@@ -68,7 +84,7 @@ class ArchivedPose:
     T_world_body: np.ndarray
     """(4, 4) the estimate at removal."""
     covariance: np.ndarray
-    """(6, 6) of the estimate, [ρ, φ], right perturbation ``T = T̂ Exp(ε)``."""
+    """(6, 6) of ``T_ref_body``, [ρ, φ], right perturbation ``T = T̂ Exp(ε)``."""
     T_odom_body: np.ndarray
     """(4, 4) the keyframe's VIO pose."""
     path_m: float
@@ -77,6 +93,16 @@ class ArchivedPose:
     """VIO accumulated turn at the keyframe, radians."""
     budget: float = 1.0
     """Share of the covariance's information not yet handed to loops."""
+    ref_key: int = NONE
+    """The variable the entry is relative to: an object's key (``OBJ + id``), or ``NONE`` for
+    the world frame (module docstring, "Relative to the map")."""
+    T_ref_body: np.ndarray | None = None
+    """(4, 4) the estimate in the reference's frame, ``T̂_ref⁻¹ T̂_world_body`` (the world's:
+    ``T_world_body``, the default)."""
+
+    def __post_init__(self) -> None:
+        if self.T_ref_body is None:
+            self.T_ref_body = self.T_world_body
 
     def take(self, uses: int = 1) -> float:
         """The share of the information for each of ``uses`` loops made now: half of what is
@@ -145,6 +171,8 @@ class PoseArchive:
             "stamps": np.array([e.stamp_ns for e in entries], np.int64),
             "segments": np.array([e.segment for e in entries], np.int64),
             "T_world_body": np.array([e.T_world_body for e in entries]).reshape(-1, 4, 4),
+            "ref_key": np.array([e.ref_key for e in entries], np.int64),
+            "T_ref_body": np.array([e.T_ref_body for e in entries]).reshape(-1, 4, 4),
             "covariance": np.array([e.covariance for e in entries]).reshape(-1, 6, 6),
             "T_odom_body": np.array([e.T_odom_body for e in entries]).reshape(-1, 4, 4),
             "cum": np.array([(e.path_m, e.turn_rad) for e in entries], np.float64).reshape(-1, 2),
@@ -170,6 +198,9 @@ class PoseArchive:
                     float(state["cum"][i][0]),
                     float(state["cum"][i][1]),
                     float(state["budget"][i]),
+                    # checkpoints written before relative entries hold world-frame ones
+                    int(state["ref_key"][i]) if "ref_key" in state else NONE,
+                    np.array(state["T_ref_body"][i]) if "T_ref_body" in state else None,
                 )
             )
         a.thinned = int(state["thinned"])

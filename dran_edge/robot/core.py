@@ -65,8 +65,9 @@ def problem_from_graph(
     """The agent's :class:`LocalProblem` of ``graph``, mapped into the world by ``T_world_graph``.
 
     Odometry and loop factors between nodes become ``between`` (loops robust), node-object
-    factors become observations ``obs_*`` (``T_body_object`` measured from the node), unary
-    priors become ``prior_*``. Whitening from each factor's covariance (``WᵀW = Σ⁻¹``).
+    factors (observations, and loops into the archive kept relative to an object) become
+    observations ``obs_*`` (``T_body_object`` measured from the node), unary priors become
+    ``prior_*``. Whitening from each factor's covariance (``WᵀW = Σ⁻¹``).
     """
     G = np.eye(4) if T_world_graph is None else np.asarray(T_world_graph, dtype=np.float64)
     keys = graph.node_keys()
@@ -83,7 +84,8 @@ def problem_from_graph(
         return np.array([idx[int(k)] for k in a.tolist()], dtype=np.int64)
 
     btw = node_p & node_q & ((kind == KIND_ODOMETRY) | (kind == KIND_LOOP))
-    obs = node_p & (q >= OBJ) & (kind == KIND_OBSERVATION)
+    # observations, and loops into the archive relative to an object (a remembered view of it)
+    obs = node_p & (q >= OBJ) & ((kind == KIND_OBSERVATION) | (kind == KIND_LOOP))
     pri = (p < 0) & node_q & ((kind == KIND_PRIOR) | (kind == KIND_LOOP))  # loops into the archive
     z = np.zeros(0, np.int64)
     T0 = np.zeros((0, 4, 4))

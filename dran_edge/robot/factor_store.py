@@ -116,8 +116,33 @@ def _dense_normal_equations(
 
 
 def _from_archive(f: Factor) -> bool:
-    """A factor the archive made: a loop turned into a unary factor on its new end."""
-    return f[4] == KIND_LOOP and f[0] == NONE
+    """A factor the archive made: a loop turned into a factor between its new end and the
+    archived keyframe's reference, an object (``(x, OBJ + id)``, the canonical order) or the
+    world (unary, ``p = NONE``). Loops between nodes and objects are made by nothing else."""
+    return f[4] == KIND_LOOP and (f[0] == NONE or f[1] >= OBJ)
+
+
+def _is_node_loop(f: Factor) -> bool:
+    """A loop between two kept nodes (one the archive can take over)."""
+    return f[4] == KIND_LOOP and not _from_archive(f)
+
+
+def _marginal_information(H: np.ndarray, sk: np.ndarray) -> np.ndarray | None:
+    """The information of the entries ``sk`` of the normal equations ``H`` with the other
+    entries eliminated (Schur complement, pseudo-inverse over their directions without
+    information, which the entries ``sk`` must not touch); None when such a direction is coupled
+    to them (their marginal is not finite)."""
+    H = 0.5 * (H + H.T)
+    sb = np.setdiff1d(np.arange(H.shape[0]), sk)
+    Hkb = H[np.ix_(sk, sb)]
+    lam_b, V = np.linalg.eigh(H[np.ix_(sb, sb)])
+    null = lam_b <= ARCHIVE_MIN_EIGENVALUE * max(float(lam_b.max(initial=0.0)), 1e-300)
+    coupled = np.linalg.norm(Hkb @ V[:, null], axis=0)
+    if np.any(coupled > 1e-8 * max(float(np.linalg.norm(Hkb)), 1e-300)):
+        return None
+    Vr = V[:, ~null]
+    M = H[np.ix_(sk, sk)] - (Hkb @ Vr) @ ((Hkb @ Vr) / lam_b[~null]).T
+    return 0.5 * (M + M.T)
 
 
 def _schur_out(
@@ -325,7 +350,7 @@ class FactorStore:
         (:meth:`_reanchor_loops`). Returns the slots left for the Schur complement, and its
         normal equations with and without the archive's factors when they were built on the
         way."""
-        loops = [s for s in slots if self.factors[s][4] == KIND_LOOP and self.factors[s][0] != NONE]
+        loops = [s for s in slots if _is_node_loop(self.factors[s])]
         if self.archive.capacity > 0:  # n's covariance from the system without archive factors
             rest = [s for s in slots if s not in loops]
             system = self._marginal_system(n, [self.factors[s] for s in rest])
@@ -337,14 +362,16 @@ class FactorStore:
         return self._reanchor_loops(n, slots), None, None
 
     def _loops_into_archive(self, n: int, loops: list[int], system: tuple) -> bool:
-        """Archive ``n`` (:meth:`_archive_node`) and turn each loop ``(x, n)`` into a unary factor
-        on ``x``: ``T_x ≈ T̂_n Z_nx`` with ``Σ = Ad(Z_nx⁻¹) (Σ_n / w) Ad(Z_nx⁻¹)ᵀ + Σ_nx``. The
-        ``k`` loops share half of the information of ``n``'s marginal ``Σ_n``, ``w = 1/(2k)``;
-        later loops into the archived ``n`` take half of what is left each
+        """Archive ``n`` (:meth:`_archive_node`) and turn each loop ``(x, n)`` into a factor
+        between ``x`` and the entry's reference ``o`` (an object, or the world):
+        ``T_o⁻¹ T_x ≈ T̂_o_n Z_nx`` with ``Σ = Ad(Z_nx⁻¹) (Σ_o_n / w) Ad(Z_nx⁻¹)ᵀ + Σ_nx``, where
+        ``T̂_o_n`` is ``n`` in the reference's frame and ``Σ_o_n`` its covariance. The ``k``
+        loops share half of that information, ``w = 1/(2k)``; later loops into the archived
+        ``n`` take half of what is left each
         (:meth:`~dran_edge.robot.archive.ArchivedPose.take`), so all of them together use it at
         most once. False when ``n``'s marginal is not finite (nothing changed)."""
-        keys_arr, _, H, _ = system
-        entry = self._archive_node(n, H, int(np.searchsorted(keys_arr, n)))
+        keys_arr, poses, H, _ = system
+        entry = self._archive_node(n, H, int(np.searchsorted(keys_arr, n)), keys_arr, poses)
         if entry is None:
             return False
         w = entry.take(len(loops)) if loops else 1.0
@@ -352,8 +379,8 @@ class FactorStore:
             p, q, Z, S, _ = self._remove_factor(s)
             x = p if q == n else q
             Z_nx, S_nx = (Z, S) if p == n else invert_cov(Z, S)
-            Z_x, S_x = compose_cov(entry.T_world_body, entry.covariance / w, Z_nx, S_nx)
-            self._add_factor(NONE, x, Z_x, S_x, KIND_LOOP)
+            Z_x, S_x = compose_cov(entry.T_ref_body, entry.covariance / w, Z_nx, S_nx)
+            self._add_factor(entry.ref_key, x, Z_x, S_x, KIND_LOOP)
             self._count("loops_into_archive")
         return True
 
@@ -444,7 +471,14 @@ class FactorStore:
             if self.prior is not None:
                 self._release_from_prior(older, newer)
 
-    def _archive_node(self, n: int, H: np.ndarray, i: int) -> ArchivedPose | None:
+    def _archive_node(
+        self,
+        n: int,
+        H: np.ndarray,
+        i: int,
+        keys: np.ndarray | None = None,
+        poses: np.ndarray | None = None,
+    ) -> ArchivedPose | None:
         """Keep ``n``'s estimate and its covariance given the factors being marginalised and the
         prior, both without the archive's factors (``H`` of the clean system, :meth:`_loops_out`),
         in the archive (:mod:`dran_edge.robot.archive`): the inverse of ``n``'s Schur
@@ -452,23 +486,13 @@ class FactorStore:
         pseudo-inverse drops directions of ``H_bb`` without information that ``n``'s factors do
         not touch, e.g. a node of a segment before a VIO reset left in the prior). Nothing when a
         direction without information is coupled to ``n``, when the complement is singular, or
-        when the variance is too large to be of use."""
+        when the variance is too large to be of use. Given the system's ``keys`` and ``poses``,
+        the entry is kept relative to the object it is known best against
+        (:meth:`_map_reference`); without them, in the world frame."""
         if self.archive.capacity <= 0:
             return None
-        H = 0.5 * (H + H.T)
-        sn = np.arange(6 * i, 6 * i + 6)
-        sb = np.setdiff1d(np.arange(H.shape[0]), sn)
-        Hnb = H[np.ix_(sn, sb)]
-        lam_b, V = np.linalg.eigh(H[np.ix_(sb, sb)])
-        null = lam_b <= ARCHIVE_MIN_EIGENVALUE * max(float(lam_b.max(initial=0.0)), 1e-300)
-        # a direction without information that n's factors touch: n's marginal is not finite
-        coupled = np.linalg.norm(Hnb @ V[:, null], axis=0)
-        if np.any(coupled > 1e-8 * max(float(np.linalg.norm(Hnb)), 1e-300)):
-            self._count("archive_singular")
-            return None
-        Vr = V[:, ~null]
-        M = H[np.ix_(sn, sn)] - (Hnb @ Vr) @ ((Hnb @ Vr) / lam_b[~null]).T
-        lam = np.linalg.eigvalsh(0.5 * (M + M.T))
+        M = _marginal_information(H, np.arange(6 * i, 6 * i + 6))
+        lam = np.linalg.eigvalsh(M) if M is not None else np.zeros(1)
         if not np.all(np.isfinite(lam)) or lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300):
             self._count("archive_singular")
             return None
@@ -478,18 +502,74 @@ class FactorStore:
             self._count("archive_singular")
             return None
         d_m, r_rad = self.node_cum[n]
+        T_n = self.node_est[n].copy()
+        ref_key, T_ref_body = NONE, T_n
+        if keys is not None and poses is not None:
+            ref_key, T_ref_body, S = self._map_reference(H, i, keys, poses, T_n, S)
         entry = ArchivedPose(
             self.node_stamp[n],
             self.node_segment[n],
-            self.node_est[n].copy(),
+            T_n,
             S,
             self.node_odom[n].copy(),
             d_m,
             r_rad,
+            ref_key=ref_key,
+            T_ref_body=T_ref_body,
         )
         self.archive.add(entry)
         self._count("nodes_archived")
         return entry
+
+    def _map_reference(
+        self,
+        H: np.ndarray,
+        i: int,
+        keys: np.ndarray,
+        poses: np.ndarray,
+        T_n: np.ndarray,
+        S_n: np.ndarray,
+    ) -> tuple[int, np.ndarray, np.ndarray]:
+        """(ref_key, T̂_ref⁻¹ T̂_n, Σ): variable ``i`` of the system ``H`` (the node ``T_n``,
+        world covariance ``S_n``) relative to what it is known best against: an object of the
+        system, or the world (``NONE``, ``T_n``, ``S_n``).
+
+        Why relative: a keyframe's world-frame estimate carries the map's placement error of
+        its time (gauge, drift), which it shares with every entry of that time and with the
+        objects the dense prior keeps. Loops into world-frame entries count that common error
+        again per entry and pin the window to the past's placement
+        (docs/notes/solve-and-bounded-graph.md, section 5c). The pose relative to an object,
+        ``r = T_o⁻¹ T_n``, has the placement taken out: its covariance is ``J C Jᵀ`` with ``C``
+        the joint marginal covariance of ``(n, o)`` and ``J = [I, −Ad(r⁻¹)]`` (right
+        perturbations: ``δr = δn − Ad(r⁻¹) δo``). Of the world and the objects, the reference
+        whose pose of ``n`` has the smallest log-determinant of covariance (a volume: the
+        choice does not depend on units) is taken: the one whose error ``n`` shares most, of
+        these candidate predictors of ``n``'s error the one that leaves the least. Near the
+        gauge that is the world (an early keyframe's world pose is more certain than its pose
+        relative to any object); elsewhere an object."""
+        objs = [j for j, k in enumerate(keys.tolist()) if k >= OBJ]
+        if not objs:
+            return NONE, T_n, S_n
+        sk = np.concatenate([np.arange(6 * j, 6 * j + 6) for j in [i, *objs]])
+        M = _marginal_information(H, sk)
+        lam = np.linalg.eigvalsh(M) if M is not None else np.zeros(1)
+        if lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300):
+            self._count("archive_world_frame")  # an object's marginal is not finite
+            return NONE, T_n, S_n
+        C = np.linalg.inv(M)
+        best = (float(np.linalg.slogdet(S_n)[1]), NONE, T_n, S_n)
+        for a, j in enumerate(objs):
+            r = geo.se3_between(poses[j], T_n)
+            J = np.hstack([np.eye(6), -geo.se3_adjoint(geo.se3_inverse(r))])
+            sel = np.r_[0:6, 6 + 6 * a : 12 + 6 * a]
+            S = J @ C[np.ix_(sel, sel)] @ J.T
+            S = 0.5 * (S + S.T)
+            sign, logdet = np.linalg.slogdet(S)
+            if sign > 0 and logdet < best[0]:
+                best = (float(logdet), int(keys[j]), r, S)
+        if best[1] == NONE:
+            self._count("archive_world_frame")
+        return best[1], best[2], best[3]
 
     def _release_from_prior(self, s: int, t: int) -> None:
         """Take skeleton node ``s`` out of the dense prior: the prior becomes its exact marginal

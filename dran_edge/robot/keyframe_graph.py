@@ -40,13 +40,15 @@ endpoints) are fused, ``Ω = Ω₁ + Ω₂``, ``Z = Z₁ Exp(Ω⁻¹ Ω₂ Log(Z
 the edge count bounded. Memory is O(max_nodes + max_edges + buffers) whatever the mission length.
 
 **Loops into the past** (``archive_size``, on by default; :mod:`dran_edge.robot.archive`). A node
-that is marginalised leaves its estimate and its marginal covariance (given its factors and the
-prior) in a bounded archive, and its loops become unary factors on their other ends through that
-estimate instead of being re-anchored (the re-anchored loops piled up on the window's oldest
-node and each got a tiny share of one bridge). A loop that arrives later and refers to an
-archived keyframe becomes such a unary factor on its current node too. The loops into one
-archived keyframe use its marginal's information at most once in total — but that information
-is also in the dense prior, so it is counted up to twice: not conservative (module
+that is marginalised leaves its estimate, relative to the object it is known best against, and
+that relative pose's covariance (given its factors and the prior) in a bounded archive, and its
+loops become factors between their other ends and that object instead of being re-anchored (the
+re-anchored loops piled up on the window's oldest node and each got a tiny share of one
+bridge). A loop that arrives later and refers to an archived keyframe becomes such a factor on
+its current node too. Relative to an object, not in the world: the map's placement error of
+the keyframe's time is then not counted again by every entry. The loops into one archived
+keyframe use its marginal's information at most once in total — but that information is also
+in the dense prior, so it is counted up to twice: not conservative (module
 :mod:`dran_edge.robot.archive`). A graph without the gauge prior (a fleet robot that is not the
 gauge anchor: its frame comes from object consensus) archives nothing and re-anchors as before.
 Optionally (``skeleton_fraction``, off by default) a share of the nodes is kept as a skeleton
@@ -361,12 +363,13 @@ class KeyframeGraph(FactorStore):
         if a == b:
             self._count("loops_within_one_node")
             return False
-        # T_a⁻¹ T_b = Z_a_old · T_old_cur · Z_b_cur⁻¹ (a = NONE: the archive, T_a = I)
+        # T_a⁻¹ T_b = Z_a_old · T_old_cur · Z_b_cur⁻¹ (the archive: a = an object, or NONE with
+        # T_a = I)
         Z, S = compose_cov(Z_a_old, S_a, ev.T_old_cur, diag_covariance(self.config.loop_noise))
         Zi, Si = invert_cov(Z_b_cur, S_b)
         Z, S = compose_cov(Z, S, Zi, Si)
         self._add_factor(a, b, Z, S, KIND_LOOP)
-        self._count("loops_added" if a != NONE else "loops_to_archived_keyframes")
+        self._count("loops_added" if NONE < a < OBJ else "loops_to_archived_keyframes")
         self._enforce_bounds()
         return True
 
@@ -378,9 +381,10 @@ class KeyframeGraph(FactorStore):
         cum: tuple[float, float] | None,
         att: tuple[int, np.ndarray, np.ndarray] | None,
     ) -> tuple[int, np.ndarray, np.ndarray] | None:
-        """``(NONE, T̂_world_body, Σ)`` at ``stamp_ns`` from the nearest archived keyframe of
-        ``seg`` (:mod:`dran_edge.robot.archive`) when it is nearer in VIO path than the kept
-        node of ``att`` (or there is none); else ``att``."""
+        """``(ref, T̂_ref_body, Σ)`` at ``stamp_ns`` from the nearest archived keyframe of
+        ``seg`` (:mod:`dran_edge.robot.archive`; ``ref`` its reference: an object's key, or
+        ``NONE`` for the world) when it is nearer in VIO path than the kept node of ``att`` (or
+        there is none); else ``att``."""
         entry = self.archive.nearest(seg, stamp_ns)
         if entry is None:
             return att
@@ -397,7 +401,10 @@ class KeyframeGraph(FactorStore):
                 )
             if d_node <= d_arch:
                 return att
-        return (NONE, *compose_cov(entry.T_world_body, entry.covariance / entry.take(), Z, S_vio))
+        return (
+            entry.ref_key,
+            *compose_cov(entry.T_ref_body, entry.covariance / entry.take(), Z, S_vio),
+        )
 
     def _observations(self, batch: ObservationBatch, retry: bool = False) -> bool:
         at = self._interpolate(batch.stamp_ns)
