@@ -55,6 +55,11 @@ def test_archive_stays_bounded_and_spans_the_mission():
     e, f = a.nearest(1, 777), b.nearest(1, 777)
     assert e.stamp_ns == f.stamp_ns
     np.testing.assert_array_equal(e.T_world_body, f.T_world_body)
+    # a checkpoint written before entries had a reference: all in the world frame
+    old = {k: v for k, v in a.to_state().items() if k not in ("ref_key", "T_ref_body")}
+    f = PoseArchive.from_state(16, loads(dumps(old))).nearest(1, 777)
+    assert f.ref_key == NONE
+    np.testing.assert_array_equal(f.T_ref_body, e.T_world_body)
 
 
 MISSION = vio_mission(300, seed=21)

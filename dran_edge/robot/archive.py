@@ -59,7 +59,7 @@ only, no clock.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -96,12 +96,12 @@ class ArchivedPose:
     ref_key: int = NONE
     """The variable the entry is relative to: an object's key (``OBJ + id``), or ``NONE`` for
     the world frame (module docstring, "Relative to the map")."""
-    T_ref_body: np.ndarray | None = None
+    T_ref_body: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     """(4, 4) the estimate in the reference's frame, ``T̂_ref⁻¹ T̂_world_body`` (the world's:
     ``T_world_body``, the default)."""
 
     def __post_init__(self) -> None:
-        if self.T_ref_body is None:
+        if self.T_ref_body.size == 0:
             self.T_ref_body = self.T_world_body
 
     def take(self, uses: int = 1) -> float:
@@ -200,7 +200,7 @@ class PoseArchive:
                     float(state["budget"][i]),
                     # checkpoints written before relative entries hold world-frame ones
                     int(state["ref_key"][i]) if "ref_key" in state else NONE,
-                    np.array(state["T_ref_body"][i]) if "T_ref_body" in state else None,
+                    np.array(state["T_ref_body"][i]) if "T_ref_body" in state else np.zeros(0),
                 )
             )
         a.thinned = int(state["thinned"])

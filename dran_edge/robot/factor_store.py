@@ -493,7 +493,11 @@ class FactorStore:
             return None
         M = _marginal_information(H, np.arange(6 * i, 6 * i + 6))
         lam = np.linalg.eigvalsh(M) if M is not None else np.zeros(1)
-        if not np.all(np.isfinite(lam)) or lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300):
+        if (
+            M is None
+            or not np.all(np.isfinite(lam))
+            or lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300)
+        ):
             self._count("archive_singular")
             return None
         S = np.linalg.inv(M)
@@ -553,7 +557,7 @@ class FactorStore:
         sk = np.concatenate([np.arange(6 * j, 6 * j + 6) for j in [i, *objs]])
         M = _marginal_information(H, sk)
         lam = np.linalg.eigvalsh(M) if M is not None else np.zeros(1)
-        if lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300):
+        if M is None or lam[0] <= ARCHIVE_MIN_EIGENVALUE * max(lam[-1], 1e-300):
             self._count("archive_world_frame")  # an object's marginal is not finite
             return NONE, T_n, S_n
         C = np.linalg.inv(M)
