@@ -18,17 +18,17 @@ Then
   Z_b_cur⁻¹``, the archived covariance propagated through the VIO motion from the archived
   keyframe to the loop's stamp, plus the loop's own noise and the attachment.
 
-**Relative to the map.** The reference is the object the keyframe is known best against (the
-smallest covariance volume of ``T_o⁻¹ T_n``), or the world when no object is known yet
-(:meth:`~dran_edge.robot.factor_store.FactorStore._map_reference`). A keyframe's world-frame
-estimate carries the map's placement error of its time (gauge, drift), common to every entry
-of that time and to the objects the dense prior keeps; with world-frame entries each loop into
-the archive counted that common error again, and the window was pinned to the placement the
-map had when the entries were made. Measured on four 10 000-keyframe missions, the window's
-mean position error then differed from the unbounded graph's by up to 4.5 cm, in a direction
-the unbounded graph had long corrected; relative to an object it follows the unbounded graph's
-placement (docs/notes/solve-and-bounded-graph.md, section 5c). In the DRAN agent's problem a
-loop into the archive relative to an object is a view of that object (an observation).
+**Relative to the map.** The reference is what the keyframe is known best against: of the
+world and the objects, the one whose pose of the keyframe has the smallest covariance volume
+(:meth:`~dran_edge.robot.factor_store.FactorStore._map_reference`) — an object, except near
+the gauge early in the mission. A keyframe's world-frame estimate carries the map's placement
+error of its time (gauge, drift), common to every entry of that time and to the objects the
+dense prior keeps; with world-frame entries only, each loop into the archive counted that
+common error again, and the window was pinned to the placement the map had when the entries
+were made. Measured on six 10 000-keyframe missions, the window's mean position error then
+differed from the unbounded graph's by 1.6–4.8 cm; with the reference, by 0.1–1.6 cm
+(docs/notes/solve-and-bounded-graph.md, section 5c). In the DRAN agent's problem a loop into
+the archive relative to an object is a view of that object (an observation).
 
 **What it costs in consistency.** The archived relative pose was computed from information the
 dense prior still holds (the objects' observations, the odometry before it): a loop into the

@@ -40,17 +40,18 @@ endpoints) are fused, ``Ω = Ω₁ + Ω₂``, ``Z = Z₁ Exp(Ω⁻¹ Ω₂ Log(Z
 the edge count bounded. Memory is O(max_nodes + max_edges + buffers) whatever the mission length.
 
 **Loops into the past** (``archive_size``, on by default; :mod:`dran_edge.robot.archive`). A node
-that is marginalised leaves its estimate, relative to the object it is known best against, and
-that relative pose's covariance (given its factors and the prior) in a bounded archive, and its
-loops become factors between their other ends and that object instead of being re-anchored (the
-re-anchored loops piled up on the window's oldest node and each got a tiny share of one
-bridge). A loop that arrives later and refers to an archived keyframe becomes such a factor on
-its current node too. Relative to an object, not in the world: the map's placement error of
-the keyframe's time is then not counted again by every entry. The loops into one archived
-keyframe use its marginal's information at most once in total — but that information is also
-in the dense prior, so it is counted up to twice: not conservative (module
-:mod:`dran_edge.robot.archive`). A graph without the gauge prior (a fleet robot that is not the
-gauge anchor: its frame comes from object consensus) archives nothing and re-anchors as before.
+that is marginalised leaves its estimate, relative to what it is known best against (an object,
+or the world near the gauge), and that pose's covariance (given its factors and the prior) in a
+bounded archive, and its loops become factors between their other ends and that reference
+instead of being re-anchored (the re-anchored loops piled up on the window's oldest node and
+each got a tiny share of one bridge). A loop that arrives later and refers to an archived
+keyframe becomes such a factor on its current node too. Relative to an object rather than in
+the world wherever that is more certain: the map's placement error of the keyframe's time is
+then not counted again by every entry. The loops into one archived keyframe use its marginal's
+information at most once in total — but that information is also in the dense prior, so it is
+counted up to twice: not conservative (module :mod:`dran_edge.robot.archive`). A graph without
+the gauge prior (a fleet robot that is not the gauge anchor: its frame comes from object
+consensus) archives nothing and re-anchors as before.
 Optionally (``skeleton_fraction``, off by default) a share of the nodes is kept as a skeleton
 spread over the whole mission (:mod:`dran_edge.robot.skeleton`).
 
