@@ -487,7 +487,7 @@ class FactorStore:
         not touch, e.g. a node of a segment before a VIO reset left in the prior). Nothing when a
         direction without information is coupled to ``n``, when the complement is singular, or
         when the variance is too large to be of use. Given the system's ``keys`` and ``poses``,
-        the entry is kept relative to the object it is known best against
+        the entry is kept relative to what it is known best against, an object or the world
         (:meth:`_map_reference`); without them, in the world frame."""
         if self.archive.capacity <= 0:
             return None
@@ -547,12 +547,13 @@ class FactorStore:
         the joint marginal covariance of ``(n, o)`` and ``J = [I, −Ad(r⁻¹)]`` (right
         perturbations: ``δr = δn − Ad(r⁻¹) δo``). Of the world and the objects, the reference
         whose pose of ``n`` has the smallest log-determinant of covariance (a volume: the
-        choice does not depend on units) is taken: the one whose error ``n`` shares most, of
-        these candidate predictors of ``n``'s error the one that leaves the least. Near the
+        choice does not depend on units) is taken: of these candidate explanations of ``n``'s
+        error, the one that leaves the least of it unexplained. Near the
         gauge that is the world (an early keyframe's world pose is more certain than its pose
         relative to any object); elsewhere an object."""
         objs = [j for j, k in enumerate(keys.tolist()) if k >= OBJ]
         if not objs:
+            self._count("archive_world_frame")
             return NONE, T_n, S_n
         sk = np.concatenate([np.arange(6 * j, 6 * j + 6) for j in [i, *objs]])
         M = _marginal_information(H, sk)
